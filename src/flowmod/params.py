@@ -14,6 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
+import pandas as pd
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -54,7 +55,7 @@ class Params(BaseModel):
     force: bool = Field(False, description="recompute stages whose outputs are up to date")
 
     # --- data --------------------------------------------------------------------------
-    dataroot: str = Field("data/demo", description="nuScenes-format data root")
+    dataroot: str | None = Field("data/demo", description="nuScenes-format data root")
     version: str = Field("v1.0-synth", description="table folder under dataroot, e.g. v1.0-mini")
     synthetic: bool = Field(True, description="build the synthetic world when dataroot is absent")
     world_scenes: int = Field(40, ge=1, le=2000, description="synthetic world: number of scenes")
@@ -129,7 +130,10 @@ class Params(BaseModel):
         if not self.categories:
             raise ValueError("categories is empty: give at least one nuScenes category name")
         if not self.dataroot:
-            raise ValueError("dataroot is empty: give the nuScenes data root folder")
+            raise ValueError(
+                "dataroot is required: set it in the profile or pass DATAROOT=/path/to/nuscenes "
+                "(the folder that holds samples/, sweeps/ and the version folder)"
+            )
         if self.world_sweep_scenes > self.world_scenes:
             raise ValueError(
                 f"world_sweep_scenes={self.world_sweep_scenes} must be <= "
@@ -149,6 +153,7 @@ class Params(BaseModel):
 
     @property
     def dataroot_path(self) -> Path:
+        assert self.dataroot  # checked by the validator
         return self.path(self.dataroot)
 
 
@@ -239,3 +244,13 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+def describe(p: Params) -> pd.DataFrame:
+    """The parameters as a table: name, value, description (for the book)."""
+    rows = []
+    for name, field in Params.model_fields.items():
+        rows.append(
+            {"parameter": name, "value": getattr(p, name), "description": field.description or ""}
+        )
+    return pd.DataFrame(rows)

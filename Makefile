@@ -1,0 +1,71 @@
+# flowmod: `make book` runs the whole study and renders the book; `make test` checks it.
+# Every target sets up what it needs first (the venv, vendored MathJax), so both work as the
+# very first command on a fresh clone.
+
+SHELL      := /bin/bash
+.SHELLFLAGS := -eu -o pipefail -c
+.DEFAULT_GOAL := help
+
+PYTHON     ?= python3
+VENV       ?= .venv
+PY         := $(VENV)/bin/python
+PROFILE    ?= demo
+DATAROOT   ?=
+SET        ?=
+EXECUTED   ?= build/executed
+HTML       ?= build/html
+MATHJAX    := build/vendor/node_modules/mathjax/es5/tex-chtml.js
+STAMP      := $(VENV)/.flowmod-env-stamp
+PYTEST_ARGS ?=
+
+RUN_SET    := $(if $(DATAROOT),--set dataroot=$(DATAROOT)) $(foreach s,$(SET),--set $(s))
+
+.PHONY: help env data run book test bench lint clean
+
+help:  ## list the targets
+	@echo "flowmod: optical-flow motion detection, reproduced"
+	@echo
+	@grep -E '^[a-z]+:.*## ' $(MAKEFILE_LIST) | sed -E 's/:.*## /\t/' | expand -t 10
+	@echo
+	@echo "variables: PROFILE=$(PROFILE) (smoke|demo|paper or a YAML path), DATAROOT=, SET='key=value ...', VENV=$(VENV)"
+
+env: $(STAMP) $(MATHJAX)  ## create the venv (pinned requirements, editable flowmod) and vendor MathJax
+
+$(STAMP): environment/requirements.txt pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -r environment/requirements.txt
+	$(PY) -m pip install --quiet --no-deps -e .
+	$(PY) -m pip check
+	@touch $@
+
+$(MATHJAX):
+	@command -v npm >/dev/null || { echo "npm is needed once to vendor MathJax (apt-get install npm)"; exit 1; }
+	npm install --silent --no-audit --no-fund --prefix build/vendor mathjax@3.2.2
+	@test -f $@
+
+data: env  ## build the synthetic world of PROFILE (demo: data/demo)
+	$(PY) -m flowmod.world --profile $(PROFILE) $(RUN_SET)
+
+run: env  ## execute notebooks/NN_*.ipynb in order with params/$(PROFILE).yaml into build/executed
+	$(PY) -m flowmod.runner --profile $(PROFILE) --out $(EXECUTED) $(RUN_SET)
+
+book: run  ## run, then render the book into build/html
+	$(PY) -m flowmod.book --executed $(EXECUTED) --out $(HTML)
+
+test: env  ## unit tests, notebooks on the smoke profile, the book build, lint
+	$(PY) -m ruff check src tests benchmarks notebooks
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+bench: env  ## throughput and memory figures into benchmarks/results/ (never asserted)
+	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b; done
+
+lint: env  ## ruff
+	$(PY) -m ruff check src tests benchmarks notebooks
+
+clean:  ## remove generated outputs (keeps the venv and data/; `make clean-all` removes them too)
+	rm -rf build/executed build/html build/book-src build/book-extra runs .pytest_cache .ruff_cache
+
+.PHONY: clean-all
+clean-all: clean
+	rm -rf build data $(VENV)

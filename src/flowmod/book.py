@@ -1,0 +1,203 @@
+"""Assemble and build the HTML book from executed notebooks.
+
+    python -m flowmod.book --executed build/executed --out build/html
+
+Steps: check the run record (``run_info.json``) and every executed notebook (a notebook that
+failed, or was not executed, is refused: it is never rendered as if it had passed); copy
+``book/`` and the executed notebooks into a staging folder; write the Reproduce page from the
+run record; vendor MathJax; run ``sphinx-build -W -n --keep-going``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import nbformat
+import pandas as pd
+
+from flowmod.paths import repo_root
+
+
+class BookError(RuntimeError):
+    """The book cannot be built from what was run; the message says what to do."""
+
+
+def read_glue(nb_path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Values a notebook recorded with ``myst_nb.glue``: ``{key: python value}``.
+
+    Reads the ``text/plain`` representation (``ast.literal_eval`` where possible, else the
+    string): the recommenders-style hook through which tests assert on a notebook's results.
+    """
+    import ast
+
+    nb = nbformat.read(str(nb_path), as_version=4)
+    out: dict[str, Any] = {}
+    for cell in nb.cells:
+        for o in cell.get("outputs", []):
+            meta = o.get("metadata", {}).get("scrapbook", {})
+            if "name" not in meta:
+                continue
+            text = o.get("data", {}).get("text/plain", "")
+            try:
+                out[meta["name"]] = ast.literal_eval(text)
+            except (ValueError, SyntaxError):
+                out[meta["name"]] = text.strip("'\"")
+    return out
+
+
+def check_executed(nb_path: Path) -> None:
+    """Refuse a notebook that papermill did not run to completion."""
+    nb = nbformat.read(str(nb_path), as_version=4)
+    pm = nb.metadata.get("papermill")
+    if pm is None:
+        raise BookError(f"{nb_path} was not executed by papermill; run `make run` first")
+    if pm.get("exception"):
+        raise BookError(f"{nb_path} failed when it ran; fix it and rerun `make run`")
+    for cell in nb.cells:
+        if cell.cell_type != "code":
+            continue
+        if any(o.get("output_type") == "error" for o in cell.get("outputs", [])):
+            raise BookError(f"{nb_path} holds an error output; fix it and rerun `make run`")
+        if cell.get("source", "").strip() and cell.get("execution_count") is None:
+            raise BookError(f"{nb_path} has cells that never ran; rerun `make run`")
+
+
+def reproduce_page(info: dict[str, Any]) -> str:
+    """Markdown of the Reproduce page from a run record."""
+    params = pd.DataFrame(
+        [{"parameter": k, "value": json.dumps(v)} for k, v in info["parameters"].items()]
+    )
+    versions = pd.DataFrame(
+        [{"package": k, "version": v} for k, v in info["versions"].items()]
+    )
+    timings = pd.DataFrame(
+        [{"notebook": k, "status": v["status"], "seconds": v["seconds"]}
+         for k, v in info["notebooks"].items()]
+    )
+    total = sum(v["seconds"] for v in info["notebooks"].values())
+    over = " ".join(f"--set {k}={json.dumps(v)}" for k, v in info.get("overrides", {}).items())
+    device = ", ".join(f"{k}: {v}" for k, v in info["device"].items())
+    return f"""# Reproduce
+
+This page is written from the record of the run that produced this book
+(`build/executed/run_info.json`).
+
+| | |
+|---|---|
+| profile | `{info["profile"]}` |
+| git commit | `{info["commit"]}` |
+| started | {info["started"]} |
+| device | {device} |
+| notebooks, total | {total:.0f} s |
+
+## Commands
+
+```bash
+make book PROFILE={info["profile"]}
+# or, notebook by notebook:
+.venv/bin/python -m flowmod.runner --profile {info["profile"]} {over}
+.venv/bin/python -m flowmod.book
+```
+
+## Seconds per notebook
+
+{timings.to_markdown(index=False)}
+
+## Parameters
+
+{params.to_markdown(index=False)}
+
+## Package versions
+
+{versions.to_markdown(index=False)}
+"""
+
+
+def find_mathjax() -> Path | None:
+    """The vendored ``mathjax@3`` ``es5/`` folder (``make env`` installs it), if present."""
+    for base in (os.environ.get("FLOWMOD_VENDOR"), repo_root() / "build" / "vendor"):
+        if base:
+            es5 = Path(base) / "node_modules" / "mathjax" / "es5"
+            if (es5 / "tex-chtml.js").is_file():
+                return es5
+    return None
+
+
+def assemble(executed: Path, staging: Path) -> dict[str, Any]:
+    """Check the run and fill ``staging`` with the book sources; returns the run record."""
+    info_path = executed / "run_info.json"
+    if not info_path.is_file():
+        raise BookError(f"{info_path} not found: run the notebooks first (`make run`)")
+    info = json.loads(info_path.read_text())
+    if info.get("status") != "ok":
+        raise BookError(
+            f"the run recorded in {info_path} did not finish (status {info.get('status')!r}); "
+            "fix the failing notebook and rerun `make run`"
+        )
+    sources = sorted((repo_root() / "notebooks").glob("[0-9][0-9]_*.ipynb"))
+    missing = [nb.stem for nb in sources if nb.stem not in info["notebooks"]]
+    if missing:
+        raise BookError(
+            f"notebooks not executed in this run: {', '.join(missing)}; run `make run` "
+            "(all notebooks) before `make book`"
+        )
+    if staging.exists():
+        shutil.rmtree(staging)
+    shutil.copytree(repo_root() / "book", staging)
+    for nb in sources:
+        done = executed / nb.name
+        if not done.is_file():
+            raise BookError(f"{done} is missing; rerun `make run`")
+        check_executed(done)
+        shutil.copy2(done, staging / nb.name)
+    (staging / "reproduce.md").write_text(reproduce_page(info))
+    return info
+
+
+def build(executed: Path, out: Path, staging: Path | None = None) -> Path:
+    """Assemble and run Sphinx (warnings are errors); returns ``out/index.html``."""
+    staging = staging or out.parent / "book-src"
+    assemble(executed, staging)
+    es5 = find_mathjax()
+    if es5 is None:
+        raise BookError(
+            "MathJax is not vendored (build/vendor/node_modules/mathjax/es5 missing): run "
+            "`make env` (it runs `npm install --prefix build/vendor mathjax@3`)"
+        )
+    extra = staging.parent / "book-extra"
+    if extra.exists():
+        shutil.rmtree(extra)
+    shutil.copytree(es5, extra / "_vendor" / "mathjax")
+    env = {**os.environ, "FLOWMOD_MATHJAX_EXTRA": str(extra)}
+    cmd = [sys.executable, "-m", "sphinx", "-W", "-n", "--keep-going", "-q", "-b", "html",
+           str(staging), str(out)]
+    proc = subprocess.run(cmd, env=env)
+    if proc.returncode != 0:
+        raise BookError(f"sphinx-build failed (exit {proc.returncode}); see the warnings above")
+    return out / "index.html"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m flowmod.book", description=__doc__.split("\n\n")[0])
+    root = repo_root()
+    ap.add_argument("--executed", type=Path, default=root / "build" / "executed")
+    ap.add_argument("--out", type=Path, default=root / "build" / "html")
+    args = ap.parse_args(argv)
+    try:
+        index = build(args.executed, args.out)
+    except BookError as e:
+        print(f"BookError: {e}", file=sys.stderr)
+        return 1
+    print(f"book: {index}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

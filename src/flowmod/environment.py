@@ -1,0 +1,88 @@
+"""What the study runs on: package versions, the compute device, the git commit."""
+
+from __future__ import annotations
+
+import platform
+import subprocess
+from importlib import metadata
+
+import pandas as pd
+
+from flowmod.paths import repo_root
+
+#: Distributions reported in the book's setup chapter and the Reproduce page.
+KEY_PACKAGES = (
+    "flowmod",
+    "torch",
+    "torchvision",
+    "numpy",
+    "nuscenes-devkit",
+    "opencv-python-headless",
+    "pandas",
+    "pyarrow",
+    "scikit-learn",
+    "matplotlib",
+    "papermill",
+    "myst-nb",
+    "Sphinx",
+    "sphinx-book-theme",
+)
+
+
+def versions(packages: tuple[str, ...] = KEY_PACKAGES) -> pd.DataFrame:
+    """Installed version of each distribution (``"not installed"`` where absent)."""
+    rows = [{"package": "python", "version": platform.python_version()}]
+    for name in packages:
+        try:
+            v = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            v = "not installed"
+        rows.append({"package": name, "version": v})
+    return pd.DataFrame(rows)
+
+
+def resolve_device(device: str = "auto") -> str:
+    """``"auto"`` -> ``"cuda"`` if a CUDA device is usable, else ``"cpu"``.
+
+    Asking for ``"cuda"`` without one raises a clear error instead of failing mid-run.
+    """
+    import torch
+
+    has_cuda = torch.cuda.is_available()
+    if device == "auto":
+        return "cuda" if has_cuda else "cpu"
+    if device == "cuda" and not has_cuda:
+        raise RuntimeError("device='cuda' was asked for but no CUDA device is visible; use 'auto'")
+    return device
+
+
+def device_info(device: str = "auto") -> dict[str, object]:
+    """The device the study will use, with its name and the CPU thread count."""
+    import torch
+
+    dev = resolve_device(device)
+    info: dict[str, object] = {
+        "device": dev,
+        "cpu": platform.processor() or platform.machine(),
+        "torch_threads": torch.get_num_threads(),
+    }
+    if dev == "cuda":
+        info["gpu"] = torch.cuda.get_device_name(0)
+    return info
+
+
+def git_commit() -> str:
+    """The commit of the checkout (``+dirty`` when there are uncommitted changes)."""
+    try:
+        root = str(repo_root())
+        sha = subprocess.run(
+            ["git", "-C", root, "rev-parse", "--short=12", "HEAD"],
+            capture_output=True, text=True, check=True,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", root, "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True, text=True, check=True,
+        ).stdout.strip()
+        return sha + ("+dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"

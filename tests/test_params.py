@@ -1,0 +1,116 @@
+"""Profiles and parameter validation: good profiles load, bad values fail fast and clearly."""
+
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from flowmod import params
+from flowmod.params import Params, ProfileError, load_profile, validate
+from flowmod.paths import repo_root
+
+
+@pytest.mark.parametrize("name", ["smoke", "demo"])
+def test_shipped_profiles_validate(name):
+    p = load_profile(name)
+    assert p.profile == name
+    assert p.run_dir == f"runs/{name}"
+    assert p.min_distance < p.max_distance
+
+
+def test_paper_profile_keeps_paper_settings_and_requires_dataroot():
+    with pytest.raises(ProfileError, match="dataroot is required"):
+        load_profile("paper")
+    p = load_profile("paper", dataroot="/data/sets/nuscenes")
+    # Table 2 and the preprocessing of the paper
+    assert (p.crop_size, p.epochs, p.batch_size) == (224, 60, 128)
+    assert (p.lr, p.momentum, p.weight_decay, p.step_size, p.gamma) == (0.01, 0.9, 0.01, 10, 0.5)
+    assert (p.min_distance, p.max_distance, p.visibility_tokens) == (30.0, 70.0, ["4"])
+    assert p.categories == params.TABLE1_CATEGORIES and len(p.categories) == 7
+    assert p.version == "v1.0-trainval"
+
+
+def test_defaults_are_the_demo_profile():
+    demo = load_profile("demo")
+    assert Params() == demo
+
+
+@pytest.mark.parametrize(
+    ("override", "needle"),
+    [
+        ({"min_distance": 80.0}, "min_distance=80.0 must be < max_distance=70.0"),
+        ({"speed_threshold": -1.0}, "speed_threshold=-1.0"),
+        ({"epochs": "many"}, "epochs='many'"),
+        ({"flow_methods": ["dis", "lucas"]}, "flow_methods.1='lucas'"),
+        ({"split_fractions": [0.5, 0.5, 0.5]}, "must sum to 1"),
+        ({"split_fractions": [1.0]}, "three non-negative numbers"),
+        ({"visibility_tokens": ["5"]}, "visibility_tokens.0='5'"),
+        ({"crop_size": 4}, "crop_size=4"),
+        ({"categories": []}, "categories is empty"),
+        ({"dataroot": ""}, "dataroot is required"),
+        ({"world_sweep_scenes": 99}, "world_sweep_scenes=99 must be <= world_scenes=40"),
+    ],
+)
+def test_bad_values_name_the_key(override, needle):
+    with pytest.raises(ProfileError) as e:
+        validate(override, source="test")
+    assert needle in str(e.value)
+    assert str(e.value).startswith("test: ")
+
+
+def test_unknown_key_lists_allowed_keys():
+    with pytest.raises(ProfileError) as e:
+        validate({"epochz": 3})
+    msg = str(e.value)
+    assert "unknown key 'epochz'" in msg
+    assert "epochs" in msg and "crop_size" in msg
+
+
+def test_several_errors_are_reported_together():
+    with pytest.raises(ProfileError) as e:
+        validate({"epochs": 0, "lr": -1})
+    assert "epochs=0" in str(e.value) and "lr=-1" in str(e.value)
+
+
+def test_missing_profile_lists_known_ones():
+    with pytest.raises(ProfileError, match="known: demo, paper, smoke"):
+        load_profile("nonexistent")
+
+
+def test_profile_must_be_a_mapping(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("- 1\n- 2\n")
+    with pytest.raises(ProfileError, match="must be a mapping"):
+        load_profile(str(bad))
+
+
+def test_from_notebook_takes_only_param_names():
+    ns = {"epochs": 3, "crop_size": 32, "pd": object(), "_private": 1}
+    p = params.from_notebook(ns)
+    assert (p.epochs, p.crop_size) == (3, 32)
+
+
+def test_paths_resolve_against_repo_root():
+    p = validate({"run_dir": "runs/x", "dataroot": "/abs/data"})
+    assert p.run_path == repo_root() / "runs" / "x"
+    assert str(p.dataroot_path) == "/abs/data"
+
+
+def test_subset_hash_changes_only_with_named_keys():
+    a, b = validate({"epochs": 3}), validate({"epochs": 4})
+    assert params.subset_hash(a, ["crop_size"]) == params.subset_hash(b, ["crop_size"])
+    assert params.subset_hash(a, ["epochs"]) != params.subset_hash(b, ["epochs"])
+
+
+def test_cli_rejects_a_bad_profile_before_work(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump({"profile": "bad", "min_distance": 90.0}))
+    out = tmp_path / "executed"
+    proc = subprocess.run(
+        [sys.executable, "-m", "flowmod.runner", "--profile", str(bad), "--out", str(out)],
+        capture_output=True, text=True, cwd=repo_root(),
+    )
+    assert proc.returncode == 2
+    assert "min_distance=90.0 must be < max_distance=70.0" in proc.stderr
+    assert not out.exists(), "a bad profile must be rejected before any notebook runs"

@@ -1,0 +1,89 @@
+"""Conventions of the notebook sources and the environment files."""
+
+import re
+from importlib import metadata
+
+import nbformat
+import papermill
+import pytest
+import yaml
+
+from flowmod.params import Params, load_profile
+from flowmod.paths import repo_root
+from flowmod.runner import notebooks
+
+NOTEBOOKS = notebooks()
+MAX_CELL_LINES = 15  # longer logic belongs in src/flowmod
+
+
+def test_there_are_notebooks():
+    assert NOTEBOOKS and NOTEBOOKS[0].name == "00_setup.ipynb"
+
+
+@pytest.mark.parametrize("nb_path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_notebook_is_stored_without_outputs(nb_path):
+    nb = nbformat.read(nb_path, as_version=4)
+    for i, cell in enumerate(nb.cells):
+        if cell.cell_type == "code":
+            assert not cell.outputs, f"{nb_path.name} cell {i} has stored outputs"
+            assert cell.execution_count is None, f"{nb_path.name} cell {i} has a count"
+    assert "papermill" not in nb.metadata, f"{nb_path.name} is an executed copy"
+
+
+@pytest.mark.parametrize("nb_path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_notebook_parameters_are_typed_documented_and_demo_defaults(nb_path):
+    nb = nbformat.read(nb_path, as_version=4)
+    code = [c for c in nb.cells if c.cell_type == "code"]
+    assert "parameters" in code[0].metadata.get("tags", []), "first code cell must be tagged"
+    declared = papermill.inspect_notebook(str(nb_path))
+    demo = load_profile("demo").model_dump()
+    for name, spec in declared.items():
+        assert name in Params.model_fields, f"{nb_path.name}: {name} is not a Params field"
+        assert spec["inferred_type_name"] != "None", f"{nb_path.name}: {name} has no type hint"
+        assert spec["help"], f"{nb_path.name}: {name} has no comment"
+        assert yaml.safe_load(spec["default"].replace("None", "null")) == demo[name], (
+            f"{nb_path.name}: default of {name} differs from the demo profile"
+        )
+
+
+@pytest.mark.parametrize("nb_path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_notebook_cells_are_short(nb_path):
+    nb = nbformat.read(nb_path, as_version=4)
+    for i, cell in enumerate(nb.cells):
+        if cell.cell_type == "code":
+            n = len(cell.source.strip().splitlines())
+            assert n <= MAX_CELL_LINES, f"{nb_path.name} cell {i}: {n} lines; move logic to src"
+
+
+def _pins(lines):
+    pins = {}
+    for line in lines:
+        m = re.match(r"^\s*(?:- )?([A-Za-z0-9_.\-]+)==([^\s#]+)", line)
+        if m:
+            pins[m.group(1).lower()] = m.group(2)
+    return pins
+
+
+def test_requirements_pinned_and_conda_twin_agrees():
+    env = repo_root() / "environment"
+    req_lines = [
+        ln for ln in (env / "requirements.txt").read_text().splitlines()
+        if ln.strip() and not ln.startswith("#")
+    ]
+    assert all("==" in ln for ln in req_lines), "every requirement must be pinned with =="
+    req = _pins(req_lines)
+    conda = _pins((env / "environment.yml").read_text().splitlines())
+    assert req == conda
+    assert req["numpy"].startswith("1."), "nuscenes-devkit 1.2.0 needs numpy<2"
+    assert req["nuscenes-devkit"] == "1.2.0"
+    assert (req["torch"], req["torchvision"]) == ("2.14.1", "0.29.1")
+
+
+def test_installed_versions_match_the_pins():
+    req = _pins((repo_root() / "environment" / "requirements.txt").read_text().splitlines())
+    wrong = {}
+    for name, pin in req.items():
+        have = metadata.version(name)
+        if have.split("+")[0] != pin:
+            wrong[name] = (pin, have)
+    assert not wrong, f"installed versions differ from requirements.txt (run make env): {wrong}"
