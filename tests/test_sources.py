@@ -50,7 +50,7 @@ def test_notebook_parameters_are_typed_documented_and_demo_defaults(nb_path):
 def test_notebook_cells_are_short(nb_path):
     nb = nbformat.read(nb_path, as_version=4)
     for i, cell in enumerate(nb.cells):
-        if cell.cell_type == "code":
+        if cell.cell_type == "code" and "parameters" not in cell.metadata.get("tags", []):
             n = len(cell.source.strip().splitlines())
             assert n <= MAX_CELL_LINES, f"{nb_path.name} cell {i}: {n} lines; move logic to src"
 

@@ -251,7 +251,7 @@ def _build_split(
     starts = np.flatnonzero(np.r_[True, pair_ids[1:] != pair_ids[:-1]]) if len(df) else []
     bounds = list(zip(starts, list(starts[1:]) + [len(df)], strict=True))
 
-    done = 0
+    done, n_nonfinite = 0, 0
     arr = None
     if not force and partial.is_file() and state_file.is_file():
         try:
@@ -262,15 +262,16 @@ def _build_split(
                     arr = None
                 else:
                     done = int(state["pairs_done"])
+                    n_nonfinite = int(state.get("nonfinite", 0))
         except (OSError, ValueError, KeyError):
             arr = None
     if arr is None:
         arr = np.lib.format.open_memmap(partial, mode="w+", dtype=np.float16, shape=shape)
-        done = 0
+        done, n_nonfinite = 0, 0
         state_file.unlink(missing_ok=True)
 
     boxes_all = df[list(BOX_COLUMNS)].to_numpy(dtype=np.float64)
-    n_nonfinite = 0
+    flow_shape = [image_size[1], image_size[0]]
     last_ckpt = time.monotonic()
     bar = tqdm(
         total=len(bounds), initial=done, desc=f"crops {method}/{split}", unit="pair",
@@ -286,15 +287,23 @@ def _build_split(
                 flow = np.where(bad, np.float32(0), flow)
             boxes = boxes_all[a:b].copy()
             fh, fw = flow.shape[:2]
+            flow_shape = [fh, fw]
             if (fw, fh) != tuple(image_size):
-                boxes[:, [0, 2]] *= fw / image_size[0]
-                boxes[:, [1, 3]] *= fh / image_size[1]
+                sx, sy = fw / image_size[0], fh / image_size[1]
+                if abs(fh - sx * image_size[1]) > 1.5:  # more than rounding of a rescale
+                    raise CropsError(
+                        f"flow of pair {pair_ids[a]} is {fw}x{fh} (WxH), not the "
+                        f"{image_size[0]}x{image_size[1]} image (or a rescaled copy): padded "
+                        "flow not unpadded? (RAFT pads 900 rows to 904)"
+                    )
+                boxes[:, [0, 2]] *= sx
+                boxes[:, [1, 3]] *= sy
             arr[a:b] = crop_boxes(flow, boxes, size, scale)
             bar.update(1)
             due = bool(checkpoint_every) and (k + 1 - done) % checkpoint_every == 0
             if due or time.monotonic() - last_ckpt > 60:
                 arr.flush()
-                _write_state(state_file, phash, k + 1)
+                _write_state(state_file, phash, k + 1, n_nonfinite)
                 last_ckpt = time.monotonic()
     finally:
         bar.close()
@@ -307,15 +316,17 @@ def _build_split(
     info: dict[str, Any] = {
         "method": method, "split": split, "size": size, "scale": scale, "rows": len(df),
         "pairs": len(bounds), "nonfinite_flow_values_zeroed": n_nonfinite,
+        "flow_shape": flow_shape,
     }
     mark_done(index, phash, **info)
     mark_done(npy, phash, **info)
     return npy
 
 
-def _write_state(path: Path, phash: str, pairs_done: int) -> None:
+def _write_state(path: Path, phash: str, pairs_done: int, nonfinite: int) -> None:
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps({"params_hash": phash, "pairs_done": pairs_done}))
+        state = {"params_hash": phash, "pairs_done": pairs_done, "nonfinite": nonfinite}
+        tmp.write_text(json.dumps(state))
 
 
 def open_crops(

@@ -1,0 +1,544 @@
+"""Selection of frame pairs and target vehicles over the official nuscenes-devkit (Table 1).
+
+The same code runs on the synthetic world and on real nuScenes (v1.0-mini, v1.0-trainval).
+
+Keyframe set (the paper): consecutive CAM_FRONT keyframes of scenes whose description has no
+item equal to night, rain or lightning; in each pair, vehicles of the seven Table-1 categories
+with visibility token '4' (80-100 %), all 8 box corners in front of the camera and inside the
+image (``BoxVisibility.ALL``), at a distance in [min_distance, max_distance], and the same
+instance qualifying in both frames. Distance (``distance_mode``): ``ego`` = 3D norm from the
+ego-pose origin of the frame to the box centre (the original code's definition), ``camera`` =
+from the camera centre. 2D box = min/max of the 8 projected corners (equal to the devkit's
+``export_2d_annotations_as_json`` box for fully visible boxes).
+
+Generalisation set (the paper's section IV-D): in held-out scenes, every CAM_FRONT frame
+(keyframes and sweeps) paired with the frame ``general_interval`` frames later; boxes from
+the devkit's interpolated 3D boxes; near vehicles included; the paper's label is that of the
+closest previous keyframe.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from tqdm.auto import tqdm
+
+from flowmod import labels
+from flowmod.artefacts import atomic_path, is_up_to_date, mark_done
+from flowmod.params import Params, subset_hash
+
+TABLES = (
+    "attribute", "calibrated_sensor", "category", "ego_pose", "instance", "log", "map",
+    "sample", "sample_annotation", "sample_data", "scene", "sensor", "visibility",
+)
+CAMERA = "CAM_FRONT"
+SPLITS = ("train", "val", "test")
+
+#: Parameters that change what this stage selects (for the up-to-date check).
+STAGE_KEYS = (
+    "dataroot", "version", "seed", "categories", "min_distance", "max_distance",
+    "distance_mode", "visibility_tokens", "exclude_descriptions", "split_fractions",
+    "missing_images", "speed_threshold", "general_interval", "general_min_distance",
+    "general_max_scenes", "world_scenes", "world_keyframes", "world_sweep_scenes",
+    "world_vehicles",
+)
+
+
+class SelectionError(ValueError):
+    """Bad or empty input to the selection; the message names the thing and the fix."""
+
+
+# --- input checks ------------------------------------------------------------------------
+
+def check_dataroot(dataroot: str | Path, version: str) -> Path:
+    """Check that ``dataroot/version`` holds the 13 nuScenes tables, before loading anything."""
+    root = Path(dataroot)
+    if not root.is_dir():
+        raise SelectionError(
+            f"dataroot {root} does not exist: give the folder that holds samples/, sweeps/ and "
+            f"{version}/ (for the synthetic world, set synthetic: true to generate it)"
+        )
+    vdir = root / version
+    if not vdir.is_dir():
+        found = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name.startswith("v"))
+        raise SelectionError(
+            f"version folder {vdir} not found; version folders in {root}: {found or 'none'} "
+            "(set the `version` parameter to one of them)"
+        )
+    missing = [t for t in TABLES if not (vdir / f"{t}.json").is_file()]
+    if missing:
+        raise SelectionError(f"{vdir} lacks tables: {', '.join(missing)} (.json)")
+    return vdir
+
+
+def open_nuscenes(dataroot: str | Path, version: str):
+    """Load the devkit's ``NuScenes`` after :func:`check_dataroot` (quietly)."""
+    from nuscenes.nuscenes import NuScenes
+
+    check_dataroot(dataroot, version)
+    return NuScenes(version=version, dataroot=str(dataroot), verbose=False)
+
+
+def check_images(dataroot: str | Path, paths: Iterable[str]) -> list[str]:
+    """Relative image paths under ``dataroot`` that do not exist (in the given order)."""
+    root = Path(dataroot)
+    return [p for p in dict.fromkeys(paths) if not (root / p).is_file()]
+
+
+# --- scenes ------------------------------------------------------------------------------
+
+def description_items(description: str) -> list[str]:
+    """``"Night, after rain, peds"`` -> ``["night", "after rain", "peds"]``."""
+    return [s.strip().lower() for s in description.split(",") if s.strip()]
+
+
+def scene_table(nusc) -> pd.DataFrame:
+    """One row per scene: scene, token, description, n_samples, has_sweeps, excluded_by."""
+    rows = []
+    for sc in nusc.scene:
+        first = nusc.get("sample", sc["first_sample_token"])
+        sd = nusc.get("sample_data", first["data"][CAMERA])
+        nxt = nusc.get("sample_data", sd["next"]) if sd["next"] else None
+        rows.append({
+            "scene": sc["name"], "scene_token": sc["token"], "description": sc["description"],
+            "n_samples": sc["nbr_samples"],
+            "has_sweeps": bool(nxt is not None and not nxt["is_key_frame"]),
+        })
+    return pd.DataFrame(rows)
+
+
+def filter_scenes(scenes: pd.DataFrame, exclude: Iterable[str]) -> pd.DataFrame:
+    """Add ``excluded_by``: the first description item found in ``exclude`` (``""`` = kept).
+
+    Whole items are matched, so "after rain" is kept while "rain" is excluded.
+    """
+    bad = {e.strip().lower() for e in exclude}
+    out = scenes.copy()
+    out["excluded_by"] = [
+        next((item for item in description_items(d) if item in bad), "")
+        for d in out["description"]
+    ]
+    return out
+
+
+def split_scenes(
+    scenes: list[str], fractions: list[float], seed: int, prefer_test: Iterable[str] = ()
+) -> dict[str, str]:
+    """Assign each scene to train / val / test (no scene in two splits), seeded.
+
+    Scenes in ``prefer_test`` (those that carry sweeps, for the generalisation stage) fill the
+    test split first; when every scene is preferred (real nuScenes) this is a plain shuffle.
+    """
+    rng = np.random.default_rng(seed)
+    scenes = sorted(scenes)
+    n = len(scenes)
+    n_test = int(round(fractions[2] * n))
+    n_val = int(round(fractions[1] * n))
+    if n >= 3:
+        n_test, n_val = max(n_test, 1), max(n_val, 1)
+    n_test = min(n_test, n)
+    n_val = min(n_val, n - n_test)
+    preferred = set(prefer_test)
+    first = [s for s in scenes if s in preferred]
+    rest = [s for s in scenes if s not in preferred]
+    order = list(rng.permutation(first)) + list(rng.permutation(rest))
+    test = order[:n_test]
+    remaining = [s for s in scenes if s not in set(test)]
+    remaining = list(rng.permutation(remaining))
+    val = remaining[:n_val]
+    out = {s: "train" for s in scenes}
+    out.update({s: "val" for s in val})
+    out.update({s: "test" for s in test})
+    return out
+
+
+# --- frames and boxes --------------------------------------------------------------------
+
+def camera_frames(nusc, scene_token: str, keyframes_only: bool) -> list[dict]:
+    """The scene's CAM_FRONT sample_data records in time order."""
+    sc = nusc.get("scene", scene_token)
+    first = nusc.get("sample", sc["first_sample_token"])
+    sd = nusc.get("sample_data", first["data"][CAMERA])
+    frames = []
+    while True:
+        if sd["is_key_frame"] or not keyframes_only:
+            frames.append(sd)
+        if not sd["next"]:
+            break
+        sd = nusc.get("sample_data", sd["next"])
+    return frames
+
+
+def box_2d(corners_img: np.ndarray) -> tuple[float, float, float, float]:
+    """(xmin, ymin, xmax, ymax) px from projected corners ``(2 or 3, 8)``."""
+    return (float(corners_img[0].min()), float(corners_img[1].min()),
+            float(corners_img[0].max()), float(corners_img[1].max()))
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A vehicle that qualifies in one frame."""
+
+    ann_token: str
+    category: str
+    distance: float
+    box: tuple[float, float, float, float]
+    center: tuple[float, float, float]
+
+
+def qualifying_boxes(
+    nusc, sd: dict, categories: set[str], min_d: float, max_d: float, distance_mode: str,
+    visibility: set[str] | None,
+) -> dict[str, Candidate]:
+    """Instances of ``sd``'s frame that pass Table 1: instance token -> :class:`Candidate`.
+
+    ``visibility`` None skips the visibility check. Boxes come from the devkit
+    (``get_sample_data`` with ``BoxVisibility.ALL``: all corners in front and inside the image;
+    interpolated for sweeps).
+    """
+    from nuscenes.utils.geometry_utils import BoxVisibility, view_points
+
+    _, boxes, K = nusc.get_sample_data(sd["token"], box_vis_level=BoxVisibility.ALL)
+    if not boxes:
+        return {}
+    pose = nusc.get("ego_pose", sd["ego_pose_token"])
+    origin = np.asarray(pose["translation"], dtype=np.float64)
+    if distance_mode == "camera":
+        from pyquaternion import Quaternion
+
+        cs = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
+        origin = origin + Quaternion(pose["rotation"]).rotate(np.asarray(cs["translation"]))
+    out: dict[str, Candidate] = {}
+    for box in boxes:
+        if box.name not in categories:
+            continue
+        ann = nusc.get("sample_annotation", box.token)
+        if visibility is not None and ann["visibility_token"] not in visibility:
+            continue
+        # the box's global centre at this frame's time (interpolated for sweeps)
+        center = _global_center(nusc, sd, box)
+        dist = float(np.linalg.norm(center - origin))
+        if not (min_d <= dist <= max_d):
+            continue
+        corners = view_points(box.corners(), K, normalize=True)
+        out[ann["instance_token"]] = Candidate(
+            ann["token"], box.name, dist, box_2d(corners), tuple(center.tolist())
+        )
+    return out
+
+
+def _global_center(nusc, sd: dict, box) -> np.ndarray:
+    """Global position of a camera-frame box's centre."""
+    from pyquaternion import Quaternion
+
+    cs = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
+    pose = nusc.get("ego_pose", sd["ego_pose_token"])
+    p = Quaternion(cs["rotation"]).rotate(box.center) + np.asarray(cs["translation"])
+    return Quaternion(pose["rotation"]).rotate(p) + np.asarray(pose["translation"])
+
+
+def _attribute(nusc, ann: dict) -> str:
+    names = [nusc.get("attribute", t)["name"] for t in ann["attribute_tokens"]]
+    return names[0] if names else ""
+
+
+def _pair_row(pair_id: str, scene: str, split: str, kind: str, sd1: dict, sd2: dict) -> dict:
+    return {
+        "pair_id": pair_id, "scene": scene, "split": split, "set": kind,
+        "sd_token_1": sd1["token"], "sd_token_2": sd2["token"],
+        "path_1": sd1["filename"], "path_2": sd2["filename"],
+        "timestamp_1": int(sd1["timestamp"]), "timestamp_2": int(sd2["timestamp"]),
+        "sample_token_1": sd1["sample_token"], "sample_token_2": sd2["sample_token"],
+    }
+
+
+def keyframe_set(
+    nusc, scenes: pd.DataFrame, p: Params, progress: bool = True
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Pairs of consecutive keyframes and their target vehicles (labels by equation 1).
+
+    ``scenes`` has columns scene, scene_token, split. Returns (pairs, objects).
+    """
+    cats, vis = set(p.categories), set(p.visibility_tokens)
+    pair_rows, obj_rows = [], []
+    for sc in tqdm(scenes.itertuples(), total=len(scenes), desc="keyframe pairs",
+                   disable=not progress):
+        frames = camera_frames(nusc, sc.scene_token, keyframes_only=True)
+        quals = [qualifying_boxes(nusc, sd, cats, p.min_distance, p.max_distance,
+                                  p.distance_mode, vis) for sd in frames]
+        for i in range(len(frames) - 1):
+            sd1, sd2 = frames[i], frames[i + 1]
+            common = [inst for inst in quals[i] if inst in quals[i + 1]]
+            if not common:
+                continue
+            pair_id = f"{sc.scene}-k{i:03d}"
+            pair_rows.append(_pair_row(pair_id, sc.scene, sc.split, "keyframe", sd1, sd2))
+            s1 = nusc.get("sample", sd1["sample_token"])
+            s2 = nusc.get("sample", sd2["sample_token"])
+            for inst in common:
+                c1, c2 = quals[i][inst], quals[i + 1][inst]
+                a1 = nusc.get("sample_annotation", c1.ann_token)
+                a2 = nusc.get("sample_annotation", c2.ann_token)
+                v = labels.velocity(a1["translation"], a2["translation"],
+                                    s1["timestamp"], s2["timestamp"])
+                obj_rows.append(_object_row(nusc, pair_id, sc, "keyframe", inst, c1, a1, v, p))
+    return pd.DataFrame(pair_rows), pd.DataFrame(obj_rows)
+
+
+def _object_row(nusc, pair_id, sc, kind, inst, c: Candidate, ann: dict, v, p: Params) -> dict:
+    box_v = nusc.box_velocity(ann["token"])
+    box_speed = float(np.linalg.norm(box_v)) if np.all(np.isfinite(box_v)) else float("nan")
+    spd = float(labels.speed(v))
+    return {
+        "pair_id": pair_id, "scene": sc.scene, "split": sc.split, "set": kind,
+        "instance_token": inst, "ann_token": ann["token"], "category": c.category,
+        "distance": c.distance, "visibility": ann["visibility_token"],
+        "xmin": c.box[0], "ymin": c.box[1], "xmax": c.box[2], "ymax": c.box[3],
+        "vx": float(v[0]), "vy": float(v[1]), "vz": float(v[2]), "speed": spd,
+        "label": int(spd >= p.speed_threshold),
+        "attribute": _attribute(nusc, ann), "box_speed": box_speed,
+        "box_label": int(box_speed >= p.speed_threshold) if np.isfinite(box_speed) else -1,
+    }
+
+
+def general_set(
+    nusc, scenes: pd.DataFrame, p: Params, progress: bool = True
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The generalisation manifest: frame pairs ``general_interval`` apart in held-out scenes.
+
+    Objects: Table-1 vehicles in frame 1 (interpolated devkit boxes, all corners visible,
+    distance in [general_min_distance, max_distance], the previous keyframe's visibility
+    token), present in the previous and next keyframes. ``label`` follows the paper (the
+    eq.-1 label of the previous keyframe pair); ``speed`` and ``label`` are those of that
+    keyframe pair.
+    """
+    cats, vis = set(p.categories), set(p.visibility_tokens)
+    pair_rows, obj_rows = [], []
+    for sc in tqdm(scenes.itertuples(), total=len(scenes), desc="generalisation pairs",
+                   disable=not progress):
+        frames = camera_frames(nusc, sc.scene_token, keyframes_only=False)
+        for i in range(len(frames) - p.general_interval):
+            sd1, sd2 = frames[i], frames[i + p.general_interval]
+            nxt = nusc.get("sample", sd1["sample_token"])  # a sweep points to the NEXT sample
+            prev = nxt if sd1["is_key_frame"] else (
+                nusc.get("sample", nxt["prev"]) if nxt["prev"] else None)
+            if prev is None or not prev["next"]:
+                continue
+            after = nusc.get("sample", prev["next"])
+            quals = qualifying_boxes(nusc, sd1, cats, p.general_min_distance, p.max_distance,
+                                     p.distance_mode, None)
+            prev_anns = {nusc.get("sample_annotation", t)["instance_token"]: t
+                         for t in prev["anns"]}
+            after_anns = {nusc.get("sample_annotation", t)["instance_token"]: t
+                          for t in after["anns"]}
+            pair_id = f"{sc.scene}-g{i:04d}"
+            rows = []
+            for inst, c in quals.items():
+                if inst not in prev_anns or inst not in after_anns:
+                    continue
+                a_prev = nusc.get("sample_annotation", prev_anns[inst])
+                if a_prev["visibility_token"] not in vis:
+                    continue
+                a_after = nusc.get("sample_annotation", after_anns[inst])
+                v = labels.velocity(a_prev["translation"], a_after["translation"],
+                                    prev["timestamp"], after["timestamp"])
+                rows.append(_object_row(nusc, pair_id, sc, "general", inst, c, a_prev, v, p))
+            if rows:
+                pair_rows.append(_pair_row(pair_id, sc.scene, sc.split, "general", sd1, sd2))
+                obj_rows.extend(rows)
+    return pd.DataFrame(pair_rows), pd.DataFrame(obj_rows)
+
+
+# --- the stage ---------------------------------------------------------------------------
+
+@dataclass
+class Selection:
+    """The stage's outputs: pairs and objects of both sets, and the scene table."""
+
+    pairs: pd.DataFrame
+    objects: pd.DataFrame
+    scenes: pd.DataFrame
+
+
+def _add_true_speed(objects: pd.DataFrame, pairs: pd.DataFrame, p: Params) -> pd.DataFrame:
+    """For a synthetic world: the true speed at frame 1's time and its label."""
+    from flowmod import world
+
+    t1 = pairs.set_index("pair_id")["timestamp_1"]
+    true = [
+        float(labels.speed(world.true_velocity(p.dataroot_path, p.version, inst, int(t1[pid]))))
+        for inst, pid in zip(objects["instance_token"], objects["pair_id"], strict=True)
+    ]
+    objects = objects.copy()
+    objects["true_speed"] = true
+    objects["true_label"] = labels.motion_label(np.asarray(true), p.speed_threshold)
+    return objects
+
+
+def select(p: Params, progress: bool = True) -> Selection:
+    """Run the whole selection (no caching; see :func:`run`)."""
+    nusc = open_nuscenes(p.dataroot_path, p.version)
+    scenes = filter_scenes(scene_table(nusc), p.exclude_descriptions)
+    kept = scenes[scenes["excluded_by"] == ""]
+    if kept.empty:
+        raise SelectionError(
+            f"all {len(scenes)} scenes were excluded by their descriptions "
+            f"({sorted(set(scenes['excluded_by']))}); change exclude_descriptions"
+        )
+    split = split_scenes(list(kept["scene"]), p.split_fractions, p.seed,
+                         prefer_test=kept.loc[kept["has_sweeps"], "scene"])
+    scenes["split"] = scenes["scene"].map(split).fillna("excluded")
+    kept = scenes[scenes["split"] != "excluded"]
+    pairs, objects = keyframe_set(nusc, kept, p, progress)
+    if objects.empty:
+        raise SelectionError(
+            f"no vehicle passed Table 1 in {len(kept)} scenes: check categories "
+            f"{p.categories}, distance [{p.min_distance}, {p.max_distance}] m and visibility "
+            f"{p.visibility_tokens}"
+        )
+    held_out = kept[(kept["split"] == "test") & kept["has_sweeps"]].head(p.general_max_scenes)
+    if len(held_out):
+        gp, go = general_set(nusc, held_out, p, progress)
+        pairs, objects = pd.concat([pairs, gp], ignore_index=True), pd.concat(
+            [objects, go], ignore_index=True)
+    missing = check_images(p.dataroot_path, list(pairs["path_1"]) + list(pairs["path_2"]))
+    if missing:
+        msg = (f"{len(missing)} image files are missing under {p.dataroot_path}, e.g. "
+               f"{missing[:3]}")
+        if p.missing_images == "error":
+            raise SelectionError(msg + " (set missing_images: skip to drop their pairs)")
+        bad = pairs["path_1"].isin(missing) | pairs["path_2"].isin(missing)
+        pairs = pairs[~bad].reset_index(drop=True)
+        objects = objects[objects["pair_id"].isin(pairs["pair_id"])].reset_index(drop=True)
+    from flowmod import world
+
+    if world.is_synthetic(p.dataroot_path, p.version):
+        objects = _add_true_speed(objects, pairs, p)
+    return Selection(pairs, objects, scenes)
+
+
+def stage_paths(p: Params) -> dict[str, Path]:
+    run = p.run_path
+    return {"pairs": run / "pairs.parquet", "objects": run / "objects.parquet",
+            "scenes": run / "scenes.parquet"}
+
+
+def run(p: Params, progress: bool = True) -> Selection:
+    """The selection stage: reuse ``pairs/objects/scenes.parquet`` when up to date, else
+    (building the synthetic world first if needed) select and write them atomically."""
+    paths = stage_paths(p)
+    h = subset_hash(p, STAGE_KEYS)
+    if not p.force and all(is_up_to_date(x, h) for x in paths.values()):
+        return Selection(*(pd.read_parquet(paths[k]) for k in ("pairs", "objects", "scenes")))
+    if p.synthetic:
+        from flowmod import world
+
+        world.ensure_world(p)
+    sel = select(p, progress)
+    for key, df in (("pairs", sel.pairs), ("objects", sel.objects), ("scenes", sel.scenes)):
+        with atomic_path(paths[key]) as tmp:
+            df.to_parquet(tmp, index=False)
+        mark_done(paths[key], h, rows=len(df), params=json.loads(
+            json.dumps({k: getattr(p, k) for k in STAGE_KEYS}, default=str)))
+    return sel
+
+
+def table1(p: Params) -> pd.DataFrame:
+    """Table 1 of the paper, regenerated from the parameters."""
+    vis_bins = {"1": "0-40 %", "2": "40-60 %", "3": "60-80 %", "4": "80-100 %"}
+    return pd.DataFrame([
+        {"setting": "Target categories", "description": "\n".join(p.categories)},
+        {"setting": "Distance", "description": f"{p.min_distance:g} m - {p.max_distance:g} m"
+                                               f" ({p.distance_mode} origin)"},
+        {"setting": "Visibility",
+         "description": ", ".join(vis_bins[v] for v in sorted(p.visibility_tokens))},
+        {"setting": "Sensor", "description": CAMERA},
+        {"setting": "Excluded scenes",
+         "description": ", ".join(p.exclude_descriptions) or "none"},
+    ])
+
+
+# --- summaries for the book --------------------------------------------------------------
+
+def step_counts(sel: Selection) -> pd.DataFrame:
+    """How many scenes, pairs and objects survive each step of the selection."""
+    sc, pairs, obj = sel.scenes, sel.pairs, sel.objects
+    rows = [("scenes in the data set", len(sc))]
+    for reason, n in sc.loc[sc["excluded_by"] != "", "excluded_by"].value_counts().items():
+        rows.append((f"scenes excluded: '{reason}'", int(n)))
+    rows += [
+        ("scenes kept", int((sc["excluded_by"] == "").sum())),
+        ("keyframe pairs with a target vehicle", int((pairs["set"] == "keyframe").sum())),
+        ("target vehicles in keyframe pairs", int((obj["set"] == "keyframe").sum())),
+        ("generalisation scenes", int(pairs.loc[pairs["set"] == "general", "scene"].nunique())),
+        ("generalisation pairs", int((pairs["set"] == "general").sum())),
+        ("generalisation objects", int((obj["set"] == "general").sum())),
+    ]
+    return pd.DataFrame(rows, columns=["step", "count"])
+
+
+def split_sizes(sel: Selection, kind: str = "keyframe") -> pd.DataFrame:
+    """Scenes, pairs, objects, moving and still objects per split."""
+    pairs = sel.pairs[sel.pairs["set"] == kind]
+    obj = sel.objects[sel.objects["set"] == kind]
+    out = pd.DataFrame({
+        "scenes": pairs.groupby("split")["scene"].nunique(),
+        "pairs": pairs.groupby("split").size(),
+        "objects": obj.groupby("split").size(),
+        "moving": obj.groupby("split")["label"].sum(),
+    }).reindex([s for s in SPLITS if s in set(pairs["split"])]).fillna(0).astype(int)
+    out["still"] = out["objects"] - out["moving"]
+    out["moving %"] = (100 * out["moving"] / out["objects"].clip(lower=1)).round(1)
+    return out
+
+
+def example_frames(sel: Selection, dataroot: str | Path, n: int = 4, seed: int = 0,
+                   kind: str = "keyframe") -> tuple[list[np.ndarray], list[str]]:
+    """``n`` frame-1 images of random pairs with their selected boxes drawn (blue still,
+    red moving), and titles."""
+    import cv2
+
+    from flowmod import viz
+
+    pairs = sel.pairs[sel.pairs["set"] == kind]
+    counts = sel.objects[sel.objects["set"] == kind].groupby("pair_id").size()
+    rich = pairs[pairs["pair_id"].isin(counts[counts >= 2].index)]
+    pick = (rich if len(rich) >= n else pairs).sample(min(n, len(pairs)), random_state=seed)
+    images, titles = [], []
+    for row in pick.itertuples():
+        img = cv2.imread(str(Path(dataroot) / row.path_1))
+        if img is None:
+            raise SelectionError(f"cannot read image {Path(dataroot) / row.path_1}")
+        obj = sel.objects[sel.objects["pair_id"] == row.pair_id]
+        boxes = obj[["xmin", "ymin", "xmax", "ymax"]].to_numpy()
+        texts = [f"{d:.0f} m {s:.1f} m/s" for d, s in zip(obj["distance"], obj["speed"],
+                                                          strict=True)]
+        images.append(viz.draw_boxes(img, boxes, viz.label_colors(obj["label"]), texts))
+        titles.append(f"{row.pair_id} ({len(obj)} targets)")
+    return images, titles
+
+
+def load(run_dir: str | Path) -> tuple[Selection, dict]:
+    """Read the selection artefacts of a run and the parameters that made them.
+
+    Raises a clear error when the selection stage (notebook 02) has not run.
+    """
+    run_dir = Path(run_dir)
+    frames = {}
+    for key in ("pairs", "objects", "scenes"):
+        path = run_dir / f"{key}.parquet"
+        if not path.is_file():
+            raise SelectionError(
+                f"{path} not found: run the selection first (notebooks/02_filtering.ipynb, "
+                "or `make run`)"
+            )
+        frames[key] = pd.read_parquet(path)
+    from flowmod.artefacts import manifest_path
+
+    made_with = json.loads(manifest_path(run_dir / "objects.parquet").read_text())["params"]
+    return Selection(frames["pairs"], frames["objects"], frames["scenes"]), made_with

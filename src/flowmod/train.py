@@ -1,0 +1,373 @@
+"""Training of the 2-channel ResNet18 (Table 2 settings), seeded and resumable.
+
+SGD (lr 0.01, momentum 0.9, weight decay 0.01), StepLR(step 10, gamma 0.5) stepped once per
+epoch, batch 128, BCEWithLogitsLoss, random horizontal flip (mirror + negate u, on a copy)
+with p = 0.5 on training batches only. Differences from the original code, on purpose: the
+best epoch is chosen on the validation split only (one F1 over the whole split, ties -> the
+earlier epoch) and reported elsewhere on test; no flips at evaluation; no still-object
+thinning (that happens upstream, if at all).
+
+Determinism: the model is initialised after ``torch.manual_seed(seed)``; each epoch's order
+and flips come from a ``torch.Generator`` seeded with (seed, epoch), so a run resumed from
+``last.pt`` draws exactly what an uninterrupted run draws. On CPU the same seed gives
+bit-identical weights and history (except ``seconds``). On CUDA, deterministic algorithms are
+requested (warn-only) and autocast (bf16, else fp16 with a GradScaler) is on by default, so
+results are close but not guaranteed bit-identical.
+
+Outputs in ``out_dir``: ``best.pt`` (state_dict of the best epoch), ``last.pt`` (checkpoint:
+model, optimizer, scheduler, scaler, epoch, history, best, config, rng states; loads with
+``weights_only=True``), ``history.csv``; all written atomically every epoch.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+from torch import nn
+from torch.utils.data import DataLoader, Dataset
+
+from flowmod.artefacts import atomic_path
+from flowmod.crops import hflip
+from flowmod.evaluate import metrics, predict_logits
+from flowmod.model import motion_resnet18, resolve_device
+
+HISTORY_COLUMNS = [
+    "epoch", "train_loss", "val_loss", "val_f1", "val_precision", "val_recall", "lr", "seconds",
+]
+CHECKPOINT_FORMAT = "flowmod-train-1"
+
+
+class TrainingError(ValueError):
+    """Training inputs are unusable (empty/single-class split, misaligned index) or a
+    checkpoint does not match the run; the message says which and how to fix it."""
+
+
+# --- inputs ----------------------------------------------------------------------------------
+
+
+def _describe(x: Any, name: str) -> str:
+    fn = getattr(x, "filename", None)
+    return f"{name} crops ({fn})" if fn else f"{name} crops"
+
+
+def check_split(
+    x: Any, df: pd.DataFrame, name: str, label_col: str = "label", need_both: bool = False
+) -> np.ndarray:
+    """Validate one split; return its labels (N,) float32 0/1.
+
+    x: (N, 2, S, S) crops; df: the index with ``label_col``. Raises :class:`TrainingError`
+    for a wrong shape, an index/array row mismatch, an empty split, labels other than 0/1, or
+    (``need_both``) a split with only one class.
+    """
+    shape = tuple(getattr(x, "shape", ()))
+    if len(shape) != 4 or shape[1] != 2 or shape[2] != shape[3]:
+        raise TrainingError(f"{_describe(x, name)}: expected (N, 2, S, S), got shape {shape}")
+    if shape[0] != len(df):
+        raise TrainingError(
+            f"{name} split: index has {len(df)} rows but {_describe(x, name)} has {shape[0]} "
+            "(the crop index and memmap disagree; rebuild the crops)"
+        )
+    if len(df) == 0:
+        raise TrainingError(f"{name} split is empty: no objects to train/validate on")
+    if label_col not in df.columns:
+        raise TrainingError(f"{name} index has no {label_col!r} column (has {list(df.columns)})")
+    y = df[label_col].to_numpy()
+    if not np.isin(y, (0, 1)).all():
+        raise TrainingError(f"{name} labels must be 0 (still) / 1 (moving), got {np.unique(y)}")
+    if need_both and len(np.unique(y)) < 2:
+        only = "moving" if y[0] == 1 else "still"
+        raise TrainingError(
+            f"{name} split has a single class (all {len(y)} objects {only}); a classifier "
+            "cannot be trained on it: check the labels or the speed threshold"
+        )
+    return y.astype(np.float32)
+
+
+class CropDataset(Dataset):
+    """Batches of crops: ``ds[indices] -> (x (B, 2, S, S) float32, y (B,) float32)``.
+
+    x is read from a float16 memmap (or any array) and converted per batch; a memmap is
+    re-opened by file name in DataLoader workers instead of being pickled whole.
+    """
+
+    def __init__(self, x: Any, y: np.ndarray) -> None:
+        self.x = x
+        self.y = np.asarray(y, dtype=np.float32)
+
+    def __len__(self) -> int:
+        return len(self.y)
+
+    def __getitem__(self, idx: Sequence[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        idx = np.asarray(idx)
+        xb = torch.from_numpy(np.asarray(self.x[idx], dtype=np.float32))
+        return xb, torch.from_numpy(self.y[idx])
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        if isinstance(self.x, np.memmap) and self.x.filename:
+            state["x"] = ("memmap", self.x.filename, self.x.dtype.str, self.x.shape,
+                          self.x.offset)
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        x = state["x"]
+        if isinstance(x, tuple) and x and x[0] == "memmap":
+            _, fn, dt, shape, offset = x
+            state["x"] = np.memmap(fn, dtype=np.dtype(dt), mode="r", shape=shape, offset=offset)
+        self.__dict__.update(state)
+
+
+def epoch_plan(
+    n: int, batch_size: int, hflip_p: float, seed: int, epoch: int
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """Order and flips of one training epoch, a pure function of (seed, epoch).
+
+    Returns (batches: list of sorted index arrays, flips: (n,) bool aligned with the
+    concatenated batches). A trailing batch of one object is dropped (BatchNorm needs >= 2).
+    """
+    g = torch.Generator().manual_seed(int(seed) * 1_000_003 + int(epoch))
+    perm = torch.randperm(n, generator=g).numpy()
+    flips = (torch.rand(n, generator=g) < hflip_p).numpy()
+    batches = [np.sort(perm[a : a + batch_size]) for a in range(0, n, batch_size)]
+    if len(batches) > 1 and len(batches[-1]) == 1:
+        batches.pop()
+        flips = flips[:-1]
+    return batches, flips
+
+
+# --- helpers ---------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def _deterministic(dev: torch.device) -> Iterator[None]:
+    prev = torch.are_deterministic_algorithms_enabled()
+    prev_warn = torch.is_deterministic_algorithms_warn_only_enabled()
+    prev_bench = torch.backends.cudnn.benchmark
+    if dev.type == "cuda":
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    torch.backends.cudnn.benchmark = False
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(prev, warn_only=prev_warn)
+        torch.backends.cudnn.benchmark = prev_bench
+
+
+def _resolve_amp(amp: str | None, dev: torch.device) -> str | None:
+    if amp == "auto":
+        if dev.type != "cuda":
+            return None
+        return "bf16" if torch.cuda.is_bf16_supported() else "fp16"
+    if amp in (None, "none"):
+        return None
+    if amp not in ("bf16", "fp16"):
+        raise ValueError(f"amp={amp!r}: use 'auto', None, 'bf16' or 'fp16'")
+    return amp
+
+
+def _bce_with_logits(z: np.ndarray, y: np.ndarray) -> float:
+    """Mean binary cross-entropy of logits z against 0/1 labels y (numerically stable)."""
+    z = z.astype(np.float64)
+    return float(np.mean(np.maximum(z, 0) - z * y + np.log1p(np.exp(-np.abs(z)))))
+
+
+def _save(obj: Any, path: Path) -> None:
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
+
+
+def _history_dict(rows: list[dict[str, Any]]) -> dict[str, list[Any]]:
+    return {c: [r[c] for r in rows] for c in HISTORY_COLUMNS}
+
+
+def _history_rows(d: dict[str, list[Any]]) -> list[dict[str, Any]]:
+    n = len(d["epoch"])
+    return [{c: (int(d[c][i]) if c == "epoch" else float(d[c][i])) for c in HISTORY_COLUMNS}
+            for i in range(n)]
+
+
+def _history_frame(rows: list[dict[str, Any]], best_epoch: int, best_f1: float) -> pd.DataFrame:
+    df = pd.DataFrame(rows, columns=HISTORY_COLUMNS)
+    df.attrs.update(best_epoch=best_epoch, best_f1=best_f1)
+    return df
+
+
+# --- training --------------------------------------------------------------------------------
+
+
+def train_model(
+    train_x: Any,
+    train_df: pd.DataFrame,
+    val_x: Any,
+    val_df: pd.DataFrame,
+    out_dir: str | os.PathLike[str],
+    *,
+    epochs: int = 60,
+    batch_size: int = 128,
+    lr: float = 0.01,
+    momentum: float = 0.9,
+    weight_decay: float = 0.01,
+    step_size: int = 10,
+    gamma: float = 0.5,
+    hflip_p: float = 0.5,
+    num_workers: int = 0,
+    seed: int = 0,
+    device: str | torch.device = "auto",
+    amp: str | None = "auto",
+    label_col: str = "label",
+    eval_batch_size: int = 256,
+    resume: bool = True,
+    progress: bool = True,
+) -> pd.DataFrame:
+    """Train motion_resnet18 on crops; select the epoch with the best validation F1.
+
+    train_x, val_x: (N, 2, S, S) crops (float16 memmaps from :func:`flowmod.crops.open_crops`
+    or arrays), pixels; train_df, val_df: their indices with ``label_col`` (1 moving, 0
+    still). ``amp``: 'auto' (bf16/fp16 autocast on CUDA, off on CPU), None, 'bf16', 'fp16'.
+    With ``resume`` and an ``out_dir/last.pt`` of the same settings, training continues
+    after its last epoch (``epochs`` may be raised to train longer).
+
+    Returns the history (columns :data:`HISTORY_COLUMNS`; ``attrs`` best_epoch, best_f1),
+    also written to ``out_dir/history.csv``. Weights: ``best.pt``, ``last.pt``.
+    """
+    y_tr = check_split(train_x, train_df, "train", label_col, need_both=True)
+    y_va = check_split(val_x, val_df, "val", label_col)
+    if train_x.shape[2] != val_x.shape[2]:
+        raise TrainingError(
+            f"crop sizes differ: train S={train_x.shape[2]}, val S={val_x.shape[2]}"
+        )
+    if epochs < 1 or batch_size < 2:
+        raise TrainingError(f"need epochs >= 1 and batch_size >= 2, got {epochs}, {batch_size}")
+    from tqdm.auto import tqdm
+
+    dev = resolve_device(device)
+    amp_mode = _resolve_amp(amp, dev)
+    amp_dtype = {"bf16": torch.bfloat16, "fp16": torch.float16, None: None}[amp_mode]
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    best_path, last_path, hist_path = out / "best.pt", out / "last.pt", out / "history.csv"
+    config = {
+        "batch_size": int(batch_size), "lr": float(lr), "momentum": float(momentum),
+        "weight_decay": float(weight_decay), "step_size": int(step_size),
+        "gamma": float(gamma), "hflip_p": float(hflip_p), "seed": int(seed),
+        "amp": str(amp_mode), "crop_size": int(train_x.shape[2]),
+        "n_train": len(y_tr), "n_train_moving": int(y_tr.sum()),
+        "n_val": len(y_va), "n_val_moving": int(y_va.sum()),
+    }
+
+    with _deterministic(dev):
+        torch.manual_seed(seed)
+        model = motion_resnet18().to(dev, memory_format=torch.channels_last)
+        opt = torch.optim.SGD(model.parameters(), lr=lr, momentum=momentum,
+                              weight_decay=weight_decay)
+        sched = torch.optim.lr_scheduler.StepLR(opt, step_size=step_size, gamma=gamma)
+        scaler = torch.amp.GradScaler(dev.type, enabled=amp_mode == "fp16")
+        loss_fn = nn.BCEWithLogitsLoss()
+        rows: list[dict[str, Any]] = []
+        best_f1, best_epoch, start = -1.0, 0, 0
+
+        if resume and last_path.is_file():
+            ck = torch.load(last_path, map_location="cpu", weights_only=True)
+            if ck.get("format") != CHECKPOINT_FORMAT:
+                raise TrainingError(f"{last_path}: not a flowmod training checkpoint")
+            diff = {k: (ck["config"].get(k), v) for k, v in config.items()
+                    if ck["config"].get(k) != v}
+            if diff:
+                raise TrainingError(
+                    f"{last_path} was written with other settings/data "
+                    f"(key: (checkpoint, now)) {diff}; pass resume=False or use a new out_dir"
+                )
+            model.load_state_dict(ck["model"])
+            opt.load_state_dict(ck["optimizer"])
+            sched.load_state_dict(ck["scheduler"])
+            scaler.load_state_dict(ck["scaler"])
+            rows = _history_rows(ck["history"])
+            best_f1, best_epoch, start = float(ck["best_f1"]), int(ck["best_epoch"]), int(
+                ck["epoch"])
+            torch.set_rng_state(ck["rng"]["torch"])
+            if dev.type == "cuda" and ck["rng"].get("cuda"):
+                torch.cuda.set_rng_state_all(ck["rng"]["cuda"])
+
+        ds = CropDataset(train_x, y_tr)
+        bar = tqdm(range(start + 1, epochs + 1), desc="epochs", unit="epoch",
+                   disable=not progress, initial=start, total=epochs)
+        for epoch in bar:
+            t0 = time.perf_counter()
+            lr_now = float(opt.param_groups[0]["lr"])
+            batches, flips = epoch_plan(len(y_tr), batch_size, hflip_p, seed, epoch)
+            loader = DataLoader(ds, batch_size=None, sampler=batches, num_workers=num_workers,
+                                pin_memory=dev.type == "cuda")
+            model.train()
+            loss_sum = torch.zeros((), dtype=torch.float64, device=dev)
+            n_seen, pos = 0, 0
+            inner = tqdm(loader, desc=f"epoch {epoch}", unit="batch", leave=False,
+                         disable=not progress)
+            for i, (xb, yb) in enumerate(inner):
+                b = len(yb)
+                xb = xb.to(dev, non_blocking=True)
+                yb = yb.to(dev, non_blocking=True)
+                fb = torch.from_numpy(flips[pos : pos + b]).to(dev)
+                pos += b
+                if bool(fb.any()):
+                    xb[fb] = hflip(xb[fb])
+                xb = xb.contiguous(memory_format=torch.channels_last)
+                opt.zero_grad(set_to_none=True)
+                with torch.autocast(dev.type, dtype=amp_dtype, enabled=amp_dtype is not None):
+                    logits = model(xb).reshape(-1)
+                loss = loss_fn(logits.float(), yb)
+                if not torch.isfinite(loss):
+                    raise TrainingError(
+                        f"epoch {epoch}, batch {i}: loss is {loss.item()} (non-finite crops? "
+                        "lr too high?)"
+                    )
+                scaler.scale(loss).backward()
+                scaler.step(opt)
+                scaler.update()
+                loss_sum += loss.detach().double() * b
+                n_seen += b
+                if progress and i % 10 == 0:
+                    inner.set_postfix(loss=f"{loss.item():.4f}")
+            inner.close()
+            train_loss = float(loss_sum.item()) / max(1, n_seen)
+
+            z = predict_logits(model, val_x, batch_size=eval_batch_size, device=dev,
+                               amp=amp_mode)
+            m = metrics(y_va, 1.0 / (1.0 + np.exp(-z)))
+            sched.step()
+            row = {
+                "epoch": epoch, "train_loss": train_loss, "val_loss": _bce_with_logits(z, y_va),
+                "val_f1": m["f1"], "val_precision": m["precision"], "val_recall": m["recall"],
+                "lr": lr_now, "seconds": time.perf_counter() - t0,
+            }
+            rows.append(row)
+            if m["f1"] > best_f1:  # strict: ties keep the earlier epoch
+                best_f1, best_epoch = m["f1"], epoch
+                _save(model.state_dict(), best_path)
+            ckpt = {
+                "format": CHECKPOINT_FORMAT, "epoch": epoch, "config": config,
+                "model": model.state_dict(), "optimizer": opt.state_dict(),
+                "scheduler": sched.state_dict(), "scaler": scaler.state_dict(),
+                "history": _history_dict(rows), "best_f1": best_f1, "best_epoch": best_epoch,
+                "rng": {"torch": torch.get_rng_state(),
+                        "cuda": torch.cuda.get_rng_state_all() if dev.type == "cuda" else []},
+            }
+            _save(ckpt, last_path)
+            with atomic_path(hist_path) as tmp:
+                pd.DataFrame(rows, columns=HISTORY_COLUMNS).to_csv(tmp, index=False)
+            bar.set_postfix(loss=f"{train_loss:.4f}", val_f1=f"{m['f1']:.3f}",
+                            best=f"{best_epoch}")
+        bar.close()
+
+    if not math.isfinite(best_f1) or best_epoch == 0:
+        raise TrainingError("no epoch was trained (epochs <= the checkpoint's epoch?)")
+    return _history_frame(rows, best_epoch, best_f1)

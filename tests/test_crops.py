@@ -1,0 +1,256 @@
+"""flowmod.crops: geometry against a slow reference, flips, and the crop artefacts."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+
+from flowmod import crops
+from flowmod.crops import CropsError, build_crops, crop_boxes, crop_windows, hflip, open_crops
+
+# --- a slow, explicit reference of the paper's preprocessing ---------------------------------
+
+
+def reference_crop(flow: np.ndarray, box, size: int, scale: float) -> np.ndarray:
+    """One box, written out step by step: square, scale, np.pad edge, slice, cv2.resize."""
+    xmin, ymin, xmax, ymax = box
+    side = scale * max(xmax - xmin, ymax - ymin)
+    n = max(1, math.floor(side + 0.5))
+    x0 = math.floor((xmin + xmax) / 2 - n / 2 + 0.5)
+    y0 = math.floor((ymin + ymax) / 2 - n / 2 + 0.5)
+    h, w = flow.shape[:2]
+    pad = max(0, -x0, -y0, x0 + n - w, y0 + n - h)
+    padded = np.pad(flow, ((pad, pad), (pad, pad), (0, 0)), mode="edge")
+    patch = padded[y0 + pad : y0 + pad + n, x0 + pad : x0 + pad + n]
+    assert patch.shape == (n, n, 2)
+    resized = cv2.resize(np.ascontiguousarray(patch), (size, size),
+                         interpolation=cv2.INTER_LINEAR)
+    out = np.empty((2, size, size), dtype=np.float32)
+    for c in range(2):
+        for r in range(size):
+            for q in range(size):
+                out[c, r, q] = resized[r, q, c]
+    return out
+
+
+def random_boxes(rng: np.random.Generator, w: int, h: int, n: int) -> np.ndarray:
+    x1 = rng.uniform(-20, w + 20, n)
+    y1 = rng.uniform(-20, h + 20, n)
+    bw = rng.uniform(0, 40, n)
+    bh = rng.uniform(0, 40, n)
+    boxes = np.stack([x1, y1, x1 + bw, y1 + bh], axis=1)
+    special = np.array([
+        [0, 0, 10, 10],  # at the top-left corner
+        [w - 10, h - 10, w, h],  # at the bottom-right corner
+        [w - 3, 10, w + 30, 30],  # beyond the right border
+        [-25, -5, -2, 12],  # fully outside
+        [50, 40, 50, 40],  # zero size -> 1 px window
+        [20.2, 30.7, 20.5, 30.9],  # sub-pixel box
+        [10, 10, 150, 30],  # wide: window larger than the frame
+    ], dtype=float)
+    return np.concatenate([boxes, special])
+
+
+@pytest.fixture(scope="module")
+def frame() -> np.ndarray:
+    rng = np.random.default_rng(1)
+    return rng.normal(0, 3, (72, 128, 2)).astype(np.float32)
+
+
+@pytest.mark.parametrize("size,scale", [(16, 3.0), (24, 1.5), (7, 3.0)])
+def test_crops_equal_slow_reference(frame: np.ndarray, size: int, scale: float) -> None:
+    boxes = random_boxes(np.random.default_rng(size), frame.shape[1], frame.shape[0], 40)
+    got = crop_boxes(frame, boxes, size, scale)
+    assert got.shape == (len(boxes), 2, size, size) and got.dtype == np.float32
+    for i, b in enumerate(boxes):
+        np.testing.assert_array_equal(got[i], reference_crop(frame, b, size, scale),
+                                      err_msg=f"box {i}: {b}")
+
+
+def test_huge_windows_use_the_gather_path_with_equal_values(frame: np.ndarray) -> None:
+    boxes = np.array([[-100.0, -50.0, 300.0, 150.0], [60, 30, 64, 34]])  # 1200 px window
+    got = crop_boxes(frame, boxes, 12, 3.0)
+    for i, b in enumerate(boxes):
+        np.testing.assert_array_equal(got[i], reference_crop(frame, b, 12, 3.0))
+
+
+def test_window_geometry_and_bad_boxes() -> None:
+    np.testing.assert_array_equal(crop_windows([[10, 20, 20, 24]], 3.0), [[0, 7, 30]])
+    np.testing.assert_array_equal(crop_windows([[5, 5, 5, 5]], 3.0), [[5, 5, 1]])
+    assert crop_boxes(np.zeros((8, 8, 2)), np.zeros((0, 4)), 4).shape == (0, 2, 4, 4)
+    with pytest.raises(CropsError, match="NaN"):
+        crop_windows([[0, 0, np.nan, 1]])
+    with pytest.raises(CropsError, match="xmax < xmin"):
+        crop_windows([[5, 0, 1, 1]])
+    with pytest.raises(CropsError, match=r"\(H, W, 2\)"):
+        crop_boxes(np.zeros((8, 8, 3)), [[0, 0, 1, 1]], 4)
+
+
+def test_flow_values_are_not_rescaled() -> None:
+    flow = np.full((50, 50, 2), (2.5, -1.0), dtype=np.float32)
+    out = crop_boxes(flow, [[20, 20, 30, 30]], 90)  # 30 px window upsampled x3
+    np.testing.assert_allclose(out[0, 0], 2.5)
+    np.testing.assert_allclose(out[0, 1], -1.0)
+
+
+# --- flips ------------------------------------------------------------------------------------
+
+
+def test_hflip_numpy_mirrors_negates_u_copies_and_is_an_involution() -> None:
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(3, 2, 5, 6)).astype(np.float16)
+    x.flags.writeable = False  # as a read-only memmap would be
+    before = x.copy()
+    y = hflip(x)
+    np.testing.assert_array_equal(x, before)  # source untouched
+    assert not np.shares_memory(x, y)
+    np.testing.assert_array_equal(y[:, 0], -x[:, 0, :, ::-1])
+    np.testing.assert_array_equal(y[:, 1], x[:, 1, :, ::-1])
+    np.testing.assert_array_equal(hflip(y), x)
+    single = hflip(x[0])  # (2, S, S) works too
+    np.testing.assert_array_equal(single, y[0])
+
+
+def test_hflip_torch_matches_numpy() -> None:
+    torch = pytest.importorskip("torch")
+    x = torch.randn(4, 2, 3, 5)
+    before = x.clone()
+    y = hflip(x)
+    assert torch.equal(x, before)
+    np.testing.assert_array_equal(y.numpy(), hflip(x.numpy()))
+    assert torch.equal(hflip(y), x)
+    with pytest.raises(TypeError):
+        hflip([1, 2])
+
+
+# --- artefacts --------------------------------------------------------------------------------
+
+W, H = 160, 90  # the "image" size the boxes are given in
+QUIET = dict(image_size=(W, H), progress=False)
+
+
+def make_world(tmp_path: Path, flow_shape=(H, W)) -> tuple[pd.DataFrame, Path]:
+    """3 pairs (2 train, 1 val), float16 flow files, objects in shuffled order."""
+    rng = np.random.default_rng(7)
+    flow_dir = tmp_path / "flow"
+    (flow_dir / "dis").mkdir(parents=True)
+    rows = []
+    for k, (pid, split) in enumerate([("p0", "train"), ("p1", "val"), ("p2", "train")]):
+        np.save(flow_dir / "dis" / f"{pid}.npy",
+                rng.normal(0, 2, (*flow_shape, 2)).astype(np.float16))
+        for j in range(3 + k):
+            x1, y1 = rng.uniform(-5, W - 10), rng.uniform(-5, H - 10)
+            rows.append({
+                "pair_id": pid, "scene": "s", "split": split, "ann_token": f"{pid}-{j}",
+                "xmin": x1, "ymin": y1, "xmax": x1 + rng.uniform(1, 25),
+                "ymax": y1 + rng.uniform(1, 25), "label": int(j % 2), "distance": 40.0,
+            })
+    objects = pd.DataFrame(rows).sample(frac=1.0, random_state=0).reset_index(drop=True)
+    return objects, flow_dir
+
+
+class CountingLoader:
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+        self.fail_at: int | None = None
+        self.orig = crops._load_flow
+
+    def __call__(self, flow_dir, method, pair_id):
+        if self.fail_at is not None and len(self.calls) == self.fail_at:
+            raise KeyboardInterrupt("simulated interruption")
+        self.calls.append(pair_id)
+        return self.orig(flow_dir, method, pair_id)
+
+
+def test_build_crops_content_order_and_one_read_per_pair(tmp_path, monkeypatch) -> None:
+    objects, flow_dir = make_world(tmp_path)
+    counter = CountingLoader()
+    monkeypatch.setattr(crops, "_load_flow", counter)
+    out = build_crops(objects, flow_dir, "dis", tmp_path / "crops", size=16, **QUIET)
+    assert set(out) == {"train", "val"}
+    assert sorted(counter.calls) == ["p0", "p1", "p2"]  # each flow file read once
+    for split in ("train", "val"):
+        x, idx = open_crops(tmp_path / "crops", "dis", split)
+        assert x.dtype == np.float16 and x.shape == (len(idx), 2, 16, 16)
+        assert list(idx.columns) == list(objects.columns)
+        assert idx["pair_id"].is_monotonic_increasing
+        for pid, grp in idx.groupby("pair_id"):
+            flow = np.load(flow_dir / "dis" / f"{pid}.npy").astype(np.float32)
+            want = crop_boxes(flow, grp[["xmin", "ymin", "xmax", "ymax"]].to_numpy(), 16)
+            np.testing.assert_array_equal(x[grp.index.to_numpy()], want.astype(np.float16))
+    n_train = (objects["split"] == "train").sum()
+    assert len(open_crops(tmp_path / "crops", "dis", "train")[1]) == n_train
+    # no temporary files left behind
+    leftovers = [p.name for p in (tmp_path / "crops" / "dis").iterdir() if p.name.startswith(".")]
+    assert leftovers == []
+
+
+def test_build_crops_skips_when_up_to_date_and_rebuilds_on_change(tmp_path, monkeypatch):
+    objects, flow_dir = make_world(tmp_path)
+    counter = CountingLoader()
+    monkeypatch.setattr(crops, "_load_flow", counter)
+    kw = dict(size=8, **QUIET)
+    build_crops(objects, flow_dir, "dis", tmp_path / "c", **kw)
+    assert len(counter.calls) == 3
+    build_crops(objects, flow_dir, "dis", tmp_path / "c", **kw)
+    assert len(counter.calls) == 3  # up to date: nothing read
+    build_crops(objects, flow_dir, "dis", tmp_path / "c", size=8, scale=2.0, **QUIET)
+    assert len(counter.calls) == 6  # new parameters: rebuilt
+    changed = objects.copy()
+    changed.loc[changed["pair_id"] == "p1", "xmin"] -= 1.0
+    build_crops(changed, flow_dir, "dis", tmp_path / "c", size=8, scale=2.0, **QUIET)
+    assert counter.calls[6:] == ["p1"]  # only the changed split (val) is rebuilt
+
+
+def test_build_crops_is_atomic_and_resumes(tmp_path, monkeypatch) -> None:
+    objects, flow_dir = make_world(tmp_path)
+    train_only = objects[objects["split"] == "train"]
+    counter = CountingLoader()
+    counter.fail_at = 1  # die while loading the second pair of the split
+    monkeypatch.setattr(crops, "_load_flow", counter)
+    with pytest.raises(KeyboardInterrupt):
+        build_crops(train_only, flow_dir, "dis", tmp_path / "c", size=8, **QUIET,
+                    checkpoint_every=1)
+    npy, index = crops.crop_paths(tmp_path / "c", "dis", "train")
+    assert not npy.exists() and not index.exists()  # nothing half-written under final names
+    counter.fail_at = None
+    build_crops(train_only, flow_dir, "dis", tmp_path / "c", size=8, **QUIET)
+    assert counter.calls == ["p0", "p2"]  # resumed: p0 was not read again
+    fresh = tmp_path / "fresh"
+    build_crops(train_only, flow_dir, "dis", fresh, size=8, **QUIET)
+    np.testing.assert_array_equal(np.load(npy), np.load(crops.crop_paths(fresh, "dis", "train")[0]))
+
+
+def test_boxes_are_scaled_to_a_reduced_flow_grid(tmp_path) -> None:
+    objects, flow_dir = make_world(tmp_path, flow_shape=(H // 2, W // 2))
+    build_crops(objects, flow_dir, "dis", tmp_path / "c", size=8, **QUIET)
+    x, idx = open_crops(tmp_path / "c", "dis", "val")
+    flow = np.load(flow_dir / "dis" / "p1.npy").astype(np.float32)
+    want = crop_boxes(flow, idx[["xmin", "ymin", "xmax", "ymax"]].to_numpy() / 2, 8)
+    np.testing.assert_array_equal(x, want.astype(np.float16))
+
+
+def test_open_crops_errors_name_both_files(tmp_path) -> None:
+    objects, flow_dir = make_world(tmp_path)
+    build_crops(objects, flow_dir, "dis", tmp_path / "c", size=8, **QUIET)
+    npy, index = crops.crop_paths(tmp_path / "c", "dis", "train")
+    pd.read_parquet(index).iloc[:-1].to_parquet(index)
+    with pytest.raises(CropsError, match="disagree") as e:
+        open_crops(tmp_path / "c", "dis", "train")
+    assert str(npy) in str(e.value) and str(index) in str(e.value)
+    with pytest.raises(CropsError, match="missing"):
+        open_crops(tmp_path / "c", "dis", "test")
+    with pytest.raises(CropsError, match="flow file missing"):
+        build_crops(objects.assign(pair_id="nope"), flow_dir, "dis", tmp_path / "d", size=8,
+                    **QUIET)
+
+
+def test_padded_flow_grid_is_refused(tmp_path) -> None:
+    objects, flow_dir = make_world(tmp_path, flow_shape=(H + 4, W))  # like RAFT's 904 rows
+    with pytest.raises(CropsError, match="padded"):
+        build_crops(objects, flow_dir, "dis", tmp_path / "c", size=8, **QUIET)
