@@ -254,3 +254,14 @@ def test_padded_flow_grid_is_refused(tmp_path) -> None:
     objects, flow_dir = make_world(tmp_path, flow_shape=(H + 4, W))  # like RAFT's 904 rows
     with pytest.raises(CropsError, match="padded"):
         build_crops(objects, flow_dir, "dis", tmp_path / "c", size=8, **QUIET)
+
+
+def test_nonfinite_flow_is_zeroed_and_recorded(tmp_path) -> None:
+    objects, flow_dir = make_world(tmp_path)
+    f = np.load(flow_dir / "dis" / "p1.npy")
+    f[:, : W // 2] = np.nan  # invalid pixels (e.g. GT flow leaving the image)
+    np.save(flow_dir / "dis" / "p1.npy", f)
+    build_crops(objects, flow_dir, "dis", tmp_path / "c", size=8, **QUIET)
+    x, _ = open_crops(tmp_path / "c", "dis", "val")
+    assert np.isfinite(x).all()
+    assert crops.crops_manifest(tmp_path / "c", "dis", "val")["nonfinite_flow_values_zeroed"] > 0

@@ -145,14 +145,17 @@ def hflip(x: T) -> T:
 
 
 def _load_flow(flow_dir: Path, method: str, pair_id: str) -> np.ndarray:
-    """One pair's flow, (H, W, 2) float32 pixels (swap for ``flowmod.flow.load_flow``)."""
-    path = Path(flow_dir) / method / f"{pair_id}.npy"
-    if not path.is_file():
-        raise CropsError(f"flow file missing: {path} (run the flow stage for method {method!r})")
-    arr = np.load(path, allow_pickle=False)
-    if arr.ndim != 3 or arr.shape[2] != 2:
-        raise CropsError(f"{path}: flow must be (H, W, 2), got {arr.shape}")
-    return np.asarray(arr, dtype=np.float32)
+    """One pair's flow, (H, W, 2) float32 pixels (via :func:`flowmod.flow.load_flow`)."""
+    from flowmod.flow import load_flow
+
+    try:
+        return load_flow(flow_dir, method, pair_id)
+    except FileNotFoundError:
+        path = Path(flow_dir) / method / f"{pair_id}.npy"
+        raise CropsError(
+            f"flow file missing: {path} (run the flow stage for method {method!r}; crops cannot "
+            "be rebuilt once full-frame flow was deleted)"
+        ) from None
 
 
 def crop_paths(out_dir: str | os.PathLike[str], method: str, split: str) -> tuple[Path, Path]:

@@ -31,6 +31,7 @@ imported by the network methods and the colour coding.
 from __future__ import annotations
 
 import concurrent.futures
+import inspect
 import json
 import logging
 import math
@@ -118,7 +119,9 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
 def _check_pair(img1: np.ndarray, img2: np.ndarray) -> None:
     for name, img in (("img1", img1), ("img2", img2)):
         if not (isinstance(img, np.ndarray) and img.ndim == 3 and img.shape[2] == 3):
-            raise ValueError(f"{name} must be an (H, W, 3) BGR image, got {getattr(img, 'shape', img)}")
+            raise ValueError(
+                f"{name} must be an (H, W, 3) BGR image, got {getattr(img, 'shape', img)}"
+            )
         if img.dtype != np.uint8:
             raise ValueError(f"{name} must be uint8 (as cv2.imread gives), got {img.dtype}")
     if img1.shape != img2.shape:
@@ -246,15 +249,12 @@ class DISFlow(FlowEstimator):
         if preset not in self.PRESETS:
             raise ValueError(f"dis: preset={preset!r}; allowed: {', '.join(self.PRESETS)}")
         self.preset = preset
-        self._dis: Any = None
-
-    def __getstate__(self) -> dict[str, Any]:  # cv2 objects do not pickle: rebuilt lazily
-        return {**self.__dict__, "_dis": None}
 
     def _estimate(self, img1: np.ndarray, img2: np.ndarray) -> np.ndarray:
-        if self._dis is None:
-            self._dis = cv2.DISOpticalFlow_create(self.PRESETS[self.preset])
-        return self._dis.calc(_gray(img1), _gray(img2), None)
+        # a fresh object per pair: a reused DIS instance carries state between calls, and
+        # its results would then depend on the order in which pairs were computed
+        dis = cv2.DISOpticalFlow_create(self.PRESETS[self.preset])
+        return dis.calc(_gray(img1), _gray(img2), None)
 
     def options(self) -> dict[str, Any]:
         return {"preset": self.preset, "scale": self.scale}
@@ -322,9 +322,9 @@ class GTFlow(FlowEstimator):
 
     @staticmethod
     def _world() -> Any:
-        import flowmod.world as world  # lazy: written by another stage, heavy to import
+        import importlib
 
-        return world
+        return importlib.import_module("flowmod.world")  # lazy: another stage, heavy import
 
     def estimate_tokens(self, sd_token_1: str, sd_token_2: str) -> np.ndarray:
         """Exact flow (H, W, 2) float32, pixels, from frame ``sd_token_1`` to ``sd_token_2``."""
@@ -482,7 +482,11 @@ class RAFTFlow(_NetworkEstimator):
                 what = (
                     f"a .pth file (a torchvision state_dict such as {files[0][1]} of "
                     f"{files[0][0]}, or an original princeton-vl RAFT checkpoint"
-                    + (" such as raft-kitti.pth)" if self.arch == "raft_large" else " raft-small.pth)")
+                    + (
+                        " such as raft-kitti.pth)"
+                        if self.arch == "raft_large"
+                        else " raft-small.pth)"
+                    )
                 )
                 raise MissingWeightsError(
                     _missing_weights(self.name, self.weights_param, what, [f for _, f in files])
@@ -629,9 +633,7 @@ def read_flo(path: str | os.PathLike[str]) -> np.ndarray:
     return np.frombuffer(data[12:], "<f4").reshape(h, w, 2).astype(np.float32)
 
 
-def save_flow_npy(
-    path: str | os.PathLike[str], flow: np.ndarray, dtype: str = "float16"
-) -> None:
+def save_flow_npy(path: str | os.PathLike[str], flow: np.ndarray, dtype: str = "float16") -> None:
     """Save (H, W, 2) flow as .npy of ``dtype`` (float16 / float32), atomically."""
     _check_flow(flow)
     if dtype not in ("float16", "float32"):
@@ -647,19 +649,32 @@ def load_flow_npy(path: str | os.PathLike[str]) -> np.ndarray:
     except FileNotFoundError:
         raise
     except Exception as e:  # noqa: BLE001 - truncated, garbage, pickled...: name the file
-        raise FlowFileError(f"{path}: corrupt or truncated flow file ({type(e).__name__}: {e})") from e
+        raise FlowFileError(
+            f"{path}: corrupt or truncated flow file ({type(e).__name__}: {e})"
+        ) from e
     if arr.ndim != 3 or arr.shape[2] != 2:
         raise FlowFileError(f"{path}: expected an (H, W, 2) flow, found shape {arr.shape}")
     return arr.astype(np.float32)
 
 
+def _npy_header(path: Path) -> tuple[tuple[int, ...], bool, np.dtype, int]:
+    """(shape, fortran_order, dtype, data offset) from a .npy header, without reading data."""
+    fmt = np.lib.format
+    with open(path, "rb") as f:
+        version = fmt.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dt = fmt.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, fortran, dt = fmt.read_array_header_2_0(f)
+        else:
+            raise ValueError(f"unsupported .npy version {version}")
+        return tuple(shape), bool(fortran), np.dtype(dt), f.tell()
+
+
 def _npy_ok(path: Path, dtype: str) -> bool:
     """True if ``path`` is a complete .npy of an (H, W, 2) ``dtype`` array (header + size)."""
     try:
-        with open(path, "rb") as f:
-            version = np.lib.format.read_magic(f)
-            shape, fortran, dt = np.lib.format._read_array_header(f, version)  # noqa: SLF001
-            offset = f.tell()
+        shape, fortran, dt, offset = _npy_header(path)
         size = path.stat().st_size
     except Exception:  # noqa: BLE001 - anything unreadable is simply not done
         return False
@@ -682,9 +697,7 @@ def load_flow(out_dir: str | os.PathLike[str], method: str, pair_id: str) -> np.
 # --------------------------------------------------------------------------------------------
 
 
-def flow_to_color(
-    flow: np.ndarray, max_flow: float | None = None, bgr: bool = False
-) -> np.ndarray:
+def flow_to_color(flow: np.ndarray, max_flow: float | None = None, bgr: bool = False) -> np.ndarray:
     """Colour-code flow (H, W, 2) -> (H, W, 3) uint8 RGB (BGR if ``bgr``), Middlebury wheel.
 
     Uses ``torchvision.utils.flow_to_image``; saturation is normalised by the largest
@@ -721,7 +734,9 @@ def endpoint_error(flow: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return np.sqrt((d**2).sum(axis=2))
 
 
-def _select(shape: tuple[int, ...], valid: np.ndarray | None, mask: np.ndarray | None) -> np.ndarray:
+def _select(
+    shape: tuple[int, ...], valid: np.ndarray | None, mask: np.ndarray | None
+) -> np.ndarray:
     sel = np.ones(shape[:2], bool)
     for m in (valid, mask):
         if m is not None:
@@ -844,12 +859,19 @@ def _describe(v: Any) -> Any:
     return str(v)
 
 
-_NOT_CONFIG = ("device", "batch_size", "model")
+_NOT_CONFIG = ("device", "batch_size", "model", "dataroot", "version")
 
 
-def _config(method: str, dtype: str, options: Mapping[str, Any]) -> dict[str, Any]:
-    opts = {k: _describe(v) for k, v in sorted(options.items()) if k not in _NOT_CONFIG}
-    return {"method": method, "dtype": dtype, "options": opts, "format": 1}
+def _config(cls: type[FlowEstimator], dtype: str, options: Mapping[str, Any]) -> dict[str, Any]:
+    """What the cached flows depend on: method, dtype and the options with their defaults."""
+    extra = {"dataroot": None, "version": None} if cls.inputs == "tokens" else {}
+    try:
+        bound = inspect.signature(cls).bind(**extra, **options)
+    except TypeError as e:
+        raise TypeError(f"flow method {cls.name!r}: {e}") from None
+    bound.apply_defaults()
+    opts = {k: _describe(v) for k, v in sorted(bound.arguments.items()) if k not in _NOT_CONFIG}
+    return {"method": cls.name, "dtype": dtype, "options": opts, "format": 1}
 
 
 def _one_image_pair(
@@ -914,7 +936,9 @@ def _read_index(path: Path) -> pd.DataFrame | None:
     return df if "pair_id" in df.columns else None
 
 
-def _write_index(path: Path, rows: Mapping[str, dict[str, Any]], order: Sequence[str]) -> pd.DataFrame:
+def _write_index(
+    path: Path, rows: Mapping[str, dict[str, Any]], order: Sequence[str]
+) -> pd.DataFrame:
     ids = list(order) + [p for p in rows if p not in set(order)]
     df = pd.DataFrame(
         {
@@ -927,12 +951,6 @@ def _write_index(path: Path, rows: Mapping[str, dict[str, Any]], order: Sequence
     with atomic_path(path) as tmp:
         df.to_parquet(tmp, index=False)
     return df
-
-
-def _npy_shape(path: Path) -> tuple[int, ...]:
-    with open(path, "rb") as f:
-        version = np.lib.format.read_magic(f)
-        return tuple(np.lib.format._read_array_header(f, version)[0])  # noqa: SLF001
 
 
 def compute_flow(
@@ -965,7 +983,10 @@ def compute_flow(
     if dtype not in ("float16", "float32"):
         raise ValueError(f"dtype={dtype!r}; allowed: float16, float32")
     cls = _REGISTRY[method]
-    need = ["pair_id", *(("sd_token_1", "sd_token_2") if cls.inputs == "tokens" else ("path_1", "path_2"))]
+    need = [
+        "pair_id",
+        *(("sd_token_1", "sd_token_2") if cls.inputs == "tokens" else ("path_1", "path_2")),
+    ]
     missing_cols = [c for c in need if c not in pairs.columns]
     if missing_cols:
         raise ValueError(f"pairs lacks column(s) {missing_cols} needed by method {method!r}")
@@ -981,7 +1002,7 @@ def compute_flow(
     folder.mkdir(parents=True, exist_ok=True)
     index_path = folder / "index.parquet"
     config_path = folder / "config.json"
-    config = _config(method, dtype, options)
+    config = _config(cls, dtype, options)
     old_config = None
     if config_path.is_file():
         try:
@@ -992,8 +1013,11 @@ def compute_flow(
     for tmp in folder.glob(".*.tmp*"):  # left by an interrupted run
         tmp.unlink(missing_ok=True)
     if stale:
-        log.warning("flow/%s: %s; deleting its cached flows", method,
-                    "forced" if force else f"options changed ({old_config} -> {config})")
+        log.warning(
+            "flow/%s: %s; deleting its cached flows",
+            method,
+            "forced" if force else f"options changed ({old_config} -> {config})",
+        )
         for f in folder.glob("*.npy"):
             f.unlink()
         index_path.unlink(missing_ok=True)
@@ -1013,7 +1037,7 @@ def compute_flow(
         if _npy_ok(f, dtype):
             done.add(pid)
             if pid not in rows:  # finished before the index was last written
-                rows[pid] = {"seconds": float("nan"), "shape": list(_npy_shape(f))}
+                rows[pid] = {"seconds": float("nan"), "shape": list(_npy_header(f)[0])}
         else:
             rows.pop(pid, None)
     todo = pairs[[pid not in done for pid in ids]]
@@ -1034,14 +1058,34 @@ def compute_flow(
         results: Iterator[tuple[str, float, tuple[int, ...]]] | Any
         if cls.inputs == "tokens":
             calls = [
-                (_one_token_pair, (est, str(r.pair_id), r.sd_token_1, r.sd_token_2,
-                                   folder / f"{r.pair_id}.npy", dtype, threads))
+                (
+                    _one_token_pair,
+                    (
+                        est,
+                        str(r.pair_id),
+                        r.sd_token_1,
+                        r.sd_token_2,
+                        folder / f"{r.pair_id}.npy",
+                        dtype,
+                        threads,
+                    ),
+                )
                 for r in todo.itertuples(index=False)
             ]
         else:
             calls = [
-                (_one_image_pair, (est, str(r.pair_id), str(root / r.path_1), str(root / r.path_2),
-                                   folder / f"{r.pair_id}.npy", dtype, threads))
+                (
+                    _one_image_pair,
+                    (
+                        est,
+                        str(r.pair_id),
+                        str(root / r.path_1),
+                        str(root / r.path_2),
+                        folder / f"{r.pair_id}.npy",
+                        dtype,
+                        threads,
+                    ),
+                )
                 for r in todo.itertuples(index=False)
             ]
         if parallel:
@@ -1056,7 +1100,7 @@ def compute_flow(
             jobs = [(a[1], a[2], a[3], a[4]) for _, a in calls]
             results = _batched(est, jobs, dtype)
 
-        from tqdm.auto import tqdm
+        from tqdm import tqdm
 
         last_write = time.monotonic()
         with tqdm(total=len(todo), desc=f"flow {method}", unit="pair", disable=not progress) as bar:

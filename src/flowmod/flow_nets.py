@@ -45,14 +45,19 @@ class CheckpointError(ValueError):
 Pads = tuple[int, int, int, int]  # left, right, top, bottom
 
 
-def pad_to_multiple(x: Tensor, multiple: int = 8, mode: str = "replicate") -> tuple[Tensor, Pads]:
-    """Pad the last two dims of ``x`` (B, C, H, W) up to multiples of ``multiple``.
+def pad_to_multiple(
+    x: Tensor, multiple: int = 8, mode: str = "replicate", min_size: int = 0
+) -> tuple[Tensor, Pads]:
+    """Pad the last two dims of ``x`` (B, C, H, W) up to multiples of ``multiple`` (and at
+    least ``min_size``).
 
     The padding is split evenly (the odd pixel goes to the right / bottom), as RAFT's own
     ``InputPadder`` does for Sintel; returns the padded tensor and (left, right, top, bottom).
     """
     h, w = x.shape[-2:]
-    ph, pw = (-h) % multiple, (-w) % multiple
+    ph = max(min_size - h, (-h) % multiple)
+    pw = max(min_size - w, (-w) % multiple)
+    ph, pw = ph + (-(h + ph)) % multiple, pw + (-(w + pw)) % multiple
     pads = (pw // 2, pw - pw // 2, ph // 2, ph - ph // 2)
     if ph == 0 and pw == 0:
         return x, pads
@@ -279,6 +284,8 @@ def fastflownet_flow(model: FastFlowNet, img1: Tensor, img2: Tensor) -> Tensor:
 # --------------------------------------------------------------------------------------------
 
 RAFT_ARCHS = ("raft_large", "raft_small")
+#: torchvision's RAFT pools the correlation 3 times: the padded input needs 8 * 16 px a side.
+RAFT_MIN_SIZE = 128
 
 
 def build_raft(arch: str) -> nn.Module:
@@ -293,14 +300,15 @@ def build_raft(arch: str) -> nn.Module:
 def raft_flow(model: nn.Module, img1: Tensor, img2: Tensor, num_flow_updates: int = 12) -> Tensor:
     """Flow in pixels (B, 2, H, W) for RGB images (B, 3, H, W) with values in [0, 255].
 
-    Inputs are scaled to [-1, 1], padded (replicate) to multiples of 8, and the flow of the
+    Inputs are scaled to [-1, 1], padded (replicate) to multiples of 8 (and to at least
+    128 px, the smallest size torchvision's correlation pyramid accepts), and the flow of the
     last update is cropped back to (H, W), so pixel (y, x) of the output belongs to pixel
     (y, x) of ``img1``.
     """
     x1 = img1 * (2.0 / 255.0) - 1.0
     x2 = img2 * (2.0 / 255.0) - 1.0
-    x1, pads = pad_to_multiple(x1, 8)
-    x2, _ = pad_to_multiple(x2, 8)
+    x1, pads = pad_to_multiple(x1, 8, min_size=RAFT_MIN_SIZE)
+    x2, _ = pad_to_multiple(x2, 8, min_size=RAFT_MIN_SIZE)
     preds = model(x1, x2, num_flow_updates=num_flow_updates)
     return unpad(preds[-1], pads)
 
@@ -316,7 +324,14 @@ def torchvision_weight_files(arch: str) -> list[tuple[str, str]]:
     return [(f"{enum.__name__}.{m.name}", os.path.basename(m.url)) for m in members]
 
 
-_RAFT_PREFERENCE = ("C_T_SKHT_K_V1", "C_T_SKHT_K_V2", "C_T_SKHT_V2", "C_T_SKHT_V1", "C_T_V2", "C_T_V1")
+_RAFT_PREFERENCE = (
+    "C_T_SKHT_K_V1",
+    "C_T_SKHT_K_V2",
+    "C_T_SKHT_V2",
+    "C_T_SKHT_V1",
+    "C_T_V2",
+    "C_T_V1",
+)
 
 
 def hub_checkpoint_dir() -> Path:
@@ -344,7 +359,9 @@ _ORIG_UPDATE = {
 }
 # torchvision -> original; raft_small's single ConvGRU has no 1/2 suffix in the original
 _TV_UPDATE = {v: k for k, v in _ORIG_UPDATE.items() if not k.startswith("gru.") or k[-1] in "12"}
-_TV_UPDATE_SMALL = {v: k for k, v in _ORIG_UPDATE.items() if not k.startswith("gru.") or k[-1] > "9"}
+_TV_UPDATE_SMALL = {
+    v: k for k, v in _ORIG_UPDATE.items() if not k.startswith("gru.") or k[-1] > "9"
+}
 _ENCODERS = {"fnet": "feature_encoder", "cnet": "context_encoder"}
 _BLOCK = re.compile(r"^(layer\d+\.\d+)\.(conv|norm)(\d+)\.(.+)$")
 _TV_BLOCK = re.compile(r"^(layer\d+\.\d+)\.convnormrelu(\d+)\.([01])\.(.+)$")
@@ -454,7 +471,9 @@ def raft_torchvision_to_original(
                 out[f"{o}.{rest}"] = v
                 dm = re.match(r"^(layer\d+\.\d+)\.downsample\.1\.(.+)$", rest)
                 if dm:  # the same norm module, registered under the block's name too
-                    out[f"{o}.{dm.group(1)}.norm{nconv[f'{enc}.{dm.group(1)}'] + 1}.{dm.group(2)}"] = v
+                    out[
+                        f"{o}.{dm.group(1)}.norm{nconv[f'{enc}.{dm.group(1)}'] + 1}.{dm.group(2)}"
+                    ] = v
         elif enc == "update_block":
             mod, _, param = rest.rpartition(".")
             if mod not in update_map:

@@ -98,6 +98,7 @@ class Params(BaseModel):
     dis_preset: Literal["ultrafast", "fast", "medium"] = Field("medium")
     flow_dtype: Literal["float16", "float32"] = Field("float16")
     raft_weights: str | None = Field(None, description="path to RAFT weights (.pth)")
+    raft_small_weights: str | None = Field(None, description="path to RAFT-small weights")
     fastflownet_weights: str | None = Field(None, description="path to FastFlowNet weights")
     n_jobs: int = Field(2, ge=1, le=64, description="parallel CPU workers")
 

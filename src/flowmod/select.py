@@ -247,13 +247,34 @@ def _attribute(nusc, ann: dict) -> str:
     return names[0] if names else ""
 
 
-def _pair_row(pair_id: str, scene: str, split: str, kind: str, sd1: dict, sd2: dict) -> dict:
+def camera_to_global(nusc, sd: dict) -> np.ndarray:
+    """(4, 4) float64 transform from ``sd``'s camera frame to the global frame (m)."""
+    from pyquaternion import Quaternion
+
+    cs = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
+    pose = nusc.get("ego_pose", sd["ego_pose_token"])
+    m = np.eye(4)
+    m[:3, :3] = Quaternion(cs["rotation"]).rotation_matrix
+    m[:3, 3] = cs["translation"]
+    e = np.eye(4)
+    e[:3, :3] = Quaternion(pose["rotation"]).rotation_matrix
+    e[:3, 3] = pose["translation"]
+    return e @ m
+
+
+def _pair_row(nusc, pair_id: str, scene: str, split: str, kind: str, sd1: dict,
+              sd2: dict) -> dict:
+    cs = nusc.get("calibrated_sensor", sd1["calibrated_sensor_token"])
     return {
         "pair_id": pair_id, "scene": scene, "split": split, "set": kind,
         "sd_token_1": sd1["token"], "sd_token_2": sd2["token"],
         "path_1": sd1["filename"], "path_2": sd2["filename"],
         "timestamp_1": int(sd1["timestamp"]), "timestamp_2": int(sd2["timestamp"]),
         "sample_token_1": sd1["sample_token"], "sample_token_2": sd2["sample_token"],
+        "width": int(sd1["width"]), "height": int(sd1["height"]),
+        "intrinsic": np.asarray(cs["camera_intrinsic"], dtype=np.float64).ravel().tolist(),
+        "cam2global_1": camera_to_global(nusc, sd1).ravel().tolist(),
+        "cam2global_2": camera_to_global(nusc, sd2).ravel().tolist(),
     }
 
 
@@ -277,7 +298,7 @@ def keyframe_set(
             if not common:
                 continue
             pair_id = f"{sc.scene}-k{i:03d}"
-            pair_rows.append(_pair_row(pair_id, sc.scene, sc.split, "keyframe", sd1, sd2))
+            pair_rows.append(_pair_row(nusc, pair_id, sc.scene, sc.split, "keyframe", sd1, sd2))
             s1 = nusc.get("sample", sd1["sample_token"])
             s2 = nusc.get("sample", sd2["sample_token"])
             for inst in common:
@@ -298,6 +319,7 @@ def _object_row(nusc, pair_id, sc, kind, inst, c: Candidate, ann: dict, v, p: Pa
         "pair_id": pair_id, "scene": sc.scene, "split": sc.split, "set": kind,
         "instance_token": inst, "ann_token": ann["token"], "category": c.category,
         "distance": c.distance, "visibility": ann["visibility_token"],
+        "center_x": c.center[0], "center_y": c.center[1], "center_z": c.center[2],
         "xmin": c.box[0], "ymin": c.box[1], "xmax": c.box[2], "ymax": c.box[3],
         "vx": float(v[0]), "vy": float(v[1]), "vz": float(v[2]), "speed": spd,
         "label": int(spd >= p.speed_threshold),
@@ -349,7 +371,7 @@ def general_set(
                                     prev["timestamp"], after["timestamp"])
                 rows.append(_object_row(nusc, pair_id, sc, "general", inst, c, a_prev, v, p))
             if rows:
-                pair_rows.append(_pair_row(pair_id, sc.scene, sc.split, "general", sd1, sd2))
+                pair_rows.append(_pair_row(nusc, pair_id, sc.scene, sc.split, "general", sd1, sd2))
                 obj_rows.extend(rows)
     return pd.DataFrame(pair_rows), pd.DataFrame(obj_rows)
 

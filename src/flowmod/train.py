@@ -9,8 +9,9 @@ thinning (that happens upstream, if at all).
 
 Determinism: the model is initialised after ``torch.manual_seed(seed)``; each epoch's order
 and flips come from a ``torch.Generator`` seeded with (seed, epoch), so a run resumed from
-``last.pt`` draws exactly what an uninterrupted run draws. On CPU the same seed gives
-bit-identical weights and history (except ``seconds``). On CUDA, deterministic algorithms are
+``last.pt`` draws exactly what an uninterrupted run draws. On CPU the same seed (and the
+same ``torch.get_num_threads()``) gives bit-identical weights and history (except
+``seconds``). On CUDA, deterministic algorithms are
 requested (warn-only) and autocast (bf16, else fp16 with a GradScaler) is on by default, so
 results are close but not guaranteed bit-identical.
 

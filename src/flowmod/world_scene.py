@@ -1,0 +1,855 @@
+"""The synthetic world's description: road layout, trajectories, agents and static objects.
+
+A scene is described by plain JSON-able data (dicts, lists, floats), sampled from a seeded
+random generator by :func:`sample_scene`. Everything else (images, nuScenes tables, ground-truth
+flow, true velocities) is derived from this description, so it is stored beside the tables and
+GT is re-derived on demand.
+
+Frames. Each scene has its own planar *scene frame* (metres, z up, ground at z = 0): the main
+road runs along +x with its centre line at y = 0; an optional cross road runs along +y at
+x = ``cross_x``. Traffic keeps right (lanes for +x travel at y < 0). The scene frame maps to the
+nuScenes *global* frame by a yaw ``scene["global"]["yaw"]`` (rad) and a translation
+``scene["global"]["xy"]`` (m).
+
+Trajectories. A path is ``{"x", "y", "h", "segs": [[length_m, curvature_1/m], ...]}``: start
+pose (m, m, rad) followed by straight (curvature 0) and circular segments, extended straight
+before the start and after the end. A speed profile is ``{"t": [s...], "v": [m/s...]}``: speed
+linear between knots, constant outside. An agent at time t (s, scene clock, 0 = first keyframe)
+is at arc length ``s0 + integral_0^t v``. Position, heading and velocity are analytic.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+# --------------------------------------------------------------------------------------------
+# Categories (official nuScenes names) and typical sizes (w, l, h in m)
+# --------------------------------------------------------------------------------------------
+
+#: Mean sizes (w, l, h), m, roughly the nuScenes class means.
+CATEGORY_SIZES: dict[str, tuple[float, float, float]] = {
+    "vehicle.car": (1.95, 4.62, 1.72),
+    "vehicle.emergency.ambulance": (2.30, 6.10, 2.60),
+    "vehicle.emergency.police": (2.00, 5.00, 1.80),
+    "vehicle.truck": (2.50, 7.00, 2.90),
+    "vehicle.bus.bendy": (2.95, 17.50, 3.40),
+    "vehicle.bus.rigid": (2.90, 11.20, 3.50),
+    "vehicle.construction": (2.80, 6.40, 3.20),
+    "vehicle.motorcycle": (0.80, 2.10, 1.50),
+    "vehicle.bicycle": (0.60, 1.70, 1.30),
+    "vehicle.trailer": (2.90, 10.00, 3.60),
+    "human.pedestrian.adult": (0.67, 0.73, 1.77),
+    "human.pedestrian.child": (0.50, 0.50, 1.25),
+}
+
+#: Category weights for vehicles driving in lanes.
+DRIVING_WEIGHTS = {
+    "vehicle.car": 0.66,
+    "vehicle.truck": 0.09,
+    "vehicle.bus.rigid": 0.05,
+    "vehicle.bus.bendy": 0.02,
+    "vehicle.emergency.police": 0.03,
+    "vehicle.emergency.ambulance": 0.02,
+    "vehicle.construction": 0.03,
+    "vehicle.motorcycle": 0.05,
+    "vehicle.bicycle": 0.03,
+    "vehicle.trailer": 0.02,
+}
+
+#: Category weights for parked vehicles.
+PARKED_WEIGHTS = {
+    "vehicle.car": 0.72,
+    "vehicle.truck": 0.08,
+    "vehicle.construction": 0.04,
+    "vehicle.emergency.police": 0.03,
+    "vehicle.emergency.ambulance": 0.02,
+    "vehicle.bus.rigid": 0.02,
+    "vehicle.motorcycle": 0.03,
+    "vehicle.trailer": 0.06,
+}
+
+NEAR_ZERO_SPEED = 0.2  # m/s, below this an agent counts as standing (for attributes)
+
+# --------------------------------------------------------------------------------------------
+# Trajectories
+# --------------------------------------------------------------------------------------------
+
+
+def path_pose(path: dict, s: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pose at arc length ``s`` (m) along ``path``: x, y (m, scene frame), heading (rad).
+
+    Shapes follow ``s``. Before the start and after the last segment the path is straight.
+    """
+    s = np.asarray(s, dtype=np.float64)
+    x0, y0, h0 = float(path["x"]), float(path["y"]), float(path["h"])
+    x = x0 + s * math.cos(h0)
+    y = y0 + s * math.sin(h0)
+    h = np.full_like(s, h0)
+    start = 0.0
+    xs, ys, hs = x0, y0, h0
+    for length, k in path["segs"]:
+        length, k = float(length), float(k)
+        m = s >= start
+        ds = np.clip(s - start, 0.0, length)
+        if k == 0.0:
+            px = xs + ds * math.cos(hs)
+            py = ys + ds * math.sin(hs)
+            ph = np.full_like(ds, hs)
+        else:
+            ph = hs + k * ds
+            px = xs + (np.sin(ph) - math.sin(hs)) / k
+            py = ys - (np.cos(ph) - math.cos(hs)) / k
+        # beyond this segment: straight continuation (overwritten by later segments)
+        rest = np.maximum(s - start - length, 0.0)
+        x = np.where(m, px + rest * np.cos(ph), x)
+        y = np.where(m, py + rest * np.sin(ph), y)
+        h = np.where(m, ph, h)
+        # advance the segment start pose
+        he = hs + k * length
+        if k == 0.0:
+            xs, ys = xs + length * math.cos(hs), ys + length * math.sin(hs)
+        else:
+            xs, ys = xs + (math.sin(he) - math.sin(hs)) / k, ys - (math.cos(he) - math.cos(hs)) / k
+        hs = he
+        start += length
+    return x, y, h
+
+
+def speed_at(profile: dict, t: np.ndarray | float) -> np.ndarray:
+    """Speed (m/s) at scene time ``t`` (s): linear between knots, constant outside."""
+    return np.interp(np.asarray(t, dtype=np.float64), profile["t"], profile["v"])
+
+
+def _antiderivative(profile: dict, t: np.ndarray) -> np.ndarray:
+    """Integral of the speed from the first knot to ``t`` (m); negative before it."""
+    tk = np.asarray(profile["t"], dtype=np.float64)
+    vk = np.asarray(profile["v"], dtype=np.float64)
+    # cumulative distance at each knot
+    seg = 0.5 * (vk[1:] + vk[:-1]) * np.diff(tk)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    t = np.asarray(t, dtype=np.float64)
+    i = np.clip(np.searchsorted(tk, t, side="right") - 1, 0, len(tk) - 1)
+    dt = t - tk[i]
+    v_i = vk[i]
+    nxt = np.minimum(i + 1, len(tk) - 1)
+    span = tk[nxt] - tk[i]
+    a = np.where(span > 0, (vk[nxt] - v_i) / np.where(span > 0, span, 1.0), 0.0)
+    inside = (t >= tk[0]) & (i < len(tk) - 1)
+    out = np.where(inside, cum[i] + v_i * dt + 0.5 * a * dt * dt, 0.0)
+    out = np.where(t < tk[0], vk[0] * (t - tk[0]), out)
+    out = np.where((t >= tk[0]) & (i == len(tk) - 1), cum[-1] + vk[-1] * (t - tk[-1]), out)
+    return out
+
+
+def arc_length(traj: dict, t: np.ndarray | float) -> np.ndarray:
+    """Arc length (m) along the path at scene time ``t`` (s)."""
+    t = np.asarray(t, dtype=np.float64)
+    return float(traj["s0"]) + _antiderivative(traj["speed"], t) - _antiderivative(
+        traj["speed"], np.zeros(())
+    )
+
+
+def traj_state(traj: dict, t: np.ndarray | float) -> dict[str, np.ndarray]:
+    """Scene-frame state at time ``t`` (s): x, y (m), heading (rad), speed (m/s), vx, vy (m/s)."""
+    s = arc_length(traj, t)
+    x, y, h = path_pose(traj["path"], s)
+    v = speed_at(traj["speed"], t)
+    return {"x": x, "y": y, "h": h, "v": v, "vx": v * np.cos(h), "vy": v * np.sin(h)}
+
+
+def scene_to_global(scene: dict, x: np.ndarray, y: np.ndarray, h: np.ndarray | None = None):
+    """Scene-frame (x, y[, heading]) -> global frame (m, m[, rad])."""
+    g = scene["global"]
+    c, s = math.cos(g["yaw"]), math.sin(g["yaw"])
+    gx = g["xy"][0] + c * np.asarray(x) - s * np.asarray(y)
+    gy = g["xy"][1] + s * np.asarray(x) + c * np.asarray(y)
+    if h is None:
+        return gx, gy
+    return gx, gy, np.asarray(h) + g["yaw"]
+
+
+def wrap_angle(a: np.ndarray | float) -> np.ndarray:
+    """Angle(s) wrapped to [-pi, pi)."""
+    return (np.asarray(a) + math.pi) % (2 * math.pi) - math.pi
+
+
+# --------------------------------------------------------------------------------------------
+# Roads
+# --------------------------------------------------------------------------------------------
+
+
+def road_frames(layout: dict) -> list[dict]:
+    """The roads of a layout in a common form.
+
+    Each road: origin ``o`` (x, y), heading ``h`` (rad), unit ``dir`` and ``left`` vectors,
+    ``kerb`` = (right, left) half widths of the carriageway incl. parking (m), ``walk`` =
+    (right, left) outer edges of the sidewalks (m), lanes per direction, lane width, median.
+    """
+    roads = []
+    for r in [layout["main"]] + ([layout["cross"]] if layout.get("cross") else []):
+        h = float(r["h"])
+        d = (math.cos(h), math.sin(h))
+        left = (-d[1], d[0])
+        inner = r["median"] / 2 + r["lanes"] * r["lane_w"]
+        kerb = tuple(inner + (r["park_w"] if p else 0.0) for p in r["park"])
+        walk = tuple(k + r["walk_w"] for k in kerb)
+        roads.append({**r, "dir": d, "left": left, "inner": inner, "kerb": kerb, "walk": walk})
+    return roads
+
+
+def road_coords(road: dict, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(along, across) coordinates (m) of scene points in a road's frame (across > 0: left)."""
+    dx = x - road["o"][0]
+    dy = y - road["o"][1]
+    return dx * road["dir"][0] + dy * road["dir"][1], dx * road["left"][0] + dy * road["left"][1]
+
+
+def lane_across(road: dict, direction: int, lane: int) -> float:
+    """Across offset (m) of a lane centre: direction +1 travels along ``dir`` (right side)."""
+    off = road["median"] / 2 + (lane + 0.5) * road["lane_w"]
+    return -off if direction > 0 else off
+
+
+def park_across(road: dict, side: int) -> float:
+    """Across offset (m) of the parking-lane centre on side 0 (right) or 1 (left)."""
+    off = road["inner"] + road["park_w"] / 2
+    return -off if side == 0 else off
+
+
+def road_point(road: dict, along: float, across: float) -> tuple[float, float]:
+    """Scene (x, y) of a point given in a road's (along, across) coordinates."""
+    return (
+        road["o"][0] + along * road["dir"][0] + across * road["left"][0],
+        road["o"][1] + along * road["dir"][1] + across * road["left"][1],
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Collision checks (oriented rectangles over time)
+# --------------------------------------------------------------------------------------------
+
+
+def _footprints(traj: dict, size: tuple[float, float, float], times: np.ndarray, margin: float):
+    st = traj_state(traj, times)
+    hl = size[1] / 2 + margin
+    hw = size[0] / 2 + margin * 0.6
+    return st["x"], st["y"], st["h"], hl, hw
+
+
+def rects_overlap(a, b) -> np.ndarray:
+    """Separating-axis test of two oriented rectangles per time step: (T,) bool."""
+    ax, ay, ah, al, aw = a
+    bx, by, bh, bl, bw = b
+    dx, dy = bx - ax, by - ay
+    overlap = np.ones(np.shape(ax), dtype=bool)
+    for h in (ah, ah + math.pi / 2, bh, bh + math.pi / 2):
+        ux, uy = np.cos(h), np.sin(h)
+        ra = al * np.abs(np.cos(ah) * ux + np.sin(ah) * uy) + aw * np.abs(
+            -np.sin(ah) * ux + np.cos(ah) * uy
+        )
+        rb = bl * np.abs(np.cos(bh) * ux + np.sin(bh) * uy) + bw * np.abs(
+            -np.sin(bh) * ux + np.cos(bh) * uy
+        )
+        overlap &= np.abs(dx * ux + dy * uy) <= ra + rb
+    return overlap
+
+
+# --------------------------------------------------------------------------------------------
+# Sampling
+# --------------------------------------------------------------------------------------------
+
+
+def _choice(rng: np.random.Generator, weights: dict[str, float]) -> str:
+    keys = list(weights)
+    p = np.array([weights[k] for k in keys], dtype=np.float64)
+    return keys[int(rng.choice(len(keys), p=p / p.sum()))]
+
+
+def _size(rng: np.random.Generator, category: str) -> list[float]:
+    w, length, h = CATEGORY_SIZES[category]
+    f = rng.uniform(0.92, 1.08, size=3)
+    if category in ("vehicle.truck", "vehicle.trailer"):
+        f[1] = rng.uniform(0.7, 1.35)
+    return [round(float(w * f[0]), 3), round(float(length * f[1]), 3), round(float(h * f[2]), 3)]
+
+
+def _profile_const(v: float) -> dict:
+    return {"t": [0.0], "v": [float(v)]}
+
+
+def _profile_ramp(t0: float, v0: float, v1: float, accel: float) -> dict:
+    """Constant v0 until t0, then constant acceleration magnitude ``accel`` to v1."""
+    dur = abs(v1 - v0) / max(accel, 1e-6)
+    return {"t": [float(t0), float(t0 + dur)], "v": [float(v0), float(v1)]}
+
+
+def _moving_profile(rng: np.random.Generator, duration: float, vmax: float = 14.0) -> dict:
+    """A speed profile for traffic: cruising, rolling near 2 m/s, or crossing 2 m/s."""
+    kind = _choice(rng, {"const": 0.5, "roll": 0.16, "accel": 0.17, "brake": 0.17})
+    if kind == "const":
+        return _profile_const(rng.uniform(2.6, vmax))
+    if kind == "roll":
+        return _profile_const(rng.uniform(0.6, 3.6))
+    t0 = rng.uniform(-1.0, max(duration - 1.5, 0.5))
+    if kind == "accel":
+        return _profile_ramp(t0, rng.uniform(0.0, 1.4), rng.uniform(3.0, 9.0), rng.uniform(0.8, 2.2))
+    return _profile_ramp(t0, rng.uniform(3.0, 9.0), rng.uniform(0.0, 1.2), rng.uniform(0.8, 2.5))
+
+
+def _straight(x: float, y: float, h: float) -> dict:
+    return {"x": float(x), "y": float(y), "h": float(h), "segs": []}
+
+
+def _ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cross_x: float | None):
+    """Ego trajectory and behaviour name. Lanes of the main road, travelling +x."""
+    main = roads[0]
+    lane = int(rng.integers(0, main["lanes"]))
+    y = lane_across(main, +1, lane)
+    kerb_c = max(roads[1]["kerb"]) if len(roads) > 1 else 0.0
+    stop_x = cross_x - kerb_c - 4.5 if cross_x is not None else None
+
+    options = {"cruise": 0.3, "stop_and_go": 0.1, "follow": 0.1}
+    if cross_x is not None:
+        options.update({"wait": 0.14, "brake": 0.12, "go": 0.1, "turn_left": 0.07, "turn_right": 0.07})
+    kind = _choice(rng, options)
+    if kind == "turn_left":
+        lane = 0
+        y = lane_across(main, +1, lane)
+    if kind == "turn_right":
+        lane = main["lanes"] - 1
+        y = lane_across(main, +1, lane)
+
+    if kind in ("cruise", "follow"):
+        v = rng.uniform(3.0, 14.0)
+        prof = _profile_ramp(rng.uniform(0, duration), v, v + rng.uniform(-2.5, 2.5), 0.6)
+        prof["v"][1] = max(prof["v"][1], 1.0)
+        return kind, lane, {"path": _straight(0.0, y, 0.0), "s0": 0.0, "speed": prof}
+    if kind == "stop_and_go":
+        n = 4
+        ts = np.sort(rng.uniform(-0.5, duration + 0.5, n))
+        vs = rng.uniform(0.0, 7.0, n)
+        vs[::2] = rng.uniform(0.0, 1.5, len(vs[::2]))
+        return kind, lane, {
+            "path": _straight(0.0, y, 0.0),
+            "s0": 0.0,
+            "speed": {"t": [float(a) for a in ts], "v": [float(a) for a in vs]},
+        }
+    if kind == "wait":
+        t_go = rng.uniform(duration * 0.7, duration + 8.0)
+        prof = _profile_ramp(t_go, 0.0, rng.uniform(6, 10), rng.uniform(1.5, 2.5))
+        x0 = stop_x - rng.uniform(0.0, 1.5)
+        return kind, lane, {"path": _straight(x0, y, 0.0), "s0": 0.0, "speed": prof}
+    if kind == "go":
+        t_go = rng.uniform(0.0, duration * 0.4)
+        prof = _profile_ramp(t_go, 0.0, rng.uniform(7, 12), rng.uniform(1.2, 2.5))
+        x0 = stop_x - rng.uniform(0.0, 1.5)
+        return kind, lane, {"path": _straight(x0, y, 0.0), "s0": 0.0, "speed": prof}
+    if kind == "brake":
+        v0 = rng.uniform(5.0, 12.0)
+        dec = rng.uniform(1.5, 3.0)
+        t_b = rng.uniform(0.5, max(duration - v0 / dec, 1.0))
+        prof = _profile_ramp(t_b, v0, 0.0, dec)
+        stop_dist = v0 * t_b + v0 * v0 / (2 * dec)
+        x0 = stop_x - rng.uniform(0.0, 1.5) - stop_dist
+        return kind, lane, {"path": _straight(x0, y, 0.0), "s0": 0.0, "speed": prof}
+    # turns: from the main road onto the cross road
+    cross = roads[1]
+    if kind == "turn_left":
+        x_t = cross_x + cross["median"] / 2 + 0.5 * cross["lane_w"]
+        radius = max(x_t - (cross_x - max(cross["kerb"])), 6.0)
+        k = 1.0 / radius
+    else:
+        x_t = cross_x - cross["median"] / 2 - (cross["lanes"] - 0.5) * cross["lane_w"]
+        radius = float(np.clip(x_t - (cross_x - max(cross["kerb"])) + 2.0, 5.5, 12.0))
+        k = -1.0 / radius
+    x_s = x_t - radius
+    v_a = rng.uniform(6.0, 10.0)
+    v_t = min(rng.uniform(3.5, 5.5), math.sqrt(2.5 * radius))
+    t_turn = rng.uniform(1.0, max(duration - 4.0, 1.5))
+    dec = rng.uniform(1.2, 2.5)
+    t_dec = max(t_turn - (v_a - v_t) / dec, -5.0)
+    arc_len = radius * math.pi / 2
+    t_exit = t_turn + arc_len / v_t
+    v_e = rng.uniform(6.0, 10.0)
+    prof = {
+        "t": [t_dec, t_turn, t_exit, t_exit + (v_e - v_t) / 1.8],
+        "v": [v_a, v_t, v_t, v_e],
+    }
+    prof = {"t": [float(a) for a in prof["t"]], "v": [float(a) for a in prof["v"]]}
+    # the arc starts at x_s when t = t_turn: position the start so that s(t_turn) = x_s - x0
+    tmp = {"path": _straight(0.0, y, 0.0), "s0": 0.0, "speed": prof}
+    s_turn = float(arc_length(tmp, t_turn))
+    x0 = x_s - s_turn
+    path = {"x": x0, "y": y, "h": 0.0, "segs": [[x_s - x0, 0.0], [arc_len, k]]}
+    return kind, lane, {"path": path, "s0": 0.0, "speed": prof}
+
+
+def _layout(rng: np.random.Generator, with_cross: bool, ego_kind_hint: str) -> dict:
+    kind = _choice(rng, {"urban": 0.5, "suburban": 0.3, "arterial": 0.2})
+    lanes = int(rng.choice([1, 2, 2, 3])) if kind != "arterial" else int(rng.choice([2, 3]))
+    main = {
+        "o": [0.0, 0.0],
+        "h": 0.0,
+        "lanes": lanes,
+        "lane_w": round(float(rng.uniform(3.1, 3.7)), 2),
+        "median": round(float(rng.choice([0.3, 0.3, 1.0, 3.0])), 2),
+        "park": [bool(rng.random() < 0.85), bool(rng.random() < 0.75)],
+        "park_w": round(float(rng.uniform(2.2, 2.6)), 2),
+        "walk_w": round(float(rng.uniform(2.0, 5.0)), 2),
+        "setback": [round(float(rng.uniform(0.0, 8.0)), 2), round(float(rng.uniform(0.0, 8.0)), 2)],
+        "center": str(rng.choice(["double_yellow", "dashed_white"])),
+    }
+    layout = {"kind": kind, "main": main, "cross": None}
+    if with_cross:
+        layout["cross"] = {
+            "o": [0.0, 0.0],  # x set by the caller
+            "h": math.pi / 2,
+            "lanes": int(rng.choice([1, 1, 2])),
+            "lane_w": round(float(rng.uniform(3.0, 3.6)), 2),
+            "median": 0.3,
+            "park": [bool(rng.random() < 0.6), bool(rng.random() < 0.6)],
+            "park_w": round(float(rng.uniform(2.2, 2.6)), 2),
+            "walk_w": round(float(rng.uniform(2.0, 4.0)), 2),
+            "setback": [round(float(rng.uniform(0.0, 6.0)), 2), round(float(rng.uniform(0.0, 6.0)), 2)],
+            "center": str(rng.choice(["double_yellow", "dashed_white"])),
+        }
+    return layout
+
+
+def _static_objects(rng: np.random.Generator, layout: dict, x_range: tuple[float, float]) -> list:
+    """Buildings, trees, poles and hedges along the roads (boxes in the scene frame).
+
+    Each object: ``{"kind", "c": [x, y, z_centre], "yaw", "size": [w, l, h], "tex": seed}``,
+    a box in the nuScenes convention (local x along ``l``, y along ``w``, z up), yaw in rad.
+    """
+    roads = road_frames(layout)
+    objs: list[dict] = []
+    urban = layout["kind"] == "urban"
+
+    def inside_other_road(ri: int, xs: np.ndarray, ys: np.ndarray, pad: float) -> bool:
+        for rj, other in enumerate(roads):
+            if rj == ri:
+                continue
+            _, acr = road_coords(other, xs, ys)
+            if np.any(np.abs(acr) < max(other["walk"]) + pad):
+                return True
+        return False
+
+    def corners(cx, cy, yaw, length, width):
+        c, s = math.cos(yaw), math.sin(yaw)
+        pts = np.array([[length / 2, width / 2], [length / 2, -width / 2],
+                        [-length / 2, width / 2], [-length / 2, -width / 2]])
+        return cx + c * pts[:, 0] - s * pts[:, 1], cy + s * pts[:, 0] + c * pts[:, 1]
+
+    for ri, road in enumerate(roads):
+        if ri == 0:
+            a_lo, a_hi = x_range
+        else:
+            a_lo, a_hi = -250.0, 250.0
+        for side in (0, 1):
+            sign = -1.0 if side == 0 else 1.0
+            line = road["walk"][side] + road["setback"][side]
+            dense = urban or rng.random() < 0.4
+            a = a_lo + rng.uniform(0, 10)
+            while a < a_hi:
+                if dense:
+                    length = rng.uniform(10, 35)
+                    depth = rng.uniform(10, 25)
+                    height = rng.uniform(8, 40) if urban else rng.uniform(5, 12)
+                    gap = rng.uniform(0, 6) if urban else rng.uniform(3, 20)
+                else:
+                    length = rng.uniform(8, 18)
+                    depth = rng.uniform(8, 14)
+                    height = rng.uniform(4, 9)
+                    gap = rng.uniform(10, 35)
+                along = a + length / 2
+                across = sign * (line + depth / 2)
+                cx, cy = road_point(road, along, across)
+                xs, ys = corners(cx, cy, road["h"], length, depth)
+                if not inside_other_road(ri, xs, ys, 1.0):
+                    objs.append({
+                        "kind": "building",
+                        "c": [float(cx), float(cy), float(height / 2)],
+                        "yaw": float(road["h"]),
+                        "size": [float(depth), float(length), float(height)],
+                        "tex": int(rng.integers(0, 2**31 - 1)),
+                    })
+                a += length + gap
+            # trees / poles / hedges on the sidewalk and in front yards
+            a = a_lo + rng.uniform(0, 8)
+            spacing = rng.uniform(8, 16) if rng.random() < 0.75 else rng.uniform(20, 40)
+            while a < a_hi:
+                across = sign * (road["kerb"][side] + rng.uniform(0.8, max(road["walk_w"] - 0.6, 0.9)))
+                cx, cy = road_point(road, a, across)
+                if not inside_other_road(ri, np.array([cx]), np.array([cy]), 2.0):
+                    if rng.random() < 0.7:
+                        h = rng.uniform(4, 11)
+                        objs.append({
+                            "kind": "tree",
+                            "c": [float(cx), float(cy), float(h / 2)],
+                            "yaw": float(rng.uniform(0, math.pi)),
+                            "size": [float(h * rng.uniform(0.4, 0.7))] * 2 + [float(h)],
+                            "tex": int(rng.integers(0, 2**31 - 1)),
+                        })
+                    else:
+                        h = rng.uniform(5, 9)
+                        objs.append({
+                            "kind": "pole",
+                            "c": [float(cx), float(cy), float(h / 2)],
+                            "yaw": float(road["h"]),
+                            "size": [0.22, 0.22, float(h)],
+                            "tex": int(rng.integers(0, 2**31 - 1)),
+                        })
+                a += spacing * rng.uniform(0.7, 1.3)
+            # hedges / walls in front of set-back buildings
+            if road["setback"][side] > 2.0 and rng.random() < 0.6:
+                a = a_lo
+                while a < a_hi:
+                    length = rng.uniform(6, 25)
+                    across = sign * (road["walk"][side] + 0.5)
+                    cx, cy = road_point(road, a + length / 2, across)
+                    xs, ys = corners(cx, cy, road["h"], length, 0.6)
+                    if not inside_other_road(ri, xs, ys, 1.0):
+                        h = rng.uniform(0.8, 1.8)
+                        objs.append({
+                            "kind": "hedge" if rng.random() < 0.7 else "wall",
+                            "c": [float(cx), float(cy), float(h / 2)],
+                            "yaw": float(road["h"]),
+                            "size": [0.6, float(length), float(h)],
+                            "tex": int(rng.integers(0, 2**31 - 1)),
+                        })
+                    a += length + rng.uniform(2, 12)
+    # a distant backdrop across the far end of the main road
+    for _ in range(int(rng.integers(3, 7))):
+        dist = rng.uniform(350, 600)
+        off = rng.uniform(-250, 250)
+        w_ = rng.uniform(40, 160)
+        h = rng.uniform(15, 60)
+        objs.append({
+            "kind": "backdrop",
+            "c": [float(x_range[1] + dist), float(off), float(h / 2)],
+            "yaw": 0.0,
+            "size": [float(w_), float(rng.uniform(20, 40)), float(h)],
+            "tex": int(rng.integers(0, 2**31 - 1)),
+        })
+    return objs
+
+
+def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax):
+    """One candidate vehicle: (category, size, role, trajectory) or None."""
+    main = roads[0]
+    ego_x0 = float(traj_state(ego, 0.0)["x"])
+    ego_x1 = float(traj_state(ego, duration)["x"])
+    x_lo, x_hi = min(ego_x0, ego_x1), max(ego_x0, ego_x1)
+    has_park = [main["park"][0], main["park"][1]]
+    roles = {"parked": 0.34 if any(has_park) else 0.0, "same": 0.2, "oncoming": 0.16,
+             "far": 0.08, "convoy": 0.07, "roll": 0.05}
+    if cross_x is not None:
+        roles.update({"cross": 0.08, "queue": 0.1, "cross_parked": 0.05})
+    role = _choice(rng, roles)
+    if role in ("parked", "cross_parked"):
+        category = _choice(rng, PARKED_WEIGHTS)
+    else:
+        category = _choice(rng, DRIVING_WEIGHTS)
+        if role == "roll" and category.startswith("vehicle.bus"):
+            category = "vehicle.car"
+    size = _size(rng, category)
+
+    if role == "parked":
+        side = int(rng.choice([i for i in (0, 1) if has_park[i]]))
+        x = rng.uniform(x_lo + 5.0, x_hi + 140.0)
+        y = park_across(main, side) + rng.uniform(-0.25, 0.25)
+        h = 0.0 if side == 0 else math.pi
+        if rng.random() < 0.15:
+            h += math.pi  # parked facing the other way
+        traj = {"path": _straight(x, y, h + rng.normal(0, 0.03)), "s0": 0.0,
+                "speed": _profile_const(0.0)}
+        return category, size, "parked", traj
+    if role == "cross_parked":
+        cross = roads[1]
+        sides = [i for i in (0, 1) if cross["park"][i]]
+        if not sides:
+            return None
+        side = int(rng.choice(sides))
+        along = float(rng.choice([-1, 1])) * rng.uniform(max(main["walk"]) + 3, 120)
+        x, y = road_point(cross, along, park_across(cross, side))
+        h = cross["h"] + (0.0 if side == 0 else math.pi)
+        traj = {"path": _straight(x, y, h), "s0": 0.0, "speed": _profile_const(0.0)}
+        return category, size, "parked", traj
+    if role in ("same", "far", "convoy", "roll"):
+        lane = int(rng.integers(0, main["lanes"]))
+        y = lane_across(main, +1, lane) + rng.normal(0, 0.15)
+        if role == "far":
+            x = rng.uniform(x_lo + 60.0, x_hi + 130.0)
+            prof = _profile_const(rng.uniform(6.0, vmax))
+        elif role == "convoy":
+            x = rng.uniform(x_lo + 12.0, x_lo + 90.0)
+            f = rng.uniform(0.85, 1.15)
+            prof = {"t": list(ego["speed"]["t"]), "v": [float(v * f) for v in ego["speed"]["v"]]}
+        elif role == "roll":
+            x = rng.uniform(x_lo + 10.0, x_hi + 90.0)
+            prof = _profile_const(rng.uniform(0.5, 3.8))
+        else:
+            x = rng.uniform(x_lo - 10.0, x_hi + 110.0)
+            prof = _moving_profile(rng, duration, vmax)
+        return category, size, "moving", {"path": _straight(x, y, 0.0), "s0": 0.0, "speed": prof}
+    if role == "oncoming":
+        lane = int(rng.integers(0, main["lanes"]))
+        y = lane_across(main, -1, lane) + rng.normal(0, 0.15)
+        x = rng.uniform(x_lo + 20.0, x_hi + 220.0)
+        prof = _moving_profile(rng, duration, vmax)
+        return category, size, "moving", {"path": _straight(x, y, math.pi), "s0": 0.0,
+                                          "speed": prof}
+    cross = roads[1]
+    direction = int(rng.choice([-1, 1]))
+    lane = int(rng.integers(0, cross["lanes"]))
+    across = lane_across(cross, direction, lane)
+    h = cross["h"] + (0.0 if direction > 0 else math.pi)
+    kerb_m = max(main["kerb"])
+    if role == "cross":
+        v = rng.uniform(3.0, vmax)
+        t_c = rng.uniform(-3.0, duration + 3.0)  # time at the main road's centre line
+        along = -direction * v * t_c
+        x, y = road_point(cross, along, across)
+        return category, size, "moving", {"path": _straight(x, y, h), "s0": 0.0,
+                                          "speed": _profile_const(v)}
+    # queue before the stop line on the cross road; may start during the scene
+    slot = int(rng.integers(0, 5))
+    dist = kerb_m + 4.5 + size[1] / 2 + slot * (size[1] + rng.uniform(1.5, 3.0))
+    along = -direction * dist
+    x, y = road_point(cross, along, across)
+    t_go = rng.uniform(0.0, duration + 6.0)
+    prof = _profile_ramp(t_go, 0.0, rng.uniform(5.0, 10.0), rng.uniform(1.0, 2.5))
+    return category, size, "queue", {"path": _straight(x, y, h), "s0": 0.0, "speed": prof}
+
+
+def _pedestrian_candidate(rng, roads, ego, duration):
+    road = roads[int(rng.integers(0, len(roads)))]
+    side = int(rng.integers(0, 2))
+    sign = -1.0 if side == 0 else 1.0
+    across = sign * (road["kerb"][side] + rng.uniform(0.5, road["walk_w"] - 0.3))
+    ego_x0 = float(traj_state(ego, 0.0)["x"])
+    if road is roads[0]:
+        along = rng.uniform(ego_x0 + 5, ego_x0 + 120)
+    else:
+        along = rng.uniform(-60, 60)
+    category = "human.pedestrian.adult" if rng.random() < 0.85 else "human.pedestrian.child"
+    size = _size(rng, category)
+    x, y = road_point(road, along, across)
+    if rng.random() < 0.3:
+        v = 0.0
+        h = road["h"] + rng.uniform(-math.pi, math.pi)
+    else:
+        v = rng.uniform(0.7, 1.7)
+        h = road["h"] + (0.0 if rng.random() < 0.5 else math.pi)
+    if rng.random() < 0.2 and len(roads) > 1:
+        # crossing the main road at the crosswalk
+        cross = roads[1]
+        kerb = max(cross["kerb"])
+        along_c = float(rng.choice([-1, 1])) * (kerb + 2.2)
+        start_y = -max(roads[0]["walk"]) * float(rng.choice([-1, 1]))
+        x = float(cross["o"][0] - along_c)
+        y = float(start_y)
+        h = math.pi / 2 if start_y < 0 else -math.pi / 2
+        v = rng.uniform(0.9, 1.6)
+        t_start = rng.uniform(-4, duration)
+        traj = {"path": _straight(x, y, h), "s0": 0.0, "speed": _profile_ramp(t_start, 0.0, v, 5.0)}
+        return category, size, "walking", traj
+    return category, size, ("walking" if v > 0 else "standing"), {
+        "path": _straight(x, y, h), "s0": 0.0, "speed": _profile_const(v)}
+
+
+WEATHERS = ("clear", "overcast", "night", "rain", "after_rain")
+
+
+def sample_scene(
+    seed: int,
+    index: int,
+    n_keyframes: int,
+    n_vehicles: int,
+    weather: str,
+    with_sweeps: bool,
+) -> dict:
+    """Sample one scene's description (JSON-able dict). Deterministic in (seed, index, sizes)."""
+    rng = np.random.default_rng([int(seed), int(index), 101])
+    duration = (n_keyframes - 1) * 0.5
+    want_cross = rng.random() < 0.75
+    layout = _layout(rng, want_cross, "")
+    roads = road_frames(layout)
+    cross_x = None
+    if want_cross:
+        cross_x = round(float(rng.uniform(35.0, 110.0)), 2)
+        layout["cross"]["o"] = [cross_x, 0.0]
+        roads = road_frames(layout)
+    ego_kind, ego_lane, ego = _ego_plan(rng, duration, roads, cross_x)
+    # the intersection relative to the ego: shift the cross road so the plan fits it
+    vmax = 15.0 if layout["kind"] == "arterial" else 12.0
+
+    times = np.arange(-0.5, duration + 0.75, 0.25)
+    ego_fp = _footprints(ego, (1.9, 4.8, 1.6), times, 0.6)
+    # ego reference point is the rear axle: shift the footprint forward by 1.4 m
+    ego_fp = (ego_fp[0] + 1.4 * np.cos(ego_fp[2]), ego_fp[1] + 1.4 * np.sin(ego_fp[2]), *ego_fp[2:])
+    accepted_fp = [ego_fp]
+    agents: list[dict] = []
+    n_target = max(1, int(round(n_vehicles * rng.uniform(0.85, 1.15))))
+    attempts = 0
+    while sum(a["kind"] == "vehicle" for a in agents) < n_target and attempts < 40 * n_target:
+        attempts += 1
+        cand = _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax)
+        if cand is None:
+            continue
+        category, size, role, traj = cand
+        fp = _footprints(traj, size, times, 0.5)
+        if any(rects_overlap(fp, other).any() for other in accepted_fp):
+            continue
+        accepted_fp.append(fp)
+        agents.append({"kind": "vehicle", "category": category, "size": size, "role": role,
+                       "traj": traj, "tex": int(rng.integers(0, 2**31 - 1))})
+    n_peds = int(rng.integers(2, 9))
+    for _ in range(6 * n_peds):
+        if sum(a["kind"] == "pedestrian" for a in agents) >= n_peds:
+            break
+        category, size, role, traj = _pedestrian_candidate(rng, roads, ego, duration)
+        fp = _footprints(traj, size, times, 0.3)
+        if any(rects_overlap(fp, other).any() for other in accepted_fp):
+            continue
+        accepted_fp.append(fp)
+        agents.append({"kind": "pedestrian", "category": category, "size": size, "role": role,
+                       "traj": traj, "tex": int(rng.integers(0, 2**31 - 1))})
+
+    ego_x = traj_state(ego, np.array([0.0, duration]))["x"]
+    x_range = (float(min(ego_x) - 40.0), float(max(ego_x) + 330.0))
+    statics = _static_objects(rng, layout, x_range)
+
+    sun_az = float(rng.uniform(-math.pi, math.pi))
+    look = {
+        "weather": weather,
+        "sun_azimuth": sun_az,
+        "sun_elevation": float(rng.uniform(0.25, 1.1)),
+        "gain": float(rng.uniform(0.85, 1.15)),
+        "white_balance": [float(a) for a in rng.uniform(0.93, 1.07, 3)],
+        "noise": float(rng.uniform(1.5, 3.0)),
+        "jpeg_quality": int(rng.integers(85, 91)),
+        "asphalt": int(rng.integers(0, 4)),
+        "textures": int(rng.integers(0, 2**31 - 1)),
+    }
+    description = _describe(rng, ego_kind, layout, agents, weather)
+    return {
+        "index": int(index),
+        "duration": duration,
+        "layout": layout,
+        "ego_kind": ego_kind,
+        "ego": ego,
+        "agents": agents,
+        "statics": statics,
+        "look": look,
+        "description": description,
+        "with_sweeps": bool(with_sweeps),
+        "global": {
+            "yaw": float(rng.uniform(-math.pi, math.pi)),
+            "xy": [float(rng.uniform(300.0, 2000.0)), float(rng.uniform(300.0, 2000.0))],
+        },
+    }
+
+
+def _describe(rng, ego_kind: str, layout: dict, agents: list[dict], weather: str) -> str:
+    """A nuScenes-style description: comma-separated items."""
+    items: list[str] = []
+    names = {
+        "wait": "Wait at intersection",
+        "turn_left": "turn left",
+        "turn_right": "turn right",
+        "brake": "stop at intersection",
+        "go": "leave intersection",
+        "stop_and_go": "congestion",
+        "follow": "following traffic",
+    }
+    if ego_kind in names:
+        items.append(names[ego_kind])
+    if layout["kind"] == "arterial" or layout["main"]["lanes"] >= 3:
+        items.append("big street")
+    elif layout["main"]["lanes"] == 1:
+        items.append("narrow street")
+    if layout.get("cross") and ego_kind not in ("wait",):
+        items.append("intersection")
+    cats = [a["category"] for a in agents]
+    if sum(a["role"] == "parked" for a in agents) >= 5:
+        items.append("parked cars")
+    if any(c.startswith("human") for c in cats):
+        items.append("peds")
+    for cat, word in (("vehicle.bus.rigid", "bus"), ("vehicle.bus.bendy", "bendy bus"),
+                      ("vehicle.truck", "truck"), ("vehicle.construction", "construction vehicle"),
+                      ("vehicle.emergency.ambulance", "ambulance"),
+                      ("vehicle.emergency.police", "police car")):
+        if cat in cats:
+            items.append(word)
+    if layout["kind"] == "suburban":
+        items.append("trees")
+    if ego_kind == "cruise" and rng.random() < 0.5:
+        items.append("high speed" if layout["kind"] == "arterial" else "city driving")
+    weather_item = {"night": "night", "rain": "rain", "after_rain": "after rain"}.get(weather)
+    if weather_item:
+        if rng.random() < 0.5:
+            items.insert(0, weather_item.capitalize())
+        else:
+            items.append(weather_item)
+        if weather == "rain" and rng.random() < 0.3:
+            items.append("lightning")
+    if not items:
+        items.append("city driving")
+    items[0] = items[0][0].upper() + items[0][1:]
+    return ", ".join(items)
+
+
+def plan_weathers(n_scenes: int, n_sweep_scenes: int, seed: int) -> tuple[list[str], list[bool]]:
+    """Weather per scene and which scenes get sweeps (only usable, non night/rain scenes).
+
+    About 10 % night, 7.5 % rain, 5 % after rain (at least one night scene when n >= 2) and
+    a few overcast. Deterministic in (n_scenes, seed).
+    """
+    rng = np.random.default_rng([int(seed), 977, int(n_scenes)])
+    n_night = max(1, round(0.1 * n_scenes)) if n_scenes >= 2 else 0
+    n_rain = round(0.075 * n_scenes)
+    n_after = max(1, round(0.05 * n_scenes)) if n_scenes >= 3 else 0
+    n_over = round(0.15 * n_scenes)
+    weathers = (["night"] * n_night + ["rain"] * n_rain + ["after_rain"] * n_after
+                + ["overcast"] * n_over)
+    weathers = weathers[: max(n_scenes - max(n_sweep_scenes, 1), 0)]
+    weathers += ["clear"] * (n_scenes - len(weathers))
+    order = rng.permutation(n_scenes)
+    weathers = [weathers[i] for i in order]
+    usable = [i for i, w in enumerate(weathers) if w not in ("night", "rain")]
+    sweep = [False] * n_scenes
+    for i in usable[::-1][:n_sweep_scenes]:
+        sweep[i] = True
+    return weathers, sweep
+
+
+def agent_state_global(scene: dict, agent: dict, t: np.ndarray | float) -> dict[str, np.ndarray]:
+    """Global-frame state of an agent: x, y, z (box centre, m), yaw (rad), vx, vy, vz (m/s)."""
+    st = traj_state(agent["traj"], t)
+    gx, gy, gh = scene_to_global(scene, st["x"], st["y"], st["h"])
+    yaw = scene["global"]["yaw"]
+    c, s = math.cos(yaw), math.sin(yaw)
+    return {
+        "x": gx, "y": gy, "z": np.full_like(np.asarray(gx, dtype=np.float64), agent["size"][2] / 2),
+        "yaw": gh, "speed": st["v"],
+        "vx": c * st["vx"] - s * st["vy"], "vy": s * st["vx"] + c * st["vy"],
+        "vz": np.zeros_like(np.asarray(gx, dtype=np.float64)),
+    }
+
+
+def json_ready(obj: Any) -> Any:
+    """Convert numpy scalars/arrays inside ``obj`` to plain Python for JSON."""
+    if isinstance(obj, dict):
+        return {k: json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return json_ready(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj

@@ -1,0 +1,581 @@
+"""flowmod.flow and flowmod.flow_nets: estimators, networks' plumbing, the cached stage, metrics.
+
+No trained network weights exist here: the network tests check shapes, padding, scaling and
+key layouts with random or hand-set weights and never claim accuracy for them. DIS and
+Farneback are checked for accuracy on textured synthetic pairs with known flow.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import types
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from flowmod import flow as fl
+from flowmod import flow_nets as fn
+
+torch.set_num_threads(1)  # the test machine is shared
+
+
+# --------------------------------------------------------------------------------------------
+# synthetic pairs
+# --------------------------------------------------------------------------------------------
+
+
+def texture(h: int, w: int, seed: int = 0) -> np.ndarray:
+    """(h, w, 3) uint8 BGR with detail at several scales."""
+    rng = np.random.default_rng(seed)
+    img = np.zeros((h, w), np.float32)
+    for s in (2, 4, 8, 16, 32):
+        n = rng.random((h // s + 3, w // s + 3)).astype(np.float32)
+        up = cv2.resize(n, ((w // s + 3) * s, (h // s + 3) * s), interpolation=cv2.INTER_CUBIC)
+        img += up[s : s + h, s : s + w] / np.sqrt(s)
+    img = (img - img.min()) / (img.max() - img.min()) * 235 + 10
+    return np.dstack([img, np.roll(img, 5, 1), 255 - img]).astype(np.uint8)
+
+
+def affine_pair(h: int, w: int, a: np.ndarray, t: tuple[float, float], seed: int = 0):
+    """img2 = img1 moved by x -> a @ (x - c) + c + t (c: image centre); returns img1, img2, gt."""
+    m = 40
+    big = texture(h + 2 * m, w + 2 * m, seed)
+    c = np.array([m + (w - 1) / 2, m + (h - 1) / 2])
+    fwd = np.hstack([a, (c + np.asarray(t) - a @ c)[:, None]]).astype(np.float64)
+    moved = cv2.warpAffine(big, fwd, (w + 2 * m, h + 2 * m), flags=cv2.INTER_CUBIC,
+                           borderMode=cv2.BORDER_REFLECT)
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    pts = np.stack([xs + m, ys + m], -1)
+    gt = (pts @ fwd[:, :2].T + fwd[:, 2]) - pts
+    crop = (slice(m, m + h), slice(m, m + w))
+    return big[crop], moved[crop], gt.astype(np.float32)
+
+
+def inner(shape, margin: int = 12) -> np.ndarray:
+    mask = np.zeros(shape[:2], bool)
+    mask[margin:-margin, margin:-margin] = True
+    return mask
+
+
+SHIFT = affine_pair(150, 200, np.eye(2), (3.0, -2.0))
+AFFINE = affine_pair(150, 200, np.array([[1.012, 0.006], [-0.006, 1.012]]), (1.5, -1.0), seed=1)
+
+
+# --------------------------------------------------------------------------------------------
+# classical estimators: real accuracy
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("method", "opts", "tol_shift", "tol_affine"),
+    [
+        ("dis", {"preset": "ultrafast"}, 0.4, 0.5),  # measured 0.14, 0.18
+        ("dis", {"preset": "fast"}, 0.3, 0.5),  # 0.08, 0.20
+        ("dis", {"preset": "medium"}, 0.1, 0.2),  # 0.02, 0.05
+        ("farneback", {}, 0.1, 0.2),  # 0.00, 0.04
+    ],
+)
+def test_classical_recover_known_flow(method, opts, tol_shift, tol_affine):
+    est = fl.get_estimator(method, **opts)
+    for (img1, img2, gt), tol in ((SHIFT, tol_shift), (AFFINE, tol_affine)):
+        flow = est.estimate(img1, img2)
+        assert flow.shape == gt.shape and flow.dtype == np.float32
+        assert fl.epe(flow, gt, mask=inner(gt.shape)) < tol
+
+
+def test_scale_option_returns_full_size_flow_in_full_size_pixels():
+    img1, img2, gt = SHIFT
+    flow = fl.get_estimator("dis", preset="medium", scale=0.5).estimate(img1, img2)
+    assert flow.shape == gt.shape
+    assert fl.epe(flow, gt, mask=inner(gt.shape, 16)) < 0.5
+    np.testing.assert_allclose(np.median(flow[inner(gt.shape, 16)], axis=0), [3.0, -2.0], atol=0.2)
+
+
+def test_resize_flow_multiplies_by_size_ratios():
+    f = np.ones((10, 20, 2), np.float32)
+    g = fl.resize_flow(f, (30, 80))
+    assert g.shape == (30, 80, 2)
+    np.testing.assert_allclose(g[..., 0], 4.0)
+    np.testing.assert_allclose(g[..., 1], 3.0)
+
+
+def test_registry_and_input_checks():
+    assert {"gt", "dis", "farneback", "raft", "raft_small", "fastflownet"} <= set(
+        fl.available_methods()
+    )
+    with pytest.raises(ValueError, match="unknown flow method 'nope'"):
+        fl.get_estimator("nope")
+    with pytest.raises(TypeError, match="'dis'"):
+        fl.get_estimator("dis", bogus=1)
+    with pytest.raises(ValueError, match="preset"):
+        fl.get_estimator("dis", preset="slow")
+    est = fl.get_estimator("dis")
+    with pytest.raises(ValueError, match="uint8"):
+        est.estimate(SHIFT[0].astype(np.float32), SHIFT[1])
+    with pytest.raises(ValueError, match="differ in size"):
+        est.estimate(SHIFT[0], SHIFT[1][:-1])
+
+
+# --------------------------------------------------------------------------------------------
+# FastFlowNet
+# --------------------------------------------------------------------------------------------
+
+
+def test_correlation_matches_direct_loop():
+    g = torch.Generator().manual_seed(0)
+    f1 = torch.randn(2, 3, 6, 7, generator=g)
+    f2 = torch.randn(2, 3, 6, 7, generator=g)
+    r = 4
+    ref = torch.zeros(2, 81, 6, 7)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            k = (dy + r) * 9 + (dx + r)
+            for y in range(6):
+                for x in range(7):
+                    if 0 <= y + dy < 6 and 0 <= x + dx < 7:
+                        ref[:, k, y, x] = (f1[:, :, y, x] * f2[:, :, y + dy, x + dx]).sum(1) / 3
+    out = fn.correlation(f1, f2, 4)
+    torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-6)
+    sub = fn.correlation(f1, f2, 4, fn.FFN_CORR_INDEX)
+    assert sub.shape[1] == 53
+    torch.testing.assert_close(sub, out.index_select(1, torch.tensor(fn.FFN_CORR_INDEX)))
+
+
+def test_fastflownet_state_dict_layout():
+    sd = fn.FastFlowNet().state_dict()
+    assert len(sd) == 104
+    shapes = {k: tuple(v.shape) for k, v in sd.items()}
+    assert shapes["pconv1_1.0.weight"] == (16, 3, 3, 3)
+    assert shapes["pconv2_1.0.weight"] == (32, 16, 3, 3)
+    assert shapes["pconv3_3.0.weight"] == (64, 64, 3, 3)
+    assert shapes["rconv2.0.weight"] == (32, 32, 3, 3)
+    assert shapes["rconv6.0.weight"] == (32, 64, 3, 3)
+    assert shapes["up3.weight"] == (2, 2, 4, 4) and "up6.bias" in shapes
+    assert shapes["decoder2.conv1.0.weight"] == (96, 87, 3, 3)
+    assert shapes["decoder6.conv3.0.weight"] == (96, 32, 3, 3)  # groups=3
+    assert shapes["decoder5.conv6.0.weight"] == (32, 64, 3, 3)
+    assert shapes["decoder4.conv7.weight"] == (2, 32, 3, 3)
+
+
+def test_warp_moves_features_by_the_flow():
+    x = torch.zeros(1, 1, 8, 9)
+    x[0, 0, 4, 6] = 1.0
+    flow = torch.zeros(1, 2, 8, 9)
+    flow[:, 0], flow[:, 1] = 2.0, 1.0  # sample x at (col + 2, row + 1)
+    out = fn.warp(x, flow)
+    assert out[0, 0, 3, 4] == pytest.approx(1.0)
+    assert out.sum() == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("legacy", [False, True])
+def test_fastflownet_checkpoint_in_official_layout_loads(tmp_path, legacy):
+    torch.manual_seed(0)
+    model = fn.FastFlowNet().eval()
+    path = tmp_path / "fastflownet_ft_kitti.pth"
+    torch.save(model.state_dict(), path, _use_new_zipfile_serialization=not legacy)
+    est = fl.get_estimator("fastflownet", weights=path, device="cpu")
+    assert est.weights_source == str(path)
+    img1, img2 = SHIFT[0][:97, :131], SHIFT[1][:97, :131]  # odd sizes: resized to 128 x 192
+    flow = est.estimate(img1, img2)
+    assert flow.shape == (97, 131, 2) and flow.dtype == np.float32 and np.isfinite(flow).all()
+    x1 = torch.from_numpy(img1).permute(2, 0, 1)[None].float()
+    x2 = torch.from_numpy(img2).permute(2, 0, 1)[None].float()
+    with torch.inference_mode():
+        ref = fn.fastflownet_flow(model, x1, x2)[0].permute(1, 2, 0).numpy()
+    np.testing.assert_allclose(flow, ref, atol=1e-5)
+    # a DataParallel ("module.") checkpoint loads too
+    torch.save({f"module.{k}": v for k, v in model.state_dict().items()}, tmp_path / "dp.pth")
+    fl.get_estimator("fastflownet", weights=tmp_path / "dp.pth", device="cpu")
+
+
+def test_mismatched_checkpoint_fails_naming_file_and_keys(tmp_path):
+    sd = fn.FastFlowNet().state_dict()
+    del sd["decoder3.conv7.bias"]
+    sd["rconv2.0.weight"] = torch.zeros(32, 16, 3, 3)
+    sd["extra.weight"] = torch.zeros(1)
+    path = tmp_path / "bad.pth"
+    torch.save(sd, path)
+    with pytest.raises(fn.CheckpointError) as e:
+        fl.get_estimator("fastflownet", weights=path, device="cpu")
+    msg = str(e.value)
+    for part in (str(path), "decoder3.conv7.bias", "extra.weight", "rconv2.0.weight"):
+        assert part in msg
+    # a RAFT-large file given to raft_small
+    big = tmp_path / "raft_large.pth"
+    torch.save(fn.build_raft("raft_large").state_dict(), big)
+    with pytest.raises(fn.CheckpointError, match="raft_large.pth.*shape mismatches"):
+        fl.get_estimator("raft_small", weights=big, device="cpu")
+    # not a checkpoint at all
+    junk = tmp_path / "junk.pth"
+    junk.write_bytes(b"not a torch file")
+    with pytest.raises(fn.CheckpointError, match="junk.pth"):
+        fl.get_estimator("fastflownet", weights=junk, device="cpu")
+
+
+def _hand_set_fastflownet(bu: float, bv: float) -> fn.FastFlowNet:
+    """All weights zero except decoder2's last bias: flow2 = (bu, bv) px/20 everywhere."""
+    m = fn.FastFlowNet()
+    with torch.no_grad():
+        for p in m.parameters():
+            p.zero_()
+        m.decoder2.conv7.bias.copy_(torch.tensor([bu, bv]))
+    return m.eval()
+
+
+@pytest.mark.parametrize(("h", "w", "scale"), [(150, 200, 1.0), (97, 131, 1.0), (150, 200, 0.5)])
+def test_fastflownet_output_scaling_chain(h, w, scale):
+    est = fl.get_estimator("fastflownet", model=_hand_set_fastflownet(0.1, -0.05),
+                           device="cpu", scale=scale)
+    img = texture(h, w)
+    flow = est.estimate(img, img)
+    hs, ws = round(h * scale), round(w * scale)
+    h64, w64 = 64 * -(-hs // 64), 64 * -(-ws // 64)
+    # x20, times the 64-multiple resize ratio, times the `scale` resize ratio
+    np.testing.assert_allclose(flow[..., 0], 20 * 0.1 * (ws / w64) * (w / ws), rtol=1e-5)
+    np.testing.assert_allclose(flow[..., 1], 20 * -0.05 * (hs / h64) * (h / hs), rtol=1e-5)
+
+
+def test_fastflownet_random_weights_equivariances():
+    """Random weights, no accuracy claim: batch == single; a common brightness offset changes
+    nothing (the per-channel mean is subtracted)."""
+    torch.manual_seed(1)
+    est = fl.get_estimator("fastflownet", model=fn.FastFlowNet(), device="cpu", batch_size=2)
+    a1, a2, _ = SHIFT
+    b1, b2, _ = AFFINE
+    single = [est.estimate(a1, a2), est.estimate(b1, b2)]
+    batch = est.estimate_batch([a1, b1], [a2, b2])
+    for s, b in zip(single, batch, strict=True):
+        np.testing.assert_allclose(s, b, atol=1e-4)
+    brighter = est.estimate(a1 + np.uint8(9), a2 + np.uint8(9))  # textures stay in 10..245
+    np.testing.assert_allclose(brighter, single[0], atol=1e-3 * max(1.0, np.abs(single[0]).max()))
+
+
+# --------------------------------------------------------------------------------------------
+# RAFT
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("arch", ["raft_large", "raft_small"])
+def test_raft_original_key_mapping_round_trips(arch):
+    sd = fn.build_raft(arch).state_dict()
+    orig = fn.raft_torchvision_to_original(sd)
+    assert fn.is_original_raft(orig) and not fn.is_original_raft(sd)
+    shapes = {k: tuple(v.shape) for k, v in orig.items()}
+    if arch == "raft_large":
+        assert len(orig) == len(sd) + 10  # cnet layer2.0 / layer3.0 norm3 == downsample.1
+        assert shapes["module.fnet.conv1.weight"] == (64, 3, 7, 7)
+        assert shapes["module.cnet.layer2.0.norm3.running_mean"] == (96,)
+        assert shapes["module.cnet.layer3.0.downsample.1.weight"] == (128,)
+        assert shapes["module.update_block.encoder.convc1.weight"] == (256, 324, 1, 1)
+        assert shapes["module.update_block.gru.convq2.weight"] == (128, 384, 5, 1)
+        assert shapes["module.update_block.mask.2.weight"] == (576, 256, 1, 1)
+        assert shapes["module.fnet.layer1.1.conv2.weight"] == (64, 64, 3, 3)
+    else:
+        assert shapes["module.fnet.layer1.0.conv3.weight"] == (32, 8, 1, 1)
+        assert shapes["module.update_block.gru.convz.weight"] == (96, 242, 3, 3)
+        assert shapes["module.update_block.encoder.convc1.weight"] == (96, 196, 1, 1)
+    back = fn.raft_original_to_torchvision(orig)
+    assert list(back) == list(sd) or set(back) == set(sd)
+    for k, v in sd.items():
+        assert torch.equal(back[k], v), k
+    # without the DataParallel prefix and without the duplicated norms it maps the same
+    plain = {k[len("module.") :]: v for k, v in orig.items() if ".norm3." not in k}
+    assert set(fn.raft_original_to_torchvision(plain)) == set(sd)
+
+
+def _zero_raft_small(b: tuple[float, float]) -> torch.nn.Module:
+    """All weights zero except the flow head's last bias: each update adds b (1/8 res)."""
+    m = fn.build_raft("raft_small")
+    with torch.no_grad():
+        for p in m.parameters():
+            p.zero_()
+        m.update_block.flow_head.conv2.bias.copy_(torch.tensor(b))
+    return m.eval()
+
+
+def test_raft_loads_original_checkpoint_and_hand_set_flow(tmp_path):
+    model = _zero_raft_small((0.25, -0.125))
+    path = tmp_path / "raft-small.pth"
+    torch.save(fn.raft_torchvision_to_original(model.state_dict()), path)
+    est = fl.get_estimator("raft_small", weights=path, device="cpu", num_flow_updates=3)
+    img = texture(75, 101)  # odd: padded to 80 x 104, cropped back
+    flow = est.estimate(img, img)
+    assert flow.shape == (75, 101, 2)
+    # flow = 8 (upsampling) * 3 updates * b, everywhere
+    np.testing.assert_allclose(flow[..., 0], 6.0, rtol=1e-5)
+    np.testing.assert_allclose(flow[..., 1], -3.0, rtol=1e-5)
+    half = fl.get_estimator("raft_small", weights=path, device="cpu", num_flow_updates=3,
+                            scale=0.5).estimate(img, img)
+    np.testing.assert_allclose(half[..., 0], 6.0 * 101 / 50, rtol=1e-5)  # 101 -> 50 px wide
+
+
+class _EchoRAFT(torch.nn.Module):
+    """A stand-in network whose 'flow' is the first image's R and G inputs: shows where each
+    output pixel comes from."""
+
+    def forward(self, img1, img2, num_flow_updates=12):
+        assert img1.shape[-2] % 8 == 0 and img1.shape[-1] % 8 == 0
+        return [img1[:, :2]]
+
+
+@pytest.mark.parametrize(("h", "w"), [(900, 1600), (97, 131)])
+def test_raft_unpadding_keeps_coordinates(h, w):
+    img = np.full((h, w, 3), 40, np.uint8)
+    y0, x0 = h // 2, w - 3
+    img[y0, x0, 2] = 250  # a red dot (BGR) near the right edge
+    est = fl.get_estimator("raft", model=_EchoRAFT(), device="cpu")
+    flow = est.estimate(img, img)
+    assert flow.shape == (h, w, 2)
+    assert np.unravel_index(np.argmax(flow[..., 0]), (h, w)) == (y0, x0)
+    np.testing.assert_allclose(flow[..., 0], img[..., 2] * (2 / 255) - 1, atol=1e-6)
+    x = torch.zeros(1, 3, h, w)
+    padded, pads = fn.pad_to_multiple(x, 8)
+    assert padded.shape[-2] % 8 == 0 and padded.shape[-1] % 8 == 0
+    assert fn.unpad(padded, pads).shape == x.shape
+    if h == 900:
+        assert padded.shape[-2] == 904 and pads[2:] == (2, 2)
+
+
+def test_raft_random_weights_shape_and_batch():
+    """Random weights (no accuracy claim): odd sizes come back at full size; batch == single."""
+    torch.manual_seed(2)
+    est = fl.get_estimator("raft_small", model=fn.build_raft("raft_small"), device="cpu",
+                           num_flow_updates=2, batch_size=2)
+    a1, a2 = SHIFT[0][:75, :101], SHIFT[1][:75, :101]
+    b1, b2 = AFFINE[0][:75, :101], AFFINE[1][:75, :101]
+    single = [est.estimate(a1, a2), est.estimate(b1, b2)]
+    batch = est.estimate_batch([a1, b1], [a2, b2])
+    for s, b in zip(single, batch, strict=True):
+        assert s.shape == (75, 101, 2) and np.isfinite(s).all()
+        np.testing.assert_allclose(s, b, atol=1e-3)
+
+
+@pytest.mark.parametrize(
+    ("method", "param"),
+    [("raft", "raft_weights"), ("raft_small", "raft_small_weights"),
+     ("fastflownet", "fastflownet_weights")],
+)
+def test_networks_refuse_without_weights(tmp_path, monkeypatch, method, param):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    with pytest.raises(fl.MissingWeightsError) as e:
+        fl.get_estimator(method, device="cpu")
+    msg = str(e.value)
+    assert param in msg and str(tmp_path / "torch" / "hub" / "checkpoints") in msg
+    assert "random weights" in msg
+    with pytest.raises(fl.MissingWeightsError, match="nothere.pth"):
+        fl.get_estimator(method, weights=tmp_path / "nothere.pth", device="cpu")
+
+
+def test_raft_weights_found_in_torch_home_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path))
+    name = dict(fn.torchvision_weight_files("raft_small"))["Raft_Small_Weights.C_T_V2"]
+    cache = tmp_path / "hub" / "checkpoints"
+    cache.mkdir(parents=True)
+    torch.save(_zero_raft_small((0.5, 0.5)).state_dict(), cache / name)
+    est = fl.get_estimator("raft_small", device="cpu", num_flow_updates=1)
+    assert est.weights_source == str(cache / name)
+    np.testing.assert_allclose(est.estimate(SHIFT[0][:40, :48], SHIFT[1][:40, :48]), 4.0)
+    assert fn.torchvision_weight_files("raft_large")[0][0] == "Raft_Large_Weights.C_T_SKHT_K_V1"
+
+
+# --------------------------------------------------------------------------------------------
+# the stage runner
+# --------------------------------------------------------------------------------------------
+
+
+def make_dataroot(root: Path, n: int = 4, size=(60, 80)) -> pd.DataFrame:
+    rows = []
+    for i in range(n):
+        img1, img2, _ = affine_pair(*size, np.eye(2), (1.0 + i, -1.0), seed=10 + i)
+        p1, p2 = f"samples/CAM_FRONT/f{i}a.jpg", f"samples/CAM_FRONT/f{i}b.jpg"
+        (root / p1).parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(root / p1), img1, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        cv2.imwrite(str(root / p2), img2, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        rows.append({
+            "pair_id": f"p{i}", "scene": "synth-0000", "split": "train", "set": "keyframe",
+            "sd_token_1": f"t{i}a", "sd_token_2": f"t{i}b", "path_1": p1, "path_2": p2,
+            "timestamp_1": 1_000_000 * i, "timestamp_2": 1_000_000 * i + 500_000,
+        })  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def test_compute_flow_writes_resumes_and_survives_a_kill(tmp_path):
+    root, out = tmp_path / "data", tmp_path / "flow"
+    pairs = make_dataroot(root)
+    kw = {"dataroot": root, "version": "v1.0-synth", "n_jobs": 1, "progress": False}
+    first = fl.compute_flow(pairs, "dis", out, preset="fast", **kw)
+    assert first["computed"].all() and list(first["pair_id"]) == list(pairs["pair_id"])
+    index = pd.read_parquet(out / "dis" / "index.parquet")
+    assert list(index.columns) == ["pair_id", "seconds", "shape", "file"]
+    assert (index["seconds"] > 0).all() and list(index["shape"].iloc[0]) == [60, 80, 2]
+    arr = np.load(out / "dis" / "p1.npy")
+    assert arr.dtype == np.float16 and arr.shape == (60, 80, 2)
+    flow = fl.load_flow(out, "dis", "p1")
+    direct = fl.get_estimator("dis", preset="fast").estimate(
+        fl.read_image(root / pairs.path_1[1]), fl.read_image(root / pairs.path_2[1]))
+    np.testing.assert_allclose(flow, direct, atol=0.01)
+
+    mtimes = {p: p.stat().st_mtime_ns for p in (out / "dis").glob("*.npy")}
+    again = fl.compute_flow(pairs, "dis", out, preset="fast", **kw)
+    assert not again["computed"].any()
+    assert {p: p.stat().st_mtime_ns for p in (out / "dis").glob("*.npy")} == mtimes
+
+    # simulated kill: p1 only got as far as a temporary file, p2 was left truncated
+    (out / "dis" / "p1.npy").unlink()
+    (out / "dis" / ".p1.abc123.tmp.npy").write_bytes(b"\x93NUMPY partial")
+    data = (out / "dis" / "p2.npy").read_bytes()
+    (out / "dis" / "p2.npy").write_bytes(data[: len(data) // 2])
+    with pytest.raises(fl.FlowFileError, match="p2.npy"):
+        fl.load_flow(out, "dis", "p2")
+    resumed = fl.compute_flow(pairs, "dis", out, preset="fast", **kw)
+    assert set(resumed.loc[resumed["computed"], "pair_id"]) == {"p1", "p2"}
+    assert not list((out / "dis").glob(".*tmp*"))
+    assert fl.load_flow(out, "dis", "p2").shape == (60, 80, 2)
+
+    # other options: the cache is stale and everything is recomputed (float32 this time)
+    changed = fl.compute_flow(pairs, "dis", out, preset="medium", dtype="float32", **kw)
+    assert changed["computed"].all()
+    assert np.load(out / "dis" / "p0.npy").dtype == np.float32
+
+
+def test_compute_flow_parallel_matches_direct(tmp_path):
+    root = tmp_path / "data"
+    pairs = make_dataroot(root, n=3)
+    res = fl.compute_flow(pairs, "farneback", tmp_path / "flow", dataroot=root,
+                          version="v", n_jobs=2, progress=False, dtype="float32")
+    assert res["computed"].all()
+    for r in pairs.itertuples():
+        direct = fl.get_estimator("farneback").estimate(
+            fl.read_image(root / r.path_1), fl.read_image(root / r.path_2))
+        np.testing.assert_allclose(fl.load_flow(tmp_path / "flow", "farneback", r.pair_id),
+                                   direct, atol=1e-4)
+
+
+def test_compute_flow_reports_bad_images_before_starting(tmp_path):
+    root = tmp_path / "data"
+    pairs = make_dataroot(root)
+    (root / pairs.path_2[0]).unlink()
+    data = (root / pairs.path_1[3]).read_bytes()
+    (root / pairs.path_1[3]).write_bytes(data[: len(data) // 2])
+    with pytest.raises(fl.ImageError) as e:
+        fl.compute_flow(pairs, "dis", tmp_path / "flow", dataroot=root, version="v",
+                        n_jobs=1, progress=False)
+    msg = str(e.value)
+    assert "2 of 8 images" in msg and pairs.path_2[0] in msg and pairs.path_1[3] in msg
+    assert "truncated" in msg and "missing" in msg
+    assert not list((tmp_path / "flow" / "dis").glob("*.npy"))
+
+
+def test_compute_flow_network_batches(tmp_path):
+    root = tmp_path / "data"
+    pairs = make_dataroot(root, n=3, size=(50, 70))
+    res = fl.compute_flow(pairs, "fastflownet", tmp_path / "flow", dataroot=root, version="v",
+                          progress=False, model=_hand_set_fastflownet(0.05, 0.0),
+                          device="cpu", batch_size=2)
+    assert res["computed"].all()
+    f = fl.load_flow(tmp_path / "flow", "fastflownet", "p2")
+    np.testing.assert_allclose(f[..., 0], 20 * 0.05 * 70 / 128, rtol=1e-3)
+
+
+def test_gt_method_works_from_tokens(tmp_path, monkeypatch):
+    calls = []
+
+    def gt_flow(dataroot, version, t1, t2):
+        calls.append((t1, t2))
+        flow = np.full((6, 8, 2), float(len(t1)), np.float32)
+        flow[0, 0] = np.nan
+        return flow, np.ones((6, 8), bool)
+
+    world = types.ModuleType("flowmod.world")
+    world.is_synthetic = lambda dataroot, version: Path(dataroot).name == "synth"
+    world.gt_flow = gt_flow
+    monkeypatch.setitem(sys.modules, "flowmod.world", world)
+    pairs = make_dataroot(tmp_path / "synth", n=2).drop(columns=["path_1", "path_2"])
+    res = fl.compute_flow(pairs, "gt", tmp_path / "flow", dataroot=tmp_path / "synth",
+                          version="v1.0-synth", n_jobs=1, progress=False)
+    assert res["computed"].all() and calls == [("t0a", "t0b"), ("t1a", "t1b")]
+    f = fl.load_flow(tmp_path / "flow", "gt", "p1")
+    assert f.shape == (6, 8, 2) and f[0, 0, 0] == 0 and f[1, 1, 0] == 3
+    with pytest.raises(TypeError, match="tokens"):
+        fl.get_estimator("gt", dataroot=tmp_path / "synth", version="v").estimate(
+            SHIFT[0], SHIFT[1])
+    with pytest.raises(fl.NotSyntheticError, match="not one"):
+        fl.compute_flow(pairs, "gt", tmp_path / "flow2", dataroot=tmp_path / "real",
+                        version="v1.0-mini", n_jobs=1, progress=False)
+
+
+# --------------------------------------------------------------------------------------------
+# metrics, files, colours
+# --------------------------------------------------------------------------------------------
+
+
+def test_epe_and_fl_all_on_hand_made_arrays():
+    gt = np.zeros((4, 4, 2), np.float32)
+    gt[0, :, 0] = 100.0  # top row moves 100 px right
+    flow = gt.copy()
+    flow[1, 1] = (3.0, 4.0)  # error 5 on a still pixel: outlier
+    flow[0, 2] = (104.0, 0.0)  # error 4 > 3 px but < 5 % of 100: not an outlier
+    flow[3, 3] = (0.0, 2.0)  # error 2: not an outlier
+    assert fl.epe(flow, gt) == pytest.approx((5 + 4 + 2) / 16)
+    assert fl.fl_all(flow, gt) == pytest.approx(100 / 16)
+    valid = np.ones((4, 4), bool)
+    valid[1, 1] = False
+    assert fl.epe(flow, gt, valid) == pytest.approx(6 / 15)
+    assert fl.fl_all(flow, gt, valid) == 0.0
+    box = fl.boxes_mask(np.array([[0.6, 0.2, 2.0, 1.5]]), gt.shape)  # cols 1-2, row 1
+    assert box.sum() == 2 and box[1, 1] and box[1, 2]
+    assert fl.epe(flow, gt, mask=box) == pytest.approx(2.5)
+    assert fl.fl_all(flow, gt, mask=box) == pytest.approx(50.0)
+    assert np.isnan(fl.epe(flow, gt, valid, fl.boxes_mask(np.array([[1, 1, 1, 1]]), gt.shape)))
+    clipped = fl.boxes_mask([[-5, -5, 1, 100]], gt.shape)
+    assert clipped.sum() == 8
+    m = fl.flow_metrics(flow, gt, valid, boxes=np.array([[0, 0, 3, 3]]))
+    assert m["epe"] == m["epe_boxes"] and m["fl_all_boxes"] == 0.0
+
+
+def test_flo_round_trip_and_bad_magic(tmp_path):
+    flow = np.random.default_rng(0).normal(size=(7, 5, 2)).astype(np.float32)
+    fl.write_flo(tmp_path / "a.flo", flow)
+    assert (tmp_path / "a.flo").read_bytes()[:4] == b"PIEH"  # 202021.25 as float32
+    assert (tmp_path / "a.flo").stat().st_size == 12 + 7 * 5 * 8
+    np.testing.assert_array_equal(fl.read_flo(tmp_path / "a.flo"), flow)
+    (tmp_path / "bad.flo").write_bytes(b"FLOW" + (tmp_path / "a.flo").read_bytes()[4:])
+    with pytest.raises(fl.FlowFileError, match="bad.flo.*magic"):
+        fl.read_flo(tmp_path / "bad.flo")
+    (tmp_path / "short.flo").write_bytes((tmp_path / "a.flo").read_bytes()[:-8])
+    with pytest.raises(fl.FlowFileError, match="short.flo"):
+        fl.read_flo(tmp_path / "short.flo")
+
+
+def test_npy_io_rejects_corrupt_and_pickled(tmp_path):
+    flow = np.ones((3, 4, 2), np.float32)
+    fl.save_flow_npy(tmp_path / "a.npy", flow)
+    assert np.load(tmp_path / "a.npy").dtype == np.float16
+    assert fl.load_flow_npy(tmp_path / "a.npy").dtype == np.float32
+    (tmp_path / "junk.npy").write_bytes(os.urandom(64))
+    with pytest.raises(fl.FlowFileError, match="junk.npy"):
+        fl.load_flow_npy(tmp_path / "junk.npy")
+    np.save(tmp_path / "obj.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(fl.FlowFileError, match="obj.npy"):
+        fl.load_flow_npy(tmp_path / "obj.npy")
+    np.save(tmp_path / "wrong.npy", np.zeros((3, 4)))
+    with pytest.raises(fl.FlowFileError, match="wrong.npy"):
+        fl.load_flow_npy(tmp_path / "wrong.npy")
+
+
+def test_flow_to_color():
+    flow = np.zeros((5, 6, 2), np.float32)
+    img = fl.flow_to_color(flow)
+    assert img.shape == (5, 6, 3) and img.dtype == np.uint8
+    assert (img == 255).all()  # no motion is white
+    flow[2, 3] = (4.0, 0.0)
+    a = fl.flow_to_color(flow, max_flow=8.0)
+    flow[0, 0] = (8.0, 0.0)
+    b = fl.flow_to_color(flow, max_flow=8.0)
+    np.testing.assert_array_equal(a[2, 3], b[2, 3])  # a fixed scale: same vector, same colour
+    np.testing.assert_array_equal(fl.flow_to_color(flow, bgr=True), fl.flow_to_color(flow)[..., ::-1])

@@ -1,0 +1,51 @@
+"""The static-world flow prediction and the residual baseline, against hand-computed cases."""
+
+import numpy as np
+import pytest
+
+from flowmod import geometry
+
+K = np.array([[1266.0, 0.0, 816.0], [0.0, 1266.0, 491.0], [0.0, 0.0, 1.0]])
+
+
+def translation(t):
+    m = np.eye(4)
+    m[:3, 3] = t
+    return m
+
+
+def test_static_flow_forward_motion_matches_pinhole_formula():
+    xy = np.array([[1000.0, 600.0], [816.0, 491.0], [100.0, 800.0]])
+    Z = np.array([40.0, 25.0, 10.0])
+    d = 1.5  # camera moves 1.5 m along its optical axis
+    flow = geometry.static_flow(xy, Z, K, np.eye(4), translation([0, 0, d]))
+    X = (xy[:, 0] - 816.0) * Z / 1266.0
+    Y = (xy[:, 1] - 491.0) * Z / 1266.0
+    expect = np.stack([816.0 + 1266.0 * X / (Z - d), 491.0 + 1266.0 * Y / (Z - d)], 1) - xy
+    np.testing.assert_allclose(flow, expect, atol=1e-9)
+    np.testing.assert_allclose(flow[1], [0.0, 0.0], atol=1e-9)  # focus of expansion
+
+
+def test_static_flow_lateral_motion_is_inverse_depth():
+    xy = np.array([[500.0, 500.0], [500.0, 500.0]])
+    Z = np.array([10.0, 50.0])
+    flow = geometry.static_flow(xy, Z, K, np.eye(4), translation([1.0, 0, 0]))
+    np.testing.assert_allclose(flow[:, 0], -1266.0 * 1.0 / Z)
+    np.testing.assert_allclose(flow[:, 1], 0.0, atol=1e-9)
+
+
+def test_box_residual_zero_for_static_and_recovers_own_motion():
+    h, w = 900, 1600
+    T1, T2 = np.eye(4), translation([0.2, 0.0, 1.0])
+    center = np.array([3.0, 0.5, 40.0])  # camera frame = global here
+    u, v = 816 + 1266 * 3.0 / 40, 491 + 1266 * 0.5 / 40
+    box = np.array([u - 20, v - 12, u + 20, v + 12])
+    ys, xs = np.mgrid[0:h, 0:w]
+    xy = np.stack([xs.ravel(), ys.ravel()], 1).astype(float)
+    flow = geometry.static_flow(xy, np.full(len(xy), 40.0), K, T1, T2).reshape(h, w, 2)
+    res_px, _ = geometry.box_residual(flow, box, center, K, T1, T2, dt_s=0.5)
+    assert res_px == pytest.approx(0.0, abs=0.02)
+    moved = flow + np.array([4.0, 0.0])  # the vehicle's own motion: 4 px to the right
+    res_px, res_speed = geometry.box_residual(moved, box, center, K, T1, T2, dt_s=0.5)
+    assert res_px == pytest.approx(4.0, abs=0.05)
+    assert res_speed == pytest.approx(4.0 * 40.0 / 1266.0 / 0.5, rel=0.02)

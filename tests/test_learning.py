@@ -1,0 +1,295 @@
+"""flowmod.model, flowmod.train, flowmod.evaluate: shapes, determinism, resume, metrics."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from sklearn.metrics import accuracy_score, confusion_matrix, precision_recall_fscore_support
+
+from flowmod import evaluate as ev
+from flowmod.model import (
+    RESNET18_PARAMS,
+    CheckpointError,
+    count_parameters,
+    load_model,
+    motion_resnet18,
+)
+from flowmod.train import HISTORY_COLUMNS, TrainingError, epoch_plan, train_model
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Keep CPU use modest; bit-identity holds for a fixed thread count (set before run_a)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+# --- model ------------------------------------------------------------------------------------
+
+
+def test_parameter_count_is_resnet18_minus_the_changes() -> None:
+    conv1_removed = 64 * 1 * 7 * 7  # one input channel fewer (3 -> 2), no bias
+    fc_removed = (512 * 1000 + 1000) - (512 * 1 + 1)  # 1000 -> 1 outputs
+    expected = RESNET18_PARAMS - conv1_removed - fc_removed
+    assert expected == 11_173_889
+    assert count_parameters(motion_resnet18()) == expected
+
+
+@pytest.mark.parametrize("size", [32, 64, 224])
+def test_output_is_one_logit_per_crop(size: int) -> None:
+    model = motion_resnet18().eval()
+    with torch.inference_mode():
+        out = model(torch.randn(2, 2, size, size))
+    assert out.shape == (2, 1)
+
+
+def test_load_model_refuses_another_architecture(tmp_path) -> None:
+    from torchvision.models import resnet18
+
+    path = tmp_path / "rgb_resnet18.pt"
+    torch.save(resnet18(weights=None).state_dict(), path)
+    with pytest.raises(CheckpointError) as e:
+        load_model(path)
+    msg = str(e.value)
+    assert str(path) in msg and "conv1.weight" in msg and "fc.weight" in msg
+    assert "(64, 3, 7, 7)" in msg and "(64, 2, 7, 7)" in msg
+    torch.save({"head.weight": torch.zeros(3)}, tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match="missing keys"):
+        load_model(tmp_path / "other.pt")
+    torch.save([1, 2], tmp_path / "list.pt")
+    with pytest.raises(CheckpointError, match="not a state_dict"):
+        load_model(tmp_path / "list.pt")
+
+
+# --- training ---------------------------------------------------------------------------------
+
+N, S = 64, 32
+KW = dict(epochs=2, batch_size=16, progress=False, seed=3, device="cpu")
+
+
+@pytest.fixture(scope="module")
+def data() -> tuple[np.ndarray, pd.DataFrame, np.ndarray, pd.DataFrame]:
+    """64 train + 32 val crops; moving ones carry a uniform rightward flow on the object."""
+    rng = np.random.default_rng(0)
+
+    def make(n: int) -> tuple[np.ndarray, pd.DataFrame]:
+        y = np.arange(n) % 2
+        rng.shuffle(y)
+        x = rng.normal(0, 0.3, (n, 2, S, S)).astype(np.float32)
+        x[y == 1, 0, 10:22, 10:22] += 3.0
+        return x.astype(np.float16), pd.DataFrame({"label": y, "category": "vehicle.car"})
+
+    return (*make(N), *make(32))
+
+
+@pytest.fixture(scope="module")
+def run_a(_one_thread, data, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run_a")
+    tx, tdf, vx, vdf = data
+    before = tx.copy()
+    hist = train_model(tx, tdf, vx, vdf, out, **KW)
+    np.testing.assert_array_equal(tx, before)  # training never writes into its inputs
+    return out, hist
+
+
+def _state(path) -> dict[str, torch.Tensor]:
+    obj = torch.load(path, map_location="cpu", weights_only=True)
+    return obj["model"] if "model" in obj else obj
+
+
+def _assert_same_weights(a, b) -> None:
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
+def test_training_lowers_the_loss_and_writes_artefacts(data, run_a) -> None:
+    tx, tdf, vx, vdf = data
+    out, hist = run_a
+    torch.manual_seed(KW["seed"])  # the initial model of the run
+    z0 = ev.predict_logits(motion_resnet18(), vx, device="cpu")
+    y = vdf["label"].to_numpy()
+    loss0 = float(np.mean(np.maximum(z0, 0) - z0 * y + np.log1p(np.exp(-np.abs(z0)))))
+    assert list(hist.columns) == HISTORY_COLUMNS and list(hist["epoch"]) == [1, 2]
+    assert hist["val_loss"].iloc[0] < loss0
+    assert hist["val_f1"].max() > 0.9  # separable: learnt within two epochs
+    assert hist["lr"].tolist() == [0.01, 0.01]
+    for name in ("best.pt", "last.pt", "history.csv"):
+        assert (out / name).is_file()
+    pd.testing.assert_frame_equal(pd.read_csv(out / "history.csv"), hist, check_dtype=False)
+    # model selection on val: best.pt is the epoch with the highest val F1 (ties -> earlier)
+    best = int(hist["val_f1"].to_numpy().argmax()) + 1
+    assert hist.attrs["best_epoch"] == best
+    loaded = load_model(out / "best.pt")  # state_dict only, loads with weights_only
+    assert isinstance(loaded, torch.nn.Module)
+    if best == 2:
+        _assert_same_weights(_state(out / "best.pt"), _state(out / "last.pt"))
+
+
+def test_same_seed_is_bit_identical(data, run_a, tmp_path) -> None:
+    tx, tdf, vx, vdf = data
+    out_a, hist_a = run_a
+    hist_b = train_model(tx, tdf, vx, vdf, tmp_path, **KW)
+    cols = [c for c in HISTORY_COLUMNS if c != "seconds"]
+    pd.testing.assert_frame_equal(hist_a[cols], hist_b[cols], check_exact=True)
+    _assert_same_weights(_state(out_a / "last.pt"), _state(tmp_path / "last.pt"))
+
+
+def test_resume_gives_the_uninterrupted_result(data, run_a, tmp_path) -> None:
+    tx, tdf, vx, vdf = data
+    out_a, hist_a = run_a
+    first = train_model(tx, tdf, vx, vdf, tmp_path, **{**KW, "epochs": 1})
+    assert len(first) == 1
+    resumed = train_model(tx, tdf, vx, vdf, tmp_path, **KW)
+    cols = [c for c in HISTORY_COLUMNS if c != "seconds"]
+    pd.testing.assert_frame_equal(hist_a[cols], resumed[cols], check_exact=True)
+    _assert_same_weights(_state(out_a / "last.pt"), _state(tmp_path / "last.pt"))
+    _assert_same_weights(_state(out_a / "best.pt"), _state(tmp_path / "best.pt"))
+    with pytest.raises(TrainingError, match="other settings"):
+        train_model(tx, tdf, vx, vdf, tmp_path, **{**KW, "lr": 0.1})
+
+
+def test_epoch_plan_is_a_function_of_seed_and_epoch() -> None:
+    b1, f1 = epoch_plan(33, 8, 0.5, seed=1, epoch=4)
+    b2, f2 = epoch_plan(33, 8, 0.5, seed=1, epoch=4)
+    b3, _ = epoch_plan(33, 8, 0.5, seed=1, epoch=5)
+    assert all(np.array_equal(a, b) for a, b in zip(b1, b2, strict=True))
+    assert np.array_equal(f1, f2)
+    assert not all(np.array_equal(a, b) for a, b in zip(b1, b3, strict=False))
+    kept = np.concatenate(b1)  # a trailing batch of one is dropped
+    assert len(kept) == 32 and len(np.unique(kept)) == 32
+    assert len(f1) == 32 and not epoch_plan(10, 4, 0.0, 0, 1)[1].any()
+
+
+def test_bad_training_inputs_give_clear_errors(data, tmp_path) -> None:
+    tx, tdf, vx, vdf = data
+    with pytest.raises(TrainingError, match="empty"):
+        train_model(tx[:0], tdf.iloc[:0], vx, vdf, tmp_path, **KW)
+    with pytest.raises(TrainingError, match="single class"):
+        train_model(tx, tdf.assign(label=0), vx, vdf, tmp_path, **KW)
+    with pytest.raises(TrainingError, match="index has 63 rows .* has 64"):
+        train_model(tx, tdf.iloc[:-1], vx, vdf, tmp_path, **KW)
+    with pytest.raises(TrainingError, match=r"\(N, 2, S, S\)"):
+        train_model(tx[:, :1], tdf, vx, vdf, tmp_path, **KW)
+    with pytest.raises(TrainingError, match="empty"):
+        train_model(tx, tdf, vx[:0], vdf.iloc[:0], tmp_path, **KW)
+    assert not (tmp_path / "last.pt").exists()
+
+
+# --- evaluation -------------------------------------------------------------------------------
+
+Y = np.array([1, 1, 0, 0, 1, 0, 1, 0, 0, 1, 1, 0])
+P = np.array([0.9, 0.4, 0.2, 0.7, 0.8, 0.1, 0.51, 0.5, 0.3, 0.2, 0.95, 0.6])
+
+
+def test_metrics_equal_sklearn() -> None:
+    m = ev.metrics(Y, P)
+    pred = (P > 0.5).astype(int)
+    prec, rec, f1, _ = precision_recall_fscore_support(Y, pred, average="binary")
+    assert (m["precision"], m["recall"], m["f1"]) == pytest.approx((prec, rec, f1), abs=1e-12)
+    assert m["accuracy"] == pytest.approx(accuracy_score(Y, pred))
+    assert m["confusion"] == confusion_matrix(Y, pred).tolist()
+    assert (m["n"], m["n_moving"], m["n_still"]) == (12, 6, 6)
+    none = ev.metrics([0, 0, 1], [0.1, 0.2, 0.3])  # nothing predicted moving: 0, as sklearn
+    assert none["precision"] == 0.0 and none["f1"] == 0.0
+    sweep = ev.threshold_sweep(Y, P, [0.3, 0.5])
+    assert sweep.loc[1, "f1"] == pytest.approx(f1)
+    curve, ap = ev.pr_curve(Y, P)
+    assert 0 < ap <= 1 and curve["recall"].is_monotonic_increasing
+
+
+def test_paper_protocol_differs_from_whole_set_f1() -> None:
+    y = np.array([1, 1, 0, 0])
+    p = np.array([0.9, 0.9, 0.9, 0.1])  # batch 1: F1 = 1; batch 2: no positives -> F1 = 0
+    assert ev.metrics(y, p)["f1"] == pytest.approx(0.8)
+    assert ev.paper_protocol_f1(y, p, batch_size=2) == pytest.approx(0.5)
+    # the per-batch average equals an explicit sklearn loop over consecutive batches
+    per_batch = [precision_recall_fscore_support(Y[a:a + 5], (P[a:a + 5] > 0.5).astype(int),
+                                                 average="binary", zero_division=0)[2]
+                 for a in range(0, len(Y), 5)]
+    assert ev.paper_protocol_f1(Y, P, batch_size=5) == pytest.approx(np.mean(per_batch))
+    table = ev.protocol_comparison(Y, P, batch_size=5)
+    assert table["f1"].iloc[0] == pytest.approx(ev.metrics(Y, P)["f1"])
+    assert len(table) == 4
+
+
+def _original_thinning(y: np.ndarray, frac: tuple[int, int]) -> np.ndarray:
+    """The original dataset's still-object counter, transcribed as a loop."""
+    keep, count = [], 0
+    for label in y:
+        if label == 0:
+            count += 1
+            if frac[0] < count < frac[1]:
+                keep.append(False)
+                continue
+            if count == frac[1]:
+                count = 0
+                keep.append(False)
+                continue
+        keep.append(True)
+    return np.array(keep)
+
+
+def test_thin_still_matches_the_original_counter() -> None:
+    y = np.random.default_rng(0).integers(0, 2, 200)
+    np.testing.assert_array_equal(ev.thin_still(y, 1, 2), _original_thinning(y, (1, 2)))
+    np.testing.assert_array_equal(ev.thin_still(y, 3, 5), _original_thinning(y, (3, 5)))
+
+
+def test_bootstrap_breakdown_and_table3() -> None:
+    lo, hi = ev.bootstrap_f1_ci(Y, P, n=300, seed=1)
+    assert 0 <= lo <= ev.metrics(Y, P)["f1"] <= hi <= 1
+    assert (lo, hi) == ev.bootstrap_f1_ci(Y, P, n=300, seed=1)
+    df = pd.DataFrame({"category": ["car", "truck"] * 6, "distance": np.linspace(30, 69, 12)})
+    by_cat = ev.breakdown(df, Y, P, by="category")
+    assert by_cat["n"].sum() == 12 and set(by_cat["category"]) == {"car", "truck"}
+    by_dist = ev.breakdown(df, Y, P, by="distance")
+    assert by_dist["n"].sum() == 12 and "distance_bin" in by_dist
+    t3 = ev.table3([{"method": "gt", **ev.metrics(Y, P), "ci": (lo, hi)}])
+    assert list(t3.columns[:4]) == ["Method", "F1 (%)", "Precision (%)", "Recall (%)"]
+    assert t3.loc[0, "F1 (%)"] == round(100 * ev.metrics(Y, P)["f1"], 1)
+
+
+def test_fit_threshold_maximises_train_f1() -> None:
+    rng = np.random.default_rng(2)
+    y = rng.integers(0, 2, 300)
+    s = rng.normal(0, 1, 300) + 1.5 * y
+    t = ev.fit_threshold(s, y)
+    best = max(ev.metrics(y, (s > c).astype(float))["f1"] for c in np.r_[s, s.min() - 1])
+    assert ev.metrics(y, ev.apply_threshold(s, t).astype(float))["f1"] == pytest.approx(best)
+    assert ev.fit_threshold([0.1, 0.2, 3.0, 4.0], [0, 0, 1, 1]) == pytest.approx(1.6)
+    with pytest.raises(ValueError):
+        ev.fit_threshold([], [])
+
+
+def test_flips_are_used_in_training_only(data, run_a, tmp_path) -> None:
+    tx, tdf, vx, vdf = data
+    no_flip = train_model(tx, tdf, vx, vdf, tmp_path, **{**KW, "epochs": 1, "hflip_p": 0.0})
+    assert no_flip["train_loss"].iloc[0] != run_a[1]["train_loss"].iloc[0]
+    model = load_model(run_a[0] / "best.pt")
+    with torch.inference_mode():  # evaluation: plain forward pass, no flips
+        direct = torch.sigmoid(model(torch.from_numpy(vx.astype(np.float32)))).numpy().ravel()
+    np.testing.assert_allclose(ev.predict(model, vx, batch_size=7, device="cpu"), direct,
+                               rtol=1e-5, atol=1e-6)
+
+
+def test_dataset_reopens_memmaps_in_workers(tmp_path) -> None:
+    import pickle
+
+    from flowmod.train import CropDataset
+
+    arr = np.lib.format.open_memmap(tmp_path / "x.npy", mode="w+", dtype=np.float16,
+                                    shape=(5, 2, 4, 4))
+    arr[:] = np.arange(5, dtype=np.float16)[:, None, None, None]
+    arr.flush()
+    x = np.load(tmp_path / "x.npy", mmap_mode="r")
+    ds = CropDataset(x, np.array([0, 1, 0, 1, 1]))
+    blob = pickle.dumps(ds)
+    assert len(blob) < 1000  # the array is not pickled, only its file name
+    xb, yb = pickle.loads(blob)[[4, 1]]
+    assert xb.dtype == torch.float32 and xb[:, 0, 0, 0].tolist() == [4.0, 1.0]
+    assert yb.tolist() == [1.0, 1.0]

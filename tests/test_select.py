@@ -1,0 +1,208 @@
+"""Selection (Table 1), 2D boxes, labels and the generalisation manifest on the smoke world."""
+
+import json
+import shutil
+
+import numpy as np
+import pandas as pd
+import pytest
+from pyquaternion import Quaternion
+
+from flowmod import labels, select
+from flowmod.params import validate
+
+# --- pure parts --------------------------------------------------------------------------
+
+def test_scene_filter_matches_whole_description_items():
+    scenes = pd.DataFrame({"description": [
+        "Night, peds, turn", "after rain, parked cars", "Rain, wet road", "Lightning", "day",
+        "nightlife district"]})
+    out = select.filter_scenes(scenes, ["night", "rain", "lightning"])
+    assert list(out["excluded_by"]) == ["night", "", "rain", "lightning", "", ""]
+
+
+def test_split_is_by_scene_seeded_and_prefers_sweep_scenes_for_test():
+    scenes = [f"s{i:02d}" for i in range(40)]
+    a = select.split_scenes(scenes, [0.7, 0.15, 0.15], seed=1)
+    b = select.split_scenes(scenes, [0.7, 0.15, 0.15], seed=1)
+    c = select.split_scenes(scenes, [0.7, 0.15, 0.15], seed=2)
+    assert a == b and a != c
+    counts = pd.Series(a).value_counts()
+    assert (counts["train"], counts["val"], counts["test"]) == (28, 6, 6)
+    pref = select.split_scenes(scenes, [0.7, 0.15, 0.15], seed=1, prefer_test=["s03", "s17"])
+    assert pref["s03"] == pref["s17"] == "test"
+    # every scene preferred (real nuScenes: all carry sweeps) == plain seeded shuffle
+    assert select.split_scenes(scenes, [0.7, 0.15, 0.15], 1, prefer_test=scenes) == a
+
+
+def test_velocity_is_equation_one():
+    v = labels.velocity([0, 0, 0], [1.0, 0.5, 0], 1_000_000, 1_500_000)
+    np.testing.assert_allclose(v, [2.0, 1.0, 0.0])
+    assert list(labels.motion_label(np.array([1.99, 2.0, 5.0, np.nan]), 2.0)) == [0, 1, 1, -1]
+    with pytest.raises(ValueError, match="timestamps must increase"):
+        labels.velocity([0, 0, 0], [1, 0, 0], 10, 10)
+
+
+# --- on the smoke world ------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def smoke_params(smoke_world, tmp_path_factory):
+    dataroot, version = smoke_world
+    run_dir = tmp_path_factory.mktemp("select_run")
+    return validate({"profile": "smoke", "dataroot": str(dataroot), "version": version,
+                     "run_dir": str(run_dir), "synthetic": False, "general_max_scenes": 1})
+
+
+@pytest.fixture(scope="module")
+def selection(smoke_params):
+    return select.run(smoke_params, progress=False)
+
+
+def _tables(dataroot, version):
+    load = lambda t: json.loads((dataroot / version / f"{t}.json").read_text())  # noqa: E731
+    return {t: {r["token"]: r for r in load(t)} for t in
+            ("sample", "sample_data", "sample_annotation", "ego_pose", "calibrated_sensor",
+             "instance", "category", "scene")}
+
+
+def _project(ann, sd, T):
+    """Independent of the devkit: 8 corners of an annotation projected into ``sd``'s image."""
+    w, length, h = ann["size"]
+    x = length / 2 * np.array([1, 1, 1, 1, -1, -1, -1, -1])
+    y = w / 2 * np.array([1, -1, -1, 1, 1, -1, -1, 1])
+    z = h / 2 * np.array([1, 1, -1, -1, 1, 1, -1, -1])
+    corners = Quaternion(ann["rotation"]).rotation_matrix @ np.vstack([x, y, z])
+    corners = corners + np.asarray(ann["translation"])[:, None]
+    pose = T["ego_pose"][sd["ego_pose_token"]]
+    cs = T["calibrated_sensor"][sd["calibrated_sensor_token"]]
+    p = Quaternion(pose["rotation"]).rotation_matrix.T @ (corners - np.array(pose["translation"])[:, None])
+    p = Quaternion(cs["rotation"]).rotation_matrix.T @ (p - np.array(cs["translation"])[:, None])
+    K = np.asarray(cs["camera_intrinsic"])
+    uv = K @ p
+    return uv[:2] / uv[2], p[2], np.linalg.norm(np.asarray(ann["translation"]) - pose["translation"])
+
+
+def test_keyframe_objects_match_an_independent_reimplementation(smoke_world, smoke_params,
+                                                                 selection):
+    dataroot, version = smoke_world
+    T = _tables(dataroot, version)
+    cats = set(smoke_params.categories)
+    cat_of = {tok: T["category"][r["category_token"]]["name"] for tok, r in T["instance"].items()}
+    key_pairs = selection.pairs[selection.pairs["set"] == "keyframe"]
+    expected = set()
+    kept = set(selection.scenes.loc[selection.scenes["excluded_by"] == "", "scene"])
+    sd_of = {r["sample_token"]: r for r in T["sample_data"].values()
+             if r["is_key_frame"] and "CAM_FRONT" in r["filename"]}
+    for sc in T["scene"].values():
+        if sc["name"] not in kept:
+            continue
+        samples, tok = [], sc["first_sample_token"]
+        while tok:
+            samples.append(T["sample"][tok])
+            tok = T["sample"][tok]["next"]
+        def ok(sample, sd_of=sd_of):
+            sd = sd_of[sample["token"]]
+            good = {}
+            for a in (x for x in T["sample_annotation"].values() if x["sample_token"] == sample["token"]):
+                if cat_of[a["instance_token"]] not in cats or a["visibility_token"] != "4":
+                    continue
+                uv, z, dist = _project(a, sd, T)
+                if (z > 0.1).all() and (uv[0] > 0).all() and (uv[0] < sd["width"]).all() \
+                        and (uv[1] > 0).all() and (uv[1] < sd["height"]).all() and 30 <= dist <= 70:
+                    good[a["instance_token"]] = (uv[0].min(), uv[1].min(), uv[0].max(), uv[1].max())
+            return good
+        quals = [ok(s) for s in samples]
+        for i in range(len(samples) - 1):
+            for inst in set(quals[i]) & set(quals[i + 1]):
+                expected.add((sd_of[samples[i]["token"]]["token"], inst))
+    key = selection.objects[selection.objects["set"] == "keyframe"]
+    sd1 = key["pair_id"].map(key_pairs.set_index("pair_id")["sd_token_1"])
+    got = set(zip(sd1, key["instance_token"], strict=True))
+    assert len(expected) > 0
+    assert got == expected
+
+
+def test_boxes_equal_the_devkit_2d_export_for_fully_visible_boxes(smoke_nusc, selection):
+    from nuscenes.scripts.export_2d_annotations_as_json import post_process_coords
+    from nuscenes.utils.geometry_utils import view_points
+
+    key = selection.objects[selection.objects["set"] == "keyframe"].head(25)
+    pairs = selection.pairs.set_index("pair_id")
+    for o in key.itertuples():
+        sd = smoke_nusc.get("sample_data", pairs.loc[o.pair_id, "sd_token_1"])
+        _, boxes, K = smoke_nusc.get_sample_data(sd["token"], selected_anntokens=[o.ann_token])
+        corners = view_points(boxes[0].corners(), K, True)[:2].T
+        ref = post_process_coords(corners.tolist())
+        np.testing.assert_allclose([o.xmin, o.ymin, o.xmax, o.ymax], ref, atol=1e-6)
+
+
+def test_labels_agree_with_the_worlds_true_speed(selection):
+    key = selection.objects[selection.objects["set"] == "keyframe"]
+    assert "true_speed" in key
+    err = (key["speed"] - key["true_speed"]).abs()
+    assert err.median() < 0.3, "eq.-1 speed should match the true speed for most vehicles"
+    assert (key["label"] == key["true_label"]).mean() >= 0.9
+
+
+def test_no_scene_in_two_splits_and_night_scenes_excluded(selection):
+    per_scene = selection.pairs.groupby("scene")["split"].nunique()
+    assert (per_scene == 1).all()
+    excluded = selection.scenes[selection.scenes["excluded_by"] != ""]
+    assert len(excluded) >= 1 and (excluded["split"] == "excluded").all()
+    assert not set(excluded["scene"]) & set(selection.pairs["scene"])
+
+
+def test_generalisation_manifest(selection, smoke_params):
+    gen_pairs = selection.pairs[selection.pairs["set"] == "general"]
+    gen = selection.objects[selection.objects["set"] == "general"]
+    assert len(gen_pairs) > 0 and len(gen) > 0
+    assert set(gen_pairs["split"]) == {"test"}
+    gap = (gen_pairs["timestamp_2"] - gen_pairs["timestamp_1"]) / 1e6
+    assert gap.between(0.2, 0.6).all(), "4 camera frames at ~12 Hz is ~0.33 s"
+    assert (gen["distance"] < smoke_params.min_distance).any(), "near vehicles are included"
+
+
+def test_artefacts_are_skipped_when_up_to_date(smoke_params, selection):
+    paths = select.stage_paths(smoke_params)
+    before = {k: p.stat().st_mtime_ns for k, p in paths.items()}
+    again = select.run(smoke_params, progress=False)
+    assert {k: p.stat().st_mtime_ns for k, p in paths.items()} == before
+    pd.testing.assert_frame_equal(again.objects, selection.objects)
+    loaded, made_with = select.load(smoke_params.run_path)
+    assert made_with["speed_threshold"] == 2.0 and len(loaded.pairs) == len(selection.pairs)
+
+
+# --- bad inputs --------------------------------------------------------------------------
+
+def test_missing_dataroot_version_and_table(tmp_path, smoke_world):
+    dataroot, version = smoke_world
+    with pytest.raises(select.SelectionError, match="does not exist"):
+        select.check_dataroot(tmp_path / "nope", version)
+    with pytest.raises(select.SelectionError, match=r"v1.0-mini.*not found.*v1.0-synth"):
+        select.check_dataroot(dataroot, "v1.0-mini")
+    broken = tmp_path / "broken"
+    shutil.copytree(dataroot / version, broken / version)
+    (broken / version / "ego_pose.json").unlink()
+    with pytest.raises(select.SelectionError, match="lacks tables: ego_pose"):
+        select.check_dataroot(broken, version)
+
+
+def test_empty_selection_names_the_filter(smoke_params):
+    p = smoke_params.model_copy(update={"min_distance": 500.0, "max_distance": 600.0})
+    with pytest.raises(select.SelectionError, match=r"no vehicle passed Table 1.*\[500.0, 600.0\]"):
+        select.select(p, progress=False)
+
+
+def test_missing_images_error_or_skip(tmp_path, smoke_world, smoke_params):
+    dataroot, version = smoke_world
+    copy = tmp_path / "copy"
+    shutil.copytree(dataroot, copy)
+    sel = select.select(smoke_params.model_copy(update={"dataroot": str(copy)}), progress=False)
+    victim = sel.pairs["path_1"].iloc[0]
+    (copy / victim).unlink()
+    p = smoke_params.model_copy(update={"dataroot": str(copy)})
+    with pytest.raises(select.SelectionError, match=r"1 image files are missing.*missing_images"):
+        select.select(p, progress=False)
+    skipped = select.select(p.model_copy(update={"missing_images": "skip"}), progress=False)
+    assert victim not in set(skipped.pairs["path_1"]) | set(skipped.pairs["path_2"])
+    assert len(skipped.pairs) < len(sel.pairs)
