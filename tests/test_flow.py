@@ -578,4 +578,18 @@ def test_flow_to_color():
     flow[0, 0] = (8.0, 0.0)
     b = fl.flow_to_color(flow, max_flow=8.0)
     np.testing.assert_array_equal(a[2, 3], b[2, 3])  # a fixed scale: same vector, same colour
-    np.testing.assert_array_equal(fl.flow_to_color(flow, bgr=True), fl.flow_to_color(flow)[..., ::-1])
+    rgb, bgr = fl.flow_to_color(flow), fl.flow_to_color(flow, bgr=True)
+    np.testing.assert_array_equal(bgr, rgb[..., ::-1])
+
+
+def test_estimator_options_from_a_profile(tmp_path):
+    from flowmod.params import validate
+
+    p = validate({"flow_scale": 0.5, "dis_preset": "fast", "device": "cpu",
+                  "fastflownet_weights": str(tmp_path / "ffn.pth")})
+    assert fl.estimator_options(p, "dis") == {"scale": 0.5, "preset": "fast"}
+    assert fl.estimator_options(p, "gt") == {}
+    opts = fl.estimator_options(p, "fastflownet")
+    assert opts["weights"] == tmp_path / "ffn.pth" and opts["device"] == "cpu"
+    assert fl.estimator_options(p, "raft")["weights"] is None
+    fl.get_estimator("dis", **fl.estimator_options(p, "dis"))

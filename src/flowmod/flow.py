@@ -37,7 +37,7 @@ import logging
 import math
 import os
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
@@ -710,6 +710,8 @@ def flow_to_color(flow: np.ndarray, max_flow: float | None = None, bgr: bool = F
     f = np.nan_to_num(flow.astype(np.float32))
     h, w = f.shape[:2]
     if max_flow is not None:
+        if not max_flow > 0:
+            raise ValueError(f"max_flow={max_flow} must be > 0 (pixels)")
         mag = np.linalg.norm(f, axis=2, keepdims=True)
         f = f * np.minimum(1.0, max_flow / np.maximum(mag, 1e-9))
         ref = np.zeros((h, 1, 2), np.float32)
@@ -1115,10 +1117,3 @@ def compute_flow(
     out = index[index["pair_id"].isin(set(ids))].reset_index(drop=True)
     out["computed"] = out["pair_id"].isin(computed)
     return out
-
-
-def timed(fn: Callable[[], Any]) -> tuple[Any, float]:
-    """``(fn(), seconds)``: a tiny helper for notebooks and benchmarks."""
-    t0 = time.perf_counter()
-    res = fn()
-    return res, time.perf_counter() - t0

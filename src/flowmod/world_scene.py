@@ -748,10 +748,42 @@ def sample_scene(
         "look": look,
         "description": description,
         "with_sweeps": bool(with_sweeps),
+        "calib": sample_calibration(seed, index),
         "global": {
             "yaw": float(rng.uniform(-math.pi, math.pi)),
             "xy": [float(rng.uniform(300.0, 2000.0)), float(rng.uniform(300.0, 2000.0))],
         },
+    }
+
+
+#: nuScenes CAM_FRONT: camera->ego rotation (camera z forward, x right, y down).
+CAM_R0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def sample_calibration(seed: int, index: int) -> dict:
+    """CAM_FRONT calibration like nuScenes: K (3x3, px), rotation (w, x, y, z; camera->ego),
+    translation (m, ego frame), with small per-scene variations."""
+    from pyquaternion import Quaternion
+
+    rng = np.random.default_rng([int(seed), int(index), 202])
+    yaw, pitch, roll = rng.uniform(-0.005, 0.005, 3)
+    cz, sz = math.cos(yaw), math.sin(yaw)
+    cy, sy = math.cos(pitch), math.sin(pitch)
+    cx, sx = math.cos(roll), math.sin(roll)
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    R = Rz @ Ry @ Rx @ CAM_R0
+    q = Quaternion(matrix=R)
+    if q.w < 0:
+        q = -q
+    f = 1266.417 * rng.uniform(0.996, 1.004)
+    return {
+        "K": [[float(f), 0.0, float(816.267 + rng.uniform(-3, 3))],
+              [0.0, float(f), float(491.507 + rng.uniform(-3, 3))], [0.0, 0.0, 1.0]],
+        "rotation": [float(v) for v in q.elements],
+        "translation": [float(1.70 + rng.uniform(-0.03, 0.03)), float(0.016 + rng.uniform(-0.01, 0.01)),
+                        float(1.51 + rng.uniform(-0.02, 0.02))],
     }
 
 
