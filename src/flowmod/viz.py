@@ -139,3 +139,22 @@ def object_thumbnails(dataroot: str | Path, pairs: pd.DataFrame, objects: pd.Dat
         crop = padded[y0 + pad:y0 + pad + side, x0 + pad:x0 + pad + side]
         out.append(cv2.resize(crop, (size, size), interpolation=cv2.INTER_LINEAR))
     return out
+
+
+def scatter_by_label(x: np.ndarray, y: np.ndarray, labels: np.ndarray, xlabel: str,
+                     ylabel: str, title: str = "", logy: bool = False) -> plt.Figure:
+    """Scatter of still (blue) and moving (red) objects."""
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    labels = np.asarray(labels)
+    for lab, color, name in ((0, "tab:blue", "still"), (1, "tab:red", "moving")):
+        m = labels == lab
+        ax.scatter(np.asarray(x)[m], np.asarray(y)[m], s=6, alpha=0.5, c=color,
+                   label=f"{name} (n={int(m.sum())})")
+    if logy:
+        ax.set_yscale("symlog", linthresh=1.0)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
