@@ -372,3 +372,52 @@ def crops_manifest(out_dir: str | os.PathLike[str], method: str, split: str) -> 
     """The build record of a split (rows, pairs, size, zeroed flow values...), or {}."""
     m = manifest_path(crop_paths(out_dir, method, split)[0])
     return json.loads(m.read_text()) if m.is_file() else {}
+
+
+# --- the stage (notebook 05) ----------------------------------------------------------------
+
+
+def crops_dir(params: Any) -> Path:
+    """``<run_dir>/crops``."""
+    return params.run_path / "crops"
+
+
+def stage_objects(objects: pd.DataFrame) -> pd.DataFrame:
+    """Objects with the generalisation set as its own split ``general`` (keyframe objects keep
+    train / val / test)."""
+    out = objects.copy()
+    out.loc[out["set"] == "general", "split"] = "general"
+    return out
+
+
+def run(params: Any, objects: pd.DataFrame, progress: bool = True) -> dict[str, dict[str, Path]]:
+    """Crops of every object for each flow method of the profile: ``{method: {split: npy}}``."""
+    from flowmod.flow import flow_dir
+
+    obj = stage_objects(objects)
+    return {
+        m: build_crops(obj, flow_dir(params), m, crops_dir(params), size=params.crop_size,
+                       scale=params.crop_scale, force=params.force, progress=progress)
+        for m in params.flow_methods
+    }
+
+
+def storage_table(params: Any) -> pd.DataFrame:
+    """Disk used per item: crops per object vs full-frame flow per pair, for each method."""
+    from flowmod.flow import flow_dir
+
+    rows = []
+    for m in params.flow_methods:
+        npys = sorted((crops_dir(params) / m).glob("*.npy"))
+        n_obj = sum(int(np.load(p, mmap_mode="r").shape[0]) for p in npys)
+        crop_bytes = sum(p.stat().st_size for p in npys)
+        flows = list((flow_dir(params) / m).glob("*.npy"))
+        flow_bytes = sum(p.stat().st_size for p in flows)
+        rows.append({
+            "method": m, "objects": n_obj, "crops total (MB)": crop_bytes / 1e6,
+            "per object (kB)": crop_bytes / max(n_obj, 1) / 1e3, "flow pairs": len(flows),
+            "flow total (MB)": flow_bytes / 1e6,
+            "flow per pair (MB)": flow_bytes / max(len(flows), 1) / 1e6,
+            "original: float32 flow per pair (MB)": IMAGE_SIZE[0] * IMAGE_SIZE[1] * 2 * 4 / 1e6,
+        })
+    return pd.DataFrame(rows).round(2)

@@ -333,3 +333,62 @@ def fit_threshold(scores: Any, labels: Any) -> float:
 def apply_threshold(scores: Any, t: float) -> np.ndarray:
     """(N,) int 0/1: 1 (moving) where score > t."""
     return (np.asarray(scores, dtype=np.float64) > t).astype(np.int64)
+
+
+# --- the stage (notebooks 07 and 08) ---------------------------------------------------------
+
+
+def metrics_dir(params: Any) -> Any:
+    """``<run_dir>/metrics``."""
+    return params.run_path / "metrics"
+
+
+def predictions(params: Any, method: str, split: str) -> pd.DataFrame:
+    """The split's objects (crop index order) with ``prob``: the model of ``method``
+    (``models/<method>/best.pt``, chosen on validation) applied to its crops."""
+    from flowmod import crops, train
+    from flowmod.model import load_model
+
+    model = load_model(train.models_dir(params) / method / "best.pt", resolve_device(params.device))
+    x, df = crops.open_crops(crops.crops_dir(params), method, split)
+    return df.assign(prob=predict(model, x, device=params.device))
+
+
+def score(df: pd.DataFrame, label_col: str = "label", seed: int = 0) -> dict[str, Any]:
+    """Whole-set metrics of ``df.prob`` against ``df[label_col]``, with a bootstrap 95 % CI."""
+    y, p = df[label_col].to_numpy(), df["prob"].to_numpy()
+    return {**metrics(y, p), "ci": bootstrap_f1_ci(y, p, seed=seed)}
+
+
+def run(params: Any, split: str = "test") -> dict[str, tuple[pd.DataFrame, dict[str, Any]]]:
+    """Score each method's model on ``split``; writes ``metrics/<method>.json`` and
+    ``metrics/<method>_<split>.parquet`` (predictions). Returns ``{method: (preds, scores)}``."""
+    from flowmod.artefacts import atomic_path, write_json
+
+    out = {}
+    for m in params.flow_methods:
+        df = predictions(params, m, split)
+        s = score(df, seed=params.seed)
+        write_json(metrics_dir(params) / f"{m}.json", {"split": split, **s})
+        with atomic_path(metrics_dir(params) / f"{m}_{split}.parquet") as tmp:
+            df.to_parquet(tmp, index=False)
+        out[m] = (df, s)
+    return out
+
+
+def geometric_baseline(params: Any, pairs: pd.DataFrame, objects: pd.DataFrame,
+                       method: str) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """The residual baseline on ``method``'s flow: threshold on the static-world residual
+    (m/s, :mod:`flowmod.geometry`) fitted on train, scored on test."""
+    from flowmod import flow, geometry
+
+    key = objects[objects["set"] == "keyframe"]
+    sub = key[key["split"].isin(["train", "test"])].reset_index(drop=True)
+    res = geometry.residual_scores(
+        sub, pairs, lambda pid: flow.load_flow(flow.flow_dir(params), method, pid))
+    sub = pd.concat([sub, res], axis=1)
+    train = sub[sub["split"] == "train"]
+    t = fit_threshold(train["residual_speed"], train["label"])
+    test = sub[sub["split"] == "test"].assign(
+        prob=lambda d: apply_threshold(d["residual_speed"], t).astype(float))
+    return test, {**score(test, seed=params.seed), "threshold_m_s": t}

@@ -372,3 +372,47 @@ def train_model(
     if not math.isfinite(best_f1) or best_epoch == 0:
         raise TrainingError("no epoch was trained (epochs <= the checkpoint's epoch?)")
     return _history_frame(rows, best_epoch, best_f1)
+
+
+# --- the stage (notebook 06) ------------------------------------------------------------------
+
+
+def models_dir(params: Any) -> Path:
+    """``<run_dir>/models``; one folder per flow method (best.pt, last.pt, history.csv)."""
+    return params.run_path / "models"
+
+
+def run(params: Any, progress: bool = True) -> dict[str, pd.DataFrame]:
+    """Train one classifier per flow method of the profile on its crops (Table 2 settings
+    from the profile); returns ``{method: history}``. Finished runs are reused."""
+    from flowmod import crops
+
+    out = {}
+    for m in params.flow_methods:
+        tx, tdf = crops.open_crops(crops.crops_dir(params), m, "train")
+        vx, vdf = crops.open_crops(crops.crops_dir(params), m, "val")
+        out[m] = train_model(
+            tx, tdf, vx, vdf, models_dir(params) / m, epochs=params.epochs,
+            batch_size=params.batch_size, lr=params.lr, momentum=params.momentum,
+            weight_decay=params.weight_decay, step_size=params.step_size, gamma=params.gamma,
+            hflip_p=params.hflip_p, num_workers=params.num_workers, seed=params.seed,
+            device=params.device, resume=not params.force, progress=progress,
+        )
+    return out
+
+
+def table2(params: Any) -> pd.DataFrame:
+    """Table 2 of the paper, from the parameters."""
+    return pd.DataFrame([
+        ("Optimizer", "Batch size", params.batch_size),
+        ("Optimizer", "Algorithm", "SGD"),
+        ("Optimizer", "Learning rate", params.lr),
+        ("Optimizer", "Weight decay", params.weight_decay),
+        ("Optimizer", "Momentum", params.momentum),
+        ("Scheduler", "Schedule", "StepLR (per epoch)"),
+        ("Scheduler", "Step size", params.step_size),
+        ("Scheduler", "Gamma", params.gamma),
+        ("Training", "Epochs", params.epochs),
+        ("Training", "Horizontal flip p", params.hflip_p),
+        ("Input", "Crop size (px)", params.crop_size),
+    ], columns=["Function", "Hyperparameter", "Setting"])

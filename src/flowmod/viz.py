@@ -158,3 +158,155 @@ def scatter_by_label(x: np.ndarray, y: np.ndarray, labels: np.ndarray, xlabel: s
     ax.legend(fontsize=8)
     fig.tight_layout()
     return fig
+
+
+def crop_steps_figure(image: np.ndarray, flow_rgb: np.ndarray, box: np.ndarray,
+                      window: np.ndarray, crop: np.ndarray, crop_rgb: np.ndarray) -> plt.Figure:
+    """The paper's preprocessing on one object, in four panels.
+
+    image: (H, W, 3) BGR frame 1; flow_rgb: (H, W, 3) RGB flow colours; box: (4,) xyxy px;
+    window: (3,) x0, y0, side px of the tripled square; crop: (2, S, S) flow crop (px);
+    crop_rgb: (S, S, 3) its colours.
+    """
+    x0, y0, x1, y1 = box
+    s = max(x1 - x0, y1 - y0)
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    wx, wy, side = window
+    pad = side * 0.6
+    fig, axes = plt.subplots(1, 4, figsize=(15, 3.8))
+    for ax, img, title in ((axes[0], image[..., ::-1], "1. frame 1 and the 2D box"),
+                           (axes[1], flow_rgb, "2. square (max side), tripled")):
+        ax.imshow(img)
+        ax.add_patch(plt.Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="yellow", lw=1.5))
+        ax.set_xlim(wx - pad, wx + side + pad)
+        ax.set_ylim(wy + side + pad, wy - pad)
+        ax.set_title(title, fontsize=9)
+    axes[1].add_patch(plt.Rectangle((cx - s / 2, cy - s / 2), s, s, fill=False, ec="w", ls="--"))
+    axes[1].add_patch(plt.Rectangle((wx, wy), side, side, fill=False, ec="w", lw=2))
+    axes[2].imshow(crop_rgb)
+    axes[2].set_title(f"3. crop, edge-padded, resized to {crop.shape[-1]} px", fontsize=9)
+    uv = np.concatenate([crop[0], crop[1]], axis=1)
+    im = axes[3].imshow(uv, cmap="coolwarm", vmin=-np.abs(uv).max(), vmax=np.abs(uv).max())
+    axes[3].set_title("4. the network's input: u | v (px)", fontsize=9)
+    fig.colorbar(im, ax=axes[3], fraction=0.046)
+    for ax in axes:
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.tight_layout()
+    return fig
+
+
+def crop_gallery(x: np.ndarray, labels: np.ndarray, n: int = 8, seed: int = 0,
+                 titles: list[str] | None = None) -> plt.Figure:
+    """Flow-colour crops of ``n`` still (top row) and ``n`` moving (bottom row) objects.
+
+    x: (N, 2, S, S) crops, px. Colours share one magnitude scale per crop.
+    """
+    from flowmod.flow import flow_to_color
+
+    rng = np.random.default_rng(seed)
+    labels = np.asarray(labels)
+    fig, axes = plt.subplots(2, n, figsize=(1.6 * n, 3.6), squeeze=False)
+    for row, lab, name in ((0, 0, "still"), (1, 1, "moving")):
+        idx = np.flatnonzero(labels == lab)
+        pick = rng.choice(idx, size=min(n, len(idx)), replace=False) if len(idx) else []
+        for ax in axes[row]:
+            ax.axis("off")
+        for ax, i in zip(axes[row], pick, strict=False):
+            ax.imshow(flow_to_color(np.asarray(x[i], dtype=np.float32).transpose(1, 2, 0)))
+            ax.set_title(titles[i] if titles else name, fontsize=7,
+                         color="tab:red" if lab else "tab:blue")
+    fig.tight_layout()
+    return fig
+
+
+def training_curves(histories: dict[str, pd.DataFrame]) -> plt.Figure:
+    """Training loss, validation loss and validation F1 per epoch, one line per method."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.4))
+    for method, h in histories.items():
+        (line,) = axes[0].plot(h["epoch"], h["train_loss"], label=f"{method} train")
+        axes[0].plot(h["epoch"], h["val_loss"], ls="--", color=line.get_color(),
+                     label=f"{method} val")
+        axes[1].plot(h["epoch"], h["val_f1"], marker="o", ms=3, color=line.get_color(),
+                     label=method)
+        best = h.attrs.get("best_epoch")
+        if best:
+            axes[1].scatter([best], [h.loc[h["epoch"] == best, "val_f1"]], s=60,
+                            facecolors="none", edgecolors=line.get_color())
+    axes[0].set(xlabel="epoch", ylabel="BCE loss", title="loss")
+    axes[1].set(xlabel="epoch", ylabel="F1", title="validation F1 (circle: chosen epoch)",
+                ylim=(0, 1))
+    for ax in axes:
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def prediction_frames(dataroot: str | Path, pairs: pd.DataFrame, preds: pd.DataFrame,
+                      n: int = 4, seed: int = 0, threshold: float = 0.5,
+                      ) -> tuple[list[np.ndarray], list[str]]:
+    """Figure 2 style: frame 1 of ``n`` pairs with each object's box coloured by the
+    prediction (blue still, red moving); wrong predictions get a yellow ``x`` tag.
+
+    preds: objects with pair_id, box, label and prob. Pairs holding a wrong prediction are
+    preferred, half of the picks, so both failures and successes show.
+    """
+    rng = np.random.default_rng(seed)
+    wrong = preds.assign(wrong=(preds["prob"] > threshold).astype(int) != preds["label"])
+    per_pair = wrong.groupby("pair_id")["wrong"].agg(["any", "size"])
+    bad = per_pair.index[per_pair["any"]].to_numpy()
+    good = per_pair.index[~per_pair["any"] & (per_pair["size"] >= 2)].to_numpy()
+    n_bad = min(len(bad), n // 2)
+    pick = list(rng.choice(bad, n_bad, replace=False)) if n_bad else []
+    rest = good if len(good) else per_pair.index.to_numpy()
+    pick += list(rng.choice(rest, min(n - n_bad, len(rest)), replace=False))
+    paths = pairs.set_index("pair_id")["path_1"]
+    images, titles = [], []
+    for pid in pick:
+        img = cv2.imread(str(Path(dataroot) / paths[pid]))
+        obj = wrong[wrong["pair_id"] == pid]
+        pred = (obj["prob"] > threshold).astype(int).to_numpy()
+        texts = [("x " if w else "") + f"{p:.2f}" for w, p in zip(obj["wrong"], obj["prob"],
+                                                                 strict=True)]
+        img = draw_boxes(img, obj[["xmin", "ymin", "xmax", "ymax"]].to_numpy(),
+                         label_colors(pred), texts)
+        images.append(img)
+        titles.append(f"{pid}: {int(obj['wrong'].sum())} wrong of {len(obj)}")
+    return images, titles
+
+
+def confusion_and_pr(results: dict[str, pd.DataFrame], threshold: float = 0.5) -> plt.Figure:
+    """Confusion matrix per method and all precision-recall curves (prob vs label)."""
+    from flowmod.evaluate import metrics, pr_curve
+
+    n = len(results)
+    fig, axes = plt.subplots(1, n + 1, figsize=(3.2 * (n + 1), 3.2))
+    for ax, (name, df) in zip(axes[:n], results.items(), strict=True):
+        cm = np.asarray(metrics(df["label"], df["prob"], threshold)["confusion"])
+        ax.imshow(cm, cmap="Blues")
+        for (i, j), v in np.ndenumerate(cm):
+            ax.text(j, i, str(v), ha="center", va="center",
+                    color="white" if v > cm.max() / 2 else "black")
+        ax.set_xticks([0, 1], ["still", "moving"])
+        ax.set_yticks([0, 1], ["still", "moving"])
+        ax.set(xlabel="predicted", ylabel="true", title=name)
+    for name, df in results.items():
+        curve, ap = pr_curve(df["label"], df["prob"])
+        axes[n].plot(curve["recall"], curve["precision"], label=f"{name} (AP {ap:.2f})")
+    axes[n].set(xlabel="recall", ylabel="precision", title="precision-recall", xlim=(0, 1),
+                ylim=(0, 1.02))
+    axes[n].legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def f1_by(tables: dict[str, pd.DataFrame], key: str, xlabel: str) -> plt.Figure:
+    """F1 per group (e.g. distance bin) for each method, from :func:`evaluate.breakdown`."""
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    for name, t in tables.items():
+        ax.plot(t[key].astype(str), t["f1"], marker="o", label=name)
+    ax.set(xlabel=xlabel, ylabel="F1", ylim=(0, 1.02))
+    ax.legend(fontsize=7)
+    ax.tick_params(axis="x", labelrotation=30, labelsize=8)
+    fig.tight_layout()
+    return fig

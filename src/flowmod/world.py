@@ -1,0 +1,695 @@
+"""A procedural driving world written in the nuScenes v1.0 on-disk format (CAM_FRONT only).
+
+The official devkit (``nuscenes.nuscenes.NuScenes``) loads it, so the pipeline runs unchanged on
+it and on real nuScenes. What the world contains, per scene (``synth-0000``, ...):
+
+* a main road with 1-3 lanes per direction, parking lanes, sidewalks, buildings or front
+  yards with hedges and trees, poles, a distant skyline; often a cross road (intersection with
+  crosswalks and stop lines);
+* the ego car cruising, following, in stop-and-go traffic, braking to a stop, waiting at or
+  leaving an intersection, or turning left/right into the cross road;
+* ~``vehicles_per_scene`` vehicles of the seven Table-1 categories and some others
+  (motorcycles, bicycles, trailers) with realistic sizes: parked at the kerb, queued at the
+  cross road (some start moving), driving with, against and across the ego lane, far ahead
+  moving radially, accelerating or braking through 2 m/s, rolling near 2 m/s; pedestrians;
+* weather and light: clear, overcast, after rain (wet ground), rain (streaks, haze) and night
+  (dark, lights), named in the scene description (``"Night, big street, parked cars"``).
+
+Frames are 1600x900 JPEGs of a nuScenes-like CAM_FRONT (fx = fy ~ 1266 px, camera ~1.5 m up,
+~1.7 m ahead of the ego origin). Keyframes (samples) come every ~0.5 s; ``n_sweep_scenes``
+scenes also get the ~12 Hz frames in between (sweeps; 4-5 per gap, jittered timestamps, an
+occasional dropped frame). Annotations (sample_annotation) exist on keyframes for every agent
+within 100 m; visibility tokens '1'..'4' come from the rendered visible fraction of the box's
+silhouette inside the image (0-40, 40-60, 60-80, 80-100 %).
+
+Ground truth is exact and re-derived on demand from the world's own description, stored as
+JSON beside the tables (``<dataroot>/<version>/synth_world.json``): :func:`gt_flow` renders
+the depth / surface-id maps of two frames and moves every pixel's 3D point with its surface's
+rigid motion; :func:`true_velocity` differentiates the analytic trajectories.
+
+Public API: :func:`generate_world`, :func:`ensure_world`, :func:`is_synthetic`,
+:func:`gt_flow`, :func:`true_velocity`, and the notebook helpers in
+:mod:`flowmod.world_report` (re-exported here: ``naive_rule_report``, ``counts_table``,
+``distant_objects``, ``gt_flow_figure``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import shutil
+import time
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from flowmod.artefacts import atomic_path
+
+GENERATOR_VERSION = 1
+WORLD_FILE = "synth_world.json"
+CHANNEL = "CAM_FRONT"
+KEYFRAME_US = 500_000
+BASE_US = 1_533_000_000_000_000  # 2018-07-31, like nuScenes' era
+ANNOTATION_RANGE = 100.0  # m, agents annotated within this distance of the ego
+TABLES = ("attribute", "calibrated_sensor", "category", "ego_pose", "instance", "log", "map",
+          "sample", "sample_annotation", "sample_data", "scene", "sensor", "visibility")
+
+#: The official nuScenes categories (names; descriptions written for this world).
+CATEGORIES = [
+    ("human.pedestrian.adult", "Adult pedestrian."),
+    ("human.pedestrian.child", "Child pedestrian."),
+    ("human.pedestrian.wheelchair", "Person in a wheelchair."),
+    ("human.pedestrian.stroller", "Person pushing a stroller."),
+    ("human.pedestrian.personal_mobility", "Person on a scooter or similar."),
+    ("human.pedestrian.police_officer", "Police officer."),
+    ("human.pedestrian.construction_worker", "Construction worker."),
+    ("animal", "Animal."),
+    ("vehicle.car", "Passenger car, van, SUV."),
+    ("vehicle.motorcycle", "Motorcycle or moped."),
+    ("vehicle.bicycle", "Bicycle."),
+    ("vehicle.bus.bendy", "Articulated bus."),
+    ("vehicle.bus.rigid", "Rigid bus."),
+    ("vehicle.truck", "Truck, lorry, pickup."),
+    ("vehicle.construction", "Construction vehicle."),
+    ("vehicle.emergency.ambulance", "Ambulance."),
+    ("vehicle.emergency.police", "Police car."),
+    ("vehicle.trailer", "Trailer."),
+    ("movable_object.barrier", "Barrier."),
+    ("movable_object.trafficcone", "Traffic cone."),
+    ("movable_object.pushable_pullable", "Cart, bin."),
+    ("movable_object.debris", "Debris."),
+    ("static_object.bicycle_rack", "Bicycle rack."),
+]
+
+ATTRIBUTES = [
+    ("vehicle.moving", "Vehicle is moving."),
+    ("vehicle.stopped", "Vehicle with driver, temporarily stationary."),
+    ("vehicle.parked", "Vehicle parked, no driver."),
+    ("cycle.with_rider", "Cycle with a rider."),
+    ("cycle.without_rider", "Cycle without a rider."),
+    ("pedestrian.sitting_lying_down", "Pedestrian sitting or lying."),
+    ("pedestrian.standing", "Pedestrian standing."),
+    ("pedestrian.moving", "Pedestrian moving."),
+]
+
+VISIBILITY = [
+    ("1", "v0-40", "visibility of whole object is between 0 and 40%"),
+    ("2", "v40-60", "visibility of whole object is between 40 and 60%"),
+    ("3", "v60-80", "visibility of whole object is between 60 and 80%"),
+    ("4", "v80-100", "visibility of whole object is between 80 and 100%"),
+]
+
+
+class WorldError(RuntimeError):
+    """The synthetic world cannot be generated or used as asked; the message says how to fix it."""
+
+
+# --------------------------------------------------------------------------------------------
+# Small helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _token(seed: int, *parts: Any) -> str:
+    """A deterministic 32-hex nuScenes-style token."""
+    key = "/".join(str(p) for p in ("flowmod-synth", seed, *parts))
+    return hashlib.md5(key.encode()).hexdigest()
+
+
+def yaw_quaternion(yaw: float) -> list[float]:
+    """Rotation about z by ``yaw`` (rad) as [w, x, y, z]."""
+    return [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
+
+
+def visibility_token(fraction: float) -> str:
+    """nuScenes visibility bin of a visible fraction in [0, 1]: '1'..'4'."""
+    if fraction >= 0.8:
+        return "4"
+    if fraction >= 0.6:
+        return "3"
+    if fraction >= 0.4:
+        return "2"
+    return "1"
+
+
+def _write_bytes(path: Path, data: bytes) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def _write_json(path: Path, obj: Any, indent: int | None = 1) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(obj, indent=indent) + "\n")
+
+
+def frame_times(seed: int, index: int, n_keyframes: int, with_sweeps: bool, t0_us: int
+                ) -> list[dict]:
+    """Camera frame timestamps of a scene: [{"ts": us, "key": bool, "k": keyframe index}].
+
+    Keyframes every 0.5 s (+-2.5 ms jitter, the first exactly at ``t0_us``); with sweeps, the
+    ~12 Hz frames in between: 5 per gap (+-4 ms jitter), one dropped in ~12 % of gaps. A
+    sweep's ``k`` is the index of the NEXT keyframe (the sample it belongs to in nuScenes).
+    """
+    rng = np.random.default_rng([int(seed), int(index), 303])
+    kts = [t0_us]
+    for _k in range(1, n_keyframes):
+        kts.append(t0_us + _k * KEYFRAME_US + int(rng.integers(-2500, 2501)))
+    frames = []
+    for k, ts in enumerate(kts):
+        if with_sweeps and k > 0:
+            prev = kts[k - 1]
+            gap = ts - prev
+            js = [1, 2, 3, 4, 5]
+            if rng.random() < 0.12:
+                js.pop(int(rng.integers(0, 5)))
+            for j in js:
+                t = prev + int(round(gap * j / 6)) + int(rng.integers(-4000, 4001))
+                frames.append({"ts": int(t), "key": False, "k": k})
+        frames.append({"ts": int(ts), "key": True, "k": k})
+    return frames
+
+
+def _exposures(seed: int, index: int, times: np.ndarray) -> np.ndarray:
+    """Per-frame exposure gains (slow drift, auto-exposure steps, small jitter)."""
+    rng = np.random.default_rng([int(seed), int(index), 404])
+    phase = rng.uniform(0, 2 * math.pi)
+    e = 1.0 + 0.05 * np.sin(2 * math.pi * times / rng.uniform(4, 9) + phase)
+    for _ in range(int(rng.integers(0, 3))):
+        t_step = rng.uniform(times.min() if times.size else 0, times.max() + 1 if times.size else 1)
+        e = e + rng.uniform(-0.08, 0.08) * (times >= t_step)
+    return e * (1.0 + rng.normal(0, 0.008, times.shape))
+
+
+# --------------------------------------------------------------------------------------------
+# One scene (runs in a worker process)
+# --------------------------------------------------------------------------------------------
+
+
+def _scene_description(seed: int, index: int, n_keyframes: int, vehicles: int, weather: str,
+                       with_sweeps: bool) -> dict:
+    from flowmod import world_scene as ws
+
+    scene = ws.sample_scene(seed, index, n_keyframes, vehicles, weather, with_sweeps)
+    scene["name"] = f"synth-{index:04d}"
+    scene["token"] = _token(seed, "scene", index)
+    scene["t0_us"] = BASE_US + index * 3_600_000_000
+    frames = frame_times(seed, index, n_keyframes, with_sweeps, scene["t0_us"])
+    for j, f in enumerate(frames):
+        f["sd_token"] = _token(seed, "sample_data", index, j)
+    scene["frames"] = frames
+    for i, a in enumerate(scene["agents"]):
+        a["instance_token"] = _token(seed, "instance", index, i)
+    return ws.json_ready(scene)
+
+
+def _attribute(agent: dict, speed: float) -> str:
+    from flowmod.world_scene import NEAR_ZERO_SPEED
+
+    cat = agent["category"]
+    moving = speed > NEAR_ZERO_SPEED
+    if cat.startswith("human"):
+        return "pedestrian.moving" if moving else "pedestrian.standing"
+    if cat in ("vehicle.bicycle", "vehicle.motorcycle"):
+        return "cycle.with_rider" if (moving or agent["role"] != "parked") else "cycle.without_rider"
+    if moving:
+        return "vehicle.moving"
+    return "vehicle.parked" if agent["role"] == "parked" else "vehicle.stopped"
+
+
+def _scene_job(dataroot: str, seed: int, index: int, n_keyframes: int, vehicles: int,
+               weather: str, with_sweeps: bool) -> dict:
+    """Render one scene's frames to ``dataroot`` and return its table rows and description."""
+    import cv2
+
+    from flowmod import world_render as wr
+    from flowmod import world_scene as ws
+
+    cv2.setNumThreads(1)
+    scene = _scene_description(seed, index, n_keyframes, vehicles, weather, with_sweeps)
+    geo = wr.SceneGeometry(scene)
+    root = Path(dataroot)
+    t0 = scene["t0_us"]
+    cs_token = _token(seed, "calibrated_sensor", index)
+    sample_tokens = [_token(seed, "sample", index, k) for k in range(n_keyframes)]
+    frames = scene["frames"]
+    times = np.array([(f["ts"] - t0) / 1e6 for f in frames])
+    expo = _exposures(seed, index, times)
+    look = scene["look"]
+    rows: dict[str, list] = {"sample": [], "sample_data": [], "ego_pose": [],
+                             "sample_annotation": [], "instance": []}
+    ann_by_agent: dict[int, list[dict]] = {}
+    statics_occ = [(np.array(o["c"]), o["yaw"], tuple(o["size"])) for o in scene["statics"]
+                   if o["kind"] in ("building", "hedge", "wall")]
+    for j, f in enumerate(frames):
+        t = float(times[j])
+        fr = wr.render(geo, t, textured=True)
+        img = wr.finish(fr, look, (seed, index, j, 505), float(expo[j]))
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(look["jpeg_quality"])])
+        if not ok:
+            raise WorldError(f"JPEG encoding failed for scene {scene['name']} frame {j}")
+        folder = "samples" if f["key"] else "sweeps"
+        filename = f"{folder}/{CHANNEL}/{scene['name']}__{CHANNEL}__{f['ts']}.jpg"
+        _write_bytes(root / filename, buf.tobytes())
+        ego = ws.traj_state(scene["ego"], t)
+        gx, gy, gh = ws.scene_to_global(scene, ego["x"], ego["y"], ego["h"])
+        rows["ego_pose"].append({
+            "token": f["sd_token"], "timestamp": f["ts"],
+            "rotation": yaw_quaternion(float(gh)), "translation": [float(gx), float(gy), 0.0],
+        })
+        rows["sample_data"].append({
+            "token": f["sd_token"], "sample_token": sample_tokens[f["k"]],
+            "ego_pose_token": f["sd_token"], "calibrated_sensor_token": cs_token,
+            "timestamp": f["ts"], "fileformat": "jpg", "is_key_frame": bool(f["key"]),
+            "height": wr.H_IMG, "width": wr.W_IMG, "filename": filename,
+            "prev": frames[j - 1]["sd_token"] if j > 0 else "",
+            "next": frames[j + 1]["sd_token"] if j + 1 < len(frames) else "",
+        })
+        if not f["key"]:
+            continue
+        k = f["k"]
+        rows["sample"].append({
+            "token": sample_tokens[k], "timestamp": f["ts"],
+            "prev": sample_tokens[k - 1] if k > 0 else "",
+            "next": sample_tokens[k + 1] if k + 1 < n_keyframes else "",
+            "scene_token": scene["token"],
+        })
+        ego_xyz = np.array([float(ego["x"]), float(ego["y"]), 0.0])
+        posed = []
+        for i, a in enumerate(scene["agents"]):
+            R, ctr = geo.agent_pose(i, t)
+            posed.append((i, a, ctr, math.atan2(R[1, 0], R[0, 0])))
+        for i, a, ctr, yaw in posed:
+            dist = float(np.linalg.norm(ctr - ego_xyz))
+            if dist > ANNOTATION_RANGE:
+                continue
+            corners = wr.box_corners(ctr, yaw, tuple(a["size"]))
+            frac, _px = wr.silhouette_fraction(fr, corners, wr.SID_AGENT0 + i)
+            if not np.isfinite(frac):
+                pts = np.vstack([ctr[None], ctr + 0.85 * (corners - ctr)])
+                occ = [(c2, y2, tuple(a2["size"])) for i2, a2, c2, y2 in posed
+                       if i2 != i and np.linalg.norm(c2 - ego_xyz) < dist + 10]
+                occ += [o for o in statics_occ if np.linalg.norm(o[0][:2] - ego_xyz[:2]) < dist + 40]
+                frac = wr.ray_visibility(fr.c, pts, occ)
+            st = ws.agent_state_global(scene, a, t)
+            speed = float(st["speed"])
+            w, length, h = a["size"]
+            lidar = int(round(frac * 2500.0 * (w * h + length * h) / max(dist, 1.0) ** 2))
+            ann = {
+                "token": _token(seed, "sample_annotation", index, i, k),
+                "sample_token": sample_tokens[k],
+                "instance_token": a["instance_token"],
+                "visibility_token": visibility_token(frac),
+                "attribute_tokens": [_token(seed, "attribute", _attribute(a, speed))],
+                "translation": [float(st["x"]), float(st["y"]), float(st["z"])],
+                "size": [float(w), float(length), float(h)],
+                "rotation": yaw_quaternion(float(ws.wrap_angle(st["yaw"]))),
+                "prev": "", "next": "",
+                "num_lidar_pts": lidar,
+                "num_radar_pts": int(a["kind"] == "vehicle" and dist < 70 and frac > 0.3) * 3,
+            }
+            ann_by_agent.setdefault(i, []).append(ann)
+    for i in sorted(ann_by_agent):
+        anns = ann_by_agent[i]
+        for n, ann in enumerate(anns):
+            ann["prev"] = anns[n - 1]["token"] if n > 0 else ""
+            ann["next"] = anns[n + 1]["token"] if n + 1 < len(anns) else ""
+        a = scene["agents"][i]
+        rows["instance"].append({
+            "token": a["instance_token"],
+            "category_token": _token(seed, "category", a["category"]),
+            "nbr_annotations": len(anns),
+            "first_annotation_token": anns[0]["token"],
+            "last_annotation_token": anns[-1]["token"],
+        })
+    # annotations in sample order (like nuScenes: grouped by sample)
+    all_anns = [a for i in sorted(ann_by_agent) for a in ann_by_agent[i]]
+    order = {tok: n for n, tok in enumerate(sample_tokens)}
+    all_anns.sort(key=lambda a: (order[a["sample_token"]], a["token"]))
+    rows["sample_annotation"] = all_anns
+    calib = scene["calib"]
+    rows["calibrated_sensor"] = [{
+        "token": cs_token, "sensor_token": _token(seed, "sensor", CHANNEL),
+        "translation": calib["translation"], "rotation": calib["rotation"],
+        "camera_intrinsic": calib["K"],
+    }]
+    rows["scene"] = [{
+        "token": scene["token"], "log_token": _token(seed, "log", index // 4),
+        "nbr_samples": n_keyframes, "first_sample_token": sample_tokens[0],
+        "last_sample_token": sample_tokens[-1], "name": scene["name"],
+        "description": scene["description"],
+    }]
+    return {"rows": rows, "scene": scene}
+
+
+# --------------------------------------------------------------------------------------------
+# Whole world
+# --------------------------------------------------------------------------------------------
+
+
+def _static_tables(seed: int, n_scenes: int, map_filename: str) -> dict[str, list]:
+    n_logs = (n_scenes + 3) // 4
+    logs = [{
+        "token": _token(seed, "log", li),
+        "logfile": f"synth-log-{li:04d}",
+        "vehicle": "synth-ego",
+        "date_captured": time.strftime("%Y-%m-%d", time.gmtime(BASE_US / 1e6 + li * 86400)),
+        "location": ("synth-city-east", "synth-city-west")[li % 2],
+    } for li in range(n_logs)]
+    return {
+        "category": [{"token": _token(seed, "category", n), "name": n, "description": d}
+                     for n, d in CATEGORIES],
+        "attribute": [{"token": _token(seed, "attribute", n), "name": n, "description": d}
+                      for n, d in ATTRIBUTES],
+        "visibility": [{"token": t, "level": lv, "description": d} for t, lv, d in VISIBILITY],
+        "sensor": [{"token": _token(seed, "sensor", CHANNEL), "channel": CHANNEL,
+                    "modality": "camera"}],
+        "log": logs,
+        "map": [{"token": _token(seed, "map"), "log_tokens": [lg["token"] for lg in logs],
+                 "category": "semantic_prior", "filename": map_filename}],
+    }
+
+
+def _check_dataroot(root: Path, version: str) -> None:
+    """Refuse to write into a dataroot that holds real (non-synthetic) nuScenes tables."""
+    if not root.exists():
+        return
+    for d in sorted(p for p in root.iterdir() if p.is_dir()):
+        if (d / "scene.json").is_file() and not (d / WORLD_FILE).is_file():
+            raise WorldError(
+                f"{root} holds a real (non-synthetic) nuScenes version {d.name!r}; the synthetic "
+                f"world will not write into it. Choose another dataroot for the synthetic world "
+                f"(e.g. data/demo), or set synthetic: false to use the real data."
+            )
+
+
+def generate_world(
+    dataroot: str | os.PathLike[str],
+    version: str = "v1.0-synth",
+    *,
+    n_scenes: int,
+    n_keyframes: int,
+    n_sweep_scenes: int,
+    vehicles_per_scene: int,
+    seed: int = 0,
+    n_jobs: int = 2,
+    progress: bool = True,
+) -> Path:
+    """Generate the synthetic world into ``<dataroot>/<version>`` (+ samples/, sweeps/, maps/).
+
+    Images are written first (each atomically); the tables are built in a hidden folder and
+    renamed into place last, so a version folder exists only for a finished world. An existing
+    synthetic version folder is replaced; a real one is never touched (:class:`WorldError`).
+    Returns the dataroot. Deterministic: same seed and sizes give byte-identical files.
+    """
+    from flowmod import world_scene as ws
+
+    for name, v, lo in (("n_scenes", n_scenes, 1), ("n_keyframes", n_keyframes, 2),
+                        ("vehicles_per_scene", vehicles_per_scene, 1), ("n_sweep_scenes",
+                                                                        n_sweep_scenes, 0)):
+        if int(v) < lo:
+            raise WorldError(f"{name}={v} must be >= {lo}")
+    if n_sweep_scenes > n_scenes:
+        raise WorldError(f"n_sweep_scenes={n_sweep_scenes} must be <= n_scenes={n_scenes}")
+    root = Path(dataroot).expanduser().resolve()
+    _check_dataroot(root, version)
+    root.mkdir(parents=True, exist_ok=True)
+    weathers, sweeps = ws.plan_weathers(n_scenes, n_sweep_scenes, seed)
+    args = [(str(root), int(seed), i, int(n_keyframes), int(vehicles_per_scene), weathers[i],
+             sweeps[i]) for i in range(n_scenes)]
+    results = _run_jobs(args, n_jobs, progress)
+
+    tables: dict[str, list] = {
+        n: [] for n in ("scene", "sample", "sample_data", "ego_pose", "sample_annotation",
+                        "instance", "calibrated_sensor")}
+    scenes = []
+    for res in results:
+        for n in tables:
+            tables[n].extend(res["rows"][n])
+        scenes.append(res["scene"])
+    map_filename = f"maps/synth-{_token(seed, 'map')}.png"
+    tables.update(_static_tables(seed, n_scenes, map_filename))
+    _write_map(root / map_filename)
+
+    params = {"n_scenes": int(n_scenes), "n_keyframes": int(n_keyframes),
+              "n_sweep_scenes": int(n_sweep_scenes), "vehicles_per_scene": int(vehicles_per_scene),
+              "seed": int(seed), "generator_version": GENERATOR_VERSION}
+    world = {"format": "flowmod-synth-world", "params": params, "version": version,
+             "image_size": [1600, 900], "channel": CHANNEL, "complete": True, "scenes": scenes}
+    final = root / version
+    tmp = root / f".{version}.partial-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir()
+    for n in TABLES:
+        _write_json(tmp / f"{n}.json", tables[n])
+    _write_json(tmp / WORLD_FILE, world, indent=None)
+    old_files: set[str] = set()
+    if final.exists():
+        if not (final / WORLD_FILE).is_file():
+            shutil.rmtree(tmp)
+            raise WorldError(f"{final} exists and is not a synthetic world; not replacing it")
+        try:
+            old_files = {r["filename"] for r in json.loads((final / "sample_data.json").read_text())}
+        except (OSError, ValueError):
+            old_files = set()
+        aside = root / f".{version}.old-{os.getpid()}"
+        os.replace(final, aside)
+        os.replace(tmp, final)
+        shutil.rmtree(aside, ignore_errors=True)
+    else:
+        os.replace(tmp, final)
+    new_files = {r["filename"] for r in tables["sample_data"]}
+    for stale in sorted(old_files - new_files):
+        p = root / stale
+        if p.is_file() and p.name.startswith("synth-"):
+            p.unlink()
+    _load_world.cache_clear()
+    return root
+
+
+def _write_map(path: Path) -> None:
+    import cv2
+
+    img = np.full((64, 64), 255, np.uint8)
+    ok, buf = cv2.imencode(".png", img)
+    _write_bytes(path, buf.tobytes())
+
+
+def _run_jobs(args: list[tuple], n_jobs: int, progress: bool) -> list[dict]:
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=len(args), desc="synthetic world (scenes)", unit="scene", disable=not progress)
+    out = []
+    try:
+        if n_jobs <= 1 or len(args) == 1:
+            for a in args:
+                out.append(_scene_job(*a))
+                bar.update(1)
+        else:
+            from joblib import Parallel, delayed
+
+            gen = Parallel(n_jobs=n_jobs, return_as="generator")(
+                delayed(_scene_job)(*a) for a in args)
+            for res in gen:
+                out.append(res)
+                bar.update(1)
+    finally:
+        bar.close()
+    return out
+
+
+def is_synthetic(dataroot: str | os.PathLike[str], version: str) -> bool:
+    """True if ``<dataroot>/<version>`` is a finished world generated by this module."""
+    return (Path(dataroot).expanduser() / version / WORLD_FILE).is_file()
+
+
+def world_params(dataroot: str | os.PathLike[str], version: str) -> dict:
+    """The size parameters a synthetic world was generated with (n_scenes, ..., seed)."""
+    return dict(_load_world(*_world_key(dataroot, version))["params"])
+
+
+def ensure_world(params: Any, *, progress: bool = True) -> Path:
+    """Make sure the profile's dataroot holds its nuScenes-format data; return the dataroot.
+
+    * synthetic and the version folder absent: generate it from the ``world_*`` sizes, seed
+      and ``n_jobs``;
+    * synthetic world present with the same sizes: reuse it; with other sizes: regenerate it;
+    * a real (non-synthetic) version folder present: use it as is;
+    * not synthetic and missing: :class:`WorldError` naming the path and the fix.
+    """
+    root = params.dataroot_path
+    version = params.version
+    vdir = root / version
+    sizes = {"n_scenes": params.world_scenes, "n_keyframes": params.world_keyframes,
+             "n_sweep_scenes": params.world_sweep_scenes,
+             "vehicles_per_scene": params.world_vehicles, "seed": params.seed}
+    if (vdir / "scene.json").is_file():
+        if not is_synthetic(root, version):
+            return root
+        have = world_params(root, version)
+        same = all(have.get(k) == v for k, v in sizes.items()) and \
+            have.get("generator_version") == GENERATOR_VERSION
+        if same or not params.synthetic:
+            return root
+    elif not params.synthetic:
+        raise WorldError(
+            f"nuScenes tables not found: {vdir} does not exist (or has no scene.json). Set "
+            f"dataroot to the folder that holds {version}/, samples/ and sweeps/ (e.g. "
+            f"DATAROOT=/data/sets/nuscenes), or set synthetic: true to generate a synthetic "
+            f"world there."
+        )
+    return generate_world(root, version, **sizes, n_jobs=params.n_jobs, progress=progress)
+
+
+# --------------------------------------------------------------------------------------------
+# Ground truth on demand
+# --------------------------------------------------------------------------------------------
+
+
+def _world_key(dataroot: str | os.PathLike[str], version: str) -> tuple[str, float]:
+    path = Path(dataroot).expanduser().resolve() / version / WORLD_FILE
+    if not path.is_file():
+        raise WorldError(
+            f"{path.parent} is not a synthetic world (no {WORLD_FILE}); ground truth exists only "
+            f"for worlds made by flowmod.world.generate_world / ensure_world"
+        )
+    return str(path), path.stat().st_mtime
+
+
+@lru_cache(maxsize=2)
+def _load_world(path: str, mtime: float) -> dict:
+    world = json.loads(Path(path).read_text())
+    sd_index = {}
+    inst_index = {}
+    for si, sc in enumerate(world["scenes"]):
+        for f in sc["frames"]:
+            sd_index[f["sd_token"]] = (si, f["ts"])
+        for ai, a in enumerate(sc["agents"]):
+            inst_index[a["instance_token"]] = (si, ai)
+    world["_sd"] = sd_index
+    world["_inst"] = inst_index
+    return world
+
+
+@lru_cache(maxsize=4)
+def _geometry(path: str, mtime: float, scene_index: int):
+    from flowmod import world_render as wr
+
+    return wr.SceneGeometry(_load_world(path, mtime)["scenes"][scene_index])
+
+
+def scene_of(dataroot: str | os.PathLike[str], version: str, sd_token: str) -> tuple[dict, float]:
+    """(scene description, scene time in s) of a CAM_FRONT sample_data token."""
+    world = _load_world(*_world_key(dataroot, version))
+    if sd_token not in world["_sd"]:
+        raise WorldError(f"sample_data token {sd_token!r} is not a frame of this synthetic world")
+    si, ts = world["_sd"][sd_token]
+    sc = world["scenes"][si]
+    return sc, (ts - sc["t0_us"]) / 1e6
+
+
+def gt_flow(dataroot: str | os.PathLike[str], version: str, sd_token_1: str, sd_token_2: str
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Exact optical flow from frame 1 to frame 2 (any two CAM_FRONT frames of one scene).
+
+    Returns ``flow`` (900, 1600, 2) float32, pixels (u right, v down), frame1 -> frame2, and
+    ``valid`` (900, 1600) bool: False where the point leaves the image, goes behind the camera
+    or is hidden in frame 2. Sky pixels move with the camera rotation only (at infinity).
+    """
+    from flowmod import world_render as wr
+
+    key = _world_key(dataroot, version)
+    world = _load_world(*key)
+    for tok in (sd_token_1, sd_token_2):
+        if tok not in world["_sd"]:
+            raise WorldError(f"sample_data token {tok!r} is not a frame of this synthetic world")
+    s1, ts1 = world["_sd"][sd_token_1]
+    s2, ts2 = world["_sd"][sd_token_2]
+    if s1 != s2:
+        raise WorldError("gt_flow needs two frames of the same scene "
+                         f"({world['scenes'][s1]['name']} vs {world['scenes'][s2]['name']})")
+    geo = _geometry(*key, s1)
+    t0 = geo.scene["t0_us"]
+    return flow_between(geo, (ts1 - t0) / 1e6, (ts2 - t0) / 1e6)
+
+
+def flow_between(geo: Any, t1: float, t2: float) -> tuple[np.ndarray, np.ndarray]:
+    """GT flow between scene times t1 and t2 (s) of a :class:`SceneGeometry` (see gt_flow)."""
+    from flowmod import world_render as wr
+
+    f1 = wr.render(geo, t1, textured=False)
+    f2 = wr.render(geo, t2, textured=False)
+    H, W = wr.H_IMG, wr.W_IMG
+    K = f1.K
+
+    def T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = R, t
+        return m
+
+    T_w1 = T(f1.R_wc, f1.c)
+    T_2w = np.linalg.inv(T(f2.R_wc, f2.c))
+    P2 = K @ np.eye(3, 4)
+
+    def A(motion: np.ndarray) -> np.ndarray:
+        return P2 @ T_2w @ motion @ T_w1
+
+    rays = wr.pixel_rays(K).astype(np.float64)
+    rho = f1.invz.ravel().astype(np.float64)
+    sid = f1.sid.ravel()
+    a0 = A(np.eye(4))
+    p = a0[:, :3] @ rays + a0[:, 3:4] * rho[None, :]
+    counts = np.bincount(sid, minlength=wr.SID_AGENT0 + len(geo.agents))
+    for i in range(len(geo.agents)):
+        s = wr.SID_AGENT0 + i
+        if counts[s] == 0:
+            continue
+        R1, c1 = geo.agent_pose(i, t1)
+        R2, c2 = geo.agent_pose(i, t2)
+        motion = T(R2, c2) @ np.linalg.inv(T(R1, c1))
+        idx = np.flatnonzero(sid == s)
+        ai = A(motion)
+        p[:, idx] = ai[:, :3] @ rays[:, idx] + ai[:, 3:4] * rho[None, idx]
+    z = p[2]
+    front = z > 1e-9
+    zs = np.where(front, z, 1.0)
+    u2 = p[0] / zs
+    v2 = p[1] / zs
+    vv, uu = np.divmod(np.arange(H * W), W)
+    flow = np.stack([np.where(front, u2 - uu, 0.0), np.where(front, v2 - vv, 0.0)], axis=1)
+    inside = front & (u2 >= -0.5) & (u2 <= W - 0.5) & (v2 >= -0.5) & (v2 <= H - 0.5)
+    ui = np.clip(np.round(u2), 0, W - 1).astype(np.int64)
+    vi = np.clip(np.round(v2), 0, H - 1).astype(np.int64)
+    tgt = vi * W + ui
+    iz_pt = np.where(front, rho / zs, 0.0)
+    iz_buf = f2.invz.ravel()[tgt].astype(np.float64)
+    sid_buf = f2.sid.ravel()[tgt]
+    same = sid_buf == sid
+    occluded = np.where(same, iz_buf > iz_pt * 1.02 + 6e-4, iz_buf > iz_pt * 1.003 + 1e-5)
+    valid = inside & ~occluded
+    return flow.reshape(H, W, 2).astype(np.float32), valid.reshape(H, W)
+
+
+def true_velocity(dataroot: str | os.PathLike[str], version: str, instance_token: str,
+                  timestamp_us: int) -> np.ndarray:
+    """The world's exact instantaneous velocity of an instance: (3,) m/s, global frame."""
+    from flowmod import world_scene as ws
+
+    world = _load_world(*_world_key(dataroot, version))
+    if instance_token not in world["_inst"]:
+        raise WorldError(f"instance token {instance_token!r} is not an agent of this world")
+    si, ai = world["_inst"][instance_token]
+    sc = world["scenes"][si]
+    st = ws.agent_state_global(sc, sc["agents"][ai], (int(timestamp_us) - sc["t0_us"]) / 1e6)
+    return np.array([float(st["vx"]), float(st["vy"]), 0.0])
+
+
+def __getattr__(name: str) -> Any:  # notebook helpers live in world_report (lazy import)
+    if name in ("naive_rule_report", "counts_table", "distant_objects", "gt_flow_figure"):
+        from flowmod import world_report
+
+        return getattr(world_report, name)
+    raise AttributeError(f"module 'flowmod.world' has no attribute {name!r}")
