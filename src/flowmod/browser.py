@@ -532,9 +532,9 @@ class _BookCheck:
         found = dom["result"]["value"]
         self.ids[page] = set(found["ids"])
         self.report.js_errors.extend((page, m) for m in log.js_errors)
-        self.check_requests(page, log)
         self.check_resources(page, [{"tag": "img", **i} for i in found["images"]]
                              + found["resources"])
+        self.check_requests(page, log)  # after: a known element names a problem better
         self.links.extend((page, item["tag"], item["url"]) for item in found["links"])
         if screenshot is not None:
             png = cdp.call("Page.captureScreenshot", {"format": "png"}, session)

@@ -43,6 +43,9 @@ from flowmod.model import motion_resnet18, resolve_device
 
 HISTORY_COLUMNS = [
     "epoch", "train_loss", "val_loss", "val_f1", "val_precision", "val_recall", "lr", "seconds",
+    # a monitored set (the test split, for the protocol comparison only; never used to select):
+    # whole-set F1 and the original code's F1 (stills thinned 1 of 2, averaged per batch)
+    "monitor_f1", "monitor_paper_f1",
 ]
 CHECKPOINT_FORMAT = "flowmod-train-1"
 
@@ -187,6 +190,22 @@ def _save(obj: Any, path: Path) -> None:
         torch.save(obj, tmp)
 
 
+def _monitor_scores(model: nn.Module, monitor: tuple[Any, pd.DataFrame] | None, label_col: str,
+                    batch_size: int, eval_batch_size: int, dev: torch.device,
+                    amp_mode: str | None) -> dict[str, float]:
+    """Whole-set and original-protocol F1 on the monitored set (NaN without one)."""
+    if monitor is None:
+        return {"monitor_f1": float("nan"), "monitor_paper_f1": float("nan")}
+    from flowmod.evaluate import paper_protocol_f1, thin_still
+
+    y = monitor[1][label_col].to_numpy().astype(np.int64)
+    z = predict_logits(model, monitor[0], batch_size=eval_batch_size, device=dev, amp=amp_mode)
+    p = 1.0 / (1.0 + np.exp(-z))
+    keep = thin_still(y)
+    return {"monitor_f1": metrics(y, p)["f1"],
+            "monitor_paper_f1": paper_protocol_f1(y[keep], p[keep], batch_size)}
+
+
 def _history_dict(rows: list[dict[str, Any]]) -> dict[str, list[Any]]:
     return {c: [r[c] for r in rows] for c in HISTORY_COLUMNS}
 
@@ -229,6 +248,7 @@ def train_model(
     eval_batch_size: int = 256,
     resume: bool = True,
     progress: bool = True,
+    monitor: tuple[Any, pd.DataFrame] | None = None,
 ) -> pd.DataFrame:
     """Train motion_resnet18 on crops; select the epoch with the best validation F1.
 
@@ -237,6 +257,10 @@ def train_model(
     still). ``amp``: 'auto' (bf16/fp16 autocast on CUDA, off on CPU), None, 'bf16', 'fp16'.
     With ``resume`` and an ``out_dir/last.pt`` of the same settings, training continues
     after its last epoch (``epochs`` may be raised to train longer).
+
+    ``monitor`` (crops, index), e.g. the test split, is scored after every epoch only to
+    show what picking the epoch on the reported set would give (the original's protocol);
+    it never influences training or selection.
 
     Returns the history (columns :data:`HISTORY_COLUMNS`; ``attrs`` best_epoch, best_f1),
     also written to ``out_dir/history.csv``. Weights: ``best.pt``, ``last.pt``.
@@ -350,6 +374,8 @@ def train_model(
                 "val_f1": m["f1"], "val_precision": m["precision"], "val_recall": m["recall"],
                 "lr": lr_now, "seconds": time.perf_counter() - t0,
             }
+            row.update(_monitor_scores(model, monitor, label_col, batch_size, eval_batch_size,
+                                       dev, amp_mode))
             rows.append(row)
             if m["f1"] > best_f1:  # strict: ties keep the earlier epoch
                 best_f1, best_epoch = m["f1"], epoch
@@ -391,8 +417,9 @@ def run(params: Any, progress: bool = True) -> dict[str, pd.DataFrame]:
     for m in params.flow_methods:
         tx, tdf = crops.open_crops(crops.crops_dir(params), m, "train")
         vx, vdf = crops.open_crops(crops.crops_dir(params), m, "val")
+        monitor = crops.open_crops(crops.crops_dir(params), m, "test")
         out[m] = train_model(
-            tx, tdf, vx, vdf, models_dir(params) / m, epochs=params.epochs,
+            tx, tdf, vx, vdf, models_dir(params) / m, epochs=params.epochs, monitor=monitor,
             batch_size=params.batch_size, lr=params.lr, momentum=params.momentum,
             weight_decay=params.weight_decay, step_size=params.step_size, gamma=params.gamma,
             hflip_p=params.hflip_p, num_workers=params.num_workers, seed=params.seed,

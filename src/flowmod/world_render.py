@@ -146,6 +146,7 @@ class Obj:
     center: np.ndarray = field(default_factory=lambda: np.zeros(3))
     yaw: float = 0.0
     lights: list = field(default_factory=list)
+    cache: list | None = None
 
 
 def box_faces(w: float, length: float, h: float, top: bool = True) -> dict[str, tuple]:
@@ -365,31 +366,36 @@ def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray, wrap: bool) -> np.nda
 
 
 def _shade(normal_w: np.ndarray, sun: np.ndarray, look: dict) -> float:
-    """Lambertian face brightness relative to the ground (1.0)."""
+    """Lambertian face brightness relative to the ground (1.0); ``normal_w`` any length."""
     if look["weather"] in ("clear", "after_rain"):
         amb, dif = 0.5, 0.6
     else:
         amb, dif = 0.8, 0.2
-    n = normal_w / (np.linalg.norm(normal_w) + 1e-12)
+    n = normal_w / (math.sqrt(float(normal_w @ normal_w)) + 1e-12)
     lit = amb + dif * max(float(n @ sun), 0.0) + (0.1 if n[2] > 0.5 else 0.0)
     return lit / (amb + dif * max(float(sun[2]), 0.0))
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
 def draw_quad(fr: Frame, corners_w: np.ndarray, q: Quad, sid: int, shade: float,
-              textured: bool) -> None:
-    """Draw one quad given its world corners (4, 3) [p0, p1, p2, p3] with z-test."""
-    R_cw = fr.R_wc.T
-    Xc = (corners_w - fr.c) @ fr.R_wc
-    if Xc[:, 2].max() < Z_NEAR:
-        return
+              textured: bool, normal_w: np.ndarray | None = None) -> None:
+    """Draw one quad given its world corners (4, 3) [p0, p1, p2, p3] with the z-test.
+
+    ``normal_w``: the outward normal (ev x eu), computed if not given.
+    """
     eu_w = corners_w[1] - corners_w[0]
     ev_w = corners_w[3] - corners_w[0]
-    n_w = np.cross(ev_w, eu_w)
-    to_cam = fr.c - corners_w[0]
-    facing = float(n_w @ to_cam)
-    if facing <= 0 and not q.double:
+    n_w = _cross(ev_w, eu_w) if normal_w is None else normal_w
+    if not q.double and float(n_w @ (fr.c - corners_w[0])) <= 0:
         return
-    poly = _clip_near(Xc) if Xc[:, 2].min() < Z_NEAR else Xc
+    Xc = (corners_w - fr.c) @ fr.R_wc
+    zmin, zmax = Xc[:, 2].min(), Xc[:, 2].max()
+    if zmax < Z_NEAR:
+        return
+    poly = _clip_near(Xc) if zmin < Z_NEAR else Xc
     if len(poly) < 3:
         return
     K = fr.K
@@ -403,14 +409,14 @@ def draw_quad(fr: Frame, corners_w: np.ndarray, q: Quad, sid: int, shade: float,
         return
     w, h = x1 - x0, y1 - y0
     # inverse depth plane: 1/Z = g . (u, v, 1)
+    R_cw = fr.R_wc.T
     n_c = R_cw @ n_w
     d = float(n_c @ Xc[0])
-    if abs(d) < 1e-9:
+    if abs(d) < 1e-12:
         return
-    g = np.linalg.inv(K).T @ n_c / d
-    us = np.arange(x0, x1, dtype=np.float32)
-    vs = np.arange(y0, y1, dtype=np.float32)
-    iz = (np.float32(g[0]) * us)[None, :] + (np.float32(g[1]) * vs + np.float32(g[2]))[:, None]
+    g = _kinv(K).T @ n_c / d
+    iz = (np.float32(g[0]) * _US[x0:x1])[None, :] + (np.float32(g[1]) * _VS[y0:y1]
+                                                      + np.float32(g[2]))[:, None]
     mask = np.zeros((h, w), np.uint8)
     pts = np.round((uv - [x0, y0]) * 16).astype(np.int32)
     cv2.fillConvexPoly(mask, pts, 1, cv2.LINE_8, 4)
@@ -418,8 +424,7 @@ def draw_quad(fr: Frame, corners_w: np.ndarray, q: Quad, sid: int, shade: float,
     m = (mask > 0) & (iz > iz_roi)
     if not m.any():
         return
-    need_tex = textured or q.alpha
-    if need_tex and q.tex is not None:
+    if (textured or q.alpha) and q.tex is not None:
         levels = q.tex.levels if textured else None
         alphas = q.tex.alpha if q.alpha else None
         ref = levels if levels is not None else alphas
@@ -427,10 +432,10 @@ def draw_quad(fr: Frame, corners_w: np.ndarray, q: Quad, sid: int, shade: float,
         # mip level from texels per image pixel at a representative depth
         zs = np.clip(poly[:, 2], Z_NEAR, None)
         zref = math.sqrt(float(zs.min()) * float(zs.max()))
-        du = math.sqrt(float(np.linalg.norm(eu_w)) / tw_ * float(np.linalg.norm(ev_w)) / th)
+        du = math.sqrt(math.sqrt(float(eu_w @ eu_w)) / tw_ * math.sqrt(float(ev_w @ ev_w)) / th)
         texel_px = du * K[0, 0] / zref
-        lvl = int(np.clip(math.floor(math.log2(max(1.0 / max(texel_px, 1e-9), 1.0))), 0,
-                          len(ref) - 1))
+        lvl = int(min(max(math.floor(math.log2(max(1.0 / max(texel_px, 1e-9), 1.0))), 0),
+                      len(ref) - 1))
 
         def warp(src: np.ndarray, interp: int) -> np.ndarray:
             sh, sw = src.shape[:2]
@@ -441,7 +446,8 @@ def draw_quad(fr: Frame, corners_w: np.ndarray, q: Quad, sid: int, shade: float,
                 p0 = corners_w[1] - 0.5 * eu + 0.5 * ev
                 eu = -eu
             Hm = K @ R_cw @ np.column_stack([eu, ev, p0 - fr.c])
-            Hm = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1]], float) @ Hm
+            Hm[0] -= x0 * Hm[2]
+            Hm[1] -= y0 * Hm[2]
             return cv2.warpPerspective(src, Hm, (w, h), flags=interp,
                                        borderMode=cv2.BORDER_WRAP if q.wrap
                                        else cv2.BORDER_REPLICATE)
@@ -456,6 +462,25 @@ def draw_quad(fr: Frame, corners_w: np.ndarray, q: Quad, sid: int, shade: float,
             np.copyto(fr.img[y0:y1, x0:x1], col, where=m[..., None])
     np.copyto(iz_roi, iz, where=m)
     fr.sid[y0:y1, x0:x1][m] = sid
+
+
+_US = np.arange(W_IMG, dtype=np.float32)
+_VS = np.arange(H_IMG, dtype=np.float32)
+
+
+@lru_cache(maxsize=8)
+def _kinv_cached(k_key: tuple) -> np.ndarray:
+    return np.linalg.inv(np.array(k_key).reshape(3, 3))
+
+
+def _kinv(K: np.ndarray) -> np.ndarray:
+    return _kinv_cached(tuple(K.ravel().tolist()))
+
+
+@lru_cache(maxsize=1)
+def _pixel_uv() -> tuple[np.ndarray, np.ndarray]:
+    v, u = np.divmod(np.arange(H_IMG * W_IMG, dtype=np.int64), W_IMG)
+    return u.astype(np.float32), v.astype(np.float32)
 
 
 # --------------------------------------------------------------------------------------------
@@ -481,98 +506,121 @@ def _aa_band(x: np.ndarray, lo: float, hi: float, fp: np.ndarray) -> np.ndarray:
 def _aa_stripes(x: np.ndarray, period: float, width: float, fp: np.ndarray,
                 phase: float = 0.0) -> np.ndarray:
     """Anti-aliased stripes of ``width`` every ``period`` (m), centred at phase + k * period."""
-    r = np.mod(x - phase + period / 2, period) - period / 2
+    y = (x - phase) * (1.0 / period)
+    r = (y - np.floor(y + 0.5)) * period
     return np.clip((width / 2 - np.abs(r)) / fp + 0.5, 0.0, 1.0)
 
 
-def _road_paint(geo: SceneGeometry, gx: np.ndarray, gy: np.ndarray, fp: np.ndarray):
-    """Lane paint over ground points: (white alpha, yellow alpha, kerb alpha), each (n,)."""
-    white = np.zeros_like(gx)
-    yellow = np.zeros_like(gx)
-    kerb = np.zeros_like(gx)
+def _paint_line(alpha: np.ndarray, across: np.ndarray, fp: np.ndarray, pos: float, hw: float,
+                along: np.ndarray | None = None, dash: tuple | None = None,
+                where: np.ndarray | None = None) -> None:
+    """max-composite a (dashed) line at across = pos, half width hw (m), into ``alpha``."""
+    cand = np.abs(across - pos) < hw + fp
+    if where is not None:
+        cand &= where
+    idx = np.flatnonzero(cand)
+    if idx.size == 0:
+        return
+    a = _aa_band(across[idx], pos - hw, pos + hw, fp[idx])
+    if dash is not None:
+        a *= _aa_stripes(along[idx], dash[0], dash[1], fp[idx], dash[2])
+    alpha[idx] = np.maximum(alpha[idx], a)
+
+
+def _road_paint(geo: SceneGeometry, coords: list, fp: np.ndarray):
+    """Lane paint over ground points: (white, yellow, kerb) alphas, each (n,) float32.
+
+    ``coords``: per road the (along, across) arrays of the points (m).
+    """
+    n = fp.size
+    white = np.zeros(n, np.float32)
+    yellow = np.zeros(n, np.float32)
+    kerb = np.zeros(n, np.float32)
     roads = geo.roads
-    coords = [ws.road_coords(r, gx, gy) for r in roads]
     for i, r in enumerate(roads):
         along, across = coords[i]
-        # suppress inside the other road's carriageway (the intersection box)
-        free = np.ones_like(gx)
-        rel = None
+        acr = np.abs(across)
+        free = np.ones(n, bool)
         for j, o in enumerate(roads):
             if j == i:
                 continue
-            _, acr_o = coords[j]
-            free = free * (np.abs(acr_o) > max(o["kerb"]))
-            along_int = ws.road_coords(r, np.array(o["o"][0]), np.array(o["o"][1]))[0]
-            rel = along - float(along_int)
+            free &= np.abs(coords[j][1]) > max(o["kerb"])
+            along_int = float(ws.road_coords(r, np.array(o["o"][0]), np.array(o["o"][1]))[0])
             k_o = max(o["kerb"])
-            in_lanes = np.abs(across) <= r["inner"]
-            cw = (np.abs(np.abs(rel) - (k_o + 2.2)) <= 1.4) & (np.abs(across) <= max(r["kerb"]))
-            white = np.maximum(white, cw * _aa_stripes(across, 1.1, 0.55, fp))
-            stop_pos = _aa_band(rel, -(k_o + 4.4), -(k_o + 4.0), fp) * (across < 0)
-            stop_neg = _aa_band(rel, k_o + 4.0, k_o + 4.4, fp) * (across > 0)
-            white = np.maximum(white, in_lanes * np.maximum(stop_pos, stop_neg))
-        acr = np.abs(across)
+            rel = along - np.float32(along_int)
+            arel = np.abs(rel)
+            # crosswalks on both sides of the intersection
+            cw = np.flatnonzero((np.abs(arel - (k_o + 2.2)) <= 1.4) & (acr <= max(r["kerb"])))
+            if cw.size:
+                white[cw] = np.maximum(white[cw], _aa_stripes(across[cw], 1.1, 0.55, fp[cw]))
+            # stop lines
+            st = np.flatnonzero((np.abs(arel - (k_o + 4.2)) < 0.2 + fp) & (acr <= r["inner"])
+                                & (rel * across > 0))
+            if st.size:
+                white[st] = np.maximum(white[st], _aa_band(arel[st], k_o + 4.0, k_o + 4.4, fp[st]))
         if r["center"] == "double_yellow":
-            c = np.maximum(_aa_band(across, 0.06, 0.18, fp), _aa_band(across, -0.18, -0.06, fp))
-            yellow = np.maximum(yellow, free * c)
+            _paint_line(yellow, across, fp, 0.12, 0.06, where=free)
+            _paint_line(yellow, across, fp, -0.12, 0.06, where=free)
         else:
-            c = _aa_band(across, -0.07, 0.07, fp) * _aa_stripes(along, 9.0, 3.0, fp)
-            white = np.maximum(white, free * c)
+            _paint_line(white, across, fp, 0.0, 0.07, along, (9.0, 3.0, 0.0), where=free)
         for k in range(1, r["lanes"]):
             off = r["median"] / 2 + k * r["lane_w"]
-            ln = _aa_band(acr, off - 0.07, off + 0.07, fp) * _aa_stripes(along, 9.0, 3.0, fp, 1.5)
-            white = np.maximum(white, free * ln)
-        edge = _aa_band(acr, r["inner"] - 0.08, r["inner"] + 0.08, fp)
-        white = np.maximum(white, free * edge)
-        # parking bay ticks
+            _paint_line(white, acr, fp, off, 0.07, along, (9.0, 3.0, 1.5), where=free)
+        _paint_line(white, acr, fp, r["inner"], 0.08, where=free)
         for side, sgn in ((0, -1.0), (1, 1.0)):
+            sa = sgn * across
             if r["park"][side]:
-                inside = (sgn * across > r["inner"]) & (sgn * across < r["kerb"][side])
-                ticks = _aa_stripes(along, 6.0, 0.12, fp, 0.7)
-                white = np.maximum(white, free * inside * ticks)
+                mid = r["inner"] + r["park_w"] / 2
+                _paint_line(white, sa, fp, mid, r["park_w"] / 2, along, (6.0, 0.12, 0.7),
+                            where=free)
             kb = r["kerb"][side]
-            kerb = np.maximum(kerb, _aa_band(sgn * across, kb, kb + 0.18, fp) * free)
+            _paint_line(kerb, sa, fp, kb + 0.09, 0.09, where=free)
     return white, yellow, kerb
 
 
-def _background(geo: SceneGeometry, fr: Frame, textured: bool) -> None:
-    """Ground (z = 0) and sky for every pixel; fills invz, sid and (if textured) img."""
-    rays = pixel_rays(fr.K)
-    d = fr.R_wc.astype(np.float32) @ rays  # (3, N) scene-frame ray directions (camera z = 1)
-    hc = float(fr.c[2])
-    invz = np.maximum(-d[2] / np.float32(hc), 0.0)
+def _ground_depth(fr: Frame) -> None:
+    """Analytic inverse depth of the ground plane z = 0 (affine in u, v); sky elsewhere."""
+    Kinv = _kinv(fr.K)
+    g = -(fr.R_wc[2] @ Kinv) / float(fr.c[2])  # invz = g . (u, v, 1)
+    invz = (np.float32(g[0]) * _US)[None, :] + (np.float32(g[1]) * _VS + np.float32(g[2]))[:, None]
     ground = invz > np.float32(1.0 / GROUND_MAX_DEPTH)
-    fr.invz.ravel()[:] = np.where(ground, invz, 0.0)
-    fr.sid.ravel()[:] = np.where(ground, SID_GROUND, SID_SKY).astype(np.uint16)
-    if not textured:
-        return
+    np.copyto(fr.invz, np.where(ground, invz, np.float32(0.0)))
+    np.copyto(fr.sid, ground.astype(np.uint16))  # SID_GROUND = 1, SID_SKY = 0
+
+
+def _shade_background(geo: SceneGeometry, fr: Frame) -> None:
+    """Colour the pixels still showing ground or sky (deferred shading)."""
     look = geo.look
     horizon, zenith, cloudiness, fog_dist, wet = WEATHER_LOOK[look["weather"]]
     horizon = np.array(horizon, np.float32)
     zenith = np.array(zenith, np.float32)
     img = fr.img.reshape(-1, 3)
     f = float(fr.K[0, 0])
+    M = (fr.R_wc @ _kinv(fr.K)).astype(np.float32)
+    U, V = _pixel_uv()
+    sid = fr.sid.ravel()
 
-    gi = np.flatnonzero(ground)
+    gi = np.flatnonzero(sid == SID_GROUND)
     if gi.size:
-        dx, dy, dz = d[0, gi], d[1, gi], d[2, gi]
-        t = 1.0 / invz[gi]  # depth Z (m) = ray parameter (rays have camera z = 1)
+        u, v = U[gi], V[gi]
+        dx = M[0, 0] * u + M[0, 1] * v + M[0, 2]
+        dy = M[1, 0] * u + M[1, 1] * v + M[1, 2]
+        dz = M[2, 0] * u + M[2, 1] * v + M[2, 2]
+        t = 1.0 / fr.invz.ravel()[gi]  # depth Z (m) = ray parameter (rays have camera z = 1)
         gx = np.float32(fr.c[0]) + t * dx
         gy = np.float32(fr.c[1]) + t * dy
         norm = np.sqrt(dx * dx + dy * dy + dz * dz)
-        sin_g = np.maximum(-dz / norm, 0.02)
-        fp = (t * norm / f) / np.sqrt(sin_g)  # pixel footprint on the ground, m
+        sin_g = np.maximum(-dz / norm, np.float32(0.02))
+        fp = (t * norm / np.float32(f)) / np.sqrt(sin_g)  # pixel footprint on the ground, m
+        coords = [ws.road_coords(r, gx, gy) for r in geo.roads]
         # materials: 0 asphalt, 1 sidewalk, 2 verge
         region = np.full(gi.size, 2, np.int8)
-        for r in geo.roads:
-            _, acr = ws.road_coords(r, gx, gy)
-            walk = np.where(acr < 0, -acr - r["walk"][0], acr - r["walk"][1]) <= 0
-            region[walk & (region == 2)] = 1
-        for r in geo.roads:
-            _, acr = ws.road_coords(r, gx, gy)
-            road = np.where(acr < 0, -acr - r["kerb"][0], acr - r["kerb"][1]) <= 0
-            region[road] = 0
-        level = np.floor(np.log2(np.maximum(fp / wt.GROUND_RES, 1.0))).astype(np.int8)
+        for r, (_, acr) in zip(geo.roads, coords):
+            region[(acr >= -r["walk"][0]) & (acr <= r["walk"][1]) & (region == 2)] = 1
+        for r, (_, acr) in zip(geo.roads, coords):
+            region[(acr >= -r["kerb"][0]) & (acr <= r["kerb"][1])] = 0
+        level = np.floor(np.log2(np.maximum(fp * np.float32(1.0 / wt.GROUND_RES), 1.0))
+                         ).astype(np.int8)
         col = np.empty((gi.size, 3), np.uint8)
         for m_id, tex in enumerate(geo.ground_tiles()):
             sel_m = region == m_id
@@ -581,39 +629,45 @@ def _background(geo: SceneGeometry, fr: Frame, textured: bool) -> None:
             levels = tex.levels
             lv = np.minimum(level, len(levels) - 1)
             size0 = levels[0].shape[0]
-            u0 = np.mod(gx / wt.GROUND_RES, size0)
-            v0 = np.mod(gy / wt.GROUND_RES, size0)
-            for k in np.unique(lv[sel_m]):
-                sel = np.flatnonzero(sel_m & (lv == k))
-                s = float(2**k)
-                col[sel] = _sample(levels[k], (u0[sel] + 0.5) / s - 0.5, (v0[sel] + 0.5) / s - 0.5,
-                                   True)
+            idx_m = np.flatnonzero(sel_m)
+            u0 = np.mod(gx[idx_m] * np.float32(1.0 / wt.GROUND_RES), size0)
+            v0 = np.mod(gy[idx_m] * np.float32(1.0 / wt.GROUND_RES), size0)
+            lv_m = lv[idx_m]
+            for k in np.unique(lv_m):
+                sel = np.flatnonzero(lv_m == k)
+                s = np.float32(2.0**-k)
+                col[idx_m[sel]] = _sample(levels[k], (u0[sel] + 0.5) * s - 0.5,
+                                          (v0[sel] + 0.5) * s - 0.5, True)
         colf = col.astype(np.float32)
-        mod = geo.modulation_field()
-        mval = _sample(mod, np.mod(gx / 0.8, 256), np.mod(gy / 0.8, 256), True)[:, 0]
+        mval = _sample(geo.modulation_field(), np.mod(gx * np.float32(1.25), 256),
+                       np.mod(gy * np.float32(1.25), 256), True)[:, 0]
         colf *= (1.0 + 0.12 * mval)[:, None]
-        white, yellow, kerb = _road_paint(geo, gx, gy, fp)
-        white *= 0.85
-        colf += white[:, None] * (np.array([222, 226, 228], np.float32) - colf)
-        colf += yellow[:, None] * (np.array([40, 165, 210], np.float32) - colf)
-        colf += kerb[:, None] * (np.array([170, 172, 175], np.float32) - colf)
+        white, yellow, kerb = _road_paint(geo, coords, fp)
+        for alpha, paint in ((white * 0.85, (222, 226, 228)), (yellow, (40, 165, 210)),
+                             (kerb, (170, 172, 175))):
+            idx = np.flatnonzero(alpha > 0)
+            if idx.size:
+                colf[idx] += alpha[idx, None] * (np.array(paint, np.float32) - colf[idx])
         if wet != 1.0:
-            colf *= np.where(region == 2, 0.9, wet)[:, None]
-        fog = 1.0 - np.exp(-t * norm / fog_dist)
+            colf *= np.where(region == 2, np.float32(0.9), np.float32(wet))[:, None]
+        fog = 1.0 - np.exp(-t * norm * np.float32(1.0 / fog_dist))
         colf += fog[:, None] * (horizon - colf)
         img[gi] = np.clip(colf, 0, 255).astype(np.uint8)
 
-    si = np.flatnonzero(~ground)
+    si = np.flatnonzero(sid == SID_SKY)
     if si.size:
-        dx, dy, dz = d[0, si], d[1, si], d[2, si]
+        u, v = U[si], V[si]
+        dx = M[0, 0] * u + M[0, 1] * v + M[0, 2]
+        dy = M[1, 0] * u + M[1, 1] * v + M[1, 2]
+        dz = M[2, 0] * u + M[2, 1] * v + M[2, 2]
         norm = np.sqrt(dx * dx + dy * dy + dz * dz)
         e = np.clip(dz / norm, 0.0, 1.0)
         mix = np.sqrt(e)[:, None]
         col = horizon * (1 - mix) + zenith * mix
         dzc = np.maximum(dz, 0.02 * norm)
-        cu = np.mod(1500.0 * dx / dzc / 8.0, 512)
-        cv = np.mod(1500.0 * dy / dzc / 8.0, 512)
-        dens = _sample(geo.cloud_field(), cu, cv, True)[:, 0] * cloudiness
+        cu = np.mod(187.5 * dx / dzc, 512)
+        cv = np.mod(187.5 * dy / dzc, 512)
+        dens = _sample(geo.cloud_field(), cu, cv, True)[:, 0] * np.float32(cloudiness)
         dens *= np.clip(e * 6.0, 0, 1)
         cloud_col = np.array([235, 235, 235] if look["weather"] != "night" else [50, 45, 40],
                              np.float32)
@@ -637,17 +691,22 @@ def _visible_sphere(center: np.ndarray, radius: float, R_wc: np.ndarray, c: np.n
     p = (center - c) @ R_wc
     if p[2] + radius < Z_NEAR:
         return False
-    planes = (  # outward normals of the side planes through the camera centre
+    for n in _frustum_normals(tuple(K.ravel().tolist())):
+        if n[0] * p[0] + n[1] * p[1] + n[2] * p[2] > radius:
+            return False
+    return True
+
+
+@lru_cache(maxsize=8)
+def _frustum_normals(k_key: tuple) -> np.ndarray:
+    K = np.array(k_key).reshape(3, 3)
+    planes = np.array([
         (1.0, 0.0, -(W_IMG + 2 - K[0, 2]) / K[0, 0]),
         (-1.0, 0.0, -(K[0, 2] + 2) / K[0, 0]),
         (0.0, 1.0, -(H_IMG + 2 - K[1, 2]) / K[1, 1]),
         (0.0, -1.0, -(K[1, 2] + 2) / K[1, 1]),
-    )
-    for n in planes:
-        nn = math.sqrt(n[0] ** 2 + n[1] ** 2 + n[2] ** 2)
-        if (n[0] * p[0] + n[1] * p[1] + n[2] * p[2]) / nn > radius:
-            return False
-    return True
+    ])
+    return planes / np.linalg.norm(planes, axis=1, keepdims=True)
 
 
 def object_corners(obj: Obj, R: np.ndarray, t: np.ndarray, q: Quad) -> np.ndarray:
@@ -655,6 +714,19 @@ def object_corners(obj: Obj, R: np.ndarray, t: np.ndarray, q: Quad) -> np.ndarra
     p0 = q.p0
     loc = np.array([p0, p0 + q.eu, p0 + q.eu + q.ev, p0 + q.ev])
     return loc @ R.T + t
+
+
+def _static_cache(geo: SceneGeometry, obj: Obj) -> list[tuple]:
+    """Per quad of a static object: (world corners, outward normal, shade); computed once."""
+    if obj.cache is None:
+        R = _yaw_matrix(obj.yaw)
+        out = []
+        for q in obj.quads:
+            cw = object_corners(obj, R, obj.center, q)
+            n = _cross(cw[3] - cw[0], cw[1] - cw[0])
+            out.append((cw, n, _shade(n, geo.sun, geo.look)))
+        obj.cache = out
+    return obj.cache
 
 
 def render(geo: SceneGeometry, t: float, textured: bool = True) -> Frame:
@@ -667,27 +739,34 @@ def render(geo: SceneGeometry, t: float, textured: bool = True) -> Frame:
         sid=np.empty((H_IMG, W_IMG), np.uint16),
         R_wc=R_wc, c=c, K=cam.K,
     )
-    _background(geo, fr, textured)
-    posed: list[tuple[Obj, np.ndarray, np.ndarray]] = []
+    _ground_depth(fr)
+    posed: list[tuple[Obj, np.ndarray | None, np.ndarray]] = []
     for i, obj in enumerate(geo.agents):
         R, ctr = geo.agent_pose(i, t)
         posed.append((obj, R, ctr))
-    if textured:
-        _contact_shadows(fr, posed)
+    agents = list(posed)
     for obj in geo.statics:
-        posed.append((obj, _yaw_matrix(obj.yaw), obj.center))
-    # near to far: cheap rejections by the z-test for hidden far objects
+        posed.append((obj, None, obj.center))
+    # near to far: far objects hidden behind near ones fail the z-test early
     posed.sort(key=lambda o: float(np.sum((o[2] - c) ** 2)))
     for obj, R, ctr in posed:
         if not _visible_sphere(ctr, obj.radius, R_wc, c, cam.K):
             continue
-        for q in obj.quads:
-            cw = object_corners(obj, R, ctr, q)
-            shade = _shade(np.cross(cw[3] - cw[0], cw[1] - cw[0]), geo.sun, geo.look) \
-                if textured else 1.0
-            draw_quad(fr, cw, q, obj.sid, shade, textured)
-        for pos, col, rad in obj.lights:
-            fr.lights.append((R @ pos + ctr, col, rad, obj.sid))
+        if R is None:
+            for q, (cw, n, shade) in zip(obj.quads, _static_cache(geo, obj)):
+                draw_quad(fr, cw, q, obj.sid, shade, textured, n)
+            lights = [(pos + ctr, col, rad) for pos, col, rad in obj.lights]
+        else:
+            for q in obj.quads:
+                cw = object_corners(obj, R, ctr, q)
+                n = _cross(cw[3] - cw[0], cw[1] - cw[0])
+                shade = _shade(n, geo.sun, geo.look) if textured else 1.0
+                draw_quad(fr, cw, q, obj.sid, shade, textured, n)
+            lights = [(R @ pos + ctr, col, rad) for pos, col, rad in obj.lights]
+        fr.lights.extend((p, col, rad, obj.sid) for p, col, rad in lights)
+    if textured:
+        _shade_background(geo, fr)
+        _contact_shadows(fr, agents)
     return fr
 
 
@@ -696,6 +775,8 @@ def _contact_shadows(fr: Frame, posed) -> None:
     for obj, R, ctr in posed:
         a = obj.agent
         if a is None or a["kind"] != "vehicle":
+            continue
+        if not _visible_sphere(np.array([ctr[0], ctr[1], 0.0]), obj.radius, fr.R_wc, fr.c, fr.K):
             continue
         w, length, _ = a["size"]
         fpts = np.array([[length / 2 + 0.2, w / 2 + 0.25, 0], [-length / 2 - 0.2, w / 2 + 0.25, 0],
