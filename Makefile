@@ -20,7 +20,7 @@ PYTEST_ARGS ?=
 
 RUN_SET    := $(if $(DATAROOT),--set dataroot=$(DATAROOT)) $(foreach s,$(SET),--set $(s))
 
-.PHONY: help env data run book test bench lint clean
+.PHONY: help env data run book test bench lint clean browser
 
 help:  ## list the targets
 	@echo "flowmod: optical-flow motion detection, reproduced"
@@ -53,9 +53,27 @@ run: env  ## execute notebooks/NN_*.ipynb in order with params/$(PROFILE).yaml i
 book: run  ## run, then render the book into build/html
 	$(PY) -m flowmod.book --executed $(EXECUTED) --out $(HTML)
 
-test: env  ## unit tests, notebooks on the smoke profile, the book build, lint
+test: env browser  ## unit tests, notebooks on the smoke profile, the book build, lint
 	$(PY) -m ruff check src tests benchmarks notebooks
 	$(PY) -m pytest $(PYTEST_ARGS)
+
+browser:  ## install headless Chromium for the browser check of the book (apt-get; root or sudo)
+	@if [ -n "$${FLOWMOD_CHROMIUM:-}" ] || command -v chromium >/dev/null \
+	    || command -v chromium-browser >/dev/null; then \
+	  echo "chromium: $${FLOWMOD_CHROMIUM:-$$(command -v chromium || command -v chromium-browser)}"; \
+	elif ! command -v apt-get >/dev/null; then \
+	  echo "Chromium is missing and there is no apt-get: install Chromium and/or set FLOWMOD_CHROMIUM"; \
+	  if [ -n "$(filter-out 0 false no,$(CI))" ]; then exit 1; fi; \
+	elif [ "$$(id -u)" = 0 ]; then \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; \
+	elif command -v sudo >/dev/null && sudo -n true 2>/dev/null; then \
+	  sudo apt-get update -qq && sudo DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; \
+	else \
+	  echo "Chromium is missing and cannot be installed here (not root, no password-less sudo):"; \
+	  echo "  run \`sudo apt-get install -y chromium\`, or set FLOWMOD_CHROMIUM=/path/to/chromium;"; \
+	  echo "  until then tests/test_browser.py is skipped (under CI=true it fails)"; \
+	  if [ -n "$(filter-out 0 false no,$(CI))" ]; then exit 1; fi; \
+	fi
 
 bench: env  ## throughput and memory figures into benchmarks/results/ (never asserted)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b; done

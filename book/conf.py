@@ -34,7 +34,8 @@ html_theme_options = {
 }
 html_last_updated_fmt = ""
 
-# Offline MathJax: the staging step copies mathjax@3's es5/ folder to <html>/_vendor/mathjax.
+# Offline MathJax: the staging step puts mathjax@3's es5/ folder in a static folder, so it is
+# served from <html>/_static/_vendor/mathjax (a relative mathjax_path is relative to _static).
 if os.environ.get("FLOWMOD_MATHJAX_EXTRA"):
-    html_extra_path = [os.environ["FLOWMOD_MATHJAX_EXTRA"]]
+    html_static_path.append(os.environ["FLOWMOD_MATHJAX_EXTRA"])
 mathjax_path = "_vendor/mathjax/tex-chtml.js"

@@ -4,7 +4,6 @@ Needs Chromium. Where it is missing the module is skipped, except under CI (``CI
 ``make test`` installs it first (``make browser``), so a missing browser is a failure there.
 """
 
-import os
 import struct
 import zlib
 
@@ -16,11 +15,10 @@ from flowmod import browser, video
 
 pytestmark = pytest.mark.slow
 
-_CI = os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no")
 try:
     browser.find_chromium()
 except browser.ChromiumNotFound as e:
-    if not _CI:
+    if not browser.in_ci():
         pytest.skip(f"Chromium is not installed ({e}); `make browser` installs it",
                     allow_module_level=True)
 

@@ -99,7 +99,18 @@ def test_book_builds_offline_with_warnings_as_errors(smoke_run, tmp_path):
     for page in out.glob("*.html"):
         remote = re.findall(r'<(?:script|link|img)[^>]+(?:src|href)="(https?:)?//', page.read_text())
         assert not remote, f"{page.name} loads remote resources"
-    assert (out / "_vendor" / "mathjax" / "tex-chtml.js").is_file()
+    assert (out / "_static" / "_vendor" / "mathjax" / "tex-chtml.js").is_file()
+    # and in a real browser: every page loads, every image resolves, no request leaves
+    # localhost (headless Chromium, installed by `make browser`)
+    from flowmod import browser
+
+    try:
+        browser.find_chromium()
+    except browser.ChromiumNotFound:
+        if not browser.in_ci():
+            pytest.skip("Chromium missing (`make browser`)")
+        raise
+    browser.assert_book_ok(out, screenshot=tmp_path / "book-screenshot.png")
 
 
 def test_executed_copies_keep_sources_clean(smoke_run):

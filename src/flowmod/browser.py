@@ -35,6 +35,7 @@ import functools
 import http.server
 import json
 import os
+import select
 import shutil
 import signal
 import subprocess
@@ -61,6 +62,7 @@ __all__ = [
     "assert_book_ok",
     "check_book",
     "find_chromium",
+    "in_ci",
     "main",
 ]
 
@@ -165,7 +167,7 @@ class BookReport:
     html_dir: Path
     pages: list[str] = field(default_factory=list)
     problems: list[Problem] = field(default_factory=list)
-    #: every URL the pages requested, in first-seen order
+    #: every URL the pages requested (not data:/blob:), in first-seen order
     requests: list[str] = field(default_factory=list)
     #: (page, url) of links that leave the book: listed, not followed
     external_links: list[tuple[str, str]] = field(default_factory=list)
@@ -195,6 +197,12 @@ class BookReport:
         if self.screenshot:
             lines.append(f"screenshot: {self.screenshot}")
         return "\n".join(lines)
+
+
+def in_ci() -> bool:
+    """True under CI (``$CI`` set and not 0/false/no): there a missing Chromium is a failure,
+    since ``make test`` installs it first (``make browser``), not a reason to skip."""
+    return os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no")
 
 
 def find_chromium() -> str:
@@ -256,6 +264,18 @@ def _http_status(url: str, timeout: float = 10) -> int:
 # ------------------------------------------------------------------------------ CDP, minimal
 
 
+def _websocket() -> Any:
+    """The ``websocket-client`` module (CDP speaks over a websocket)."""
+    try:
+        import websocket
+    except ImportError as e:
+        raise BrowserError(
+            "the browser check needs websocket-client: run `make env` (it is pinned in "
+            "environment/requirements.txt) or `pip install websocket-client`"
+        ) from e
+    return websocket
+
+
 class _CDP:
     """A blocking CDP client on one websocket (flat sessions); events go to ``on_event``."""
 
@@ -287,19 +307,24 @@ class _CDP:
 
     def pump_until(self, cond: Callable[[], bool], timeout: float) -> bool:
         """Handle messages until ``cond()`` holds (True) or ``timeout`` s pass (False)."""
-        import websocket
-
+        websocket = _websocket()
         deadline = time.monotonic() + timeout
         while not cond():
             left = deadline - time.monotonic()
             if left <= 0:
                 return False
-            self.ws.settimeout(left)
+            # wait in short slices (cond() may turn true with time alone), then read one whole
+            # message: a timeout inside a message is never needed
             try:
+                ready, _, _ = select.select([self.ws.sock], [], [], min(left, 0.05))
+                if not ready:
+                    continue
+                self.ws.settimeout(max(left, 10.0))
                 raw = self.ws.recv()
-            except websocket.WebSocketTimeoutException:
-                continue
-            except (websocket.WebSocketConnectionClosedException, OSError) as e:
+            except websocket.WebSocketTimeoutException as e:
+                raise BrowserError("Chromium stopped in the middle of a message") from e
+            except (websocket.WebSocketConnectionClosedException, OSError, ValueError,
+                    TypeError) as e:
                 raise BrowserError(f"the connection to Chromium closed: {e}") from e
             msg = json.loads(raw)
             if "id" in msg:
@@ -315,7 +340,7 @@ def _chromium(exe: str, start_timeout: float = 30) -> Iterator[tuple[_CDP, list]
 
     The second item is a one-element list holding the event handler, to be set by the caller.
     """
-    import websocket
+    websocket = _websocket()
 
     with tempfile.TemporaryDirectory(prefix="flowmod-chromium-") as tmp:
         profile = Path(tmp) / "profile"
@@ -384,6 +409,12 @@ class _PageLog:
     failed: dict[str, str] = field(default_factory=dict)  # requestId -> error text
     doc_status: int | None = None
     js_errors: list[str] = field(default_factory=list)
+    inflight: set[str] = field(default_factory=set)  # requestIds not finished yet
+    last_event: float = field(default_factory=time.monotonic)  # of the last Network event
+
+    def quiet(self, seconds: float) -> bool:
+        """No request in flight and no network event for ``seconds``."""
+        return not self.inflight and time.monotonic() - self.last_event >= seconds
 
 
 class _Recorder:
@@ -398,6 +429,8 @@ class _Recorder:
 
     def __call__(self, msg: dict[str, Any]) -> None:
         method, p = msg.get("method", ""), msg.get("params", {})
+        if method.startswith("Network."):
+            self.log.last_event = time.monotonic()
         if method == "Target.attachedToTarget":
             child = p["sessionId"]
             self.cdp.send("Network.enable", {}, child)
@@ -409,6 +442,7 @@ class _Recorder:
             url = p["request"]["url"]
             self.log.requests[p["requestId"]] = url
             self.log.urls.append(url)
+            self.log.inflight.add(p["requestId"])
             if p.get("type") == "Document" and p.get("frameId") == self.main_frame:
                 self.log.doc_status = None  # a new main document (or a redirect): not yet
         elif method == "Network.webSocketCreated":
@@ -418,7 +452,10 @@ class _Recorder:
             self.log.status[p["requestId"]] = status
             if p.get("type") == "Document" and p.get("frameId") == self.main_frame:
                 self.log.doc_status = status
+        elif method == "Network.loadingFinished":
+            self.log.inflight.discard(p["requestId"])
         elif method == "Network.loadingFailed":
+            self.log.inflight.discard(p["requestId"])
             if not p.get("canceled"):
                 self.log.failed[p["requestId"]] = p.get("blockedReason") or p.get("errorText", "")
         elif method == "Page.lifecycleEvent" and p.get("frameId") == self.main_frame:
@@ -514,7 +551,7 @@ class _BookCheck:
             self.add(page, "page", url,
                      f"did not finish loading within {self.page_timeout:.0f} s")
             return
-        cdp.pump_until(settled("networkIdle"), self.idle_timeout)
+        cdp.pump_until(lambda: log.quiet(0.3), self.idle_timeout)  # late requests (fonts, ...)
         if log.doc_status != 200:
             self.add(page, "page", url, f"HTTP {log.doc_status}")
             return
@@ -527,7 +564,7 @@ class _BookCheck:
             raise BrowserError(f"collecting the DOM of {page} failed: "
                                f"{dom['exceptionDetails'].get('text')}")
         # requests started by images made eager report back before this round trip ends
-        cdp.pump_until(settled("networkIdle"), 1.0)
+        cdp.pump_until(lambda: log.quiet(0.1), 2.0)
         cdp.call("Runtime.evaluate", {"expression": "0"}, session)
         found = dom["result"]["value"]
         self.ids[page] = set(found["ids"])
@@ -545,7 +582,8 @@ class _BookCheck:
     def check_requests(self, page: str, log: _PageLog) -> None:
         """Every request the page made stays on localhost and succeeds."""
         for u in log.urls:
-            self.seen_requests.setdefault(u, None)
+            if urlsplit(u).scheme not in INLINE_SCHEMES:
+                self.seen_requests.setdefault(u, None)
             if not _is_loopback(u):
                 self.add(page, "external", u, "the page requested a URL outside localhost")
         for rid, u in log.requests.items():

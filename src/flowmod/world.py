@@ -599,7 +599,6 @@ def gt_flow(dataroot: str | os.PathLike[str], version: str, sd_token_1: str, sd_
     ``valid`` (900, 1600) bool: False where the point leaves the image, goes behind the camera
     or is hidden in frame 2. Sky pixels move with the camera rotation only (at infinity).
     """
-    from flowmod import world_render as wr
 
     key = _world_key(dataroot, version)
     world = _load_world(*key)

@@ -20,9 +20,9 @@ nuScenes projection ``view_points``.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -243,7 +243,7 @@ class SceneGeometry:
             tex = Tex(lambda s=seed: (wt.metal(_rng(s, 0)), None))
             for _name, (p0, eu, ev) in box_faces(w, length, h, top=False).items():
                 quads.append(Quad(p0, eu, ev, tex))
-            lights.append((np.array([0.0, 0.0, h / 2]), (200, 230, 255), 0.5))
+            lights.append((np.array([0.0, 0.0, h / 2 + 0.1]), (150, 200, 230), 0.3))
         else:  # hedge / wall
             for i, (_name, (p0, eu, ev)) in enumerate(box_faces(w, length, h, top=True).items()):
                 wpx = max(int(np.linalg.norm(eu) / 0.05), 4)
@@ -285,10 +285,10 @@ class SceneGeometry:
                 quads.append(Quad(p0, eu, ev, Tex(lambda k=key: veh(k)), flip=(name == "left")))
             zl = -0.1 * h
             lights = [
-                (np.array([length / 2, 0.35 * w, zl]), (235, 245, 255), 0.25),
-                (np.array([length / 2, -0.35 * w, zl]), (235, 245, 255), 0.25),
-                (np.array([-length / 2, 0.39 * w, zl]), (40, 40, 255), 0.16),
-                (np.array([-length / 2, -0.39 * w, zl]), (40, 40, 255), 0.16),
+                (np.array([length / 2 + 0.02, 0.36 * w, zl]), (200, 225, 240), 0.11),
+                (np.array([length / 2 + 0.02, -0.36 * w, zl]), (200, 225, 240), 0.11),
+                (np.array([-length / 2 - 0.02, 0.39 * w, zl]), (20, 20, 200), 0.08),
+                (np.array([-length / 2 - 0.02, -0.39 * w, zl]), (20, 20, 200), 0.08),
             ]
         return Obj(quads, SID_AGENT0 + i, float(0.5 * math.sqrt(w * w + length * length + h * h)),
                    agent=a, lights=lights)
@@ -869,7 +869,7 @@ def _draw_lights(fr: Frame, img: np.ndarray) -> None:
         r = max(int(rad * fr.K[0, 0] / X[2]), 1)
         cv2.circle(layer, (int(u), int(v)), r, col, -1, cv2.LINE_AA)
     if layer.any():
-        glow = cv2.GaussianBlur(layer, (0, 0), 4)
+        glow = cv2.GaussianBlur(layer, (0, 0), 3)
         img[:] = cv2.add(cv2.add(img, layer), glow)
 
 

@@ -232,9 +232,11 @@ def road_point(road: dict, along: float, across: float) -> tuple[float, float]:
 # --------------------------------------------------------------------------------------------
 
 
-def _footprints(traj: dict, size: tuple[float, float, float], times: np.ndarray, margin: float):
+def _footprints(traj: dict, size: tuple[float, float, float], times: np.ndarray, margin: float,
+                margin_l: float | None = None):
+    """Oriented rectangles over time: (x, y, heading, half length, half width); margins in m."""
     st = traj_state(traj, times)
-    hl = size[1] / 2 + margin
+    hl = size[1] / 2 + (margin if margin_l is None else margin_l)
     hw = size[0] / 2 + margin * 0.6
     return st["x"], st["y"], st["h"], hl, hw
 
@@ -434,7 +436,8 @@ def _static_objects(rng: np.random.Generator, layout: dict, x_range: tuple[float
             if rj == ri:
                 continue
             _, acr = road_coords(other, xs, ys)
-            if np.any(np.abs(acr) < max(other["walk"]) + pad):
+            half = max(other["walk"]) + pad
+            if acr.max() > -half and acr.min() < half:  # footprint overlaps the corridor
                 return True
         return False
 
@@ -538,6 +541,48 @@ def _static_objects(rng: np.random.Generator, layout: dict, x_range: tuple[float
     return objs
 
 
+def _targeted_point(rng, road: dict, across: float, ego: dict, duration: float,
+                    d_range: tuple[float, float], box_h: float, fov: float = 0.5):
+    """A point on the line ``across`` of ``road`` that is ``d`` m (3D, to a box centre at
+    height box_h / 2) from the ego origin and within +-``fov`` rad of its heading at a random
+    time t*. Returns (x, y, along, t*) or None."""
+    t_star = float(rng.uniform(0.0, duration))
+    d = float(rng.uniform(*d_range))
+    r2 = d * d - (box_h / 2) ** 2
+    st = traj_state(ego, t_star)
+    px, py, ph = float(st["x"]), float(st["y"]), float(st["h"])
+    ox = road["o"][0] + across * road["left"][0] - px
+    oy = road["o"][1] + across * road["left"][1] - py
+    b = ox * road["dir"][0] + oy * road["dir"][1]
+    disc = b * b - (ox * ox + oy * oy) + r2
+    if disc < 0:
+        return None
+    sols = []
+    for a in (-b + math.sqrt(disc), -b - math.sqrt(disc)):
+        x = road["o"][0] + a * road["dir"][0] + across * road["left"][0]
+        y = road["o"][1] + a * road["dir"][1] + across * road["left"][1]
+        if abs(float(wrap_angle(math.atan2(y - py, x - px) - ph))) < fov:
+            sols.append((x, y, a))
+    if not sols:
+        return None
+    x, y, a = sols[int(rng.integers(0, len(sols)))]
+    return x, y, a, t_star
+
+
+def _place(rng, road, across, heading, ego, duration, prof, box_h, d_range, free_x):
+    """Straight trajectory on a road line: targeted (in view at 30-75 m at some time) with
+    probability 0.75, else starting at scene-x ``free_x`` (main road) at t = 0."""
+    if rng.random() < 0.85:
+        hit = _targeted_point(rng, road, across, ego, duration, d_range, box_h)
+        if hit is not None:
+            x, y, _, t_star = hit
+            traj = {"path": _straight(x, y, heading), "s0": 0.0, "speed": prof}
+            traj["s0"] = float(-(arc_length(traj, t_star) - 0.0))
+            return traj
+    x, y = road_point(road, free_x, across)  # main road: along = x; cross road: along = y
+    return {"path": _straight(x, y, heading), "s0": 0.0, "speed": prof}
+
+
 def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax):
     """One candidate vehicle: (category, size, role, trajectory) or None."""
     main = roads[0]
@@ -545,10 +590,10 @@ def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax)
     ego_x1 = float(traj_state(ego, duration)["x"])
     x_lo, x_hi = min(ego_x0, ego_x1), max(ego_x0, ego_x1)
     has_park = [main["park"][0], main["park"][1]]
-    roles = {"parked": 0.34 if any(has_park) else 0.0, "same": 0.2, "oncoming": 0.16,
-             "far": 0.08, "convoy": 0.07, "roll": 0.05}
+    roles = {"parked": 0.32 if any(has_park) else 0.0, "halt": 0.08, "same": 0.17,
+             "oncoming": 0.14, "far": 0.06, "convoy": 0.05, "roll": 0.06}
     if cross_x is not None:
-        roles.update({"cross": 0.08, "queue": 0.1, "cross_parked": 0.05})
+        roles.update({"cross": 0.08, "queue": 0.05, "cross_parked": 0.05})
     role = _choice(rng, roles)
     if role in ("parked", "cross_parked"):
         category = _choice(rng, PARKED_WEIGHTS)
@@ -557,52 +602,60 @@ def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax)
         if role == "roll" and category.startswith("vehicle.bus"):
             category = "vehicle.car"
     size = _size(rng, category)
+    near = (30.0, 72.0)
 
-    if role == "parked":
-        side = int(rng.choice([i for i in (0, 1) if has_park[i]]))
-        x = rng.uniform(x_lo + 5.0, x_hi + 140.0)
-        y = park_across(main, side) + rng.uniform(-0.25, 0.25)
-        h = 0.0 if side == 0 else math.pi
-        if rng.random() < 0.15:
-            h += math.pi  # parked facing the other way
-        traj = {"path": _straight(x, y, h + rng.normal(0, 0.03)), "s0": 0.0,
-                "speed": _profile_const(0.0)}
-        return category, size, "parked", traj
-    if role == "cross_parked":
-        cross = roads[1]
-        sides = [i for i in (0, 1) if cross["park"][i]]
+    if role in ("parked", "cross_parked"):
+        road = main if role == "parked" else roads[1]
+        sides = [i for i in (0, 1) if road["park"][i]]
         if not sides:
             return None
         side = int(rng.choice(sides))
-        along = float(rng.choice([-1, 1])) * rng.uniform(max(main["walk"]) + 3, 120)
-        x, y = road_point(cross, along, park_across(cross, side))
-        h = cross["h"] + (0.0 if side == 0 else math.pi)
-        traj = {"path": _straight(x, y, h), "s0": 0.0, "speed": _profile_const(0.0)}
+        across = park_across(road, side) + rng.uniform(-0.25, 0.25)
+        h = road["h"] + (0.0 if side == 0 else math.pi)
+        if rng.random() < 0.15:
+            h += math.pi  # parked facing the other way
+        h += rng.normal(0, 0.03)
+        if road is main:
+            free = rng.uniform(x_lo + 5.0, x_hi + 140.0)
+        else:
+            free = float(rng.choice([-1, 1])) * rng.uniform(max(main["walk"]) + 3, 120)
+        traj = _place(rng, road, across, h, ego, duration, _profile_const(0.0), size[2], near, free)
         return category, size, "parked", traj
-    if role in ("same", "far", "convoy", "roll"):
+    if role == "halt":  # standing in a lane (waiting, double-parked); may drive off
+        direction = int(rng.choice([-1, 1]))
         lane = int(rng.integers(0, main["lanes"]))
-        y = lane_across(main, +1, lane) + rng.normal(0, 0.15)
+        across = lane_across(main, direction, lane) + rng.normal(0, 0.15)
+        h = 0.0 if direction > 0 else math.pi
+        t_go = rng.uniform(0.0, duration * 2.0)
+        prof = _profile_ramp(t_go, 0.0, rng.uniform(3.0, 8.0), rng.uniform(0.8, 2.0))
+        free = rng.uniform(x_lo + 10.0, x_hi + 120.0)
+        traj = _place(rng, main, across, h, ego, duration, prof, size[2], near, free)
+        return category, size, "stopped", traj
+    if role in ("same", "far", "convoy", "roll", "oncoming"):
+        direction = -1 if role == "oncoming" else 1
+        lane = int(rng.integers(0, main["lanes"]))
+        across = lane_across(main, direction, lane) + rng.normal(0, 0.15)
+        h = 0.0 if direction > 0 else math.pi
+        d_range = near
         if role == "far":
-            x = rng.uniform(x_lo + 60.0, x_hi + 130.0)
             prof = _profile_const(rng.uniform(6.0, vmax))
+            free = rng.uniform(x_lo + 60.0, x_hi + 130.0)
+            d_range = (55.0, 110.0)
         elif role == "convoy":
-            x = rng.uniform(x_lo + 12.0, x_lo + 90.0)
             f = rng.uniform(0.85, 1.15)
             prof = {"t": list(ego["speed"]["t"]), "v": [float(v * f) for v in ego["speed"]["v"]]}
+            free = rng.uniform(x_lo + 12.0, x_lo + 90.0)
         elif role == "roll":
-            x = rng.uniform(x_lo + 10.0, x_hi + 90.0)
             prof = _profile_const(rng.uniform(0.5, 3.8))
-        else:
-            x = rng.uniform(x_lo - 10.0, x_hi + 110.0)
+            free = rng.uniform(x_lo + 10.0, x_hi + 90.0)
+        elif role == "oncoming":
             prof = _moving_profile(rng, duration, vmax)
-        return category, size, "moving", {"path": _straight(x, y, 0.0), "s0": 0.0, "speed": prof}
-    if role == "oncoming":
-        lane = int(rng.integers(0, main["lanes"]))
-        y = lane_across(main, -1, lane) + rng.normal(0, 0.15)
-        x = rng.uniform(x_lo + 20.0, x_hi + 220.0)
-        prof = _moving_profile(rng, duration, vmax)
-        return category, size, "moving", {"path": _straight(x, y, math.pi), "s0": 0.0,
-                                          "speed": prof}
+            free = rng.uniform(x_lo + 20.0, x_hi + 220.0)
+        else:
+            prof = _moving_profile(rng, duration, vmax)
+            free = rng.uniform(x_lo - 10.0, x_hi + 110.0)
+        traj = _place(rng, main, across, h, ego, duration, prof, size[2], d_range, free)
+        return category, size, "moving", traj
     cross = roads[1]
     direction = int(rng.choice([-1, 1]))
     lane = int(rng.integers(0, cross["lanes"]))
@@ -612,10 +665,9 @@ def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax)
     if role == "cross":
         v = rng.uniform(3.0, vmax)
         t_c = rng.uniform(-3.0, duration + 3.0)  # time at the main road's centre line
-        along = -direction * v * t_c
-        x, y = road_point(cross, along, across)
-        return category, size, "moving", {"path": _straight(x, y, h), "s0": 0.0,
-                                          "speed": _profile_const(v)}
+        free = -direction * v * t_c
+        traj = _place(rng, cross, across, h, ego, duration, _profile_const(v), size[2], near, free)
+        return category, size, "moving", traj
     # queue before the stop line on the cross road; may start during the scene
     slot = int(rng.integers(0, 5))
     dist = kerb_m + 4.5 + size[1] / 2 + slot * (size[1] + rng.uniform(1.5, 3.0))
@@ -702,7 +754,8 @@ def sample_scene(
         if cand is None:
             continue
         category, size, role, traj = cand
-        fp = _footprints(traj, size, times, 0.5)
+        fp = _footprints(traj, size, times, 0.5,
+                         rng.uniform(2.5, 7.0) if role == "parked" else None)
         if any(rects_overlap(fp, other).any() for other in accepted_fp):
             continue
         accepted_fp.append(fp)

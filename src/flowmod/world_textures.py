@@ -191,8 +191,14 @@ def facade(rng: np.random.Generator, width_m: float, height_m: float, shop: bool
     if shop:
         y0 = int(h - floor_h * 0.95)
         y1 = int(h - 0.15 / res)
-        img[y0:y1] = np.array([45, 40, 35], np.float32) + rng.normal(0, 6, (y1 - y0, w, 1)).astype(
-            np.float32)
+        gh = max(y1 - y0, 1)
+        refl = np.linspace(70, 5, gh, dtype=np.float32)[:, None, None]
+        inside = fbm(rng, gh, w, [(30, 14), (6, 9), (1, 4)])[..., None]
+        tint = np.array([75, 70, 62], np.float32) + rng.normal(0, 8, 3).astype(np.float32)
+        img[y0:y1] = tint + refl + inside
+        step = rng.uniform(1.2, 2.6) / res
+        for xm in np.arange(rng.uniform(0, step), w, step):
+            cv2.line(img, (int(xm), y0), (int(xm), y1), frame_col, 3)
         x = 0.0
         while x < w:
             sw_ = rng.uniform(4, 9) / res
