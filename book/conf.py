@@ -39,3 +39,7 @@ html_last_updated_fmt = ""
 if os.environ.get("FLOWMOD_MATHJAX_EXTRA"):
     html_static_path.append(os.environ["FLOWMOD_MATHJAX_EXTRA"])
 mathjax_path = "_vendor/mathjax/tex-chtml.js"
+
+# Videos that notebooks show as raw HTML (media/<name>.mp4): copied to <html>/media.
+if os.environ.get("FLOWMOD_PAGES_EXTRA"):
+    html_extra_path = [os.environ["FLOWMOD_PAGES_EXTRA"]]

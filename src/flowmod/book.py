@@ -164,7 +164,7 @@ def assemble(executed: Path, staging: Path) -> dict[str, Any]:
 def build(executed: Path, out: Path, staging: Path | None = None) -> Path:
     """Assemble and run Sphinx (warnings are errors); returns ``out/index.html``."""
     staging = staging or out.parent / "book-src"
-    assemble(executed, staging)
+    info = assemble(executed, staging)
     es5 = find_mathjax()
     if es5 is None:
         raise BookError(
@@ -176,6 +176,15 @@ def build(executed: Path, out: Path, staging: Path | None = None) -> Path:
         shutil.rmtree(extra)
     shutil.copytree(es5, extra / "_vendor" / "mathjax")
     env = {**os.environ, "FLOWMOD_MATHJAX_EXTRA": str(extra)}
+    # videos (and their posters) that notebooks show as raw HTML under media/
+    media = Path(info["parameters"]["run_dir"])
+    media = (media if media.is_absolute() else repo_root() / media) / "figures" / "media"
+    if media.is_dir():
+        pages_extra = staging.parent / "book-media"
+        if pages_extra.exists():
+            shutil.rmtree(pages_extra)
+        shutil.copytree(media, pages_extra / "media")
+        env["FLOWMOD_PAGES_EXTRA"] = str(pages_extra)
     cmd = [sys.executable, "-m", "sphinx", "-W", "-n", "--keep-going", "-q", "-b", "html",
            str(staging), str(out)]
     proc = subprocess.run(cmd, env=env)

@@ -392,3 +392,48 @@ def geometric_baseline(params: Any, pairs: pd.DataFrame, objects: pd.DataFrame,
     test = sub[sub["split"] == "test"].assign(
         prob=lambda d: apply_threshold(d["residual_speed"], t).astype(float))
     return test, {**score(test, seed=params.seed), "threshold_m_s": t}
+
+
+def table4(preds: Mapping[str, pd.DataFrame]) -> pd.DataFrame:
+    """Table 4 per flow method, scored against the paper's label (the previous keyframe
+    pair's eq.-1 label) and, where the data set knows it, the true per-frame label."""
+    rows = []
+    for m, df in preds.items():
+        for name, col in (("paper rule (previous keyframe)", "label"),
+                          ("true label at the frame", "true_label")):
+            if col not in df or (df[col] < 0).all():
+                continue
+            d = df[df[col] >= 0]
+            s = metrics(d[col], d["prob"])
+            rows.append({"method": m, "scored against": name, "n": s["n"],
+                         "F1 (%)": round(100 * s["f1"], 1),
+                         "Precision (%)": round(100 * s["precision"], 1),
+                         "Recall (%)": round(100 * s["recall"], 1)})
+    return pd.DataFrame(rows)
+
+
+def failure_reasons(df: pd.DataFrame, threshold: float = 0.5, speed_threshold: float = 2.0,
+                    scale: float = 3.0) -> pd.DataFrame:
+    """Tag each wrong prediction with the paper's two failure reasons.
+
+    ``unclear flow``: remote (> 50 m) or slow (speed within 1 m/s of the threshold);
+    ``other objects in the crop``: another object's box overlaps this object's crop window
+    (the tripled square). Adds columns wrong, unclear_flow, crowded.
+    """
+    from flowmod.crops import crop_windows
+
+    out = df.copy()
+    out["wrong"] = (out["prob"] > threshold).astype(int) != out["label"]
+    out["unclear_flow"] = (out["distance"] > 50) | ((out["speed"] - speed_threshold).abs() < 1)
+    crowded = np.zeros(len(out), dtype=bool)
+    boxes = out[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float)
+    win = crop_windows(boxes, scale)
+    for _, idx in out.groupby("pair_id").indices.items():
+        for i in idx:
+            x0, y0, n = win[i]
+            others = boxes[[j for j in idx if j != i]]
+            if len(others):
+                crowded[i] = bool(((others[:, 0] < x0 + n) & (others[:, 2] > x0)
+                                   & (others[:, 1] < y0 + n) & (others[:, 3] > y0)).any())
+    out["crowded"] = crowded
+    return out

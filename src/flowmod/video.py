@@ -235,3 +235,18 @@ def video_html(mp4_rel: str, poster_rel: str, strip_rel: str, alt: str = "frames
         f'  <img src="{q(strip_rel)}" alt="{q(alt)}" style="max-width:100%">\n'
         f"</video>"
     )
+
+
+def publish(frames: Sequence[np.ndarray], media_dir: str | os.PathLike[str], name: str,
+            fps: float = 6) -> str:
+    """Write ``name``.mp4, ``name``-poster.png and ``name``-strip.png into ``media_dir`` and
+    return the HTML that shows them from a book page (paths ``media/<file>``: the book copies
+    ``<run_dir>/figures/media`` to ``<html>/media``). Without ffmpeg, only the strip."""
+    media_dir = Path(media_dir)
+    poster(frames, media_dir / f"{name}-poster.png")
+    frame_strip(frames, media_dir / f"{name}-strip.png")
+    try:
+        write_mp4(frames, media_dir / f"{name}.mp4", fps=fps)
+    except VideoUnavailable:
+        return f'<img src="media/{name}-strip.png" alt="frames of {html.escape(name)}">'
+    return video_html(f"media/{name}.mp4", f"media/{name}-poster.png", f"media/{name}-strip.png")

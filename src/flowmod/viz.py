@@ -310,3 +310,25 @@ def f1_by(tables: dict[str, pd.DataFrame], key: str, xlabel: str) -> plt.Figure:
     ax.tick_params(axis="x", labelrotation=30, labelsize=8)
     fig.tight_layout()
     return fig
+
+
+def scene_clip(dataroot: str | Path, pairs: pd.DataFrame, preds: pd.DataFrame, load_flow,
+               width: int = 800, threshold: float = 0.5) -> list[np.ndarray]:
+    """Frames of a clip: each pair's frame 1 with boxes coloured by the prediction (blue
+    still, red moving), beside its flow; pairs in time order, ``width`` px per half."""
+    from flowmod.flow import flow_to_color
+    from flowmod.video import side_by_side
+
+    frames = []
+    for row in pairs.sort_values("timestamp_1").itertuples():
+        img = cv2.imread(str(Path(dataroot) / row.path_1))
+        obj = preds[preds["pair_id"] == row.pair_id]
+        pred = (obj["prob"] > threshold).astype(int).to_numpy()
+        img = draw_boxes(img, obj[["xmin", "ymin", "xmax", "ymax"]].to_numpy(),
+                         label_colors(pred), thickness=4)
+        h = int(round(img.shape[0] * width / img.shape[1]))
+        small = cv2.resize(img, (width, h), interpolation=cv2.INTER_AREA)
+        f = flow_to_color(load_flow(row.pair_id))
+        frames.append(side_by_side(small, cv2.resize(f, (width, h),
+                                                     interpolation=cv2.INTER_AREA)))
+    return frames

@@ -578,9 +578,38 @@ def _place(rng, road, across, heading, ego, duration, prof, box_h, d_range, free
             x, y, _, t_star = hit
             traj = {"path": _straight(x, y, heading), "s0": 0.0, "speed": prof}
             traj["s0"] = float(-(arc_length(traj, t_star) - 0.0))
+            traj["t_view"] = t_star  # placed in view, 30-75 m ahead, at this time (s)
             return traj
     x, y = road_point(road, free_x, across)  # main road: along = x; cross road: along = y
     return {"path": _straight(x, y, heading), "s0": 0.0, "speed": prof}
+
+
+def _azimuth_interval(traj: dict, size, t: float, cam_xy: np.ndarray, cam_h: float):
+    """(distance, lo, hi): azimuth interval (rad, relative to cam_h) of a box seen from cam_xy."""
+    st = traj_state(traj, t)
+    c, s_ = math.cos(float(st["h"])), math.sin(float(st["h"]))
+    hl, hw = size[1] / 2, size[0] / 2
+    xs = float(st["x"]) + np.array([hl, hl, -hl, -hl]) * c - np.array([hw, -hw, hw, -hw]) * s_
+    ys = float(st["y"]) + np.array([hl, hl, -hl, -hl]) * s_ + np.array([hw, -hw, hw, -hw]) * c
+    az = wrap_angle(np.arctan2(ys - cam_xy[1], xs - cam_xy[0]) - cam_h)
+    d = math.hypot(float(st["x"]) - cam_xy[0], float(st["y"]) - cam_xy[1])
+    return d, float(az.min()), float(az.max())
+
+
+def _mostly_hidden(traj: dict, size, others: list[tuple[dict, list]], ego: dict) -> bool:
+    """True if at ``traj['t_view']`` a nearer accepted vehicle covers > 25 % of its azimuths
+    (vehicles are taller than the camera, so a nearer one hides what is behind it)."""
+    t = traj["t_view"]
+    st = traj_state(ego, t)
+    cam = np.array([float(st["x"]) + 1.7 * math.cos(float(st["h"])),
+                    float(st["y"]) + 1.7 * math.sin(float(st["h"]))])
+    d, lo, hi = _azimuth_interval(traj, size, t, cam, float(st["h"]))
+    width = max(hi - lo, 1e-6)
+    for otraj, osize in others:
+        od, olo, ohi = _azimuth_interval(otraj, osize, t, cam, float(st["h"]))
+        if od < d and min(hi, ohi) - max(lo, olo) > 0.25 * width:
+            return True
+    return False
 
 
 def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax):
@@ -757,6 +786,9 @@ def sample_scene(
         fp = _footprints(traj, size, times, 0.5,
                          rng.uniform(2.5, 7.0) if role == "parked" else None)
         if any(rects_overlap(fp, other).any() for other in accepted_fp):
+            continue
+        if "t_view" in traj and rng.random() < 0.8 and _mostly_hidden(
+                traj, size, [(a["traj"], a["size"]) for a in agents], ego):
             continue
         accepted_fp.append(fp)
         agents.append({"kind": "vehicle", "category": category, "size": size, "role": role,
