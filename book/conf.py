@@ -16,6 +16,8 @@ copyright = "2026, the flowmod authors"
 extensions = ["myst_nb"]
 nb_execution_mode = "off"
 nb_merge_streams = True
+# progress bars and library warnings stay in the executed notebooks, not in the book
+nb_output_stderr = "remove"
 myst_enable_extensions = ["dollarmath", "amsmath", "colon_fence", "deflist"]
 myst_heading_anchors = 3
 exclude_patterns = ["_build", "**.ipynb_checkpoints", "conf.py"]

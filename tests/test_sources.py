@@ -36,6 +36,11 @@ def test_notebook_parameters_are_typed_documented_and_demo_defaults(nb_path):
     code = [c for c in nb.cells if c.cell_type == "code"]
     assert "parameters" in code[0].metadata.get("tags", []), "first code cell must be tagged"
     declared = papermill.inspect_notebook(str(nb_path))
+    assigned = [ln for ln in code[0].source.splitlines() if re.match(r"^[a-z_]+\s*:", ln)]
+    assert len(assigned) == len(declared), (
+        f"{nb_path.name}: papermill parsed {len(declared)} of {len(assigned)} parameters "
+        "(avoid '=' and quotes in the comments)"
+    )
     demo = load_profile("demo").model_dump()
     for name, spec in declared.items():
         assert name in Params.model_fields, f"{nb_path.name}: {name} is not a Params field"

@@ -63,7 +63,14 @@ def predict(
 ) -> np.ndarray:
     """Probabilities of 'moving' (N,) float64 for crops x: (N, 2, S, S), pixels."""
     z = predict_logits(model, x, batch_size=batch_size, device=device, amp=amp)
-    return 1.0 / (1.0 + np.exp(-z))
+    return sigmoid(z)
+
+
+def sigmoid(z: Any) -> np.ndarray:
+    """Logistic function of logits, without overflow warnings for large |z|."""
+    from scipy.special import expit
+
+    return expit(np.asarray(z, dtype=np.float64))
 
 
 def _amp_dtype(amp: str | None) -> torch.dtype | None:

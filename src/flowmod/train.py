@@ -38,7 +38,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from flowmod.artefacts import atomic_path
 from flowmod.crops import hflip
-from flowmod.evaluate import metrics, predict_logits
+from flowmod.evaluate import metrics, predict_logits, sigmoid
 from flowmod.model import motion_resnet18, resolve_device
 
 HISTORY_COLUMNS = [
@@ -200,7 +200,7 @@ def _monitor_scores(model: nn.Module, monitor: tuple[Any, pd.DataFrame] | None, 
 
     y = monitor[1][label_col].to_numpy().astype(np.int64)
     z = predict_logits(model, monitor[0], batch_size=eval_batch_size, device=dev, amp=amp_mode)
-    p = 1.0 / (1.0 + np.exp(-z))
+    p = sigmoid(z)
     keep = thin_still(y)
     return {"monitor_f1": metrics(y, p)["f1"],
             "monitor_paper_f1": paper_protocol_f1(y[keep], p[keep], batch_size)}
@@ -367,7 +367,7 @@ def train_model(
 
             z = predict_logits(model, val_x, batch_size=eval_batch_size, device=dev,
                                amp=amp_mode)
-            m = metrics(y_va, 1.0 / (1.0 + np.exp(-z)))
+            m = metrics(y_va, sigmoid(z))
             sched.step()
             row = {
                 "epoch": epoch, "train_loss": train_loss, "val_loss": _bce_with_logits(z, y_va),

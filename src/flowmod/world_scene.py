@@ -54,9 +54,9 @@ DRIVING_WEIGHTS = {
     "vehicle.emergency.police": 0.03,
     "vehicle.emergency.ambulance": 0.02,
     "vehicle.construction": 0.03,
-    "vehicle.motorcycle": 0.05,
-    "vehicle.bicycle": 0.03,
-    "vehicle.trailer": 0.02,
+    "vehicle.motorcycle": 0.03,
+    "vehicle.bicycle": 0.02,
+    "vehicle.trailer": 0.01,
 }
 
 #: Category weights for parked vehicles.
@@ -67,9 +67,14 @@ PARKED_WEIGHTS = {
     "vehicle.emergency.police": 0.03,
     "vehicle.emergency.ambulance": 0.02,
     "vehicle.bus.rigid": 0.02,
-    "vehicle.motorcycle": 0.03,
-    "vehicle.trailer": 0.06,
+    "vehicle.motorcycle": 0.02,
+    "vehicle.trailer": 0.03,
 }
+
+#: Table 1 of the paper (the categories the motion task is about).
+TARGET_CATEGORIES = frozenset({
+    "vehicle.car", "vehicle.emergency.ambulance", "vehicle.emergency.police", "vehicle.truck",
+    "vehicle.bus.bendy", "vehicle.bus.rigid", "vehicle.construction"})
 
 NEAR_ZERO_SPEED = 0.2  # m/s, below this an agent counts as standing (for attributes)
 
@@ -325,7 +330,7 @@ def _ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cros
         y = lane_across(main, +1, lane)
 
     if kind in ("cruise", "follow"):
-        v = rng.uniform(3.0, 14.0)
+        v = rng.uniform(2.5, 11.0) if main["lanes"] < 3 else rng.uniform(4.0, 14.0)
         prof = _profile_ramp(rng.uniform(0, duration), v, v + rng.uniform(-2.5, 2.5), 0.6)
         prof["v"][1] = max(prof["v"][1], 1.0)
         return kind, lane, {"path": _straight(0.0, y, 0.0), "s0": 0.0, "speed": prof}
@@ -391,14 +396,14 @@ def _ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cros
 
 def _layout(rng: np.random.Generator, with_cross: bool, ego_kind_hint: str) -> dict:
     kind = _choice(rng, {"urban": 0.5, "suburban": 0.3, "arterial": 0.2})
-    lanes = int(rng.choice([1, 2, 2, 3])) if kind != "arterial" else int(rng.choice([2, 3]))
+    lanes = int(rng.choice([1, 2, 2, 2, 3])) if kind != "arterial" else int(rng.choice([2, 3]))
     main = {
         "o": [0.0, 0.0],
         "h": 0.0,
         "lanes": lanes,
         "lane_w": round(float(rng.uniform(3.1, 3.7)), 2),
         "median": round(float(rng.choice([0.3, 0.3, 1.0, 3.0])), 2),
-        "park": [bool(rng.random() < 0.85), bool(rng.random() < 0.75)],
+        "park": [bool(rng.random() < 0.9), bool(rng.random() < 0.8)],
         "park_w": round(float(rng.uniform(2.2, 2.6)), 2),
         "walk_w": round(float(rng.uniform(2.0, 5.0)), 2),
         "setback": [round(float(rng.uniform(0.0, 8.0)), 2), round(float(rng.uniform(0.0, 8.0)), 2)],
@@ -569,10 +574,12 @@ def _targeted_point(rng, road: dict, across: float, ego: dict, duration: float,
     return x, y, a, t_star
 
 
-def _place(rng, road, across, heading, ego, duration, prof, box_h, d_range, free_x):
+def _place(rng, road, across, heading, ego, duration, prof, box_h, d_range, free_x,
+           p_target: float = 0.85):
     """Straight trajectory on a road line: targeted (in view at 30-75 m at some time) with
-    probability 0.75, else starting at scene-x ``free_x`` (main road) at t = 0."""
-    if rng.random() < 0.85:
+    probability ``p_target``, else at along = ``free_x`` at t = 0 (None if p_target is 1 and
+    no targeted point exists)."""
+    if rng.random() < p_target:
         hit = _targeted_point(rng, road, across, ego, duration, d_range, box_h)
         if hit is not None:
             x, y, _, t_star = hit
@@ -580,47 +587,54 @@ def _place(rng, road, across, heading, ego, duration, prof, box_h, d_range, free
             traj["s0"] = float(-(arc_length(traj, t_star) - 0.0))
             traj["t_view"] = t_star  # placed in view, 30-75 m ahead, at this time (s)
             return traj
+        if p_target >= 1.0:
+            return None
     x, y = road_point(road, free_x, across)  # main road: along = x; cross road: along = y
     return {"path": _straight(x, y, heading), "s0": 0.0, "speed": prof}
 
 
-def _azimuth_interval(traj: dict, size, t: float, cam_xy: np.ndarray, cam_h: float):
-    """(distance, lo, hi): azimuth interval (rad, relative to cam_h) of a box seen from cam_xy."""
-    st = traj_state(traj, t)
-    c, s_ = math.cos(float(st["h"])), math.sin(float(st["h"]))
+def _view_intervals(traj: dict, size, times: np.ndarray, cam: np.ndarray, cam_h: np.ndarray
+                    ) -> np.ndarray:
+    """Per time: (distance from the camera, azimuth lo, azimuth hi) of a box footprint, (T, 3).
+
+    Azimuths (rad) are relative to the camera heading; ``cam`` (T, 2) positions (m).
+    """
+    st = traj_state(traj, times)
+    c, s_ = np.cos(st["h"])[:, None], np.sin(st["h"])[:, None]
     hl, hw = size[1] / 2, size[0] / 2
-    xs = float(st["x"]) + np.array([hl, hl, -hl, -hl]) * c - np.array([hw, -hw, hw, -hw]) * s_
-    ys = float(st["y"]) + np.array([hl, hl, -hl, -hl]) * s_ + np.array([hw, -hw, hw, -hw]) * c
-    az = wrap_angle(np.arctan2(ys - cam_xy[1], xs - cam_xy[0]) - cam_h)
-    d = math.hypot(float(st["x"]) - cam_xy[0], float(st["y"]) - cam_xy[1])
-    return d, float(az.min()), float(az.max())
+    cl = np.array([hl, hl, -hl, -hl])[None, :]
+    cw = np.array([hw, -hw, hw, -hw])[None, :]
+    xs = st["x"][:, None] + cl * c - cw * s_
+    ys = st["y"][:, None] + cl * s_ + cw * c
+    az = wrap_angle(np.arctan2(ys - cam[:, 1:2], xs - cam[:, 0:1]) - cam_h[:, None])
+    d = np.hypot(st["x"] - cam[:, 0], st["y"] - cam[:, 1])
+    return np.stack([d, az.min(axis=1), az.max(axis=1)], axis=1)
 
 
-def _mostly_hidden(traj: dict, size, others: list[tuple[dict, list]], ego: dict) -> bool:
-    """True if at ``traj['t_view']`` a nearer accepted vehicle covers > 25 % of its azimuths
-    (vehicles are taller than the camera, so a nearer one hides what is behind it)."""
-    t = traj["t_view"]
-    st = traj_state(ego, t)
-    cam = np.array([float(st["x"]) + 1.7 * math.cos(float(st["h"])),
-                    float(st["y"]) + 1.7 * math.sin(float(st["h"]))])
-    d, lo, hi = _azimuth_interval(traj, size, t, cam, float(st["h"]))
-    width = max(hi - lo, 1e-6)
-    for otraj, osize in others:
-        od, olo, ohi = _azimuth_interval(otraj, osize, t, cam, float(st["h"]))
-        if od < d and min(hi, ohi) - max(lo, olo) > 0.25 * width:
-            return True
-    return False
+def _hides(near: np.ndarray, far: np.ndarray) -> np.ndarray:
+    """Per time: ``near`` (T, 3) is nearer and covers > 15 % of ``far``'s azimuths."""
+    overlap = np.minimum(near[:, 2], far[:, 2]) - np.maximum(near[:, 1], far[:, 1])
+    return (near[:, 0] < far[:, 0]) & (overlap > 0.15 * np.maximum(far[:, 2] - far[:, 1], 1e-6))
 
 
-def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax):
-    """One candidate vehicle: (category, size, role, trajectory) or None."""
+def _in_band(iv: np.ndarray, lo: float = 30.0, hi: float = 70.0, fov: float = 0.55) -> np.ndarray:
+    """Per time: 30-70 m from the camera (roughly the ego distance) and inside the image width."""
+    return (iv[:, 0] >= lo - 1.7) & (iv[:, 0] <= hi - 1.7) & (iv[:, 1] > -fov) & (iv[:, 2] < fov)
+
+
+def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax,
+                     p_target: float = 0.85):
+    """One candidate vehicle: (category, size, role, trajectory) or None.
+
+    ``p_target``: probability of placing it in view 30-72 m ahead at some time (1 = always,
+    None when impossible)."""
     main = roads[0]
     ego_x0 = float(traj_state(ego, 0.0)["x"])
     ego_x1 = float(traj_state(ego, duration)["x"])
     x_lo, x_hi = min(ego_x0, ego_x1), max(ego_x0, ego_x1)
     has_park = [main["park"][0], main["park"][1]]
-    roles = {"parked": 0.32 if any(has_park) else 0.0, "halt": 0.08, "same": 0.17,
-             "oncoming": 0.14, "far": 0.06, "convoy": 0.05, "roll": 0.06}
+    roles = {"parked": 0.34 if any(has_park) else 0.0, "halt": 0.09, "same": 0.18,
+             "oncoming": 0.13, "far": 0.03, "convoy": 0.05, "roll": 0.06}
     if cross_x is not None:
         roles.update({"cross": 0.08, "queue": 0.05, "cross_parked": 0.05})
     role = _choice(rng, roles)
@@ -648,7 +662,7 @@ def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax)
             free = rng.uniform(x_lo + 5.0, x_hi + 140.0)
         else:
             free = float(rng.choice([-1, 1])) * rng.uniform(max(main["walk"]) + 3, 120)
-        traj = _place(rng, road, across, h, ego, duration, _profile_const(0.0), size[2], near, free)
+        traj = _place(rng, road, across, h, ego, duration, _profile_const(0.0), size[2], near, free, p_target)
         return category, size, "parked", traj
     if role == "halt":  # standing in a lane (waiting, double-parked); may drive off
         direction = int(rng.choice([-1, 1]))
@@ -658,7 +672,7 @@ def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax)
         t_go = rng.uniform(0.0, duration * 2.0)
         prof = _profile_ramp(t_go, 0.0, rng.uniform(3.0, 8.0), rng.uniform(0.8, 2.0))
         free = rng.uniform(x_lo + 10.0, x_hi + 120.0)
-        traj = _place(rng, main, across, h, ego, duration, prof, size[2], near, free)
+        traj = _place(rng, main, across, h, ego, duration, prof, size[2], near, free, p_target)
         return category, size, "stopped", traj
     if role in ("same", "far", "convoy", "roll", "oncoming"):
         direction = -1 if role == "oncoming" else 1
@@ -682,8 +696,11 @@ def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax)
             free = rng.uniform(x_lo + 20.0, x_hi + 220.0)
         else:
             prof = _moving_profile(rng, duration, vmax)
+            if rng.random() < 0.4 and len(prof["v"]) == 1:  # travelling with the ego
+                v_ego = float(np.mean(speed_at(ego["speed"], np.linspace(0, duration, 5))))
+                prof = _profile_const(max(v_ego + rng.normal(0, 1.5), 0.6))
             free = rng.uniform(x_lo - 10.0, x_hi + 110.0)
-        traj = _place(rng, main, across, h, ego, duration, prof, size[2], d_range, free)
+        traj = _place(rng, main, across, h, ego, duration, prof, size[2], d_range, free, p_target)
         return category, size, "moving", traj
     cross = roads[1]
     direction = int(rng.choice([-1, 1]))
@@ -695,9 +712,11 @@ def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax)
         v = rng.uniform(3.0, vmax)
         t_c = rng.uniform(-3.0, duration + 3.0)  # time at the main road's centre line
         free = -direction * v * t_c
-        traj = _place(rng, cross, across, h, ego, duration, _profile_const(v), size[2], near, free)
+        traj = _place(rng, cross, across, h, ego, duration, _profile_const(v), size[2], near, free, p_target)
         return category, size, "moving", traj
     # queue before the stop line on the cross road; may start during the scene
+    if p_target >= 1.0:
+        return None
     slot = int(rng.integers(0, 5))
     dist = kerb_m + 4.5 + size[1] / 2 + slot * (size[1] + rng.uniform(1.5, 3.0))
     along = -direction * dist
@@ -774,25 +793,62 @@ def sample_scene(
     # ego reference point is the rear axle: shift the footprint forward by 1.4 m
     ego_fp = (ego_fp[0] + 1.4 * np.cos(ego_fp[2]), ego_fp[1] + 1.4 * np.sin(ego_fp[2]), *ego_fp[2:])
     accepted_fp = [ego_fp]
+    # the keyframes' camera positions, for view-aware placement
+    kf_times = np.arange(n_keyframes) * 0.5
+    ego_kf = traj_state(ego, kf_times)
+    cam_h = ego_kf["h"]
+    cam_xy = np.stack([ego_kf["x"] + 1.7 * np.cos(cam_h), ego_kf["y"] + 1.7 * np.sin(cam_h)], 1)
+    accepted_iv: list[np.ndarray] = []
+    accepted_good: list[np.ndarray] = []
+    min_gain = max(2, n_keyframes // 2)
     agents: list[dict] = []
     n_target = max(1, int(round(n_vehicles * rng.uniform(0.85, 1.15))))
     attempts = 0
-    while sum(a["kind"] == "vehicle" for a in agents) < n_target and attempts < 40 * n_target:
-        attempts += 1
-        cand = _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax)
-        if cand is None:
+    n_vehicles_now = 0
+    while n_vehicles_now < n_target and attempts < 80 * n_target:
+        # phase 1: vehicles placed in view (best of 8); 2: any placement; 3: fill up
+        phase1 = n_vehicles_now < 0.85 * n_target and attempts < 40 * n_target
+        phase3 = attempts > 60 * n_target
+        best = None
+        for _ in range(8 if phase1 else 1):
+            attempts += 1
+            cand = _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax,
+                                    1.0 if phase1 else 0.85)
+            if cand is None or cand[3] is None:
+                continue
+            category, size, role, traj = cand
+            fp = _footprints(traj, size, times, 0.5,
+                             rng.uniform(2.5, 7.0) if role == "parked" else None)
+            if any(rects_overlap(fp, other).any() for other in accepted_fp):
+                continue
+            iv = _view_intervals(traj, size, kf_times, cam_xy, cam_h)
+            good = _in_band(iv)
+            for other in accepted_iv:
+                good &= ~_hides(other, iv)
+            damage = sum(int((_hides(iv, other) & g).sum()) for other, g in
+                         zip(accepted_iv, accepted_good, strict=True))
+            targeted = "t_view" in traj and category in TARGET_CATEGORIES
+            score = int(good.sum()) - damage if targeted else -damage
+            if best is None or score > best[0]:
+                best = (score, targeted, cand, fp, iv, good)
+        if best is None:
             continue
-        category, size, role, traj = cand
-        fp = _footprints(traj, size, times, 0.5,
-                         rng.uniform(2.5, 7.0) if role == "parked" else None)
-        if any(rects_overlap(fp, other).any() for other in accepted_fp):
+        score, targeted, (category, size, role, traj), fp, iv, good = best
+        damage = int(good.sum()) - score if targeted else -score
+        if targeted:
+            wanted = score >= min_gain or (rng.random() < 0.1 and damage <= 3)
+        else:
+            wanted = damage <= 2 or (rng.random() < 0.1 and damage <= 5)
+        if not (wanted or (phase3 and damage <= 6)):
             continue
-        if "t_view" in traj and rng.random() < 0.8 and _mostly_hidden(
-                traj, size, [(a["traj"], a["size"]) for a in agents], ego):
-            continue
+        for k, other in enumerate(accepted_iv):
+            accepted_good[k] &= ~_hides(iv, other)
+        accepted_iv.append(iv)
+        accepted_good.append(good if targeted else np.zeros_like(good))
         accepted_fp.append(fp)
         agents.append({"kind": "vehicle", "category": category, "size": size, "role": role,
                        "traj": traj, "tex": int(rng.integers(0, 2**31 - 1))})
+        n_vehicles_now += 1
     n_peds = int(rng.integers(2, 9))
     for _ in range(6 * n_peds):
         if sum(a["kind"] == "pedestrian" for a in agents) >= n_peds:
