@@ -48,6 +48,52 @@ def test_setup_records_profile_and_environment(smoke_run):
     assert (smoke_run["base"] / "runs" / "figures" / "pipeline.png").stat().st_size > 5000
 
 
+def test_filtering_counts(smoke_run):
+    g = glue_of(smoke_run, "02_filtering")
+    assert 1 <= g["n_scenes_kept"] < 4, "the smoke world has a night scene to exclude"
+    assert g["n_keyframe_pairs"] > 0 and g["n_keyframe_objects"] >= g["n_keyframe_pairs"]
+    assert 0 < g["n_test_objects"] < g["n_keyframe_objects"]
+    assert g["n_general_objects"] > 0
+
+
+def test_flow_accuracy_recorded(smoke_run):
+    g = glue_of(smoke_run, "03_flow")
+    assert g["epe_boxes_gt"] < 0.05, "gt flow stored as float16 is exact to ~1e-3 px"
+    assert g["epe_boxes_dis"] > g["epe_boxes_gt"]
+    assert g["seconds_per_pair_dis"] > 0
+
+
+def test_labeling_agreement(smoke_run):
+    g = glue_of(smoke_run, "04_labeling")
+    assert g["speed_threshold"] == 2.0
+    assert 0 < g["moving_fraction"] < 100
+    assert g["true_agreement"] >= 90.0, "eq. 1 labels should match the world's true labels"
+
+
+def test_crops_and_training_recorded(smoke_run):
+    g5, g6 = glue_of(smoke_run, "05_preprocessing"), glue_of(smoke_run, "06_training")
+    assert g5["crop_size"] == 32
+    assert 4.0 <= g5["crop_kb_per_object"] <= 5.0, "2 x 32 x 32 float16 = 4.1 kB per object"
+    assert g6["n_model_parameters"] == 11_689_512 - 64 * 7 * 7 - (511 * 1000 + 999)
+    assert g6["epochs"] == 1
+    for m in ("gt", "dis"):
+        assert g6[f"best_epoch_{m}"] == 1
+        assert 0.0 <= g6[f"val_f1_{m}"] <= 100.0
+
+
+def test_evaluation_and_generalisation_recorded(smoke_run):
+    g2, g7 = glue_of(smoke_run, "02_filtering"), glue_of(smoke_run, "07_evaluation")
+    g8 = glue_of(smoke_run, "08_generalisation")
+    assert g7["n_test"] == g2["n_test_objects"], "Table 3 is scored on the whole test split"
+    assert g8["n_general"] == g2["n_general_objects"]
+    for m in ("gt", "dis"):
+        for v in (g7[f"test_f1_{m}"], g7[f"baseline_f1_{m}"], g8[f"general_f1_{m}_paper"],
+                  g8[f"general_f1_{m}_true"]):
+            assert 0.0 <= v <= 100.0
+    media = smoke_run["base"] / "runs" / "figures" / "media"
+    assert any(media.glob("*.mp4")) and any(media.glob("*-strip.png"))
+
+
 def test_device_that_does_not_exist_is_rejected_before_work(tmp_path):
     import torch
 
@@ -88,6 +134,7 @@ def test_book_builds_offline_with_warnings_as_errors(smoke_run, tmp_path):
     for nb in runner.notebooks():
         assert f"{nb.stem}.html" in pages
     assert "reproduce.html" in pages
+    assert "<video" in (out / "08_generalisation.html").read_text(), "the scene video is shown"
     reproduce = (out / "reproduce.html").read_text()
     assert smoke_run["record"]["commit"] in reproduce
     assert "torch" in reproduce and "2.14.1" in reproduce

@@ -44,7 +44,8 @@ def read_glue(nb_path: str | os.PathLike[str]) -> dict[str, Any]:
             meta = o.get("metadata", {}).get("scrapbook", {})
             if "name" not in meta:
                 continue
-            text = o.get("data", {}).get("text/plain", "")
+            prefix = meta.get("mime_prefix", "")  # glue(..., display=False) hides it
+            text = o.get("data", {}).get(prefix + "text/plain", "")
             try:
                 out[meta["name"]] = ast.literal_eval(text)
             except (ValueError, SyntaxError):

@@ -175,6 +175,16 @@ def _rng(*seed: int) -> np.random.Generator:
     return np.random.default_rng([int(s) & 0x7FFFFFFF for s in seed])
 
 
+def _facade_factory(kind: str, seed: int, face: int, width_m: float, height_m: float,
+                    shop: bool) -> Callable[[], tuple[np.ndarray, None]]:
+    """Texture factory of one building / backdrop face (generated on first use)."""
+    def make() -> tuple[np.ndarray, None]:
+        if kind == "building":
+            return wt.facade(_rng(seed, face), width_m, height_m, shop), None
+        return wt.backdrop(_rng(seed, face), width_m, height_m), None
+    return make
+
+
 # --------------------------------------------------------------------------------------------
 # Scene geometry
 # --------------------------------------------------------------------------------------------
@@ -216,19 +226,13 @@ class SceneGeometry:
         if kind in ("building", "backdrop"):
             for i, (name, (p0, eu, ev)) in enumerate(box_faces(w, length, h, top=False).items()):
                 width_m = float(np.linalg.norm(eu))
-                if kind == "building":
-                    fac = (lambda s=seed, i=i, wm=width_m, hh=h, sh=(name in ("left", "right")):
-                           (wt.facade(_rng(s, i), wm, hh, sh and self.scene["layout"]["kind"]
-                                      == "urban"), None))
-                else:
-                    fac = (lambda s=seed, i=i, wm=width_m, hh=h: (wt.backdrop(_rng(s, i), wm, hh),
-                                                                  None))
-                quads.append(Quad(p0, eu, ev, Tex(fac)))
+                shop = name in ("left", "right") and self.scene["layout"]["kind"] == "urban"
+                quads.append(Quad(p0, eu, ev, Tex(_facade_factory(kind, seed, i, width_m, h, shop))))
         elif kind == "tree":
             trunk_h = h * 0.45
             tw = max(0.18, h * 0.03)
             bark = Tex(lambda s=seed: (wt.bark(_rng(s, 0)), None))
-            for name, (p0, eu, ev) in box_faces(tw, tw, trunk_h, top=False).items():
+            for _name, (p0, eu, ev) in box_faces(tw, tw, trunk_h, top=False).items():
                 off = np.array([0.0, 0.0, trunk_h / 2 - h / 2])
                 quads.append(Quad(p0 + off, eu, ev, bark))
             crown = Tex(lambda s=seed: wt.foliage(_rng(s, 1)))
@@ -615,9 +619,9 @@ def _shade_background(geo: SceneGeometry, fr: Frame) -> None:
         coords = [ws.road_coords(r, gx, gy) for r in geo.roads]
         # materials: 0 asphalt, 1 sidewalk, 2 verge
         region = np.full(gi.size, 2, np.int8)
-        for r, (_, acr) in zip(geo.roads, coords):
+        for r, (_, acr) in zip(geo.roads, coords, strict=True):
             region[(acr >= -r["walk"][0]) & (acr <= r["walk"][1]) & (region == 2)] = 1
-        for r, (_, acr) in zip(geo.roads, coords):
+        for r, (_, acr) in zip(geo.roads, coords, strict=True):
             region[(acr >= -r["kerb"][0]) & (acr <= r["kerb"][1])] = 0
         level = np.floor(np.log2(np.maximum(fp * np.float32(1.0 / wt.GROUND_RES), 1.0))
                          ).astype(np.int8)
@@ -753,7 +757,7 @@ def render(geo: SceneGeometry, t: float, textured: bool = True) -> Frame:
         if not _visible_sphere(ctr, obj.radius, R_wc, c, cam.K):
             continue
         if R is None:
-            for q, (cw, n, shade) in zip(obj.quads, _static_cache(geo, obj)):
+            for q, (cw, n, shade) in zip(obj.quads, _static_cache(geo, obj), strict=True):
                 draw_quad(fr, cw, q, obj.sid, shade, textured, n)
             lights = [(pos + ctr, col, rad) for pos, col, rad in obj.lights]
         else:
@@ -882,7 +886,7 @@ def _rain(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     ys = rng.uniform(0, H_IMG, n)
     ln = rng.uniform(15, 60, n)
     ang = rng.normal(1.45, 0.05, n)
-    for x, y, L_, a in zip(xs, ys, ln, ang):
+    for x, y, L_, a in zip(xs, ys, ln, ang, strict=True):
         cv2.line(layer, (int(x), int(y)), (int(x + L_ * math.cos(a)), int(y + L_ * math.sin(a))),
                  int(rng.integers(40, 90)), 1, cv2.LINE_AA)
     out = cv2.add(out, cv2.cvtColor(cv2.GaussianBlur(layer, (0, 0), 0.8), cv2.COLOR_GRAY2BGR))

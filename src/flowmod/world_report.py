@@ -295,7 +295,7 @@ def counts_table(annotations: pd.DataFrame,
     """
     a = annotations.copy()
     labels = [f"{int(lo)}-{int(hi)} m" if hi < 1000 else f">{int(lo)} m"
-              for lo, hi in zip(bins[:-1], bins[1:])]
+              for lo, hi in zip(bins[:-1], bins[1:], strict=True)]
     a["distance_bin"] = pd.cut(a["distance"], bins=list(bins), labels=labels, right=False)
     t = a.pivot_table(index="category", columns="distance_bin", values="scene", aggfunc="count",
                       fill_value=0, observed=False)

@@ -612,9 +612,10 @@ def _view_intervals(traj: dict, size, times: np.ndarray, cam: np.ndarray, cam_h:
 
 
 def _hides(near: np.ndarray, far: np.ndarray) -> np.ndarray:
-    """Per time: ``near`` (T, 3) is nearer and covers > 15 % of ``far``'s azimuths."""
-    overlap = np.minimum(near[:, 2], far[:, 2]) - np.maximum(near[:, 1], far[:, 1])
-    return (near[:, 0] < far[:, 0]) & (overlap > 0.15 * np.maximum(far[:, 2] - far[:, 1], 1e-6))
+    """Per time: ``near`` (..., T, 3) is nearer and covers > 15 % of ``far``'s azimuths."""
+    overlap = np.minimum(near[..., 2], far[..., 2]) - np.maximum(near[..., 1], far[..., 1])
+    return (near[..., 0] < far[..., 0]) & (overlap > 0.15 * np.maximum(far[..., 2] - far[..., 1],
+                                                                          1e-6))
 
 
 def _in_band(iv: np.ndarray, lo: float = 30.0, hi: float = 70.0, fov: float = 0.55) -> np.ndarray:
@@ -823,10 +824,12 @@ def sample_scene(
                 continue
             iv = _view_intervals(traj, size, kf_times, cam_xy, cam_h)
             good = _in_band(iv)
-            for other in accepted_iv:
-                good &= ~_hides(other, iv)
-            damage = sum(int((_hides(iv, other) & g).sum()) for other, g in
-                         zip(accepted_iv, accepted_good, strict=True))
+            if accepted_iv:
+                acc = np.asarray(accepted_iv)  # (N, T, 3)
+                good &= ~_hides(acc, iv[None]).any(axis=0)
+                damage = int((_hides(iv[None], acc) & np.asarray(accepted_good)).sum())
+            else:
+                damage = 0
             targeted = "t_view" in traj and category in TARGET_CATEGORIES
             score = int(good.sum()) - damage if targeted else -damage
             if best is None or score > best[0]:
@@ -841,8 +844,9 @@ def sample_scene(
             wanted = damage <= 2 or (rng.random() < 0.1 and damage <= 5)
         if not (wanted or (phase3 and damage <= 6)):
             continue
-        for k, other in enumerate(accepted_iv):
-            accepted_good[k] &= ~_hides(iv, other)
+        if accepted_iv:
+            hidden = _hides(iv[None], np.asarray(accepted_iv))
+            accepted_good = [g & ~h for g, h in zip(accepted_good, hidden, strict=True)]
         accepted_iv.append(iv)
         accepted_good.append(good if targeted else np.zeros_like(good))
         accepted_fp.append(fp)
@@ -980,12 +984,12 @@ def _describe(rng, ego_kind: str, layout: dict, agents: list[dict], weather: str
 def plan_weathers(n_scenes: int, n_sweep_scenes: int, seed: int) -> tuple[list[str], list[bool]]:
     """Weather per scene and which scenes get sweeps (only usable, non night/rain scenes).
 
-    About 10 % night, 7.5 % rain, 5 % after rain (at least one night scene when n >= 2) and
+    About 8 % night, 5 % rain, 5 % after rain (at least one night scene when n >= 2) and
     a few overcast. Deterministic in (n_scenes, seed).
     """
     rng = np.random.default_rng([int(seed), 977, int(n_scenes)])
-    n_night = max(1, round(0.1 * n_scenes)) if n_scenes >= 2 else 0
-    n_rain = round(0.075 * n_scenes)
+    n_night = max(1, round(0.08 * n_scenes)) if n_scenes >= 2 else 0
+    n_rain = round(0.05 * n_scenes)
     n_after = max(1, round(0.05 * n_scenes)) if n_scenes >= 3 else 0
     n_over = round(0.15 * n_scenes)
     weathers = (["night"] * n_night + ["rain"] * n_rain + ["after_rain"] * n_after
