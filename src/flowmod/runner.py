@@ -117,6 +117,15 @@ def run(
         "status": "running",
     }
     info_path = out_dir / "run_info.json"
+    if only and info_path.is_file():
+        # a partial rerun with the same parameters keeps the other notebooks' records
+        import json
+
+        old = json.loads(info_path.read_text())
+        if old.get("parameters") == record["parameters"] and old.get("status") == "ok":
+            record["notebooks"] = {k: v for k, v in old["notebooks"].items()
+                                   if k not in {nb.stem for nb, _ in plan}}
+            record["started"] = old["started"]
     write_json(info_path, record)
     for nb, values in plan:
         target = out_dir / nb.name

@@ -55,8 +55,21 @@ CHANNEL = "CAM_FRONT"
 KEYFRAME_US = 500_000
 BASE_US = 1_533_000_000_000_000  # 2018-07-31, like nuScenes' era
 ANNOTATION_RANGE = 100.0  # m, agents annotated within this distance of the ego
-TABLES = ("attribute", "calibrated_sensor", "category", "ego_pose", "instance", "log", "map",
-          "sample", "sample_annotation", "sample_data", "scene", "sensor", "visibility")
+TABLES = (
+    "attribute",
+    "calibrated_sensor",
+    "category",
+    "ego_pose",
+    "instance",
+    "log",
+    "map",
+    "sample",
+    "sample_annotation",
+    "sample_data",
+    "scene",
+    "sensor",
+    "visibility",
+)
 
 #: The official nuScenes categories (names; descriptions written for this world).
 CATEGORIES = [
@@ -145,8 +158,9 @@ def _write_json(path: Path, obj: Any, indent: int | None = 1) -> None:
         tmp.write_text(json.dumps(obj, indent=indent) + "\n")
 
 
-def frame_times(seed: int, index: int, n_keyframes: int, with_sweeps: bool, t0_us: int
-                ) -> list[dict]:
+def frame_times(
+    seed: int, index: int, n_keyframes: int, with_sweeps: bool, t0_us: int
+) -> list[dict]:
     """Camera frame timestamps of a scene: [{"ts": us, "key": bool, "k": keyframe index}].
 
     Keyframes every 0.5 s (+-2.5 ms jitter, the first exactly at ``t0_us``); with sweeps, the
@@ -188,8 +202,9 @@ def _exposures(seed: int, index: int, times: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def _scene_description(seed: int, index: int, n_keyframes: int, vehicles: int, weather: str,
-                       with_sweeps: bool) -> dict:
+def _scene_description(
+    seed: int, index: int, n_keyframes: int, vehicles: int, weather: str, with_sweeps: bool
+) -> dict:
     from flowmod import world_scene as ws
 
     scene = ws.sample_scene(seed, index, n_keyframes, vehicles, weather, with_sweeps)
@@ -213,21 +228,41 @@ def _attribute(agent: dict, speed: float) -> str:
     if cat.startswith("human"):
         return "pedestrian.moving" if moving else "pedestrian.standing"
     if cat in ("vehicle.bicycle", "vehicle.motorcycle"):
-        return "cycle.with_rider" if (moving or agent["role"] != "parked") else "cycle.without_rider"
+        return (
+            "cycle.with_rider" if (moving or agent["role"] != "parked") else "cycle.without_rider"
+        )
     if moving:
         return "vehicle.moving"
     return "vehicle.parked" if agent["role"] == "parked" else "vehicle.stopped"
 
 
-def _scene_job(dataroot: str, seed: int, index: int, n_keyframes: int, vehicles: int,
-               weather: str, with_sweeps: bool) -> dict:
+def _scene_job(*args: Any) -> dict:
+    """Worker entry: :func:`_render_scene` with OpenCV single-threaded (restored after)."""
+    import cv2
+
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        return _render_scene(*args)
+    finally:
+        cv2.setNumThreads(threads)
+
+
+def _render_scene(
+    dataroot: str,
+    seed: int,
+    index: int,
+    n_keyframes: int,
+    vehicles: int,
+    weather: str,
+    with_sweeps: bool,
+) -> dict:
     """Render one scene's frames to ``dataroot`` and return its table rows and description."""
     import cv2
 
     from flowmod import world_render as wr
     from flowmod import world_scene as ws
 
-    cv2.setNumThreads(1)
     scene = _scene_description(seed, index, n_keyframes, vehicles, weather, with_sweeps)
     geo = wr.SceneGeometry(scene)
     root = Path(dataroot)
@@ -238,11 +273,19 @@ def _scene_job(dataroot: str, seed: int, index: int, n_keyframes: int, vehicles:
     times = np.array([(f["ts"] - t0) / 1e6 for f in frames])
     expo = _exposures(seed, index, times)
     look = scene["look"]
-    rows: dict[str, list] = {"sample": [], "sample_data": [], "ego_pose": [],
-                             "sample_annotation": [], "instance": []}
+    rows: dict[str, list] = {
+        "sample": [],
+        "sample_data": [],
+        "ego_pose": [],
+        "sample_annotation": [],
+        "instance": [],
+    }
     ann_by_agent: dict[int, list[dict]] = {}
-    statics_occ = [(np.array(o["c"]), o["yaw"], tuple(o["size"])) for o in scene["statics"]
-                   if o["kind"] in ("building", "hedge", "wall")]
+    statics_occ = [
+        (np.array(o["c"]), o["yaw"], tuple(o["size"]))
+        for o in scene["statics"]
+        if o["kind"] in ("building", "hedge", "wall")
+    ]
     for j, f in enumerate(frames):
         t = float(times[j])
         fr = wr.render(geo, t, textured=True)
@@ -255,27 +298,42 @@ def _scene_job(dataroot: str, seed: int, index: int, n_keyframes: int, vehicles:
         _write_bytes(root / filename, buf.tobytes())
         ego = ws.traj_state(scene["ego"], t)
         gx, gy, gh = ws.scene_to_global(scene, ego["x"], ego["y"], ego["h"])
-        rows["ego_pose"].append({
-            "token": f["sd_token"], "timestamp": f["ts"],
-            "rotation": yaw_quaternion(float(gh)), "translation": [float(gx), float(gy), 0.0],
-        })
-        rows["sample_data"].append({
-            "token": f["sd_token"], "sample_token": sample_tokens[f["k"]],
-            "ego_pose_token": f["sd_token"], "calibrated_sensor_token": cs_token,
-            "timestamp": f["ts"], "fileformat": "jpg", "is_key_frame": bool(f["key"]),
-            "height": wr.H_IMG, "width": wr.W_IMG, "filename": filename,
-            "prev": frames[j - 1]["sd_token"] if j > 0 else "",
-            "next": frames[j + 1]["sd_token"] if j + 1 < len(frames) else "",
-        })
+        rows["ego_pose"].append(
+            {
+                "token": f["sd_token"],
+                "timestamp": f["ts"],
+                "rotation": yaw_quaternion(float(gh)),
+                "translation": [float(gx), float(gy), 0.0],
+            }
+        )
+        rows["sample_data"].append(
+            {
+                "token": f["sd_token"],
+                "sample_token": sample_tokens[f["k"]],
+                "ego_pose_token": f["sd_token"],
+                "calibrated_sensor_token": cs_token,
+                "timestamp": f["ts"],
+                "fileformat": "jpg",
+                "is_key_frame": bool(f["key"]),
+                "height": wr.H_IMG,
+                "width": wr.W_IMG,
+                "filename": filename,
+                "prev": frames[j - 1]["sd_token"] if j > 0 else "",
+                "next": frames[j + 1]["sd_token"] if j + 1 < len(frames) else "",
+            }
+        )
         if not f["key"]:
             continue
         k = f["k"]
-        rows["sample"].append({
-            "token": sample_tokens[k], "timestamp": f["ts"],
-            "prev": sample_tokens[k - 1] if k > 0 else "",
-            "next": sample_tokens[k + 1] if k + 1 < n_keyframes else "",
-            "scene_token": scene["token"],
-        })
+        rows["sample"].append(
+            {
+                "token": sample_tokens[k],
+                "timestamp": f["ts"],
+                "prev": sample_tokens[k - 1] if k > 0 else "",
+                "next": sample_tokens[k + 1] if k + 1 < n_keyframes else "",
+                "scene_token": scene["token"],
+            }
+        )
         ego_xyz = np.array([float(ego["x"]), float(ego["y"]), 0.0])
         posed = []
         for i, a in enumerate(scene["agents"]):
@@ -289,9 +347,14 @@ def _scene_job(dataroot: str, seed: int, index: int, n_keyframes: int, vehicles:
             frac, _px = wr.silhouette_fraction(fr, corners, wr.SID_AGENT0 + i)
             if not np.isfinite(frac):
                 pts = np.vstack([ctr[None], ctr + 0.85 * (corners - ctr)])
-                occ = [(c2, y2, tuple(a2["size"])) for i2, a2, c2, y2 in posed
-                       if i2 != i and np.linalg.norm(c2 - ego_xyz) < dist + 10]
-                occ += [o for o in statics_occ if np.linalg.norm(o[0][:2] - ego_xyz[:2]) < dist + 40]
+                occ = [
+                    (c2, y2, tuple(a2["size"]))
+                    for i2, a2, c2, y2 in posed
+                    if i2 != i and np.linalg.norm(c2 - ego_xyz) < dist + 10
+                ]
+                occ += [
+                    o for o in statics_occ if np.linalg.norm(o[0][:2] - ego_xyz[:2]) < dist + 40
+                ]
                 frac = wr.ray_visibility(fr.c, pts, occ)
             st = ws.agent_state_global(scene, a, t)
             speed = float(st["speed"])
@@ -306,7 +369,8 @@ def _scene_job(dataroot: str, seed: int, index: int, n_keyframes: int, vehicles:
                 "translation": [float(st["x"]), float(st["y"]), float(st["z"])],
                 "size": [float(w), float(length), float(h)],
                 "rotation": yaw_quaternion(float(ws.wrap_angle(st["yaw"]))),
-                "prev": "", "next": "",
+                "prev": "",
+                "next": "",
                 "num_lidar_pts": lidar,
                 "num_radar_pts": int(a["kind"] == "vehicle" and dist < 70 and frac > 0.3) * 3,
             }
@@ -317,30 +381,41 @@ def _scene_job(dataroot: str, seed: int, index: int, n_keyframes: int, vehicles:
             ann["prev"] = anns[n - 1]["token"] if n > 0 else ""
             ann["next"] = anns[n + 1]["token"] if n + 1 < len(anns) else ""
         a = scene["agents"][i]
-        rows["instance"].append({
-            "token": a["instance_token"],
-            "category_token": _token(seed, "category", a["category"]),
-            "nbr_annotations": len(anns),
-            "first_annotation_token": anns[0]["token"],
-            "last_annotation_token": anns[-1]["token"],
-        })
+        rows["instance"].append(
+            {
+                "token": a["instance_token"],
+                "category_token": _token(seed, "category", a["category"]),
+                "nbr_annotations": len(anns),
+                "first_annotation_token": anns[0]["token"],
+                "last_annotation_token": anns[-1]["token"],
+            }
+        )
     # annotations in sample order (like nuScenes: grouped by sample)
     all_anns = [a for i in sorted(ann_by_agent) for a in ann_by_agent[i]]
     order = {tok: n for n, tok in enumerate(sample_tokens)}
     all_anns.sort(key=lambda a: (order[a["sample_token"]], a["token"]))
     rows["sample_annotation"] = all_anns
     calib = scene["calib"]
-    rows["calibrated_sensor"] = [{
-        "token": cs_token, "sensor_token": _token(seed, "sensor", CHANNEL),
-        "translation": calib["translation"], "rotation": calib["rotation"],
-        "camera_intrinsic": calib["K"],
-    }]
-    rows["scene"] = [{
-        "token": scene["token"], "log_token": _token(seed, "log", index // 4),
-        "nbr_samples": n_keyframes, "first_sample_token": sample_tokens[0],
-        "last_sample_token": sample_tokens[-1], "name": scene["name"],
-        "description": scene["description"],
-    }]
+    rows["calibrated_sensor"] = [
+        {
+            "token": cs_token,
+            "sensor_token": _token(seed, "sensor", CHANNEL),
+            "translation": calib["translation"],
+            "rotation": calib["rotation"],
+            "camera_intrinsic": calib["K"],
+        }
+    ]
+    rows["scene"] = [
+        {
+            "token": scene["token"],
+            "log_token": _token(seed, "log", index // 4),
+            "nbr_samples": n_keyframes,
+            "first_sample_token": sample_tokens[0],
+            "last_sample_token": sample_tokens[-1],
+            "name": scene["name"],
+            "description": scene["description"],
+        }
+    ]
     return {"rows": rows, "scene": scene}
 
 
@@ -351,24 +426,38 @@ def _scene_job(dataroot: str, seed: int, index: int, n_keyframes: int, vehicles:
 
 def _static_tables(seed: int, n_scenes: int, map_filename: str) -> dict[str, list]:
     n_logs = (n_scenes + 3) // 4
-    logs = [{
-        "token": _token(seed, "log", li),
-        "logfile": f"synth-log-{li:04d}",
-        "vehicle": "synth-ego",
-        "date_captured": time.strftime("%Y-%m-%d", time.gmtime(BASE_US / 1e6 + li * 86400)),
-        "location": ("synth-city-east", "synth-city-west")[li % 2],
-    } for li in range(n_logs)]
+    logs = [
+        {
+            "token": _token(seed, "log", li),
+            "logfile": f"synth-log-{li:04d}",
+            "vehicle": "synth-ego",
+            "date_captured": time.strftime("%Y-%m-%d", time.gmtime(BASE_US / 1e6 + li * 86400)),
+            "location": ("synth-city-east", "synth-city-west")[li % 2],
+        }
+        for li in range(n_logs)
+    ]
     return {
-        "category": [{"token": _token(seed, "category", n), "name": n, "description": d}
-                     for n, d in CATEGORIES],
-        "attribute": [{"token": _token(seed, "attribute", n), "name": n, "description": d}
-                      for n, d in ATTRIBUTES],
+        "category": [
+            {"token": _token(seed, "category", n), "name": n, "description": d}
+            for n, d in CATEGORIES
+        ],
+        "attribute": [
+            {"token": _token(seed, "attribute", n), "name": n, "description": d}
+            for n, d in ATTRIBUTES
+        ],
         "visibility": [{"token": t, "level": lv, "description": d} for t, lv, d in VISIBILITY],
-        "sensor": [{"token": _token(seed, "sensor", CHANNEL), "channel": CHANNEL,
-                    "modality": "camera"}],
+        "sensor": [
+            {"token": _token(seed, "sensor", CHANNEL), "channel": CHANNEL, "modality": "camera"}
+        ],
         "log": logs,
-        "map": [{"token": _token(seed, "map"), "log_tokens": [lg["token"] for lg in logs],
-                 "category": "semantic_prior", "filename": map_filename}],
+        "map": [
+            {
+                "token": _token(seed, "map"),
+                "log_tokens": [lg["token"] for lg in logs],
+                "category": "semantic_prior",
+                "filename": map_filename,
+            }
+        ],
     }
 
 
@@ -406,9 +495,12 @@ def generate_world(
     """
     from flowmod import world_scene as ws
 
-    for name, v, lo in (("n_scenes", n_scenes, 1), ("n_keyframes", n_keyframes, 2),
-                        ("vehicles_per_scene", vehicles_per_scene, 1), ("n_sweep_scenes",
-                                                                        n_sweep_scenes, 0)):
+    for name, v, lo in (
+        ("n_scenes", n_scenes, 1),
+        ("n_keyframes", n_keyframes, 2),
+        ("vehicles_per_scene", vehicles_per_scene, 1),
+        ("n_sweep_scenes", n_sweep_scenes, 0),
+    ):
         if int(v) < lo:
             raise WorldError(f"{name}={v} must be >= {lo}")
     if n_sweep_scenes > n_scenes:
@@ -417,13 +509,24 @@ def generate_world(
     _check_dataroot(root, version)
     root.mkdir(parents=True, exist_ok=True)
     weathers, sweeps = ws.plan_weathers(n_scenes, n_sweep_scenes, seed)
-    args = [(str(root), int(seed), i, int(n_keyframes), int(vehicles_per_scene), weathers[i],
-             sweeps[i]) for i in range(n_scenes)]
+    args = [
+        (str(root), int(seed), i, int(n_keyframes), int(vehicles_per_scene), weathers[i], sweeps[i])
+        for i in range(n_scenes)
+    ]
     results = _run_jobs(args, n_jobs, progress)
 
     tables: dict[str, list] = {
-        n: [] for n in ("scene", "sample", "sample_data", "ego_pose", "sample_annotation",
-                        "instance", "calibrated_sensor")}
+        n: []
+        for n in (
+            "scene",
+            "sample",
+            "sample_data",
+            "ego_pose",
+            "sample_annotation",
+            "instance",
+            "calibrated_sensor",
+        )
+    }
     scenes = []
     for res in results:
         for n in tables:
@@ -433,11 +536,23 @@ def generate_world(
     tables.update(_static_tables(seed, n_scenes, map_filename))
     _write_map(root / map_filename)
 
-    params = {"n_scenes": int(n_scenes), "n_keyframes": int(n_keyframes),
-              "n_sweep_scenes": int(n_sweep_scenes), "vehicles_per_scene": int(vehicles_per_scene),
-              "seed": int(seed), "generator_version": GENERATOR_VERSION}
-    world = {"format": "flowmod-synth-world", "params": params, "version": version,
-             "image_size": [1600, 900], "channel": CHANNEL, "complete": True, "scenes": scenes}
+    params = {
+        "n_scenes": int(n_scenes),
+        "n_keyframes": int(n_keyframes),
+        "n_sweep_scenes": int(n_sweep_scenes),
+        "vehicles_per_scene": int(vehicles_per_scene),
+        "seed": int(seed),
+        "generator_version": GENERATOR_VERSION,
+    }
+    world = {
+        "format": "flowmod-synth-world",
+        "params": params,
+        "version": version,
+        "image_size": [1600, 900],
+        "channel": CHANNEL,
+        "complete": True,
+        "scenes": scenes,
+    }
     final = root / version
     tmp = root / f".{version}.partial-{os.getpid()}"
     if tmp.exists():
@@ -452,7 +567,9 @@ def generate_world(
             shutil.rmtree(tmp)
             raise WorldError(f"{final} exists and is not a synthetic world; not replacing it")
         try:
-            old_files = {r["filename"] for r in json.loads((final / "sample_data.json").read_text())}
+            old_files = {
+                r["filename"] for r in json.loads((final / "sample_data.json").read_text())
+            }
         except (OSError, ValueError):
             old_files = set()
         aside = root / f".{version}.old-{os.getpid()}"
@@ -492,7 +609,8 @@ def _run_jobs(args: list[tuple], n_jobs: int, progress: bool) -> list[dict]:
             from joblib import Parallel, delayed
 
             gen = Parallel(n_jobs=n_jobs, return_as="generator")(
-                delayed(_scene_job)(*a) for a in args)
+                delayed(_scene_job)(*a) for a in args
+            )
             for res in gen:
                 out.append(res)
                 bar.update(1)
@@ -523,15 +641,21 @@ def ensure_world(params: Any, *, progress: bool = True) -> Path:
     root = params.dataroot_path
     version = params.version
     vdir = root / version
-    sizes = {"n_scenes": params.world_scenes, "n_keyframes": params.world_keyframes,
-             "n_sweep_scenes": params.world_sweep_scenes,
-             "vehicles_per_scene": params.world_vehicles, "seed": params.seed}
+    sizes = {
+        "n_scenes": params.world_scenes,
+        "n_keyframes": params.world_keyframes,
+        "n_sweep_scenes": params.world_sweep_scenes,
+        "vehicles_per_scene": params.world_vehicles,
+        "seed": params.seed,
+    }
     if (vdir / "scene.json").is_file():
         if not is_synthetic(root, version):
             return root
         have = world_params(root, version)
-        same = all(have.get(k) == v for k, v in sizes.items()) and \
-            have.get("generator_version") == GENERATOR_VERSION
+        same = (
+            all(have.get(k) == v for k, v in sizes.items())
+            and have.get("generator_version") == GENERATOR_VERSION
+        )
         if same or not params.synthetic:
             return root
     elif not params.synthetic:
@@ -591,8 +715,9 @@ def scene_of(dataroot: str | os.PathLike[str], version: str, sd_token: str) -> t
     return sc, (ts - sc["t0_us"]) / 1e6
 
 
-def gt_flow(dataroot: str | os.PathLike[str], version: str, sd_token_1: str, sd_token_2: str
-            ) -> tuple[np.ndarray, np.ndarray]:
+def gt_flow(
+    dataroot: str | os.PathLike[str], version: str, sd_token_1: str, sd_token_2: str
+) -> tuple[np.ndarray, np.ndarray]:
     """Exact optical flow from frame 1 to frame 2 (any two CAM_FRONT frames of one scene).
 
     Returns ``flow`` (900, 1600, 2) float32, pixels (u right, v down), frame1 -> frame2, and
@@ -608,8 +733,10 @@ def gt_flow(dataroot: str | os.PathLike[str], version: str, sd_token_1: str, sd_
     s1, ts1 = world["_sd"][sd_token_1]
     s2, ts2 = world["_sd"][sd_token_2]
     if s1 != s2:
-        raise WorldError("gt_flow needs two frames of the same scene "
-                         f"({world['scenes'][s1]['name']} vs {world['scenes'][s2]['name']})")
+        raise WorldError(
+            "gt_flow needs two frames of the same scene "
+            f"({world['scenes'][s1]['name']} vs {world['scenes'][s2]['name']})"
+        )
     geo = _geometry(*key, s1)
     t0 = geo.scene["t0_us"]
     return flow_between(geo, (ts1 - t0) / 1e6, (ts2 - t0) / 1e6)
@@ -636,7 +763,7 @@ def flow_between(geo: Any, t1: float, t2: float) -> tuple[np.ndarray, np.ndarray
     def A(motion: np.ndarray) -> np.ndarray:
         return P2 @ T_2w @ motion @ T_w1
 
-    rays = wr.pixel_rays(K).astype(np.float64)
+    rays = wr.pixel_rays(K)
     rho = f1.invz.ravel().astype(np.float64)
     sid = f1.sid.ravel()
     a0 = A(np.eye(4))
@@ -672,8 +799,9 @@ def flow_between(geo: Any, t1: float, t2: float) -> tuple[np.ndarray, np.ndarray
     return flow.reshape(H, W, 2).astype(np.float32), valid.reshape(H, W)
 
 
-def true_velocity(dataroot: str | os.PathLike[str], version: str, instance_token: str,
-                  timestamp_us: int) -> np.ndarray:
+def true_velocity(
+    dataroot: str | os.PathLike[str], version: str, instance_token: str, timestamp_us: int
+) -> np.ndarray:
     """The world's exact instantaneous velocity of an instance: (3,) m/s, global frame."""
     from flowmod import world_scene as ws
 

@@ -74,17 +74,19 @@ def camera_pose(scene: dict, cam: Camera, t: float) -> tuple[np.ndarray, np.ndar
     return R_we @ cam.R_ce, p + R_we @ cam.t_ce
 
 
-@lru_cache(maxsize=8)
+@lru_cache(maxsize=2)
 def _pixel_rays(k_key: tuple) -> np.ndarray:
-    """K^-1 (u, v, 1) for every pixel, (3, H*W) float32, row-major pixel order."""
+    """K^-1 (u, v, 1) for every pixel, (3, H*W) float64, row-major pixel order."""
     K = np.array(k_key).reshape(3, 3)
     v, u = np.mgrid[0:H_IMG, 0:W_IMG].astype(np.float64)
     pts = np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
-    return (np.linalg.inv(K) @ pts).astype(np.float32)
+    out = np.linalg.inv(K) @ pts
+    out[2] = 1.0
+    return out
 
 
 def pixel_rays(K: np.ndarray) -> np.ndarray:
-    """Cached K^-1 (u, v, 1) of all pixels: (3, H*W) float32 (camera z component = 1)."""
+    """Cached K^-1 (u, v, 1) of all pixels: (3, H*W) float64 (camera z component = 1)."""
     return _pixel_rays(tuple(np.asarray(K, np.float64).ravel().tolist()))
 
 
@@ -175,13 +177,16 @@ def _rng(*seed: int) -> np.random.Generator:
     return np.random.default_rng([int(s) & 0x7FFFFFFF for s in seed])
 
 
-def _facade_factory(kind: str, seed: int, face: int, width_m: float, height_m: float,
-                    shop: bool) -> Callable[[], tuple[np.ndarray, None]]:
+def _facade_factory(
+    kind: str, seed: int, face: int, width_m: float, height_m: float, shop: bool
+) -> Callable[[], tuple[np.ndarray, None]]:
     """Texture factory of one building / backdrop face (generated on first use)."""
+
     def make() -> tuple[np.ndarray, None]:
         if kind == "building":
             return wt.facade(_rng(seed, face), width_m, height_m, shop), None
         return wt.backdrop(_rng(seed, face), width_m, height_m), None
+
     return make
 
 
@@ -207,14 +212,25 @@ class SceneGeometry:
         self.ground_tex = [
             Tex(lambda: (wt.asphalt(_rng(seed, 1), 1024, look["asphalt"]), None)),
             Tex(lambda: (wt.pavers(_rng(seed, 2)), None)),
-            Tex(lambda: (wt.grass(_rng(seed, 3)) if scene["layout"]["kind"] != "urban"
-                         else wt.pavers(_rng(seed, 4)), None)),
+            Tex(
+                lambda: (
+                    wt.grass(_rng(seed, 3))
+                    if scene["layout"]["kind"] != "urban"
+                    else wt.pavers(_rng(seed, 4)),
+                    None,
+                )
+            ),
         ]
         self._mod: np.ndarray | None = None
         self._clouds: np.ndarray | None = None
         sun_az, sun_el = look["sun_azimuth"], look["sun_elevation"]
-        self.sun = np.array([math.cos(sun_az) * math.cos(sun_el),
-                             math.sin(sun_az) * math.cos(sun_el), math.sin(sun_el)])
+        self.sun = np.array(
+            [
+                math.cos(sun_az) * math.cos(sun_el),
+                math.sin(sun_az) * math.cos(sun_el),
+                math.sin(sun_el),
+            ]
+        )
 
     # -- builders ------------------------------------------------------------------------
     def _static(self, j: int, o: dict) -> Obj:
@@ -227,7 +243,9 @@ class SceneGeometry:
             for i, (name, (p0, eu, ev)) in enumerate(box_faces(w, length, h, top=False).items()):
                 width_m = float(np.linalg.norm(eu))
                 shop = name in ("left", "right") and self.scene["layout"]["kind"] == "urban"
-                quads.append(Quad(p0, eu, ev, Tex(_facade_factory(kind, seed, i, width_m, h, shop))))
+                quads.append(
+                    Quad(p0, eu, ev, Tex(_facade_factory(kind, seed, i, width_m, h, shop)))
+                )
         elif kind == "tree":
             trunk_h = h * 0.45
             tw = max(0.18, h * 0.03)
@@ -241,8 +259,9 @@ class SceneGeometry:
             for ang in (0.0, math.pi / 2):
                 d = np.array([math.cos(ang), math.sin(ang), 0.0]) * cw
                 p0 = np.array([0.0, 0.0, z1]) - d / 2
-                quads.append(Quad(p0, d, np.array([0.0, 0.0, z0 - z1]), crown, double=True,
-                                  alpha=True))
+                quads.append(
+                    Quad(p0, d, np.array([0.0, 0.0, z0 - z1]), crown, double=True, alpha=True)
+                )
         elif kind == "pole":
             tex = Tex(lambda s=seed: (wt.metal(_rng(s, 0)), None))
             for _name, (p0, eu, ev) in box_faces(w, length, h, top=False).items():
@@ -252,11 +271,21 @@ class SceneGeometry:
             for i, (_name, (p0, eu, ev)) in enumerate(box_faces(w, length, h, top=True).items()):
                 wpx = max(int(np.linalg.norm(eu) / 0.05), 4)
                 hpx = max(int(np.linalg.norm(ev) / 0.05), 4)
-                tex = Tex(lambda s=seed, i=i, a=wpx, b=hpx, wall=(kind == "wall"):
-                          (wt.hedge(_rng(s, i), a, b, wall), None))
+                tex = Tex(
+                    lambda s=seed, i=i, a=wpx, b=hpx, wall=(kind == "wall"): (
+                        wt.hedge(_rng(s, i), a, b, wall),
+                        None,
+                    )
+                )
                 quads.append(Quad(p0, eu, ev, tex))
-        return Obj(quads, SID_STATIC0 + j, float(0.5 * math.sqrt(w * w + length * length + h * h)),
-                   center=np.array(o["c"], float), yaw=float(o["yaw"]), lights=lights)
+        return Obj(
+            quads,
+            SID_STATIC0 + j,
+            float(0.5 * math.sqrt(w * w + length * length + h * h)),
+            center=np.array(o["c"], float),
+            yaw=float(o["yaw"]),
+            lights=lights,
+        )
 
     def _agent(self, i: int, a: dict) -> Obj:
         w, length, h = a["size"]
@@ -273,8 +302,9 @@ class SceneGeometry:
 
             for name, (p0, eu, ev) in faces.items():
                 key = {"left": "side", "right": "side"}.get(name, name)
-                quads.append(Quad(p0, eu, ev, Tex(lambda k=key: ped(k)), alpha=True,
-                                  flip=(name == "left")))
+                quads.append(
+                    Quad(p0, eu, ev, Tex(lambda k=key: ped(k)), alpha=True, flip=(name == "left"))
+                )
             lights = []
         else:
             cache = {}
@@ -294,8 +324,13 @@ class SceneGeometry:
                 (np.array([-length / 2 - 0.02, 0.39 * w, zl]), (20, 20, 200), 0.08),
                 (np.array([-length / 2 - 0.02, -0.39 * w, zl]), (20, 20, 200), 0.08),
             ]
-        return Obj(quads, SID_AGENT0 + i, float(0.5 * math.sqrt(w * w + length * length + h * h)),
-                   agent=a, lights=lights)
+        return Obj(
+            quads,
+            SID_AGENT0 + i,
+            float(0.5 * math.sqrt(w * w + length * length + h * h)),
+            agent=a,
+            lights=lights,
+        )
 
     # -- per-time poses ------------------------------------------------------------------
     def agent_pose(self, i: int, t: float) -> tuple[np.ndarray, np.ndarray]:
@@ -364,8 +399,13 @@ def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray, wrap: bool) -> np.nda
     mu = np.zeros(rows * cols, np.float32)
     mv = np.zeros(rows * cols, np.float32)
     mu[:n], mv[:n] = u, v
-    out = cv2.remap(img, mu.reshape(rows, cols), mv.reshape(rows, cols), cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_WRAP if wrap else cv2.BORDER_REPLICATE)
+    out = cv2.remap(
+        img,
+        mu.reshape(rows, cols),
+        mv.reshape(rows, cols),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_WRAP if wrap else cv2.BORDER_REPLICATE,
+    )
     return out.reshape(rows * cols, -1)[:n]
 
 
@@ -381,11 +421,20 @@ def _shade(normal_w: np.ndarray, sun: np.ndarray, look: dict) -> float:
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+    return np.array(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
 
 
-def draw_quad(fr: Frame, corners_w: np.ndarray, q: Quad, sid: int, shade: float,
-              textured: bool, normal_w: np.ndarray | None = None) -> None:
+def draw_quad(
+    fr: Frame,
+    corners_w: np.ndarray,
+    q: Quad,
+    sid: int,
+    shade: float,
+    textured: bool,
+    normal_w: np.ndarray | None = None,
+) -> None:
     """Draw one quad given its world corners (4, 3) [p0, p1, p2, p3] with the z-test.
 
     ``normal_w``: the outward normal (ev x eu), computed if not given.
@@ -419,8 +468,9 @@ def draw_quad(fr: Frame, corners_w: np.ndarray, q: Quad, sid: int, shade: float,
     if abs(d) < 1e-12:
         return
     g = _kinv(K).T @ n_c / d
-    iz = (np.float32(g[0]) * _US[x0:x1])[None, :] + (np.float32(g[1]) * _VS[y0:y1]
-                                                      + np.float32(g[2]))[:, None]
+    iz = (np.float32(g[0]) * _US[x0:x1])[None, :] + (
+        np.float32(g[1]) * _VS[y0:y1] + np.float32(g[2])
+    )[:, None]
     mask = np.zeros((h, w), np.uint8)
     pts = np.round((uv - [x0, y0]) * 16).astype(np.int32)
     cv2.fillConvexPoly(mask, pts, 1, cv2.LINE_8, 4)
@@ -438,8 +488,9 @@ def draw_quad(fr: Frame, corners_w: np.ndarray, q: Quad, sid: int, shade: float,
         zref = math.sqrt(float(zs.min()) * float(zs.max()))
         du = math.sqrt(math.sqrt(float(eu_w @ eu_w)) / tw_ * math.sqrt(float(ev_w @ ev_w)) / th)
         texel_px = du * K[0, 0] / zref
-        lvl = int(min(max(math.floor(math.log2(max(1.0 / max(texel_px, 1e-9), 1.0))), 0),
-                      len(ref) - 1))
+        lvl = int(
+            min(max(math.floor(math.log2(max(1.0 / max(texel_px, 1e-9), 1.0))), 0), len(ref) - 1)
+        )
 
         def warp(src: np.ndarray, interp: int) -> np.ndarray:
             sh, sw = src.shape[:2]
@@ -452,9 +503,13 @@ def draw_quad(fr: Frame, corners_w: np.ndarray, q: Quad, sid: int, shade: float,
             Hm = K @ R_cw @ np.column_stack([eu, ev, p0 - fr.c])
             Hm[0] -= x0 * Hm[2]
             Hm[1] -= y0 * Hm[2]
-            return cv2.warpPerspective(src, Hm, (w, h), flags=interp,
-                                       borderMode=cv2.BORDER_WRAP if q.wrap
-                                       else cv2.BORDER_REPLICATE)
+            return cv2.warpPerspective(
+                src,
+                Hm,
+                (w, h),
+                flags=interp,
+                borderMode=cv2.BORDER_WRAP if q.wrap else cv2.BORDER_REPLICATE,
+            )
 
         if alphas is not None:
             a = warp(alphas[min(lvl, len(alphas) - 1)], cv2.INTER_LINEAR)
@@ -507,17 +562,25 @@ def _aa_band(x: np.ndarray, lo: float, hi: float, fp: np.ndarray) -> np.ndarray:
     return np.clip((hw - np.abs(x - c)) / fp + 0.5, 0.0, 1.0)
 
 
-def _aa_stripes(x: np.ndarray, period: float, width: float, fp: np.ndarray,
-                phase: float = 0.0) -> np.ndarray:
+def _aa_stripes(
+    x: np.ndarray, period: float, width: float, fp: np.ndarray, phase: float = 0.0
+) -> np.ndarray:
     """Anti-aliased stripes of ``width`` every ``period`` (m), centred at phase + k * period."""
     y = (x - phase) * (1.0 / period)
     r = (y - np.floor(y + 0.5)) * period
     return np.clip((width / 2 - np.abs(r)) / fp + 0.5, 0.0, 1.0)
 
 
-def _paint_line(alpha: np.ndarray, across: np.ndarray, fp: np.ndarray, pos: float, hw: float,
-                along: np.ndarray | None = None, dash: tuple | None = None,
-                where: np.ndarray | None = None) -> None:
+def _paint_line(
+    alpha: np.ndarray,
+    across: np.ndarray,
+    fp: np.ndarray,
+    pos: float,
+    hw: float,
+    along: np.ndarray | None = None,
+    dash: tuple | None = None,
+    where: np.ndarray | None = None,
+) -> None:
     """max-composite a (dashed) line at across = pos, half width hw (m), into ``alpha``."""
     cand = np.abs(across - pos) < hw + fp
     if where is not None:
@@ -558,8 +621,9 @@ def _road_paint(geo: SceneGeometry, coords: list, fp: np.ndarray):
             if cw.size:
                 white[cw] = np.maximum(white[cw], _aa_stripes(across[cw], 1.1, 0.55, fp[cw]))
             # stop lines
-            st = np.flatnonzero((np.abs(arel - (k_o + 4.2)) < 0.2 + fp) & (acr <= r["inner"])
-                                & (rel * across > 0))
+            st = np.flatnonzero(
+                (np.abs(arel - (k_o + 4.2)) < 0.2 + fp) & (acr <= r["inner"]) & (rel * across > 0)
+            )
             if st.size:
                 white[st] = np.maximum(white[st], _aa_band(arel[st], k_o + 4.0, k_o + 4.4, fp[st]))
         if r["center"] == "double_yellow":
@@ -575,8 +639,9 @@ def _road_paint(geo: SceneGeometry, coords: list, fp: np.ndarray):
             sa = sgn * across
             if r["park"][side]:
                 mid = r["inner"] + r["park_w"] / 2
-                _paint_line(white, sa, fp, mid, r["park_w"] / 2, along, (6.0, 0.12, 0.7),
-                            where=free)
+                _paint_line(
+                    white, sa, fp, mid, r["park_w"] / 2, along, (6.0, 0.12, 0.7), where=free
+                )
             kb = r["kerb"][side]
             _paint_line(kerb, sa, fp, kb + 0.09, 0.09, where=free)
     return white, yellow, kerb
@@ -623,8 +688,9 @@ def _shade_background(geo: SceneGeometry, fr: Frame) -> None:
             region[(acr >= -r["walk"][0]) & (acr <= r["walk"][1]) & (region == 2)] = 1
         for r, (_, acr) in zip(geo.roads, coords, strict=True):
             region[(acr >= -r["kerb"][0]) & (acr <= r["kerb"][1])] = 0
-        level = np.floor(np.log2(np.maximum(fp * np.float32(1.0 / wt.GROUND_RES), 1.0))
-                         ).astype(np.int8)
+        level = np.floor(np.log2(np.maximum(fp * np.float32(1.0 / wt.GROUND_RES), 1.0))).astype(
+            np.int8
+        )
         col = np.empty((gi.size, 3), np.uint8)
         for m_id, tex in enumerate(geo.ground_tiles()):
             sel_m = region == m_id
@@ -640,15 +706,23 @@ def _shade_background(geo: SceneGeometry, fr: Frame) -> None:
             for k in np.unique(lv_m):
                 sel = np.flatnonzero(lv_m == k)
                 s = np.float32(2.0**-k)
-                col[idx_m[sel]] = _sample(levels[k], (u0[sel] + 0.5) * s - 0.5,
-                                          (v0[sel] + 0.5) * s - 0.5, True)
+                col[idx_m[sel]] = _sample(
+                    levels[k], (u0[sel] + 0.5) * s - 0.5, (v0[sel] + 0.5) * s - 0.5, True
+                )
         colf = col.astype(np.float32)
-        mval = _sample(geo.modulation_field(), np.mod(gx * np.float32(1.25), 256),
-                       np.mod(gy * np.float32(1.25), 256), True)[:, 0]
+        mval = _sample(
+            geo.modulation_field(),
+            np.mod(gx * np.float32(1.25), 256),
+            np.mod(gy * np.float32(1.25), 256),
+            True,
+        )[:, 0]
         colf *= (1.0 + 0.12 * mval)[:, None]
         white, yellow, kerb = _road_paint(geo, coords, fp)
-        for alpha, paint in ((white * 0.85, (222, 226, 228)), (yellow, (40, 165, 210)),
-                             (kerb, (170, 172, 175))):
+        for alpha, paint in (
+            (white * 0.85, (222, 226, 228)),
+            (yellow, (40, 165, 210)),
+            (kerb, (170, 172, 175)),
+        ):
             idx = np.flatnonzero(alpha > 0)
             if idx.size:
                 colf[idx] += alpha[idx, None] * (np.array(paint, np.float32) - colf[idx])
@@ -673,8 +747,9 @@ def _shade_background(geo: SceneGeometry, fr: Frame) -> None:
         cv = np.mod(187.5 * dy / dzc, 512)
         dens = _sample(geo.cloud_field(), cu, cv, True)[:, 0] * np.float32(cloudiness)
         dens *= np.clip(e * 6.0, 0, 1)
-        cloud_col = np.array([235, 235, 235] if look["weather"] != "night" else [50, 45, 40],
-                             np.float32)
+        cloud_col = np.array(
+            [235, 235, 235] if look["weather"] != "night" else [50, 45, 40], np.float32
+        )
         col += dens[:, None] * (cloud_col - col)
         img[si] = np.clip(col, 0, 255).astype(np.uint8)
 
@@ -689,8 +764,9 @@ def _yaw_matrix(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _visible_sphere(center: np.ndarray, radius: float, R_wc: np.ndarray, c: np.ndarray,
-                    K: np.ndarray) -> bool:
+def _visible_sphere(
+    center: np.ndarray, radius: float, R_wc: np.ndarray, c: np.ndarray, K: np.ndarray
+) -> bool:
     """Bounding sphere (scene frame) intersects the view frustum (near plane and 4 sides)."""
     p = (center - c) @ R_wc
     if p[2] + radius < Z_NEAR:
@@ -704,12 +780,14 @@ def _visible_sphere(center: np.ndarray, radius: float, R_wc: np.ndarray, c: np.n
 @lru_cache(maxsize=8)
 def _frustum_normals(k_key: tuple) -> np.ndarray:
     K = np.array(k_key).reshape(3, 3)
-    planes = np.array([
-        (1.0, 0.0, -(W_IMG + 2 - K[0, 2]) / K[0, 0]),
-        (-1.0, 0.0, -(K[0, 2] + 2) / K[0, 0]),
-        (0.0, 1.0, -(H_IMG + 2 - K[1, 2]) / K[1, 1]),
-        (0.0, -1.0, -(K[1, 2] + 2) / K[1, 1]),
-    ])
+    planes = np.array(
+        [
+            (1.0, 0.0, -(W_IMG + 2 - K[0, 2]) / K[0, 0]),
+            (-1.0, 0.0, -(K[0, 2] + 2) / K[0, 0]),
+            (0.0, 1.0, -(H_IMG + 2 - K[1, 2]) / K[1, 1]),
+            (0.0, -1.0, -(K[1, 2] + 2) / K[1, 1]),
+        ]
+    )
     return planes / np.linalg.norm(planes, axis=1, keepdims=True)
 
 
@@ -741,7 +819,9 @@ def render(geo: SceneGeometry, t: float, textured: bool = True) -> Frame:
         img=np.empty((H_IMG, W_IMG, 3), np.uint8) if textured else None,
         invz=np.empty((H_IMG, W_IMG), np.float32),
         sid=np.empty((H_IMG, W_IMG), np.uint16),
-        R_wc=R_wc, c=c, K=cam.K,
+        R_wc=R_wc,
+        c=c,
+        K=cam.K,
     )
     _ground_depth(fr)
     posed: list[tuple[Obj, np.ndarray | None, np.ndarray]] = []
@@ -783,8 +863,14 @@ def _contact_shadows(fr: Frame, posed) -> None:
         if not _visible_sphere(np.array([ctr[0], ctr[1], 0.0]), obj.radius, fr.R_wc, fr.c, fr.K):
             continue
         w, length, _ = a["size"]
-        fpts = np.array([[length / 2 + 0.2, w / 2 + 0.25, 0], [-length / 2 - 0.2, w / 2 + 0.25, 0],
-                         [-length / 2 - 0.2, -w / 2 - 0.25, 0], [length / 2 + 0.2, -w / 2 - 0.25, 0]])
+        fpts = np.array(
+            [
+                [length / 2 + 0.2, w / 2 + 0.25, 0],
+                [-length / 2 - 0.2, w / 2 + 0.25, 0],
+                [-length / 2 - 0.2, -w / 2 - 0.25, 0],
+                [length / 2 + 0.2, -w / 2 - 0.25, 0],
+            ]
+        )
         world = fpts @ R.T + np.array([ctr[0], ctr[1], 0.01])
         Xc = (world - fr.c) @ fr.R_wc
         if Xc[:, 2].max() < Z_NEAR:
@@ -801,8 +887,9 @@ def _contact_shadows(fr: Frame, posed) -> None:
         if x1 <= x0 or y1 <= y0:
             continue
         mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
-        cv2.fillConvexPoly(mask, np.round((uv - [x0, y0]) * 16).astype(np.int32), 255,
-                           cv2.LINE_AA, 4)
+        cv2.fillConvexPoly(
+            mask, np.round((uv - [x0, y0]) * 16).astype(np.int32), 255, cv2.LINE_AA, 4
+        )
         mask = (mask.astype(np.float32) / 255.0) * (fr.sid[y0:y1, x0:x1] == SID_GROUND)
         roi = fr.img[y0:y1, x0:x1]
         roi[:] = (roi * (1.0 - 0.45 * mask[..., None])).astype(np.uint8)
@@ -849,8 +936,8 @@ def finish(fr: Frame, look: dict, frame_seed: tuple[int, ...], exposure: float) 
     sigma = look["noise"] * (2.2 if weather == "night" else 1.0)
     o1 = rng.integers(0, 96, 2)
     o2 = rng.integers(0, 96, 2)
-    n1 = _noise_bank(0)[o1[0]:o1[0] + H_IMG, o1[1]:o1[1] + W_IMG]
-    n2 = _noise_bank(1)[o2[0]:o2[0] + H_IMG, o2[1]:o2[1] + W_IMG]
+    n1 = _noise_bank(0)[o1[0] : o1[0] + H_IMG, o1[1] : o1[1] + W_IMG]
+    n2 = _noise_bank(1)[o2[0] : o2[0] + H_IMG, o2[1] : o2[1] + W_IMG]
     f += np.float32(sigma * 0.8) * n1
     f += np.float32(sigma * 0.6) * n2
     return np.clip(f, 0, 255).astype(np.uint8)
@@ -887,8 +974,14 @@ def _rain(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     ln = rng.uniform(15, 60, n)
     ang = rng.normal(1.45, 0.05, n)
     for x, y, L_, a in zip(xs, ys, ln, ang, strict=True):
-        cv2.line(layer, (int(x), int(y)), (int(x + L_ * math.cos(a)), int(y + L_ * math.sin(a))),
-                 int(rng.integers(40, 90)), 1, cv2.LINE_AA)
+        cv2.line(
+            layer,
+            (int(x), int(y)),
+            (int(x + L_ * math.cos(a)), int(y + L_ * math.sin(a))),
+            int(rng.integers(40, 90)),
+            1,
+            cv2.LINE_AA,
+        )
     out = cv2.add(out, cv2.cvtColor(cv2.GaussianBlur(layer, (0, 0), 0.8), cv2.COLOR_GRAY2BGR))
     for _ in range(int(rng.integers(3, 10))):
         x, y = int(rng.uniform(40, W_IMG - 40)), int(rng.uniform(40, H_IMG - 40))

@@ -109,16 +109,27 @@ def distant_objects(
                     dt = (t2 - t1) / 1e6
                     v = (np.array(a2["translation"]) - np.array(a1["translation"])) / dt
                     speed = float(np.linalg.norm(v))
-                    rows.append({
-                        "scene": scene["name"], "pair": k - 1,
-                        "sd_token_1": sd1["token"], "sd_token_2": sd2["token"],
-                        "timestamp_1": sd1["timestamp"], "timestamp_2": sd2["timestamp"],
-                        "instance_token": inst, "ann_token_1": a1["token"],
-                        "ann_token_2": a2["token"], "category": a1["category_name"],
-                        "distance": d1, "xmin": float(uv1[0].min()), "ymin": float(uv1[1].min()),
-                        "xmax": float(uv1[0].max()), "ymax": float(uv1[1].max()),
-                        "speed": speed, "label": int(speed >= speed_threshold),
-                    })
+                    rows.append(
+                        {
+                            "scene": scene["name"],
+                            "pair": k - 1,
+                            "sd_token_1": sd1["token"],
+                            "sd_token_2": sd2["token"],
+                            "timestamp_1": sd1["timestamp"],
+                            "timestamp_2": sd2["timestamp"],
+                            "instance_token": inst,
+                            "ann_token_1": a1["token"],
+                            "ann_token_2": a2["token"],
+                            "category": a1["category_name"],
+                            "distance": d1,
+                            "xmin": float(uv1[0].min()),
+                            "ymin": float(uv1[1].min()),
+                            "xmax": float(uv1[0].max()),
+                            "ymax": float(uv1[1].max()),
+                            "speed": speed,
+                            "label": int(speed >= speed_threshold),
+                        }
+                    )
             qual_prev = qual
             tok = sample["next"]
             k += 1
@@ -144,8 +155,9 @@ def best_f1(scores: np.ndarray, labels: np.ndarray) -> tuple[float, float]:
     return float(f1[i]), float(t)
 
 
-def _box_scores(flow: np.ndarray, valid: np.ndarray, box: tuple[float, float, float, float]
-                ) -> tuple[float, float]:
+def _box_scores(
+    flow: np.ndarray, valid: np.ndarray, box: tuple[float, float, float, float]
+) -> tuple[float, float]:
     """(mean |flow| in the box, |mean flow in box - median flow of the surrounding ring|)."""
     H, W = valid.shape
     x0, y0, x1, y1 = box
@@ -162,7 +174,7 @@ def _box_scores(flow: np.ndarray, valid: np.ndarray, box: tuple[float, float, fl
     ra, rb = max(int(cx - half), 0), min(int(cx + half) + 1, W)
     rc, rd = max(int(cy - half), 0), min(int(cy + half) + 1, H)
     ring = np.ones((rd - rc, rb - ra), bool)
-    ring[max(ya - rc, 0):max(yb - rc, 0), max(xa - ra, 0):max(xb - ra, 0)] = False
+    ring[max(ya - rc, 0) : max(yb - rc, 0), max(xa - ra, 0) : max(xb - ra, 0)] = False
     ring &= valid[rc:rd, ra:rb]
     if ring.sum() >= 4:
         bg = np.median(flow[rc:rd, ra:rb][ring], axis=0)
@@ -184,8 +196,9 @@ def _scene_scores(dataroot: str, version: str, rows: list[dict]) -> list[dict]:
         for r in objs:
             raw, rel = _box_scores(flow, valid, (r["xmin"], r["ymin"], r["xmax"], r["ymax"]))
             v = true_velocity(dataroot, version, r["instance_token"], r["timestamp_1"])
-            out.append({**r, "score_raw": raw, "score_rel": rel,
-                        "true_speed": float(np.linalg.norm(v))})
+            out.append(
+                {**r, "score_raw": raw, "score_rel": rel, "true_speed": float(np.linalg.norm(v))}
+            )
     return out
 
 
@@ -214,8 +227,11 @@ def naive_rule_report(
 
     nusc = None if objects is not None else _nusc(nusc_or_dataroot, version)
     if dataroot is None:
-        dataroot = nusc_or_dataroot if isinstance(nusc_or_dataroot, (str, os.PathLike)) \
+        dataroot = (
+            nusc_or_dataroot
+            if isinstance(nusc_or_dataroot, (str, os.PathLike))
             else nusc_or_dataroot.dataroot
+        )
     dataroot = str(dataroot)
     if objects is None:
         objects = distant_objects(nusc, version, speed_threshold=speed_threshold)
@@ -229,15 +245,19 @@ def naive_rule_report(
             objs = objs[objs["sd_token_1"].isin(set(keep))]
     groups = [g.to_dict("records") for _, g in objs.groupby("scene", sort=True)]
     if n_jobs > 1 and len(groups) > 1:
-        parts = Parallel(n_jobs=n_jobs)(delayed(_scene_scores)(dataroot, version, g)
-                                        for g in groups)
+        parts = Parallel(n_jobs=n_jobs)(
+            delayed(_scene_scores)(dataroot, version, g) for g in groups
+        )
     else:
         parts = [_scene_scores(dataroot, version, g) for g in groups]
     table = pd.DataFrame([r for p in parts for r in p])
     table["true_label"] = (table["true_speed"] >= speed_threshold).astype(int)
-    out: dict[str, Any] = {"n_objects": int(len(table)), "n_pairs": int(table["sd_token_1"].nunique()),
-                           "n_scenes": int(table["scene"].nunique()),
-                           "moving_share": float(table["true_label"].mean())}
+    out: dict[str, Any] = {
+        "n_objects": int(len(table)),
+        "n_pairs": int(table["sd_token_1"].nunique()),
+        "n_scenes": int(table["scene"].nunique()),
+        "moving_share": float(table["true_label"].mean()),
+    }
     for lab in ("true_label", "label"):
         for sc in ("raw", "rel"):
             f1, t = best_f1(table[f"score_{sc}"].to_numpy(), table[lab].to_numpy())
@@ -249,8 +269,9 @@ def naive_rule_report(
     return out
 
 
-def annotation_table(nusc_or_dataroot: Any, version: str = "v1.0-synth",
-                     speed_threshold: float = 2.0) -> pd.DataFrame:
+def annotation_table(
+    nusc_or_dataroot: Any, version: str = "v1.0-synth", speed_threshold: float = 2.0
+) -> pd.DataFrame:
     """One row per keyframe annotation with any corner in the CAM_FRONT image.
 
     Columns: scene, usable (not night/rain), category, distance (m), visibility, speed (m/s,
@@ -276,29 +297,43 @@ def annotation_table(nusc_or_dataroot: Any, version: str = "v1.0-synth",
                 v = nusc.box_velocity(ann_token)
                 speed = float(np.linalg.norm(v[:2])) if np.all(np.isfinite(v)) else float("nan")
                 attrs = [nusc.get("attribute", a)["name"] for a in ann["attribute_tokens"]]
-                rows.append({
-                    "scene": scene["name"], "usable": ok, "category": ann["category_name"],
-                    "distance": float(np.linalg.norm(np.array(ann["translation"]) - ego)),
-                    "visibility": ann["visibility_token"], "speed": speed,
-                    "label": int(speed >= speed_threshold) if np.isfinite(speed) else -1,
-                    "attribute": attrs[0] if attrs else "",
-                })
+                rows.append(
+                    {
+                        "scene": scene["name"],
+                        "usable": ok,
+                        "category": ann["category_name"],
+                        "distance": float(np.linalg.norm(np.array(ann["translation"]) - ego)),
+                        "visibility": ann["visibility_token"],
+                        "speed": speed,
+                        "label": int(speed >= speed_threshold) if np.isfinite(speed) else -1,
+                        "attribute": attrs[0] if attrs else "",
+                    }
+                )
             tok = sample["next"]
     return pd.DataFrame(rows)
 
 
-def counts_table(annotations: pd.DataFrame,
-                 bins: tuple[float, ...] = (0, 30, 70, 1000)) -> pd.DataFrame:
+def counts_table(
+    annotations: pd.DataFrame, bins: tuple[float, ...] = (0, 30, 70, 1000)
+) -> pd.DataFrame:
     """Counts of in-view annotations by category x distance bin, with the moving share.
 
     ``annotations``: from :func:`annotation_table`.
     """
     a = annotations.copy()
-    labels = [f"{int(lo)}-{int(hi)} m" if hi < 1000 else f">{int(lo)} m"
-              for lo, hi in zip(bins[:-1], bins[1:], strict=True)]
+    labels = [
+        f"{int(lo)}-{int(hi)} m" if hi < 1000 else f">{int(lo)} m"
+        for lo, hi in zip(bins[:-1], bins[1:], strict=True)
+    ]
     a["distance_bin"] = pd.cut(a["distance"], bins=list(bins), labels=labels, right=False)
-    t = a.pivot_table(index="category", columns="distance_bin", values="scene", aggfunc="count",
-                      fill_value=0, observed=False)
+    t = a.pivot_table(
+        index="category",
+        columns="distance_bin",
+        values="scene",
+        aggfunc="count",
+        fill_value=0,
+        observed=False,
+    )
     t["total"] = t.sum(axis=1)
     known = a[a["label"] >= 0]
     t["moving %"] = (100 * known.groupby("category")["label"].mean()).round(1)
@@ -311,7 +346,7 @@ def flow_to_color(flow: np.ndarray, max_mag: float | None = None) -> np.ndarray:
 
     mag = np.linalg.norm(flow, axis=2)
     ang = np.arctan2(flow[..., 1], flow[..., 0])
-    scale = max_mag if max_mag else max(float(np.percentile(mag, 99)), 1e-6)
+    scale = max_mag if max_mag else max(float(np.percentile(mag, 99)), 1.0)
     hsv = np.zeros(flow.shape[:2] + (3,), np.uint8)
     hsv[..., 0] = ((ang + np.pi) / (2 * np.pi) * 179).astype(np.uint8)
     hsv[..., 1] = np.clip(mag / scale * 255, 0, 255).astype(np.uint8)
@@ -319,8 +354,13 @@ def flow_to_color(flow: np.ndarray, max_mag: float | None = None) -> np.ndarray:
     return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
 
 
-def gt_flow_figure(dataroot: str | os.PathLike[str], version: str, sd_token_1: str,
-                   sd_token_2: str, boxes: pd.DataFrame | None = None):
+def gt_flow_figure(
+    dataroot: str | os.PathLike[str],
+    version: str,
+    sd_token_1: str,
+    sd_token_2: str,
+    boxes: pd.DataFrame | None = None,
+):
     """A 2x2 matplotlib figure: frame 1, frame 2, GT flow (colour), valid mask.
 
     ``boxes``: optional rows with xmin, ymin, xmax, ymax (px) and label to draw on frame 1.
@@ -331,11 +371,16 @@ def gt_flow_figure(dataroot: str | os.PathLike[str], version: str, sd_token_1: s
 
     from flowmod.world import gt_flow
 
-    sd = {r["token"]: r for r in json.loads(
-        (Path(dataroot) / version / "sample_data.json").read_text())}
+    sd = {
+        r["token"]: r
+        for r in json.loads((Path(dataroot) / version / "sample_data.json").read_text())
+    }
     flow, valid = gt_flow(dataroot, version, sd_token_1, sd_token_2)
     fig, axes = plt.subplots(2, 2, figsize=(12, 7))
-    for ax, tok, title in ((axes[0, 0], sd_token_1, "frame 1"), (axes[0, 1], sd_token_2, "frame 2")):
+    for ax, tok, title in (
+        (axes[0, 0], sd_token_1, "frame 1"),
+        (axes[0, 1], sd_token_2, "frame 2"),
+    ):
         ax.imshow(Image.open(Path(dataroot) / sd[tok]["filename"]))
         ax.set_title(f"{title}  t = {sd[tok]['timestamp']} us")
     axes[1, 0].imshow(flow_to_color(flow))
@@ -346,8 +391,16 @@ def gt_flow_figure(dataroot: str | os.PathLike[str], version: str, sd_token_1: s
     if boxes is not None:
         for _, b in boxes.iterrows():
             col = "red" if b.get("label", 0) == 1 else "deepskyblue"
-            axes[0, 0].add_patch(Rectangle((b["xmin"], b["ymin"]), b["xmax"] - b["xmin"],
-                                           b["ymax"] - b["ymin"], fill=False, color=col, lw=1.5))
+            axes[0, 0].add_patch(
+                Rectangle(
+                    (b["xmin"], b["ymin"]),
+                    b["xmax"] - b["xmin"],
+                    b["ymax"] - b["ymin"],
+                    fill=False,
+                    color=col,
+                    lw=1.5,
+                )
+            )
     for ax in axes.ravel():
         ax.axis("off")
     fig.tight_layout()

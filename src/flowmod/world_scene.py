@@ -72,9 +72,17 @@ PARKED_WEIGHTS = {
 }
 
 #: Table 1 of the paper (the categories the motion task is about).
-TARGET_CATEGORIES = frozenset({
-    "vehicle.car", "vehicle.emergency.ambulance", "vehicle.emergency.police", "vehicle.truck",
-    "vehicle.bus.bendy", "vehicle.bus.rigid", "vehicle.construction"})
+TARGET_CATEGORIES = frozenset(
+    {
+        "vehicle.car",
+        "vehicle.emergency.ambulance",
+        "vehicle.emergency.police",
+        "vehicle.truck",
+        "vehicle.bus.bendy",
+        "vehicle.bus.rigid",
+        "vehicle.construction",
+    }
+)
 
 NEAR_ZERO_SPEED = 0.2  # m/s, below this an agent counts as standing (for attributes)
 
@@ -152,8 +160,10 @@ def _antiderivative(profile: dict, t: np.ndarray) -> np.ndarray:
 def arc_length(traj: dict, t: np.ndarray | float) -> np.ndarray:
     """Arc length (m) along the path at scene time ``t`` (s)."""
     t = np.asarray(t, dtype=np.float64)
-    return float(traj["s0"]) + _antiderivative(traj["speed"], t) - _antiderivative(
-        traj["speed"], np.zeros(())
+    return (
+        float(traj["s0"])
+        + _antiderivative(traj["speed"], t)
+        - _antiderivative(traj["speed"], np.zeros(()))
     )
 
 
@@ -237,8 +247,13 @@ def road_point(road: dict, along: float, across: float) -> tuple[float, float]:
 # --------------------------------------------------------------------------------------------
 
 
-def _footprints(traj: dict, size: tuple[float, float, float], times: np.ndarray, margin: float,
-                margin_l: float | None = None):
+def _footprints(
+    traj: dict,
+    size: tuple[float, float, float],
+    times: np.ndarray,
+    margin: float,
+    margin_l: float | None = None,
+):
     """Oriented rectangles over time: (x, y, heading, half length, half width); margins in m."""
     st = traj_state(traj, times)
     hl = size[1] / 2 + (margin if margin_l is None else margin_l)
@@ -302,7 +317,9 @@ def _moving_profile(rng: np.random.Generator, duration: float, vmax: float = 14.
         return _profile_const(rng.uniform(0.6, 3.6))
     t0 = rng.uniform(-1.0, max(duration - 1.5, 0.5))
     if kind == "accel":
-        return _profile_ramp(t0, rng.uniform(0.0, 1.4), rng.uniform(3.0, 9.0), rng.uniform(0.8, 2.2))
+        return _profile_ramp(
+            t0, rng.uniform(0.0, 1.4), rng.uniform(3.0, 9.0), rng.uniform(0.8, 2.2)
+        )
     return _profile_ramp(t0, rng.uniform(3.0, 9.0), rng.uniform(0.0, 1.2), rng.uniform(0.8, 2.5))
 
 
@@ -320,7 +337,9 @@ def _ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cros
 
     options = {"cruise": 0.3, "stop_and_go": 0.1, "follow": 0.1}
     if cross_x is not None:
-        options.update({"wait": 0.14, "brake": 0.12, "go": 0.1, "turn_left": 0.07, "turn_right": 0.07})
+        options.update(
+            {"wait": 0.14, "brake": 0.12, "go": 0.1, "turn_left": 0.07, "turn_right": 0.07}
+        )
     kind = _choice(rng, options)
     if kind == "turn_left":
         lane = 0
@@ -339,11 +358,15 @@ def _ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cros
         ts = np.sort(rng.uniform(-0.5, duration + 0.5, n))
         vs = rng.uniform(0.0, 7.0, n)
         vs[::2] = rng.uniform(0.0, 1.5, len(vs[::2]))
-        return kind, lane, {
-            "path": _straight(0.0, y, 0.0),
-            "s0": 0.0,
-            "speed": {"t": [float(a) for a in ts], "v": [float(a) for a in vs]},
-        }
+        return (
+            kind,
+            lane,
+            {
+                "path": _straight(0.0, y, 0.0),
+                "s0": 0.0,
+                "speed": {"t": [float(a) for a in ts], "v": [float(a) for a in vs]},
+            },
+        )
     if kind == "wait":
         t_go = rng.uniform(duration * 0.7, duration + 8.0)
         prof = _profile_ramp(t_go, 0.0, rng.uniform(6, 10), rng.uniform(1.5, 2.5))
@@ -394,7 +417,7 @@ def _ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cros
     return kind, lane, {"path": path, "s0": 0.0, "speed": prof}
 
 
-def _layout(rng: np.random.Generator, with_cross: bool, ego_kind_hint: str) -> dict:
+def _layout(rng: np.random.Generator, with_cross: bool) -> dict:
     kind = _choice(rng, {"urban": 0.5, "suburban": 0.3, "arterial": 0.2})
     lanes = int(rng.choice([1, 2, 2, 2, 3])) if kind != "arterial" else int(rng.choice([2, 3]))
     main = {
@@ -420,7 +443,10 @@ def _layout(rng: np.random.Generator, with_cross: bool, ego_kind_hint: str) -> d
             "park": [bool(rng.random() < 0.6), bool(rng.random() < 0.6)],
             "park_w": round(float(rng.uniform(2.2, 2.6)), 2),
             "walk_w": round(float(rng.uniform(2.0, 4.0)), 2),
-            "setback": [round(float(rng.uniform(0.0, 6.0)), 2), round(float(rng.uniform(0.0, 6.0)), 2)],
+            "setback": [
+                round(float(rng.uniform(0.0, 6.0)), 2),
+                round(float(rng.uniform(0.0, 6.0)), 2),
+            ],
             "center": str(rng.choice(["double_yellow", "dashed_white"])),
         }
     return layout
@@ -448,8 +474,14 @@ def _static_objects(rng: np.random.Generator, layout: dict, x_range: tuple[float
 
     def corners(cx, cy, yaw, length, width):
         c, s = math.cos(yaw), math.sin(yaw)
-        pts = np.array([[length / 2, width / 2], [length / 2, -width / 2],
-                        [-length / 2, width / 2], [-length / 2, -width / 2]])
+        pts = np.array(
+            [
+                [length / 2, width / 2],
+                [length / 2, -width / 2],
+                [-length / 2, width / 2],
+                [-length / 2, -width / 2],
+            ]
+        )
         return cx + c * pts[:, 0] - s * pts[:, 1], cy + s * pts[:, 0] + c * pts[:, 1]
 
     for ri, road in enumerate(roads):
@@ -478,39 +510,47 @@ def _static_objects(rng: np.random.Generator, layout: dict, x_range: tuple[float
                 cx, cy = road_point(road, along, across)
                 xs, ys = corners(cx, cy, road["h"], length, depth)
                 if not inside_other_road(ri, xs, ys, 1.0):
-                    objs.append({
-                        "kind": "building",
-                        "c": [float(cx), float(cy), float(height / 2)],
-                        "yaw": float(road["h"]),
-                        "size": [float(depth), float(length), float(height)],
-                        "tex": int(rng.integers(0, 2**31 - 1)),
-                    })
+                    objs.append(
+                        {
+                            "kind": "building",
+                            "c": [float(cx), float(cy), float(height / 2)],
+                            "yaw": float(road["h"]),
+                            "size": [float(depth), float(length), float(height)],
+                            "tex": int(rng.integers(0, 2**31 - 1)),
+                        }
+                    )
                 a += length + gap
             # trees / poles / hedges on the sidewalk and in front yards
             a = a_lo + rng.uniform(0, 8)
             spacing = rng.uniform(8, 16) if rng.random() < 0.75 else rng.uniform(20, 40)
             while a < a_hi:
-                across = sign * (road["kerb"][side] + rng.uniform(0.8, max(road["walk_w"] - 0.6, 0.9)))
+                across = sign * (
+                    road["kerb"][side] + rng.uniform(0.8, max(road["walk_w"] - 0.6, 0.9))
+                )
                 cx, cy = road_point(road, a, across)
                 if not inside_other_road(ri, np.array([cx]), np.array([cy]), 2.0):
                     if rng.random() < 0.7:
                         h = rng.uniform(4, 11)
-                        objs.append({
-                            "kind": "tree",
-                            "c": [float(cx), float(cy), float(h / 2)],
-                            "yaw": float(rng.uniform(0, math.pi)),
-                            "size": [float(h * rng.uniform(0.4, 0.7))] * 2 + [float(h)],
-                            "tex": int(rng.integers(0, 2**31 - 1)),
-                        })
+                        objs.append(
+                            {
+                                "kind": "tree",
+                                "c": [float(cx), float(cy), float(h / 2)],
+                                "yaw": float(rng.uniform(0, math.pi)),
+                                "size": [float(h * rng.uniform(0.4, 0.7))] * 2 + [float(h)],
+                                "tex": int(rng.integers(0, 2**31 - 1)),
+                            }
+                        )
                     else:
                         h = rng.uniform(5, 9)
-                        objs.append({
-                            "kind": "pole",
-                            "c": [float(cx), float(cy), float(h / 2)],
-                            "yaw": float(road["h"]),
-                            "size": [0.22, 0.22, float(h)],
-                            "tex": int(rng.integers(0, 2**31 - 1)),
-                        })
+                        objs.append(
+                            {
+                                "kind": "pole",
+                                "c": [float(cx), float(cy), float(h / 2)],
+                                "yaw": float(road["h"]),
+                                "size": [0.22, 0.22, float(h)],
+                                "tex": int(rng.integers(0, 2**31 - 1)),
+                            }
+                        )
                 a += spacing * rng.uniform(0.7, 1.3)
             # hedges / walls in front of set-back buildings
             if road["setback"][side] > 2.0 and rng.random() < 0.6:
@@ -522,13 +562,15 @@ def _static_objects(rng: np.random.Generator, layout: dict, x_range: tuple[float
                     xs, ys = corners(cx, cy, road["h"], length, 0.6)
                     if not inside_other_road(ri, xs, ys, 1.0):
                         h = rng.uniform(0.8, 1.8)
-                        objs.append({
-                            "kind": "hedge" if rng.random() < 0.7 else "wall",
-                            "c": [float(cx), float(cy), float(h / 2)],
-                            "yaw": float(road["h"]),
-                            "size": [0.6, float(length), float(h)],
-                            "tex": int(rng.integers(0, 2**31 - 1)),
-                        })
+                        objs.append(
+                            {
+                                "kind": "hedge" if rng.random() < 0.7 else "wall",
+                                "c": [float(cx), float(cy), float(h / 2)],
+                                "yaw": float(road["h"]),
+                                "size": [0.6, float(length), float(h)],
+                                "tex": int(rng.integers(0, 2**31 - 1)),
+                            }
+                        )
                     a += length + rng.uniform(2, 12)
     # a distant backdrop across the far end of the main road
     for _ in range(int(rng.integers(3, 7))):
@@ -536,18 +578,28 @@ def _static_objects(rng: np.random.Generator, layout: dict, x_range: tuple[float
         off = rng.uniform(-250, 250)
         w_ = rng.uniform(40, 160)
         h = rng.uniform(15, 60)
-        objs.append({
-            "kind": "backdrop",
-            "c": [float(x_range[1] + dist), float(off), float(h / 2)],
-            "yaw": 0.0,
-            "size": [float(w_), float(rng.uniform(20, 40)), float(h)],
-            "tex": int(rng.integers(0, 2**31 - 1)),
-        })
+        objs.append(
+            {
+                "kind": "backdrop",
+                "c": [float(x_range[1] + dist), float(off), float(h / 2)],
+                "yaw": 0.0,
+                "size": [float(w_), float(rng.uniform(20, 40)), float(h)],
+                "tex": int(rng.integers(0, 2**31 - 1)),
+            }
+        )
     return objs
 
 
-def _targeted_point(rng, road: dict, across: float, ego: dict, duration: float,
-                    d_range: tuple[float, float], box_h: float, fov: float = 0.5):
+def _targeted_point(
+    rng,
+    road: dict,
+    across: float,
+    ego: dict,
+    duration: float,
+    d_range: tuple[float, float],
+    box_h: float,
+    fov: float = 0.5,
+):
     """A point on the line ``across`` of ``road`` that is ``d`` m (3D, to a box centre at
     height box_h / 2) from the ego origin and within +-``fov`` rad of its heading at a random
     time t*. Returns (x, y, along, t*) or None."""
@@ -574,8 +626,9 @@ def _targeted_point(rng, road: dict, across: float, ego: dict, duration: float,
     return x, y, a, t_star
 
 
-def _place(rng, road, across, heading, ego, duration, prof, box_h, d_range, free_x,
-           p_target: float = 0.85):
+def _place(
+    rng, road, across, heading, ego, duration, prof, box_h, d_range, free_x, p_target: float = 0.85
+):
     """Straight trajectory on a road line: targeted (in view at 30-75 m at some time) with
     probability ``p_target``, else at along = ``free_x`` at t = 0 (None if p_target is 1 and
     no targeted point exists)."""
@@ -593,8 +646,9 @@ def _place(rng, road, across, heading, ego, duration, prof, box_h, d_range, free
     return {"path": _straight(x, y, heading), "s0": 0.0, "speed": prof}
 
 
-def _view_intervals(traj: dict, size, times: np.ndarray, cam: np.ndarray, cam_h: np.ndarray
-                    ) -> np.ndarray:
+def _view_intervals(
+    traj: dict, size, times: np.ndarray, cam: np.ndarray, cam_h: np.ndarray
+) -> np.ndarray:
     """Per time: (distance from the camera, azimuth lo, azimuth hi) of a box footprint, (T, 3).
 
     Azimuths (rad) are relative to the camera heading; ``cam`` (T, 2) positions (m).
@@ -614,8 +668,9 @@ def _view_intervals(traj: dict, size, times: np.ndarray, cam: np.ndarray, cam_h:
 def _hides(near: np.ndarray, far: np.ndarray) -> np.ndarray:
     """Per time: ``near`` (..., T, 3) is nearer and covers > 15 % of ``far``'s azimuths."""
     overlap = np.minimum(near[..., 2], far[..., 2]) - np.maximum(near[..., 1], far[..., 1])
-    return (near[..., 0] < far[..., 0]) & (overlap > 0.15 * np.maximum(far[..., 2] - far[..., 1],
-                                                                          1e-6))
+    return (near[..., 0] < far[..., 0]) & (
+        overlap > 0.15 * np.maximum(far[..., 2] - far[..., 1], 1e-6)
+    )
 
 
 def _in_band(iv: np.ndarray, lo: float = 30.0, hi: float = 70.0, fov: float = 0.55) -> np.ndarray:
@@ -623,8 +678,7 @@ def _in_band(iv: np.ndarray, lo: float = 30.0, hi: float = 70.0, fov: float = 0.
     return (iv[:, 0] >= lo - 1.7) & (iv[:, 0] <= hi - 1.7) & (iv[:, 1] > -fov) & (iv[:, 2] < fov)
 
 
-def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax,
-                     p_target: float = 0.85):
+def _agent_candidate(rng, roads, ego, duration, cross_x, vmax, p_target: float = 0.85):
     """One candidate vehicle: (category, size, role, trajectory) or None.
 
     ``p_target``: probability of placing it in view 30-72 m ahead at some time (1 = always,
@@ -634,8 +688,15 @@ def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax,
     ego_x1 = float(traj_state(ego, duration)["x"])
     x_lo, x_hi = min(ego_x0, ego_x1), max(ego_x0, ego_x1)
     has_park = [main["park"][0], main["park"][1]]
-    roles = {"parked": 0.34 if any(has_park) else 0.0, "halt": 0.09, "same": 0.18,
-             "oncoming": 0.13, "far": 0.03, "convoy": 0.05, "roll": 0.06}
+    roles = {
+        "parked": 0.34 if any(has_park) else 0.0,
+        "halt": 0.09,
+        "same": 0.18,
+        "oncoming": 0.13,
+        "far": 0.03,
+        "convoy": 0.05,
+        "roll": 0.06,
+    }
     if cross_x is not None:
         roles.update({"cross": 0.08, "queue": 0.05, "cross_parked": 0.05})
     role = _choice(rng, roles)
@@ -663,7 +724,9 @@ def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax,
             free = rng.uniform(x_lo + 5.0, x_hi + 140.0)
         else:
             free = float(rng.choice([-1, 1])) * rng.uniform(max(main["walk"]) + 3, 120)
-        traj = _place(rng, road, across, h, ego, duration, _profile_const(0.0), size[2], near, free, p_target)
+        traj = _place(
+            rng, road, across, h, ego, duration, _profile_const(0.0), size[2], near, free, p_target
+        )
         return category, size, "parked", traj
     if role == "halt":  # standing in a lane (waiting, double-parked); may drive off
         direction = int(rng.choice([-1, 1]))
@@ -713,7 +776,9 @@ def _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax,
         v = rng.uniform(3.0, vmax)
         t_c = rng.uniform(-3.0, duration + 3.0)  # time at the main road's centre line
         free = -direction * v * t_c
-        traj = _place(rng, cross, across, h, ego, duration, _profile_const(v), size[2], near, free, p_target)
+        traj = _place(
+            rng, cross, across, h, ego, duration, _profile_const(v), size[2], near, free, p_target
+        )
         return category, size, "moving", traj
     # queue before the stop line on the cross road; may start during the scene
     if p_target >= 1.0:
@@ -759,8 +824,12 @@ def _pedestrian_candidate(rng, roads, ego, duration):
         t_start = rng.uniform(-4, duration)
         traj = {"path": _straight(x, y, h), "s0": 0.0, "speed": _profile_ramp(t_start, 0.0, v, 5.0)}
         return category, size, "walking", traj
-    return category, size, ("walking" if v > 0 else "standing"), {
-        "path": _straight(x, y, h), "s0": 0.0, "speed": _profile_const(v)}
+    return (
+        category,
+        size,
+        ("walking" if v > 0 else "standing"),
+        {"path": _straight(x, y, h), "s0": 0.0, "speed": _profile_const(v)},
+    )
 
 
 WEATHERS = ("clear", "overcast", "night", "rain", "after_rain")
@@ -778,14 +847,14 @@ def sample_scene(
     rng = np.random.default_rng([int(seed), int(index), 101])
     duration = (n_keyframes - 1) * 0.5
     want_cross = rng.random() < 0.75
-    layout = _layout(rng, want_cross, "")
+    layout = _layout(rng, want_cross)
     roads = road_frames(layout)
     cross_x = None
     if want_cross:
         cross_x = round(float(rng.uniform(35.0, 110.0)), 2)
         layout["cross"]["o"] = [cross_x, 0.0]
         roads = road_frames(layout)
-    ego_kind, ego_lane, ego = _ego_plan(rng, duration, roads, cross_x)
+    ego_kind, _ego_lane, ego = _ego_plan(rng, duration, roads, cross_x)
     # the intersection relative to the ego: shift the cross road so the plan fits it
     vmax = 15.0 if layout["kind"] == "arterial" else 12.0
 
@@ -813,13 +882,15 @@ def sample_scene(
         best = None
         for _ in range(8 if phase1 else 1):
             attempts += 1
-            cand = _agent_candidate(rng, roads, layout, ego, ego_lane, duration, cross_x, vmax,
-                                    1.0 if phase1 else 0.85)
+            cand = _agent_candidate(
+                rng, roads, ego, duration, cross_x, vmax, 1.0 if phase1 else 0.85
+            )
             if cand is None or cand[3] is None:
                 continue
             category, size, role, traj = cand
-            fp = _footprints(traj, size, times, 0.5,
-                             rng.uniform(2.5, 7.0) if role == "parked" else None)
+            fp = _footprints(
+                traj, size, times, 0.5, rng.uniform(2.5, 7.0) if role == "parked" else None
+            )
             if any(rects_overlap(fp, other).any() for other in accepted_fp):
                 continue
             iv = _view_intervals(traj, size, kf_times, cam_xy, cam_h)
@@ -850,8 +921,16 @@ def sample_scene(
         accepted_iv.append(iv)
         accepted_good.append(good if targeted else np.zeros_like(good))
         accepted_fp.append(fp)
-        agents.append({"kind": "vehicle", "category": category, "size": size, "role": role,
-                       "traj": traj, "tex": int(rng.integers(0, 2**31 - 1))})
+        agents.append(
+            {
+                "kind": "vehicle",
+                "category": category,
+                "size": size,
+                "role": role,
+                "traj": traj,
+                "tex": int(rng.integers(0, 2**31 - 1)),
+            }
+        )
         n_vehicles_now += 1
     n_peds = int(rng.integers(2, 9))
     for _ in range(6 * n_peds):
@@ -862,8 +941,16 @@ def sample_scene(
         if any(rects_overlap(fp, other).any() for other in accepted_fp):
             continue
         accepted_fp.append(fp)
-        agents.append({"kind": "pedestrian", "category": category, "size": size, "role": role,
-                       "traj": traj, "tex": int(rng.integers(0, 2**31 - 1))})
+        agents.append(
+            {
+                "kind": "pedestrian",
+                "category": category,
+                "size": size,
+                "role": role,
+                "traj": traj,
+                "tex": int(rng.integers(0, 2**31 - 1)),
+            }
+        )
 
     ego_x = traj_state(ego, np.array([0.0, duration]))["x"]
     x_range = (float(min(ego_x) - 40.0), float(max(ego_x) + 330.0))
@@ -924,11 +1011,17 @@ def sample_calibration(seed: int, index: int) -> dict:
         q = -q
     f = 1266.417 * rng.uniform(0.996, 1.004)
     return {
-        "K": [[float(f), 0.0, float(816.267 + rng.uniform(-3, 3))],
-              [0.0, float(f), float(491.507 + rng.uniform(-3, 3))], [0.0, 0.0, 1.0]],
+        "K": [
+            [float(f), 0.0, float(816.267 + rng.uniform(-3, 3))],
+            [0.0, float(f), float(491.507 + rng.uniform(-3, 3))],
+            [0.0, 0.0, 1.0],
+        ],
         "rotation": [float(v) for v in q.elements],
-        "translation": [float(1.70 + rng.uniform(-0.03, 0.03)), float(0.016 + rng.uniform(-0.01, 0.01)),
-                        float(1.51 + rng.uniform(-0.02, 0.02))],
+        "translation": [
+            float(1.70 + rng.uniform(-0.03, 0.03)),
+            float(0.016 + rng.uniform(-0.01, 0.01)),
+            float(1.51 + rng.uniform(-0.02, 0.02)),
+        ],
     }
 
 
@@ -957,10 +1050,14 @@ def _describe(rng, ego_kind: str, layout: dict, agents: list[dict], weather: str
         items.append("parked cars")
     if any(c.startswith("human") for c in cats):
         items.append("peds")
-    for cat, word in (("vehicle.bus.rigid", "bus"), ("vehicle.bus.bendy", "bendy bus"),
-                      ("vehicle.truck", "truck"), ("vehicle.construction", "construction vehicle"),
-                      ("vehicle.emergency.ambulance", "ambulance"),
-                      ("vehicle.emergency.police", "police car")):
+    for cat, word in (
+        ("vehicle.bus.rigid", "bus"),
+        ("vehicle.bus.bendy", "bendy bus"),
+        ("vehicle.truck", "truck"),
+        ("vehicle.construction", "construction vehicle"),
+        ("vehicle.emergency.ambulance", "ambulance"),
+        ("vehicle.emergency.police", "police car"),
+    ):
         if cat in cats:
             items.append(word)
     if layout["kind"] == "suburban":
@@ -992,8 +1089,9 @@ def plan_weathers(n_scenes: int, n_sweep_scenes: int, seed: int) -> tuple[list[s
     n_rain = round(0.05 * n_scenes)
     n_after = max(1, round(0.05 * n_scenes)) if n_scenes >= 3 else 0
     n_over = round(0.15 * n_scenes)
-    weathers = (["night"] * n_night + ["rain"] * n_rain + ["after_rain"] * n_after
-                + ["overcast"] * n_over)
+    weathers = (
+        ["night"] * n_night + ["rain"] * n_rain + ["after_rain"] * n_after + ["overcast"] * n_over
+    )
     weathers = weathers[: max(n_scenes - max(n_sweep_scenes, 1), 0)]
     weathers += ["clear"] * (n_scenes - len(weathers))
     order = rng.permutation(n_scenes)
@@ -1012,9 +1110,13 @@ def agent_state_global(scene: dict, agent: dict, t: np.ndarray | float) -> dict[
     yaw = scene["global"]["yaw"]
     c, s = math.cos(yaw), math.sin(yaw)
     return {
-        "x": gx, "y": gy, "z": np.full_like(np.asarray(gx, dtype=np.float64), agent["size"][2] / 2),
-        "yaw": gh, "speed": st["v"],
-        "vx": c * st["vx"] - s * st["vy"], "vy": s * st["vx"] + c * st["vy"],
+        "x": gx,
+        "y": gy,
+        "z": np.full_like(np.asarray(gx, dtype=np.float64), agent["size"][2] / 2),
+        "yaw": gh,
+        "speed": st["v"],
+        "vx": c * st["vx"] - s * st["vy"],
+        "vy": s * st["vx"] + c * st["vy"],
         "vz": np.zeros_like(np.asarray(gx, dtype=np.float64)),
     }
 

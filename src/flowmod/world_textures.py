@@ -18,8 +18,9 @@ import numpy as np
 # --------------------------------------------------------------------------------------------
 
 
-def value_noise(rng: np.random.Generator, h: int, w: int, cell: float,
-                periodic: bool = False) -> np.ndarray:
+def value_noise(
+    rng: np.random.Generator, h: int, w: int, cell: float, periodic: bool = False
+) -> np.ndarray:
     """Smooth noise (h, w) float32, roughly unit variance, feature size ``cell`` pixels.
 
     With ``periodic`` (and h, w multiples of ``cell``) the field tiles seamlessly.
@@ -31,14 +32,20 @@ def value_noise(rng: np.random.Generator, h: int, w: int, cell: float,
     g = rng.standard_normal((gh, gw), dtype=np.float32)
     pad = 2
     g = np.pad(g, pad, mode="wrap" if periodic else "reflect")
-    big = cv2.resize(g, (int((gw + 2 * pad) * cell), int((gh + 2 * pad) * cell)),
-                     interpolation=cv2.INTER_CUBIC)
+    big = cv2.resize(
+        g, (int((gw + 2 * pad) * cell), int((gh + 2 * pad) * cell)), interpolation=cv2.INTER_CUBIC
+    )
     o = int(pad * cell)
-    return np.ascontiguousarray(big[o:o + h, o:o + w])
+    return np.ascontiguousarray(big[o : o + h, o : o + w])
 
 
-def fbm(rng: np.random.Generator, h: int, w: int, octaves: list[tuple[float, float]],
-        periodic: bool = False) -> np.ndarray:
+def fbm(
+    rng: np.random.Generator,
+    h: int,
+    w: int,
+    octaves: list[tuple[float, float]],
+    periodic: bool = False,
+) -> np.ndarray:
     """Sum of value-noise octaves ``[(cell_px, amplitude), ...]``: (h, w) float32."""
     out = np.zeros((h, w), np.float32)
     for cell, amp in octaves:
@@ -61,8 +68,9 @@ def pyramid(img: np.ndarray, min_side: int = 4) -> list[np.ndarray]:
     levels = [img]
     while min(levels[-1].shape[:2]) >= 2 * min_side:
         h, w = levels[-1].shape[:2]
-        levels.append(cv2.resize(levels[-1], ((w + 1) // 2, (h + 1) // 2),
-                                 interpolation=cv2.INTER_AREA))
+        levels.append(
+            cv2.resize(levels[-1], ((w + 1) // 2, (h + 1) // 2), interpolation=cv2.INTER_AREA)
+        )
     return levels
 
 
@@ -92,7 +100,9 @@ def asphalt(rng: np.random.Generator, size: int = 1024, variant: int = 0) -> np.
         for ox in (-size, 0, size):
             for oy in (-size, 0, size):
                 pts = (box + [ox, oy]).astype(np.int32)
-                cv2.fillConvexPoly(overlay, pts, tuple(float(np.clip(b + tone, 0, 255)) for b in base))
+                cv2.fillConvexPoly(
+                    overlay, pts, tuple(float(np.clip(b + tone, 0, 255)) for b in base)
+                )
     canvas = cv2.addWeighted(canvas, 0.45, overlay, 0.55, 0)
     for _ in range(int(rng.integers(3, 9))):
         p = rng.uniform(0, size, 2)
@@ -105,16 +115,21 @@ def asphalt(rng: np.random.Generator, size: int = 1024, variant: int = 0) -> np.
         arr = np.array(pts, np.float32)
         for ox in (-size, 0, size):
             for oy in (-size, 0, size):
-                cv2.polylines(canvas, [(arr + [ox, oy]).astype(np.int32)], False,
-                              (40, 40, 42), 1, cv2.LINE_AA)
+                cv2.polylines(
+                    canvas, [(arr + [ox, oy]).astype(np.int32)], False, (40, 40, 42), 1, cv2.LINE_AA
+                )
     return canvas
 
 
 def pavers(rng: np.random.Generator, size: int = 512) -> np.ndarray:
     """Periodic paving slabs, ``GROUND_RES`` m/px (slabs 0.32-0.64 m, dark joints)."""
     sx, sy = [(32, 32), (32, 16), (16, 16), (32, 32)][int(rng.integers(0, 4))]
-    base = np.array([(150, 152, 155), (140, 145, 155), (120, 130, 150), (160, 160, 158)]
-                    [int(rng.integers(0, 4))], np.float32)
+    base = np.array(
+        [(150, 152, 155), (140, 145, 155), (120, 130, 150), (160, 160, 158)][
+            int(rng.integers(0, 4))
+        ],
+        np.float32,
+    )
     tone = rng.normal(0, 9, (size // sy, size // sx)).astype(np.float32)
     tone = cv2.resize(tone, (size, size), interpolation=cv2.INTER_NEAREST)
     g = tone + fbm(rng, size, size, [(128, 6), (8, 4), (1, 6)], periodic=True)
@@ -147,12 +162,23 @@ def clouds(rng: np.random.Generator, size: int = 512) -> np.ndarray:
 
 FACADE_RES = 0.05  # m per pixel
 
-WALLS = [(60, 70, 150), (140, 160, 185), (170, 175, 180), (210, 215, 220), (110, 120, 130),
-         (80, 100, 120), (150, 130, 110), (95, 110, 165), (190, 200, 205), (120, 85, 60)]
+WALLS = [
+    (60, 70, 150),
+    (140, 160, 185),
+    (170, 175, 180),
+    (210, 215, 220),
+    (110, 120, 130),
+    (80, 100, 120),
+    (150, 130, 110),
+    (95, 110, 165),
+    (190, 200, 205),
+    (120, 85, 60),
+]
 
 
-def facade(rng: np.random.Generator, width_m: float, height_m: float, shop: bool,
-           res: float = FACADE_RES) -> np.ndarray:
+def facade(
+    rng: np.random.Generator, width_m: float, height_m: float, shop: bool, res: float = FACADE_RES
+) -> np.ndarray:
     """A building facade (BGR uint8), ``res`` m/px: wall, window grid, shop fronts, grime."""
     w = max(int(round(width_m / res)), 8)
     h = max(int(round(height_m / res)), 8)
@@ -163,8 +189,10 @@ def facade(rng: np.random.Generator, width_m: float, height_m: float, shop: bool
     bay_w = rng.uniform(2.2, 4.5) / res
     win_w = bay_w * rng.uniform(0.4, 0.75)
     win_h = floor_h * rng.uniform(0.4, 0.65)
-    glass = np.array([(70, 60, 50), (90, 80, 60), (60, 60, 60), (110, 95, 70)]
-                     [int(rng.integers(0, 4))], np.float32)
+    glass = np.array(
+        [(70, 60, 50), (90, 80, 60), (60, 60, 60), (110, 95, 70)][int(rng.integers(0, 4))],
+        np.float32,
+    )
     frame_col = tuple(float(c) for c in np.clip(wall * rng.uniform(0.6, 1.4), 0, 255))
     n_floors = int(h // floor_h)
     n_bays = int(w // bay_w)
@@ -204,11 +232,18 @@ def facade(rng: np.random.Generator, width_m: float, height_m: float, shop: bool
             sw_ = rng.uniform(4, 9) / res
             col = rng.uniform(30, 230, 3)
             sy0 = int(y0 - 0.9 / res)
-            cv2.rectangle(img, (int(x), sy0), (int(x + sw_ - 6), y0), tuple(float(c) for c in col), -1)
+            cv2.rectangle(
+                img, (int(x), sy0), (int(x + sw_ - 6), y0), tuple(float(c) for c in col), -1
+            )
             for _ in range(int(rng.integers(3, 9))):  # "lettering"
                 lx = int(x + rng.uniform(0.1, 0.8) * sw_)
-                cv2.rectangle(img, (lx, sy0 + 4), (lx + int(rng.uniform(4, 14)), y0 - 4),
-                              tuple(float(c) for c in 255 - col), -1)
+                cv2.rectangle(
+                    img,
+                    (lx, sy0 + 4),
+                    (lx + int(rng.uniform(4, 14)), y0 - 4),
+                    tuple(float(c) for c in 255 - col),
+                    -1,
+                )
             cv2.rectangle(img, (int(x + sw_ - 8), y0), (int(x + sw_ - 2), y1), frame_col, -1)
             x += sw_
     # horizontal bands and grime
@@ -271,9 +306,20 @@ def metal(rng: np.random.Generator, w: int = 8, h: int = 128) -> np.ndarray:
 
 VEHICLE_RES = 0.025  # m per pixel
 
-PAINTS = [(235, 235, 235), (25, 25, 28), (170, 172, 175), (110, 110, 112), (140, 60, 30),
-          (40, 40, 170), (60, 110, 40), (180, 180, 170), (30, 60, 110), (200, 200, 205),
-          (50, 150, 210), (90, 60, 50)]
+PAINTS = [
+    (235, 235, 235),
+    (25, 25, 28),
+    (170, 172, 175),
+    (110, 110, 112),
+    (140, 60, 30),
+    (40, 40, 170),
+    (60, 110, 40),
+    (180, 180, 170),
+    (30, 60, 110),
+    (200, 200, 205),
+    (50, 150, 210),
+    (90, 60, 50),
+]
 
 
 def _body(rng, w: int, h: int, col) -> np.ndarray:
@@ -306,7 +352,11 @@ def _livery(category: str, rng) -> tuple[tuple, tuple | None]:
     if category == "vehicle.emergency.ambulance":
         return (235, 238, 240), (30, 60, 220) if rng.random() < 0.5 else (20, 160, 240)
     if category == "vehicle.emergency.police":
-        return ((240, 240, 240), (150, 40, 10)) if rng.random() < 0.6 else ((20, 20, 20), (240, 240, 240))
+        return (
+            ((240, 240, 240), (150, 40, 10))
+            if rng.random() < 0.6
+            else ((20, 20, 20), (240, 240, 240))
+        )
     if category == "vehicle.construction":
         return (20, 170, 230) if rng.random() < 0.6 else (20, 120, 230), (20, 20, 20)
     if category.startswith("vehicle.bus"):
@@ -314,8 +364,9 @@ def _livery(category: str, rng) -> tuple[tuple, tuple | None]:
     return PAINTS[int(rng.integers(0, len(PAINTS)))], None
 
 
-def vehicle_faces(rng: np.random.Generator, category: str,
-                  size: tuple[float, float, float]) -> dict[str, np.ndarray]:
+def vehicle_faces(
+    rng: np.random.Generator, category: str, size: tuple[float, float, float]
+) -> dict[str, np.ndarray]:
     """Textures of a vehicle box's faces at ``VEHICLE_RES`` m/px.
 
     Keys: ``side`` (front of the vehicle at the texture's right; mirrored for the other side),
@@ -345,7 +396,9 @@ def vehicle_faces(rng: np.random.Generator, category: str,
         if not boxy:
             for xp in np.linspace(wx0, L * 0.86, 3)[1:-1]:
                 _rect(side, xp - 3, g0, xp + 3, g1, body)
-        cv2.line(side, (int(L * 0.5), g1), (int(L * 0.5), int(H * 0.85)), tuple(c * 0.7 for c in body), 1)
+        cv2.line(
+            side, (int(L * 0.5), g1), (int(L * 0.5), int(H * 0.85)), tuple(c * 0.7 for c in body), 1
+        )
         _rect(side, 0, H * 0.86, L, H, dark)
         for fx in (0.17, 0.8):
             _wheel(side, L * fx, wy, r_wheel)
@@ -367,7 +420,9 @@ def vehicle_faces(rng: np.random.Generator, category: str,
         cargo = tuple(rng.uniform(120, 250, 3)) if rng.random() < 0.6 else body
         _rect(side, 0, 0, L * (1 - cab), H * 0.8, cargo)
         for y in np.arange(H * 0.1, H * 0.8, 0.4 * px):
-            cv2.line(side, (0, int(y)), (int(L * (1 - cab)), int(y)), tuple(c * 0.85 for c in cargo), 1)
+            cv2.line(
+                side, (0, int(y)), (int(L * (1 - cab)), int(y)), tuple(c * 0.85 for c in cargo), 1
+            )
         if rng.random() < 0.5:
             _rect(side, L * 0.15, H * 0.2, L * 0.55, H * 0.5, tuple(rng.uniform(20, 230, 3)))
         if cab > 0:
@@ -400,7 +455,7 @@ def vehicle_faces(rng: np.random.Generator, category: str,
         if stripe is not None:
             _rect(side, 0, H * 0.6, L, H * 0.7, stripe)
         _rect(side, 0, H * 0.9, L, H, dark)
-        for fx in ([0.12, 0.4, 0.6, 0.85] if category == "vehicle.bus.bendy" else [0.18, 0.8]):
+        for fx in [0.12, 0.4, 0.6, 0.85] if category == "vehicle.bus.bendy" else [0.18, 0.8]:
             _wheel(side, L * fx, wy, r_wheel * 1.1)
         _glass(front, W * 0.05, H * 0.08, W * 0.95, H * 0.55, rng)
         _rect(front, W * 0.15, H * 0.02, W * 0.85, H * 0.08, (20, 200, 255))  # destination
@@ -430,11 +485,14 @@ def vehicle_faces(rng: np.random.Generator, category: str,
         _rect(back, W * 0.4, H * 0.7, W * 0.6, H * 0.78, (230, 230, 230))
         _rect(front, 0, H * 0.9, W, H, (28, 28, 30))
         _rect(back, 0, H * 0.9, W, H, (28, 28, 30))
-    return {k: to_u8(v) for k, v in (("side", side), ("front", front), ("back", back), ("top", top))}
+    return {
+        k: to_u8(v) for k, v in (("side", side), ("front", front), ("back", back), ("top", top))
+    }
 
 
-def pedestrian_faces(rng: np.random.Generator, size: tuple[float, float, float]
-                     ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def pedestrian_faces(
+    rng: np.random.Generator, size: tuple[float, float, float]
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Silhouette billboards of a pedestrian box: {face: (BGR, alpha)} at ``VEHICLE_RES``."""
     w_m, l_m, h_m = size
     H = max(int(round(h_m / VEHICLE_RES)), 16)
@@ -454,14 +512,15 @@ def pedestrian_faces(rng: np.random.Generator, size: tuple[float, float, float]
         _rect(img, cx - tw / 2, H * 0.14, cx + tw / 2, H * 0.52, shirt)
         _rect(alpha, cx - tw / 2, H * 0.14, cx + tw / 2, H * 0.52, (255,))
         lw = W * (0.3 if face == "front" else 0.35)
-        for dx in ((-0.22, 0.22) if face == "front" else (-0.12, 0.12)):
+        for dx in (-0.22, 0.22) if face == "front" else (-0.12, 0.12):
             x = cx + dx * W
             _rect(img, x - lw / 2, H * 0.52, x + lw / 2, H, trousers)
             _rect(alpha, x - lw / 2, H * 0.52, x + lw / 2, H, (255,))
         img += fbm(rng, H, W, [(6, 6), (1, 4)])[..., None]
         out[face] = (to_u8(img), alpha)
-    top = np.full((max(int(l_m / VEHICLE_RES), 4), max(int(w_m / VEHICLE_RES), 4), 3), shirt,
-                  np.float32)
+    top = np.full(
+        (max(int(l_m / VEHICLE_RES), 4), max(int(w_m / VEHICLE_RES), 4), 3), shirt, np.float32
+    )
     out["top"] = (to_u8(top), np.full(top.shape[:2], 255, np.uint8))
     out["back"] = out["front"]
     return out

@@ -1,0 +1,380 @@
+"""The synthetic world: nuScenes format, devkit compatibility, conventions and exact GT."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+from pyquaternion import Quaternion
+
+from flowmod import world
+from flowmod import world_render as wr
+from flowmod import world_report as wrep
+from flowmod import world_scene as ws
+from flowmod.params import TABLE1_CATEGORIES, validate
+
+
+def _world_json(dataroot, version) -> dict:
+    return json.loads((dataroot / version / world.WORLD_FILE).read_text())
+
+
+def _scene_samples(nusc, scene) -> list[dict]:
+    out, tok = [], scene["first_sample_token"]
+    while tok:
+        out.append(nusc.get("sample", tok))
+        tok = out[-1]["next"]
+    return out
+
+
+def _day_scene(nusc):
+    """A usable (not night/rain) scene in which the ego moves between keyframes 0 and 1."""
+    for scene in nusc.scene:
+        if not wrep.usable(scene["description"]):
+            continue
+        s = _scene_samples(nusc, scene)
+        p = [
+            np.array(
+                nusc.get(
+                    "ego_pose", nusc.get("sample_data", x["data"]["CAM_FRONT"])["ego_pose_token"]
+                )["translation"]
+            )
+            for x in s[:2]
+        ]
+        if np.linalg.norm(p[1] - p[0]) > 0.5:
+            return scene, s
+    pytest.skip("no smoke scene with a moving ego")
+
+
+# --- format and devkit ---------------------------------------------------------------------
+
+
+def test_devkit_loads_all_tables_and_images(smoke_world, smoke_nusc):
+    root, version = smoke_world
+    nusc = smoke_nusc
+    assert {p.stem for p in (root / version).glob("*.json")} >= set(world.TABLES)
+    assert len(nusc.scene) == 4 and all(s["name"].startswith("synth-") for s in nusc.scene)
+    assert [s["nbr_samples"] for s in nusc.scene] == [4] * 4
+    items = [i.strip().lower() for s in nusc.scene for i in s["description"].split(",")]
+    assert "night" in items, "the smoke world needs a night scene for the scene filter"
+    assert {c["name"] for c in nusc.category} >= set(TABLE1_CATEGORIES)
+    assert {s["channel"] for s in nusc.sensor} == {"CAM_FRONT"}
+    assert {lt for m in nusc.map for lt in m["log_tokens"]} == {lg["token"] for lg in nusc.log}
+    assert all((root / m["filename"]).is_file() for m in nusc.map)
+    for sd in nusc.sample_data[:: max(len(nusc.sample_data) // 6, 1)]:
+        img = cv2.imread(str(root / sd["filename"]))
+        assert img.shape == (900, 1600, 3) == (sd["height"], sd["width"], 3)
+        folder = "samples" if sd["is_key_frame"] else "sweeps"
+        assert sd["filename"].startswith(f"{folder}/CAM_FRONT/")
+    assert world.is_synthetic(root, version)
+    assert {a["visibility_token"] for a in nusc.sample_annotation} <= {"1", "2", "3", "4"}
+    assert "4" in {a["visibility_token"] for a in nusc.sample_annotation}
+    names = {a["name"] for a in nusc.attribute}
+    for ann in nusc.sample_annotation:
+        assert len(ann["attribute_tokens"]) == 1
+        attr = nusc.get("attribute", ann["attribute_tokens"][0])["name"]
+        assert attr in names
+        if ann["category_name"].startswith("vehicle.") and ann["category_name"] not in (
+            "vehicle.bicycle",
+            "vehicle.motorcycle",
+        ):
+            assert attr in ("vehicle.moving", "vehicle.stopped", "vehicle.parked")
+
+
+def test_get_sample_data_keyframes_and_sweeps(smoke_nusc):
+    nusc = smoke_nusc
+    sweeps = [sd for sd in nusc.sample_data if not sd["is_key_frame"]]
+    assert sweeps, "one smoke scene has sweeps"
+    keyframe = next(sd for sd in nusc.sample_data if sd["is_key_frame"])
+    path, boxes, K = nusc.get_sample_data(keyframe["token"])
+    assert K.shape == (3, 3) and abs(K[0, 0] - 1266) < 10 and abs(K[0, 2] - 816) < 5
+    assert len(boxes) > 0
+    # a sweep belongs to the NEXT sample; its boxes are interpolated between two samples
+    sw = sweeps[len(sweeps) // 2]
+    sample = nusc.get("sample", sw["sample_token"])
+    assert sample["prev"] and sample["timestamp"] > sw["timestamp"]
+    prev = nusc.get("sample", sample["prev"])
+    assert prev["timestamp"] < sw["timestamp"]
+    _, sweep_boxes, _ = nusc.get_sample_data(sw["token"])
+    assert len(sweep_boxes) > 0
+    velocities = [nusc.box_velocity(a["token"]) for a in nusc.sample_annotation[:50]]
+    assert all(v.shape == (3,) for v in velocities)
+    assert any(np.all(np.isfinite(v)) for v in velocities)
+
+
+def test_two_d_boxes_equal_the_devkit_export_logic(smoke_nusc):
+    from nuscenes.scripts.export_2d_annotations_as_json import generate_record, post_process_coords
+    from nuscenes.utils.geometry_utils import BoxVisibility, view_points
+
+    nusc = smoke_nusc
+    checked = 0
+    for sample in nusc.sample:
+        sd = nusc.get("sample_data", sample["data"]["CAM_FRONT"])
+        _, boxes, K = nusc.get_sample_data(sd["token"], box_vis_level=BoxVisibility.ALL)
+        for box in boxes:
+            corners = box.corners()
+            in_front = corners[:, corners[2, :] > 0]
+            uv = view_points(in_front, K, True).T[:, :2].tolist()
+            x0, y0, x1, y1 = post_process_coords(uv)
+            full = view_points(corners, K, True)[:2]
+            np.testing.assert_allclose(
+                [x0, y0, x1, y1],
+                [full[0].min(), full[1].min(), full[0].max(), full[1].max()],
+                atol=1e-6,
+            )
+            ann = nusc.get("sample_annotation", box.token)
+            rec = generate_record(ann, x0, y0, x1, y1, sd["token"], sd["filename"])
+            assert rec["bbox_corners"] == [x0, y0, x1, y1] and rec["category_name"]
+            checked += 1
+    assert checked >= 10
+
+
+def test_render_sample_data_to_a_file(smoke_nusc, tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sd = smoke_nusc.sample[1]["data"]["CAM_FRONT"]
+    out = tmp_path / "render.png"
+    smoke_nusc.render_sample_data(sd, out_path=str(out), verbose=False)
+    plt.close("all")
+    assert out.is_file() and out.stat().st_size > 10_000
+
+
+# --- conventions -----------------------------------------------------------------------------
+
+
+def test_timestamps_chains_and_sweeps(smoke_nusc):
+    nusc = smoke_nusc
+    for scene in nusc.scene:
+        samples = _scene_samples(nusc, scene)
+        assert (
+            len(samples) == scene["nbr_samples"]
+            and samples[-1]["token"] == scene["last_sample_token"]
+        )
+        ts = np.array([s["timestamp"] for s in samples])
+        assert all(isinstance(s["timestamp"], int) for s in samples)
+        np.testing.assert_allclose(np.diff(ts), 500_000, atol=5_000)  # 2 Hz, in microseconds
+        # the sample_data chain: all CAM_FRONT frames of the scene, in time order
+        sd = nusc.get("sample_data", samples[0]["data"]["CAM_FRONT"])
+        chain = [sd]
+        while chain[-1]["next"]:
+            chain.append(nusc.get("sample_data", chain[-1]["next"]))
+        assert [c["timestamp"] for c in chain] == sorted(c["timestamp"] for c in chain)
+        assert chain[-1]["token"] == samples[-1]["data"]["CAM_FRONT"]
+        for a, b in zip(chain[:-1], chain[1:], strict=True):
+            assert b["prev"] == a["token"]
+        keys = [c for c in chain if c["is_key_frame"]]
+        assert [c["sample_token"] for c in keys] == [s["token"] for s in samples]
+        n_sweeps = len(chain) - len(keys)
+        if n_sweeps:
+            per_gap = [0] * (len(samples) - 1)
+            for c in chain:
+                if not c["is_key_frame"]:
+                    k = [s["token"] for s in samples].index(c["sample_token"])
+                    per_gap[k - 1] += 1
+                    assert samples[k - 1]["timestamp"] < c["timestamp"] < samples[k]["timestamp"]
+            assert all(4 <= n <= 6 for n in per_gap)
+    # annotation chains per instance
+    for inst in nusc.instance:
+        anns = [nusc.get("sample_annotation", inst["first_annotation_token"])]
+        while anns[-1]["next"]:
+            anns.append(nusc.get("sample_annotation", anns[-1]["next"]))
+        assert len(anns) == inst["nbr_annotations"]
+        assert anns[-1]["token"] == inst["last_annotation_token"]
+
+
+def test_quaternions_and_headings_match_the_world(smoke_world, smoke_nusc):
+    root, version = smoke_world
+    nusc = smoke_nusc
+    wj = _world_json(root, version)
+    for sd in nusc.sample_data:
+        pose = nusc.get("ego_pose", sd["ego_pose_token"])
+        q = Quaternion(pose["rotation"])  # w, x, y, z
+        assert abs(q.norm - 1) < 1e-9 and pose["translation"][2] == 0.0
+        sc, t = world.scene_of(root, version, sd["token"])
+        st = ws.traj_state(sc["ego"], t)
+        gx, gy, gh = ws.scene_to_global(sc, st["x"], st["y"], st["h"])
+        assert abs(float(ws.wrap_angle(q.yaw_pitch_roll[0] - gh))) < 1e-9
+        np.testing.assert_allclose(pose["translation"][:2], [gx, gy], atol=1e-9)
+        forward = q.rotation_matrix @ [1.0, 0, 0]  # ego x axis = heading
+        assert abs(math.atan2(forward[1], forward[0]) - float(ws.wrap_angle(gh))) < 1e-9
+    cs = nusc.calibrated_sensor[0]
+    R = Quaternion(cs["rotation"]).rotation_matrix  # camera -> ego
+    np.testing.assert_allclose(R @ [0, 0, 1.0], [1, 0, 0], atol=0.02)  # z forward
+    np.testing.assert_allclose(R @ [1.0, 0, 0], [0, -1, 0], atol=0.02)  # x right
+    np.testing.assert_allclose(R @ [0, 1.0, 0], [0, 0, -1], atol=0.02)  # y down
+    assert 1.4 < cs["translation"][2] < 1.6 and 1.6 < cs["translation"][0] < 1.8
+    for ann in nusc.sample_annotation[:100]:
+        w, length, h = ann["size"]
+        assert abs(Quaternion(ann["rotation"]).norm - 1) < 1e-9 and w > 0 and h > 0
+        if ann["category_name"] in TABLE1_CATEGORIES:
+            assert length > w
+    assert wj["params"]["n_scenes"] == 4
+
+
+# --- ground truth ------------------------------------------------------------------------------
+
+
+def test_gt_flow_warps_frame_two_onto_frame_one(smoke_world, smoke_nusc):
+    root, version = smoke_world
+    scene, samples = _day_scene(smoke_nusc)
+    sd1 = smoke_nusc.get("sample_data", samples[0]["data"]["CAM_FRONT"])
+    sd2 = smoke_nusc.get("sample_data", samples[1]["data"]["CAM_FRONT"])
+    flow, valid = world.gt_flow(root, version, sd1["token"], sd2["token"])
+    assert flow.shape == (900, 1600, 2) and flow.dtype == np.float32
+    assert valid.shape == (900, 1600) and valid.dtype == bool and 0.3 < valid.mean() < 1.0
+    im1 = cv2.imread(str(root / sd1["filename"]), cv2.IMREAD_GRAYSCALE).astype(np.float32)
+    im2 = cv2.imread(str(root / sd2["filename"]), cv2.IMREAD_GRAYSCALE).astype(np.float32)
+    gx, gy = np.meshgrid(np.arange(1600, dtype=np.float32), np.arange(900, dtype=np.float32))
+    back = cv2.remap(im2, gx + flow[..., 0], gy + flow[..., 1], cv2.INTER_LINEAR)
+    # static surfaces (the world's own surface ids), away from the image border
+    sc, t1 = world.scene_of(root, version, sd1["token"])
+    fr = wr.render(wr.SceneGeometry(sc), t1, textured=False)
+    static = (fr.sid < wr.SID_AGENT0) & valid
+    static[:8], static[-8:], static[:, :8], static[:, -8:] = False, False, False, False
+    moved = np.linalg.norm(flow, axis=2) > 1.0  # where the flow matters
+    sel = static & moved
+    assert sel.sum() > 50_000
+    gain = im1[sel].mean() / back[sel].mean()  # the frames' exposures differ by a few %
+    err_flow = np.abs(gain * back - im1)[sel].mean()
+    err_zero = np.abs(gain * im2 - im1)[sel].mean()
+    assert err_flow < 5.0 and err_flow < 0.4 * err_zero, (err_flow, err_zero)
+    # moving objects: the warp also holds on agents that are visible in both frames
+    agents = (fr.sid >= wr.SID_AGENT0) & valid & moved
+    if agents.sum() > 2000:
+        assert np.abs(back - im1)[agents].mean() < 0.6 * np.abs(im2 - im1)[agents].mean()
+
+
+def test_gt_flow_of_pure_ego_translation_over_the_ground(smoke_world):
+    """Level camera moving straight ahead by d over empty ground: for a ground pixel (u, v) at
+    depth Z = f h / (v - cy), the new pixel is c + (p - c) Z / (Z - d) (pinhole formula)."""
+    root, version = smoke_world
+    wj = _world_json(root, version)
+    sc = copy.deepcopy(wj["scenes"][0])
+    sc["agents"], sc["statics"] = [], []
+    speed = 8.0
+    sc["ego"] = {
+        "path": {"x": 0.0, "y": 0.0, "h": 0.0, "segs": []},
+        "s0": 0.0,
+        "speed": {"t": [0.0], "v": [speed]},
+    }
+    f, cx, cy, h = 1266.0, 800.0, 450.0, 1.5
+    sc["calib"] = {
+        "K": [[f, 0, cx], [0, f, cy], [0, 0, 1]],
+        "rotation": [0.5, -0.5, 0.5, -0.5],
+        "translation": [1.7, 0.0, h],
+    }
+    geo = wr.SceneGeometry(sc)
+    flow, valid = world.flow_between(geo, 1.0, 1.5)
+    d = speed * 0.5
+    for u, v in [(800, 700), (300, 850), (1400, 600), (1000, 520)]:
+        Z = f * h / (v - cy)
+        u2 = cx + (u - cx) * Z / (Z - d)
+        v2 = cy + (v - cy) * Z / (Z - d)
+        np.testing.assert_allclose(flow[v, u], [u2 - u, v2 - v], atol=1e-3)
+        assert valid[v, u] == (0 <= u2 <= 1599.5 and v2 <= 899.5)
+    # sky (at infinity) does not move under pure translation
+    np.testing.assert_allclose(flow[100, 800], [0.0, 0.0], atol=1e-4)
+
+
+def test_true_velocity_matches_finite_differences(smoke_world, smoke_nusc):
+    root, version = smoke_world
+    nusc = smoke_nusc
+    errs = []
+    for ann in nusc.sample_annotation:
+        if not ann["next"]:
+            continue
+        nxt = nusc.get("sample_annotation", ann["next"])
+        t1 = nusc.get("sample", ann["sample_token"])["timestamp"]
+        t2 = nusc.get("sample", nxt["sample_token"])["timestamp"]
+        fd = (np.array(nxt["translation"]) - np.array(ann["translation"])) / ((t2 - t1) / 1e6)
+        v1 = world.true_velocity(root, version, ann["instance_token"], t1)
+        v2 = world.true_velocity(root, version, ann["instance_token"], t2)
+        vm = world.true_velocity(root, version, ann["instance_token"], (t1 + t2) // 2)
+        assert v1.shape == (3,) and v1[2] == 0.0
+        # piecewise-constant acceleration on straight paths: the mean equals the midpoint speed
+        errs.append(np.linalg.norm(fd - vm))
+        assert np.linalg.norm(fd - vm) <= 0.5 * np.linalg.norm(v2 - v1) + 0.05
+        attr = nusc.get("attribute", ann["attribute_tokens"][0])["name"]
+        if attr in ("vehicle.parked", "vehicle.stopped"):
+            assert np.linalg.norm(v1) <= ws.NEAR_ZERO_SPEED
+    assert len(errs) > 50 and np.median(errs) < 1e-6
+
+
+# --- determinism and the public entry points ---------------------------------------------------
+
+
+def _tiny(root, seed=0, **kw):
+    sizes = dict(n_scenes=1, n_keyframes=2, n_sweep_scenes=0, vehicles_per_scene=4)
+    sizes.update(kw)
+    return world.generate_world(root, seed=seed, n_jobs=1, progress=False, **sizes)
+
+
+def test_same_seed_gives_byte_identical_tables_and_images(tmp_path):
+    a, b, c = (_tiny(tmp_path / "a"), _tiny(tmp_path / "b"), _tiny(tmp_path / "c", seed=1))
+    files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
+    assert any(str(f).endswith(".jpg") for f in files) and len(files) > 15
+    for f in files:
+        assert (a / f).read_bytes() == (b / f).read_bytes(), f
+    assert (a / "v1.0-synth/scene.json").read_bytes() != (c / "v1.0-synth/scene.json").read_bytes()
+
+
+def test_ensure_world_generates_reuses_regenerates_and_explains(tmp_path):
+    base = {
+        "dataroot": str(tmp_path / "w"),
+        "version": "v1.0-synth",
+        "synthetic": True,
+        "world_scenes": 1,
+        "world_keyframes": 2,
+        "world_sweep_scenes": 0,
+        "world_vehicles": 3,
+        "n_jobs": 1,
+    }
+    p = validate(base)
+    root = world.ensure_world(p, progress=False)
+    assert world.is_synthetic(root, "v1.0-synth")
+    stamp = (root / "v1.0-synth" / "scene.json").stat().st_mtime_ns
+    world.ensure_world(p, progress=False)  # same sizes: reused
+    assert (root / "v1.0-synth" / "scene.json").stat().st_mtime_ns == stamp
+    p2 = validate({**base, "world_vehicles": 5})  # other sizes: regenerated
+    world.ensure_world(p2, progress=False)
+    assert world.world_params(root, "v1.0-synth")["vehicles_per_scene"] == 5
+    # not synthetic and missing: a clear error naming the path and the fix
+    missing = validate({**base, "dataroot": str(tmp_path / "nope"), "synthetic": False})
+    with pytest.raises(world.WorldError, match=r"nope.*v1\.0-synth.*synthetic: true"):
+        world.ensure_world(missing)
+    # a real (non-synthetic) nuScenes version is never overwritten
+    real = tmp_path / "real"
+    (real / "v1.0-mini").mkdir(parents=True)
+    (real / "v1.0-mini" / "scene.json").write_text("[]")
+    assert not world.is_synthetic(real, "v1.0-mini")
+    with pytest.raises(world.WorldError, match="real"):
+        _tiny(real)
+    assert (
+        world.ensure_world(
+            validate({**base, "dataroot": str(real), "version": "v1.0-mini", "synthetic": True})
+        )
+        == real
+    )
+
+
+def test_world_description_is_plain_json_and_complete(smoke_world):
+    root, version = smoke_world
+    wj = _world_json(root, version)
+    assert wj["format"] == "flowmod-synth-world" and wj["complete"] is True
+    sc = wj["scenes"][0]
+    assert {"ego", "agents", "statics", "frames", "calib", "layout", "global"} <= set(sc)
+    assert all("instance_token" in a and "traj" in a for a in sc["agents"])
+    assert not any(p.name.startswith(".") for p in root.iterdir())  # no partial folders left
+
+
+def test_best_f1_and_scene_filter():
+    f1, t = wrep.best_f1(np.array([0.1, 0.2, 0.8, 0.9]), np.array([0, 0, 1, 1]))
+    assert f1 == 1.0 and 0.2 < t < 0.8
+    assert wrep.usable("After rain, peds") and not wrep.usable("Night, peds")
+    assert not wrep.usable("peds, rain") and wrep.usable("nightlife")
