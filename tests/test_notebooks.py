@@ -48,6 +48,14 @@ def test_setup_records_profile_and_environment(smoke_run):
     assert (smoke_run["base"] / "runs" / "figures" / "pipeline.png").stat().st_size > 5000
 
 
+def test_world_recorded(smoke_run):
+    g = glue_of(smoke_run, "01_world")
+    assert g["synthetic"] is True
+    assert g["n_scenes"] == 4 and g["n_samples"] == 16, "smoke world: 4 scenes x 4 keyframes"
+    assert g["n_CAM_FRONT_frames"] > g["n_samples"], "the sweep scene adds camera frames"
+    assert 0.0 <= g["naive_f1"] <= 1.0
+
+
 def test_filtering_counts(smoke_run):
     g = glue_of(smoke_run, "02_filtering")
     assert 1 <= g["n_scenes_kept"] < 4, "the smoke world has a night scene to exclude"

@@ -814,6 +814,35 @@ def true_velocity(
     return np.array([float(st["vx"]), float(st["vy"]), 0.0])
 
 
+def main(argv: list[str] | None = None) -> int:
+    """``python -m flowmod.world --profile demo``: build (or reuse) the profile's world."""
+    import argparse
+    import sys
+    import time
+
+    from flowmod.params import ProfileError, load_profile
+    from flowmod.runner import parse_overrides
+
+    ap = argparse.ArgumentParser(prog="python -m flowmod.world", description=main.__doc__)
+    ap.add_argument("--profile", default="demo")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    args = ap.parse_args(argv)
+    try:
+        p = load_profile(args.profile, **parse_overrides(args.overrides))
+        t0 = time.perf_counter()
+        root = ensure_world(p)
+    except (ProfileError, WorldError) as e:
+        print(f"{type(e).__name__}: {e}", file=sys.stderr)
+        return 2
+    size = sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
+    print(f"world: {root / p.version} ({size / 1e6:.0f} MB, {time.perf_counter() - t0:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
+
+
 def __getattr__(name: str) -> Any:  # notebook helpers live in world_report (lazy import)
     if name in ("naive_rule_report", "counts_table", "distant_objects", "gt_flow_figure"):
         from flowmod import world_report

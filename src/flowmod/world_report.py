@@ -39,16 +39,10 @@ def _nusc(nusc_or_dataroot: Any, version: str):
 
 def usable(description: str, exclude: Iterable[str] = EXCLUDE) -> bool:
     """False if a comma-separated item of the description equals an excluded word (any case)."""
+    from flowmod.select import description_items
+
     bad = {e.strip().lower() for e in exclude}
-    return not any(item.strip().lower() in bad for item in description.split(","))
-
-
-def _camera_boxes(nusc, sd_token: str):
-    """Annotations of a keyframe in the camera frame: {ann_token: (ann, box_cam, K)}."""
-    from nuscenes.utils.geometry_utils import BoxVisibility
-
-    _, boxes, K = nusc.get_sample_data(sd_token, box_vis_level=BoxVisibility.ALL)
-    return {b.token: b for b in boxes}, K
+    return not any(item in bad for item in description_items(description))
 
 
 def distant_objects(
@@ -62,78 +56,23 @@ def distant_objects(
     exclude: Iterable[str] = EXCLUDE,
     speed_threshold: float = 2.0,
 ) -> pd.DataFrame:
-    """One row per (consecutive keyframe pair, vehicle qualifying in both keyframes).
-
-    Columns: scene, pair (index of frame 1 in the scene), sd_token_1/2, timestamp_1/2 (us),
-    instance_token, ann_token_1/2, category, distance (m, ego-pose origin to box centre, frame
-    1), xmin, ymin, xmax, ymax (px, frame 1: min/max of the 8 projected corners), speed (m/s,
-    forward difference of the two annotations, eq. 1 of the paper), label (1 if speed >=
-    ``speed_threshold``).
-    """
-    from nuscenes.utils.geometry_utils import view_points
+    """One row per (consecutive keyframe pair, vehicle qualifying in both keyframes): the
+    paper's Table-1 objects of all usable scenes, selected by :mod:`flowmod.select` (the same
+    code as the filtering stage), with the pair's sd_token_1/2 and timestamp_1/2 (us)."""
+    from flowmod import select
+    from flowmod.params import validate
 
     nusc = _nusc(nusc_or_dataroot, version)
-    cats = set(categories)
-    vis = set(visibilities)
-    rows = []
-    for scene in nusc.scene:
-        if not usable(scene["description"], exclude):
-            continue
-        qual_prev = None
-        tok = scene["first_sample_token"]
-        k = 0
-        while tok:
-            sample = nusc.get("sample", tok)
-            sd_token = sample["data"]["CAM_FRONT"]
-            sd = nusc.get("sample_data", sd_token)
-            pose = nusc.get("ego_pose", sd["ego_pose_token"])
-            ego_xyz = np.array(pose["translation"])
-            boxes, K = _camera_boxes(nusc, sd_token)
-            qual = {}
-            for ann_token in sample["anns"]:
-                ann = nusc.get("sample_annotation", ann_token)
-                if ann["category_name"] not in cats or ann["visibility_token"] not in vis:
-                    continue
-                dist = float(np.linalg.norm(np.array(ann["translation"]) - ego_xyz))
-                if not (min_distance <= dist <= max_distance) or ann_token not in boxes:
-                    continue
-                uv = view_points(boxes[ann_token].corners(), K, normalize=True)[:2]
-                qual[ann["instance_token"]] = (ann, dist, uv, sd)
-            if qual_prev is not None:
-                for inst, (a1, d1, uv1, sd1) in qual_prev.items():
-                    if inst not in qual:
-                        continue
-                    a2, _, _, sd2 = qual[inst]
-                    t1 = nusc.get("sample", a1["sample_token"])["timestamp"]
-                    t2 = nusc.get("sample", a2["sample_token"])["timestamp"]
-                    dt = (t2 - t1) / 1e6
-                    v = (np.array(a2["translation"]) - np.array(a1["translation"])) / dt
-                    speed = float(np.linalg.norm(v))
-                    rows.append(
-                        {
-                            "scene": scene["name"],
-                            "pair": k - 1,
-                            "sd_token_1": sd1["token"],
-                            "sd_token_2": sd2["token"],
-                            "timestamp_1": sd1["timestamp"],
-                            "timestamp_2": sd2["timestamp"],
-                            "instance_token": inst,
-                            "ann_token_1": a1["token"],
-                            "ann_token_2": a2["token"],
-                            "category": a1["category_name"],
-                            "distance": d1,
-                            "xmin": float(uv1[0].min()),
-                            "ymin": float(uv1[1].min()),
-                            "xmax": float(uv1[0].max()),
-                            "ymax": float(uv1[1].max()),
-                            "speed": speed,
-                            "label": int(speed >= speed_threshold),
-                        }
-                    )
-            qual_prev = qual
-            tok = sample["next"]
-            k += 1
-    return pd.DataFrame(rows)
+    p = validate({"min_distance": min_distance, "max_distance": max_distance,
+                  "categories": list(categories), "visibility_tokens": list(visibilities),
+                  "exclude_descriptions": list(exclude), "speed_threshold": speed_threshold})
+    scenes = select.filter_scenes(select.scene_table(nusc), p.exclude_descriptions)
+    kept = scenes[scenes["excluded_by"] == ""].assign(split="all")
+    pairs, objs = select.keyframe_set(nusc, kept, p, progress=False)
+    if objs.empty:
+        return objs
+    cols = ["pair_id", "sd_token_1", "sd_token_2", "timestamp_1", "timestamp_2"]
+    return objs.merge(pairs[cols], on="pair_id", how="left")
 
 
 def best_f1(scores: np.ndarray, labels: np.ndarray) -> tuple[float, float]:
@@ -340,20 +279,6 @@ def counts_table(
     return t.sort_values("total", ascending=False)
 
 
-def flow_to_color(flow: np.ndarray, max_mag: float | None = None) -> np.ndarray:
-    """Flow (H, W, 2) px -> RGB uint8 (hue = direction, saturation = magnitude)."""
-    import cv2
-
-    mag = np.linalg.norm(flow, axis=2)
-    ang = np.arctan2(flow[..., 1], flow[..., 0])
-    scale = max_mag if max_mag else max(float(np.percentile(mag, 99)), 1.0)
-    hsv = np.zeros(flow.shape[:2] + (3,), np.uint8)
-    hsv[..., 0] = ((ang + np.pi) / (2 * np.pi) * 179).astype(np.uint8)
-    hsv[..., 1] = np.clip(mag / scale * 255, 0, 255).astype(np.uint8)
-    hsv[..., 2] = 255
-    return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
-
-
 def gt_flow_figure(
     dataroot: str | os.PathLike[str],
     version: str,
@@ -369,6 +294,7 @@ def gt_flow_figure(
     from matplotlib.patches import Rectangle
     from PIL import Image
 
+    from flowmod.flow import flow_to_color
     from flowmod.world import gt_flow
 
     sd = {
