@@ -593,3 +593,30 @@ def test_estimator_options_from_a_profile(tmp_path):
     assert opts["weights"] == tmp_path / "ffn.pth" and opts["device"] == "cpu"
     assert fl.estimator_options(p, "raft")["weights"] is None
     fl.get_estimator("dis", **fl.estimator_options(p, "dis"))
+
+
+def test_index_written_while_computing_lists_only_finished_pairs(tmp_path, monkeypatch):
+    """The periodic index write (so timings survive a kill) must not name unfinished pairs."""
+    root = tmp_path / "data"
+    pairs = make_dataroot(root, n=3)
+    monkeypatch.setattr(fl, "INDEX_WRITE_SECONDS", -1.0)  # write after every pair
+    seen = []
+    real = fl._write_index
+
+    def spy(path, rows, order):
+        seen.append(sorted(rows))
+        return real(path, rows, order)
+
+    monkeypatch.setattr(fl, "_write_index", spy)
+    res = fl.compute_flow(pairs, "dis", tmp_path / "flow", dataroot=root, version="v",
+                          n_jobs=1, progress=False, preset="fast")
+    assert res["computed"].all()
+    assert seen[0] == ["p0"] and seen[-1] == ["p0", "p1", "p2"]
+
+
+def test_float16_flow_is_clipped_not_inf(tmp_path):
+    flow = np.zeros((4, 5, 2), np.float32)
+    flow[1, 2] = [1e6, -1e6]
+    fl.save_flow_npy(tmp_path / "f.npy", flow, "float16")
+    back = fl.load_flow_npy(tmp_path / "f.npy")
+    assert np.isfinite(back).all() and back[1, 2, 0] == 65504.0 and back[1, 2, 1] == -65504.0

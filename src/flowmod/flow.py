@@ -602,6 +602,8 @@ def estimator_options(params: Params, method: str) -> dict[str, Any]:
 # --------------------------------------------------------------------------------------------
 
 FLO_MAGIC = 202021.25
+#: While computing, the index is rewritten this often (s), so timings survive an interruption.
+INDEX_WRITE_SECONDS = 30.0
 
 
 def _check_flow(flow: np.ndarray, what: str = "flow") -> None:
@@ -634,10 +636,17 @@ def read_flo(path: str | os.PathLike[str]) -> np.ndarray:
 
 
 def save_flow_npy(path: str | os.PathLike[str], flow: np.ndarray, dtype: str = "float16") -> None:
-    """Save (H, W, 2) flow as .npy of ``dtype`` (float16 / float32), atomically."""
+    """Save (H, W, 2) flow as .npy of ``dtype`` (float16 / float32), atomically.
+
+    For float16, values beyond its range (+-65504 px: only invalid pixels, e.g. points that
+    pass behind the camera) are clipped instead of becoming inf.
+    """
     _check_flow(flow)
     if dtype not in ("float16", "float32"):
         raise ValueError(f"dtype={dtype!r}; allowed: float16, float32")
+    if dtype == "float16":
+        big = float(np.finfo(np.float16).max)
+        flow = np.clip(flow, -big, big)
     with atomic_path(path) as tmp:
         np.save(tmp, np.ascontiguousarray(flow, dtype=dtype), allow_pickle=False)
 
@@ -941,7 +950,8 @@ def _read_index(path: Path) -> pd.DataFrame | None:
 def _write_index(
     path: Path, rows: Mapping[str, dict[str, Any]], order: Sequence[str]
 ) -> pd.DataFrame:
-    ids = list(order) + [p for p in rows if p not in set(order)]
+    known = set(order)
+    ids = [p for p in order if p in rows] + [p for p in rows if p not in known]
     df = pd.DataFrame(
         {
             "pair_id": ids,
@@ -1110,7 +1120,7 @@ def compute_flow(
                 rows[pid] = {"seconds": seconds, "shape": list(shape)}
                 computed.add(pid)
                 bar.update(1)
-                if time.monotonic() - last_write > 30.0:  # keep timings if interrupted
+                if time.monotonic() - last_write > INDEX_WRITE_SECONDS:  # if interrupted
                     _write_index(index_path, rows, ids)
                     last_write = time.monotonic()
     index = _write_index(index_path, rows, ids)
