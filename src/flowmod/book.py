@@ -164,8 +164,9 @@ def assemble(executed: Path, staging: Path) -> dict[str, Any]:
 
 def build(executed: Path, out: Path, staging: Path | None = None) -> Path:
     """Assemble and run Sphinx (warnings are errors); returns ``out/index.html``."""
-    staging = staging or out.parent / "book-src"
-    info = assemble(executed, staging)
+    out = Path(out).resolve()
+    staging = Path(staging or out.parent / "book-src").resolve()
+    info = assemble(Path(executed), staging)
     es5 = find_mathjax()
     if es5 is None:
         raise BookError(
