@@ -14,7 +14,7 @@ import json
 import os
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -65,3 +65,31 @@ def is_up_to_date(path: str | os.PathLike[str], params_hash: str) -> bool:
 def mark_done(path: str | os.PathLike[str], params_hash: str, **info: Any) -> None:
     """Record that ``path`` was produced by parameters with ``params_hash``."""
     write_json(manifest_path(path), {"params_hash": params_hash, "written": time.time(), **info})
+
+
+class CheckpointError(ValueError):
+    """A weights file does not fit the model it is loaded into; the message names the file
+    and the first mismatching keys."""
+
+
+def state_dict_mismatch(state: Mapping[str, Any], expected: Mapping[str, Any], n: int = 5) -> str:
+    """How a state_dict differs from the one a model expects (keys and tensor shapes):
+    ``""`` when they agree, else "missing keys: ...; unexpected keys: ...; shape mismatches
+    (file != model): ..." listing the first ``n`` of each."""
+
+    def first(items: list[str]) -> str:
+        more = f" (+{len(items) - n} more)" if len(items) > n else ""
+        return ", ".join(items[:n]) + more
+
+    missing = [k for k in expected if k not in state]
+    unexpected = [k for k in state if k not in expected]
+    shapes = [f"{k} {tuple(state[k].shape)} != {tuple(expected[k].shape)}"
+              for k in expected if k in state and tuple(state[k].shape) != tuple(expected[k].shape)]
+    parts = []
+    if missing:
+        parts.append(f"missing keys: {first(missing)}")
+    if unexpected:
+        parts.append(f"unexpected keys: {first(unexpected)}")
+    if shapes:
+        parts.append(f"shape mismatches (file != model): {first(shapes)}")
+    return "; ".join(parts)

@@ -5,10 +5,14 @@ from __future__ import annotations
 import platform
 import subprocess
 from importlib import metadata
+from typing import TYPE_CHECKING, Any
 
 import pandas as pd
 
 from flowmod.paths import repo_root
+
+if TYPE_CHECKING:
+    import torch
 
 #: Distributions reported in the book's setup chapter and the Reproduce page.
 KEY_PACKAGES = (
@@ -41,26 +45,28 @@ def versions(packages: tuple[str, ...] = KEY_PACKAGES) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def resolve_device(device: str = "auto") -> str:
-    """``"auto"`` -> ``"cuda"`` if a CUDA device is usable, else ``"cpu"``.
-
-    Asking for ``"cuda"`` without one raises a clear error instead of failing mid-run.
-    """
+def resolve_device(device: Any = "auto") -> torch.device:
+    """``"auto"`` (or None) -> CUDA if a CUDA device is usable, else the CPU; anything else
+    as :class:`torch.device`. Asking for CUDA without one raises a clear error instead of
+    failing mid-run."""
     import torch
 
-    has_cuda = torch.cuda.is_available()
-    if device == "auto":
-        return "cuda" if has_cuda else "cpu"
-    if device == "cuda" and not has_cuda:
-        raise RuntimeError("device='cuda' was asked for but no CUDA device is visible; use 'auto'")
-    return device
+    if isinstance(device, torch.device):
+        return device
+    if device is None or device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError(f"device={device!r} was asked for but no CUDA device is visible; "
+                           "use 'auto'")
+    return dev
 
 
 def device_info(device: str = "auto") -> dict[str, object]:
     """The device the study will use, with its name and the CPU thread count."""
     import torch
 
-    dev = resolve_device(device)
+    dev = resolve_device(device).type
     info: dict[str, object] = {
         "device": dev,
         "cpu": platform.processor() or platform.machine(),

@@ -46,6 +46,7 @@ import numpy as np
 import pandas as pd
 
 from flowmod.artefacts import atomic_path
+from flowmod.environment import resolve_device
 
 if TYPE_CHECKING:
     import torch
@@ -343,15 +344,6 @@ class GTFlow(FlowEstimator):
 
 
 # --- networks -------------------------------------------------------------------------------
-
-
-def resolve_device(device: Any = "auto") -> torch.device:
-    """``"auto"`` -> CUDA if present, else CPU; anything torch.device accepts otherwise."""
-    import torch
-
-    if device is None or device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
 
 
 class _NetworkEstimator(FlowEstimator):

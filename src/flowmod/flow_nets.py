@@ -22,21 +22,14 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-# --------------------------------------------------------------------------------------------
-# errors
-# --------------------------------------------------------------------------------------------
-
-
-class CheckpointError(ValueError):
-    """A weights file cannot be read, or does not match the architecture (names the file)."""
-
+from flowmod.artefacts import CheckpointError, state_dict_mismatch
 
 # --------------------------------------------------------------------------------------------
 # padding (RAFT needs H, W divisible by 8)
@@ -519,12 +512,6 @@ def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Tensor]:
     return strip_prefix(obj)
 
 
-def _first(items: Iterable[str], n: int = 5) -> str:
-    items = list(items)
-    more = f" (+{len(items) - n} more)" if len(items) > n else ""
-    return ", ".join(items[:n]) + more
-
-
 def load_weights(model: nn.Module, sd: Mapping[str, Tensor], source: str) -> nn.Module:
     """Strictly load ``sd`` into ``model``, or raise :class:`CheckpointError` that names
     ``source`` and the first missing, unexpected and wrongly shaped keys."""
@@ -533,24 +520,11 @@ def load_weights(model: nn.Module, sd: Mapping[str, Tensor], source: str) -> nn.
     for k in own:  # BatchNorm counters are absent from some old checkpoints: harmless
         if k.endswith("num_batches_tracked") and k not in sd:
             sd[k] = own[k]
-    missing = [k for k in own if k not in sd]
-    unexpected = [k for k in sd if k not in own]
-    shapes = [
-        f"{k} {tuple(sd[k].shape)} != {tuple(own[k].shape)}"
-        for k in own
-        if k in sd and tuple(sd[k].shape) != tuple(own[k].shape)
-    ]
-    if missing or unexpected or shapes:
-        parts = []
-        if missing:
-            parts.append(f"missing keys: {_first(missing)}")
-        if unexpected:
-            parts.append(f"unexpected keys: {_first(unexpected)}")
-        if shapes:
-            parts.append(f"shape mismatches (file != model): {_first(shapes)}")
+    problems = state_dict_mismatch(sd, own)
+    if problems:
         raise CheckpointError(
             f"{source} does not match the {type(model).__name__} architecture "
-            f"({len(sd)} keys in the file, {len(own)} in the model): " + "; ".join(parts)
+            f"({len(sd)} keys in the file, {len(own)} in the model): {problems}"
         )
     model.load_state_dict(sd, strict=True)
     return model

@@ -13,12 +13,11 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from flowmod.artefacts import CheckpointError, state_dict_mismatch
+from flowmod.environment import resolve_device
+
 #: Parameters of torchvision's resnet18 (3 input channels, 1000 classes).
 RESNET18_PARAMS = 11_689_512
-
-
-class CheckpointError(ValueError):
-    """A checkpoint cannot be loaded into this model; the message names file, keys, shapes."""
 
 
 def motion_resnet18() -> nn.Module:
@@ -34,18 +33,6 @@ def motion_resnet18() -> nn.Module:
 def count_parameters(model: nn.Module) -> int:
     """Number of parameters (trainable or not; buffers excluded)."""
     return sum(p.numel() for p in model.parameters())
-
-
-def resolve_device(device: str | torch.device = "auto") -> torch.device:
-    """``'auto'`` -> cuda if available else cpu; anything else as torch.device."""
-    if isinstance(device, torch.device):
-        return device
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    dev = torch.device(device)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError(f"device={device!r} asked for, but CUDA is not available here")
-    return dev
 
 
 def _state_dict_of(obj: object, path: Path) -> dict[str, torch.Tensor]:
@@ -65,32 +52,12 @@ def _state_dict_of(obj: object, path: Path) -> dict[str, torch.Tensor]:
 
 def check_state_dict(state: dict[str, torch.Tensor], model: nn.Module, source: str) -> None:
     """Raise :class:`CheckpointError` listing missing/unexpected keys and shape mismatches."""
-    want = model.state_dict()
-    missing = [k for k in want if k not in state]
-    extra = [k for k in state if k not in want]
-    shapes = [
-        f"{k}: file {tuple(state[k].shape)} vs model {tuple(want[k].shape)}"
-        for k in want
-        if k in state and tuple(state[k].shape) != tuple(want[k].shape)
-    ]
-    if not (missing or extra or shapes):
-        return
-
-    def _few(items: list[str]) -> str:
-        more = f" (+{len(items) - 5} more)" if len(items) > 5 else ""
-        return ", ".join(items[:5]) + more
-
-    parts = []
-    if shapes:
-        parts.append(f"shape mismatches: {_few(shapes)}")
-    if missing:
-        parts.append(f"missing keys: {_few(missing)}")
-    if extra:
-        parts.append(f"unexpected keys: {_few(extra)}")
-    raise CheckpointError(
-        f"{source}: not a checkpoint of motion_resnet18 (2-channel ResNet18, 1 logit); "
-        + "; ".join(parts)
-    )
+    problems = state_dict_mismatch(state, model.state_dict())
+    if problems:
+        raise CheckpointError(
+            f"{source}: not a checkpoint of motion_resnet18 (2-channel ResNet18, 1 logit); "
+            + problems
+        )
 
 
 def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> nn.Module:

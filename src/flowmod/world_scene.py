@@ -25,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from flowmod.params import TABLE1_CATEGORIES
+
 # --------------------------------------------------------------------------------------------
 # Categories (official nuScenes names) and typical sizes (w, l, h in m)
 # --------------------------------------------------------------------------------------------
@@ -72,17 +74,7 @@ PARKED_WEIGHTS = {
 }
 
 #: Table 1 of the paper (the categories the motion task is about).
-TARGET_CATEGORIES = frozenset(
-    {
-        "vehicle.car",
-        "vehicle.emergency.ambulance",
-        "vehicle.emergency.police",
-        "vehicle.truck",
-        "vehicle.bus.bendy",
-        "vehicle.bus.rigid",
-        "vehicle.construction",
-    }
-)
+TARGET_CATEGORIES = frozenset(TABLE1_CATEGORIES)
 
 NEAR_ZERO_SPEED = 0.2  # m/s, below this an agent counts as standing (for attributes)
 
