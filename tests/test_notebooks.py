@@ -66,8 +66,9 @@ def test_filtering_counts(smoke_run):
 
 def test_flow_accuracy_recorded(smoke_run):
     g = glue_of(smoke_run, "03_flow")
-    assert g["epe_boxes_gt"] < 0.05, "gt flow stored as float16 is exact to ~1e-3 px"
-    assert g["epe_boxes_dis"] > g["epe_boxes_gt"]
+    # gt is exact but stored at flow_scale (0.25 in smoke): what remains is the storage loss
+    assert g["epe_boxes_gt"] < 1.0
+    assert g["epe_boxes_dis"] > 3 * g["epe_boxes_gt"]
     assert g["seconds_per_pair_dis"] > 0
 
 
@@ -82,7 +83,7 @@ def test_crops_and_training_recorded(smoke_run):
     g5, g6 = glue_of(smoke_run, "05_preprocessing"), glue_of(smoke_run, "06_training")
     assert g5["crop_size"] == 32
     assert 4.0 <= g5["crop_kb_per_object"] <= 5.0, "2 x 32 x 32 float16 = 4.1 kB per object"
-    assert g6["n_model_parameters"] == 11_689_512 - 64 * 7 * 7 - (511 * 1000 + 999)
+    assert g6["n_model_parameters"] == 11_689_512 - 64 * 7 * 7 - (512 * 999 + 999)
     assert g6["epochs"] == 1
     for m in ("gt", "dis"):
         assert g6[f"best_epoch_{m}"] == 1

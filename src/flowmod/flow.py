@@ -31,6 +31,7 @@ imported by the network methods and the colour coding.
 from __future__ import annotations
 
 import concurrent.futures
+import functools
 import inspect
 import json
 import logging
@@ -688,9 +689,48 @@ def _npy_ok(path: Path, dtype: str) -> bool:
     )
 
 
+def full_shape(stored: tuple[int, ...], store_scale: float) -> tuple[int, int]:
+    """(H, W) of the image whose flow was stored at ``store_scale`` with shape ``stored``."""
+    return int(round(stored[0] / store_scale)), int(round(stored[1] / store_scale))
+
+
+def store_flow(path: str | os.PathLike[str], flow: np.ndarray, dtype: str = "float16",
+               store_scale: float = 1.0) -> None:
+    """Save flow (H, W, 2) px at ``store_scale`` of its size (area-averaged), values kept in
+    pixels of the full image, so :func:`load_flow` can restore the full size."""
+    if store_scale != 1.0:
+        h, w = flow.shape[:2]
+        size = (int(round(h * store_scale)), int(round(w * store_scale)))
+        if min(size) < 1 or full_shape(size, store_scale) != (h, w):
+            raise ValueError(f"store_scale={store_scale} cannot store a {h}x{w} flow so that its "
+                             "size is recovered; use a scale like 0.5 or 0.25")
+        flow = cv2.resize(np.asarray(flow, np.float32), size[::-1], interpolation=cv2.INTER_AREA)
+    save_flow_npy(path, flow, dtype)
+
+
+def _store_scale(folder: Path) -> float:
+    """The store_scale recorded in a method folder's config.json (1.0 if none)."""
+    cfg = folder / "config.json"
+    if not cfg.is_file():
+        return 1.0
+    return float(_read_config(str(cfg), cfg.stat().st_mtime_ns).get("store_scale", 1.0))
+
+
+@functools.lru_cache(maxsize=64)
+def _read_config(path: str, mtime_ns: int) -> dict[str, Any]:
+    return json.loads(Path(path).read_text())
+
+
 def load_flow(out_dir: str | os.PathLike[str], method: str, pair_id: str) -> np.ndarray:
-    """Flow of one pair written by :func:`compute_flow`: (H, W, 2) float32, pixels."""
-    return load_flow_npy(Path(out_dir) / method / f"{pair_id}.npy")
+    """Flow of one pair written by :func:`compute_flow`: (H, W, 2) float32, pixels of the full
+    image, frame 1 -> 2 (bilinearly restored to full size when stored at a reduced scale)."""
+    folder = Path(out_dir) / method
+    flow = load_flow_npy(folder / f"{pair_id}.npy")
+    scale = _store_scale(folder)
+    if scale == 1.0:
+        return flow
+    h, w = full_shape(flow.shape, scale)
+    return cv2.resize(flow, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
 # --------------------------------------------------------------------------------------------
@@ -878,7 +918,8 @@ def _config(cls: type[FlowEstimator], dtype: str, options: Mapping[str, Any]) ->
 
 
 def _one_image_pair(
-    est: FlowEstimator, pid: str, path1: str, path2: str, out: Path, dtype: str, threads: int
+    est: FlowEstimator, pid: str, path1: str, path2: str, out: Path, storage: tuple[str, float],
+    threads: int,
 ) -> tuple[str, float, tuple[int, ...]]:
     """Worker: read, estimate, save one pair; returns (pair_id, seconds, shape)."""
     if threads:
@@ -887,12 +928,13 @@ def _one_image_pair(
     t0 = time.perf_counter()
     flow = est.estimate(img1, img2)
     seconds = time.perf_counter() - t0
-    save_flow_npy(out, flow, dtype)
+    store_flow(out, flow, *storage)
     return pid, seconds, flow.shape
 
 
 def _one_token_pair(
-    est: FlowEstimator, pid: str, tok1: str, tok2: str, out: Path, dtype: str, threads: int
+    est: FlowEstimator, pid: str, tok1: str, tok2: str, out: Path, storage: tuple[str, float],
+    threads: int,
 ) -> tuple[str, float, tuple[int, ...]]:
     """Worker for token methods (``gt``)."""
     if threads:
@@ -900,12 +942,12 @@ def _one_token_pair(
     t0 = time.perf_counter()
     flow = est.estimate_tokens(tok1, tok2)  # type: ignore[attr-defined]
     seconds = time.perf_counter() - t0
-    save_flow_npy(out, flow, dtype)
+    store_flow(out, flow, *storage)
     return pid, seconds, flow.shape
 
 
 def _batched(
-    est: FlowEstimator, jobs: list[tuple[str, str, str, Path]], dtype: str
+    est: FlowEstimator, jobs: list[tuple[str, str, str, Path]], storage: tuple[str, float]
 ) -> Iterator[tuple[str, float, tuple[int, ...]]]:
     """Sequential batches for networks; the next batch's images load in a thread meanwhile."""
     bs = max(1, getattr(est, "batch_size", 1))
@@ -924,7 +966,7 @@ def _batched(
             flows = est.estimate_batch([a for a, _ in imgs], [b for _, b in imgs])
             seconds = (time.perf_counter() - t0) / len(chunk)
             for (pid, _, _, out), flow in zip(chunk, flows, strict=True):
-                save_flow_npy(out, flow, dtype)
+                store_flow(out, flow, *storage)
                 yield pid, seconds, flow.shape
 
 
@@ -968,9 +1010,13 @@ def compute_flow(
     n_jobs: int = 2,
     progress: bool = True,
     force: bool = False,
+    store_scale: float = 1.0,
     **options: Any,
 ) -> pd.DataFrame:
     """Flow of every pair of ``pairs`` (rows of pairs.parquet) with ``method``.
+
+    ``store_scale`` < 1 stores each flow at that fraction of the image size (values still in
+    full-image pixels; :func:`load_flow` restores the size): 0.5 needs a quarter of the disk.
 
     Writes ``<out_dir>/<method>/<pair_id>.npy`` ((H, W, 2) ``dtype``, pixels, frame 1 -> 2)
     and ``<out_dir>/<method>/index.parquet`` (pair_id, seconds = estimation time per pair,
@@ -1006,7 +1052,10 @@ def compute_flow(
     folder.mkdir(parents=True, exist_ok=True)
     index_path = folder / "index.parquet"
     config_path = folder / "config.json"
-    config = _config(cls, dtype, options)
+    if not 0.0 < store_scale <= 1.0:
+        raise ValueError(f"store_scale={store_scale}; allowed: 0 < store_scale <= 1")
+    config = {**_config(cls, dtype, options), "store_scale": float(store_scale)}
+    storage = (dtype, float(store_scale))
     old_config = None
     if config_path.is_file():
         try:
@@ -1041,7 +1090,9 @@ def compute_flow(
         if _npy_ok(f, dtype):
             done.add(pid)
             if pid not in rows:  # finished before the index was last written
-                rows[pid] = {"seconds": float("nan"), "shape": list(_npy_header(f)[0])}
+                stored = _npy_header(f)[0]
+                rows[pid] = {"seconds": float("nan"),
+                             "shape": [*full_shape(stored, store_scale), *stored[2:]]}
         else:
             rows.pop(pid, None)
     todo = pairs[[pid not in done for pid in ids]]
@@ -1070,7 +1121,7 @@ def compute_flow(
                         r.sd_token_1,
                         r.sd_token_2,
                         folder / f"{r.pair_id}.npy",
-                        dtype,
+                        storage,
                         threads,
                     ),
                 )
@@ -1086,7 +1137,7 @@ def compute_flow(
                         str(root / r.path_1),
                         str(root / r.path_2),
                         folder / f"{r.pair_id}.npy",
-                        dtype,
+                        storage,
                         threads,
                     ),
                 )
@@ -1102,7 +1153,7 @@ def compute_flow(
             results = (fn(*args) for fn, args in calls)
         else:
             jobs = [(a[1], a[2], a[3], a[4]) for _, a in calls]
-            results = _batched(est, jobs, dtype)
+            results = _batched(est, jobs, storage)
 
         from tqdm import tqdm
 
@@ -1140,7 +1191,8 @@ def run(params: Params, pairs: pd.DataFrame, progress: bool = True) -> dict[str,
         out[method] = compute_flow(
             pairs, method, flow_dir(params), dataroot=params.dataroot_path,
             version=params.version, dtype=params.flow_dtype, n_jobs=params.n_jobs,
-            progress=progress, force=params.force, **estimator_options(params, method),
+            progress=progress, force=params.force, store_scale=params.flow_scale,
+            **estimator_options(params, method),
         )
     return out
 

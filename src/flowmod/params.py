@@ -94,7 +94,7 @@ class Params(BaseModel):
     flow_methods: list[Literal[FLOW_METHODS]] = Field(  # type: ignore[valid-type]
         default_factory=lambda: ["gt", "dis", "farneback"]
     )
-    flow_scale: float = Field(0.5, gt=0.0, le=1.0, description="image scale for flow")
+    flow_scale: float = Field(0.5, gt=0.0, le=1.0, description="image scale at which flow is computed and stored")
     dis_preset: Literal["ultrafast", "fast", "medium"] = Field("medium")
     flow_dtype: Literal["float16", "float32"] = Field("float16")
     raft_weights: str | None = Field(None, description="path to RAFT weights (.pth)")
