@@ -426,6 +426,18 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
+def _project_bbox(points_cam: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, tuple[int, ...]]:
+    """Project camera-frame points (N, 3) with K: pixel coordinates (N, 2) and their integer
+    bounding box (x0, x1, y0, y1), end-exclusive, clipped to the image."""
+    uvw = points_cam @ K.T
+    uv = uvw[:, :2] / uvw[:, 2:3]
+    x0 = max(int(math.floor(uv[:, 0].min())), 0)
+    x1 = min(int(math.ceil(uv[:, 0].max())) + 1, W_IMG)
+    y0 = max(int(math.floor(uv[:, 1].min())), 0)
+    y1 = min(int(math.ceil(uv[:, 1].max())) + 1, H_IMG)
+    return uv, (x0, x1, y0, y1)
+
+
 def draw_quad(
     fr: Frame,
     corners_w: np.ndarray,
@@ -452,12 +464,7 @@ def draw_quad(
     if len(poly) < 3:
         return
     K = fr.K
-    uvw = poly @ K.T
-    uv = uvw[:, :2] / uvw[:, 2:3]
-    x0 = max(int(math.floor(uv[:, 0].min())), 0)
-    x1 = min(int(math.ceil(uv[:, 0].max())) + 1, W_IMG)
-    y0 = max(int(math.floor(uv[:, 1].min())), 0)
-    y1 = min(int(math.ceil(uv[:, 1].max())) + 1, H_IMG)
+    uv, (x0, x1, y0, y1) = _project_bbox(poly, K)
     if x1 <= x0 or y1 <= y0:
         return
     w, h = x1 - x0, y1 - y0
@@ -1011,12 +1018,7 @@ def silhouette_fraction(fr: Frame, corners_scene: np.ndarray, sid: int) -> tuple
         faces = [(0, 1, 2, 3), (4, 5, 6, 7), (0, 1, 5, 4), (2, 3, 7, 6), (0, 3, 7, 4), (1, 2, 6, 5)]
         pts = [_clip_near(Xc[list(f)]) for f in faces]
         Xc = np.concatenate([p for p in pts if len(p)], axis=0)
-    uvw = Xc @ fr.K.T
-    uv = uvw[:, :2] / uvw[:, 2:3]
-    x0 = max(int(math.floor(uv[:, 0].min())), 0)
-    x1 = min(int(math.ceil(uv[:, 0].max())) + 1, W_IMG)
-    y0 = max(int(math.floor(uv[:, 1].min())), 0)
-    y1 = min(int(math.ceil(uv[:, 1].max())) + 1, H_IMG)
+    uv, (x0, x1, y0, y1) = _project_bbox(Xc, fr.K)
     if x1 <= x0 or y1 <= y0:
         return float("nan"), 0
     hull = cv2.convexHull(np.round((uv - [x0, y0]) * 16).astype(np.int32))
