@@ -50,8 +50,9 @@ data: env  ## build the synthetic world of PROFILE (demo: data/demo)
 run: env  ## execute notebooks/NN_*.ipynb in order with params/$(PROFILE).yaml into build/executed
 	$(PY) -m flowmod.runner --profile $(PROFILE) --out $(EXECUTED) $(RUN_SET)
 
-book: run  ## run, then render the book into build/html
+book: run browser  ## run, then render the book into build/html (and check it in Chromium)
 	$(PY) -m flowmod.book --executed $(EXECUTED) --out $(HTML)
+	$(PY) -m flowmod.browser $(HTML) --screenshot build/book-screenshot.png
 
 test: env browser  ## unit tests, notebooks on the smoke profile, the book build, lint
 	$(PY) -m ruff check src tests benchmarks notebooks

@@ -8,6 +8,7 @@ import json
 import re
 
 import nbformat
+import pandas as pd
 import pytest
 
 from flowmod import book, runner
@@ -103,6 +104,12 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
     assert any(media.glob("*.mp4")) and any(media.glob("*-strip.png"))
 
 
+def test_missing_real_dataroot_is_rejected_before_work(tmp_path):
+    with pytest.raises(ProfileError, match=r"v1.0-trainval.*not found|does not exist"):
+        runner.run("paper", {"dataroot": str(tmp_path)}, out_dir=tmp_path / "executed")
+    assert not (tmp_path / "executed").exists()
+
+
 def test_device_that_does_not_exist_is_rejected_before_work(tmp_path):
     import torch
 
@@ -173,3 +180,41 @@ def test_executed_copies_keep_sources_clean(smoke_run):
     for nb in runner.notebooks():
         src = nbformat.read(nb, as_version=4)
         assert not any(c.get("outputs") for c in src.cells if c.cell_type == "code")
+
+
+# --- the real-data path: a devkit-format data set that is not a generated world -------------
+
+def renamed_copy(dataroot, version, dest):
+    """A copy of a world that looks like someone else's nuScenes: version folder v1.0-mini,
+    scene names scene-1NNN, and no world description (so no exact ground truth)."""
+    import shutil
+
+    shutil.copytree(dataroot, dest, ignore=shutil.ignore_patterns(version))
+    shutil.copytree(dataroot / version, dest / "v1.0-mini",
+                    ignore=shutil.ignore_patterns("synth_world.json"))
+    scene_json = dest / "v1.0-mini" / "scene.json"
+    scenes = json.loads(scene_json.read_text())
+    for i, sc in enumerate(scenes):
+        sc["name"] = f"scene-{1000 + i}"
+    scene_json.write_text(json.dumps(scenes))
+    return dest
+
+
+def test_paper_profile_runs_on_a_devkit_dataset_by_parameters_only(smoke_world, tmp_path):
+    """PROFILE=paper on a renamed copy: every notebook runs; only parameters change."""
+    from flowmod import world
+
+    root = renamed_copy(*smoke_world, tmp_path / "nuscenes")
+    assert not world.is_synthetic(root, "v1.0-mini")
+    overrides = {"dataroot": str(root), "version": "v1.0-mini",
+                 "run_dir": str(tmp_path / "runs"), "epochs": 1,
+                 "crop_size": 32, "batch_size": 16, "flow_scale": 0.25, "general_max_scenes": 1}
+    record = runner.run("paper", overrides, out_dir=tmp_path / "executed")
+    assert record["status"] == "ok" and record["parameters"]["version"] == "v1.0-mini"
+    g2 = book.read_glue(tmp_path / "executed" / "02_filtering.ipynb")
+    assert g2["n_keyframe_objects"] > 0 and g2["n_general_objects"] > 0
+    scenes = pd.read_parquet(tmp_path / "runs" / "pairs.parquet")["scene"]
+    assert scenes.str.startswith("scene-1").all()
+    assert "true_agreement" not in book.read_glue(tmp_path / "executed" / "04_labeling.ipynb")
+    g7 = book.read_glue(tmp_path / "executed" / "07_evaluation.ipynb")
+    assert g7["headline_method"] == "dis" and "test_f1_gt" not in g7

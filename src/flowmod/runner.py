@@ -102,6 +102,13 @@ def run(
         device = environment.device_info(p.device)
     except RuntimeError as e:
         raise ProfileError(f"device={p.device!r}: {e}") from None
+    if not p.synthetic:  # real data must be there before the first notebook starts
+        from flowmod.select import SelectionError, check_dataroot
+
+        try:
+            check_dataroot(p.dataroot_path, p.version)
+        except SelectionError as e:
+            raise ProfileError(f"dataroot={p.dataroot!r}, version={p.version!r}: {e}") from None
 
     out_dir.mkdir(parents=True, exist_ok=True)
     record: dict[str, Any] = {
