@@ -88,6 +88,7 @@ class Params(BaseModel):
     # --- generalisation ----------------------------------------------------------------
     general_interval: int = Field(4, ge=1, le=12, description="camera frames between the pair")
     general_min_distance: float = Field(0.0, ge=0.0, description="m, near vehicles included")
+    general_max_distance: float = Field(100.0, gt=0.0, description="m, farthest vehicle")
     general_max_scenes: int = Field(4, ge=0, description="held-out scenes used (0 = none)")
 
     # --- optical flow ------------------------------------------------------------------
@@ -134,6 +135,11 @@ class Params(BaseModel):
             raise ValueError(
                 "dataroot is required: set it in the profile or pass DATAROOT=/path/to/nuscenes "
                 "(the folder that holds samples/, sweeps/ and the version folder)"
+            )
+        if self.general_min_distance >= self.general_max_distance:
+            raise ValueError(
+                f"general_min_distance={self.general_min_distance} must be < "
+                f"general_max_distance={self.general_max_distance}"
             )
         if self.world_sweep_scenes > self.world_scenes:
             raise ValueError(

@@ -44,6 +44,7 @@ STAGE_KEYS = (
     "dataroot", "version", "seed", "categories", "min_distance", "max_distance",
     "distance_mode", "visibility_tokens", "exclude_descriptions", "split_fractions",
     "missing_images", "speed_threshold", "general_interval", "general_min_distance",
+    "general_max_distance",
     "general_max_scenes", "world_scenes", "world_keyframes", "world_sweep_scenes",
     "world_vehicles",
 )
@@ -334,7 +335,7 @@ def general_set(
     """The generalisation manifest: frame pairs ``general_interval`` apart in held-out scenes.
 
     Objects: Table-1 vehicles in frame 1 (interpolated devkit boxes, all corners visible,
-    distance in [general_min_distance, max_distance], the previous keyframe's visibility
+    distance in [general_min_distance, general_max_distance], the previous keyframe's visibility
     token), present in the previous and next keyframes. ``label`` follows the paper (the
     eq.-1 label of the previous keyframe pair); ``speed`` and ``label`` are those of that
     keyframe pair.
@@ -352,8 +353,8 @@ def general_set(
             if prev is None or not prev["next"]:
                 continue
             after = nusc.get("sample", prev["next"])
-            quals = qualifying_boxes(nusc, sd1, cats, p.general_min_distance, p.max_distance,
-                                     p.distance_mode, None)
+            quals = qualifying_boxes(nusc, sd1, cats, p.general_min_distance,
+                                     p.general_max_distance, p.distance_mode, None)
             prev_anns = {nusc.get("sample_annotation", t)["instance_token"]: t
                          for t in prev["anns"]}
             after_anns = {nusc.get("sample_annotation", t)["instance_token"]: t
