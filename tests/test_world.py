@@ -378,3 +378,22 @@ def test_best_f1_and_scene_filter():
     assert f1 == 1.0 and 0.2 < t < 0.8
     assert wrep.usable("After rain, peds") and not wrep.usable("Night, peds")
     assert not wrep.usable("peds, rain") and wrep.usable("nightlife")
+
+
+def test_difficulty_report_is_cached_per_world_and_threshold(smoke_world, smoke_nusc, tmp_path,
+                                                             monkeypatch):
+    from flowmod.params import validate
+
+    root, version = smoke_world
+    p = validate({"profile": "smoke", "dataroot": str(root), "version": version,
+                  "run_dir": str(tmp_path), "world_scenes": 4, "world_keyframes": 4,
+                  "world_sweep_scenes": 1, "world_vehicles": 16})
+    calls = []
+    real = wrep.naive_rule_report
+    monkeypatch.setattr(wrep, "naive_rule_report",
+                        lambda *a, **k: calls.append(k) or real(*a, **k))
+    first = wrep.difficulty_report(p, smoke_nusc)
+    again = wrep.difficulty_report(p, smoke_nusc)
+    assert len(calls) == 1 and first == again and 0.0 <= first["f1_raw_vs_true"] <= 1.0
+    wrep.difficulty_report(p.model_copy(update={"speed_threshold": 3.0}), smoke_nusc)
+    assert len(calls) == 2 and calls[-1]["speed_threshold"] == 3.0
