@@ -207,13 +207,11 @@ def qualifying_boxes(
     _, boxes, K = nusc.get_sample_data(sd["token"], box_vis_level=BoxVisibility.ALL)
     if not boxes:
         return {}
-    pose = nusc.get("ego_pose", sd["ego_pose_token"])
-    origin = np.asarray(pose["translation"], dtype=np.float64)
+    cam2global = camera_to_global(nusc, sd)
     if distance_mode == "camera":
-        from pyquaternion import Quaternion
-
-        cs = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
-        origin = origin + Quaternion(pose["rotation"]).rotate(np.asarray(cs["translation"]))
+        origin = cam2global[:3, 3]
+    else:
+        origin = np.asarray(nusc.get("ego_pose", sd["ego_pose_token"])["translation"], float)
     out: dict[str, Candidate] = {}
     for box in boxes:
         if box.name not in categories:
@@ -222,7 +220,7 @@ def qualifying_boxes(
         if visibility is not None and ann["visibility_token"] not in visibility:
             continue
         # the box's global centre at this frame's time (interpolated for sweeps)
-        center = _global_center(nusc, sd, box)
+        center = cam2global[:3, :3] @ box.center + cam2global[:3, 3]
         dist = float(np.linalg.norm(center - origin))
         if not (min_d <= dist <= max_d):
             continue
@@ -231,16 +229,6 @@ def qualifying_boxes(
             ann["token"], box.name, dist, box_2d(corners), tuple(center.tolist())
         )
     return out
-
-
-def _global_center(nusc, sd: dict, box) -> np.ndarray:
-    """Global position of a camera-frame box's centre."""
-    from pyquaternion import Quaternion
-
-    cs = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
-    pose = nusc.get("ego_pose", sd["ego_pose_token"])
-    p = Quaternion(cs["rotation"]).rotate(box.center) + np.asarray(cs["translation"])
-    return Quaternion(pose["rotation"]).rotate(p) + np.asarray(pose["translation"])
 
 
 def _attribute(nusc, ann: dict) -> str:
