@@ -79,30 +79,36 @@ def crop_boxes(flow: np.ndarray, boxes: np.ndarray, size: int, scale: float = 3.
 
     flow: (H, W, 2) pixels (any float dtype); boxes: (N, 4) xyxy in pixels of that grid.
     Returns (N, 2, S, S) float32 with S = ``size`` (u, v unchanged by the resize).
-
-    The frame is padded once (edge replication) by the largest margin any window needs, then
-    each window is a slice of it; if that padding would more than quadruple the frame (very
-    near, very large boxes) the windows are gathered with clipped indices instead (same
-    values, less memory).
     """
     flow = np.ascontiguousarray(flow, dtype=np.float32)
     if flow.ndim != 3 or flow.shape[2] != 2:
         raise CropsError(f"flow must be (H, W, 2), got {flow.shape}")
+    return crop_image(flow, boxes, size, scale).transpose(0, 3, 1, 2)
+
+
+def crop_image(image: np.ndarray, boxes: np.ndarray, size: int, scale: float = 3.0) -> np.ndarray:
+    """The paper's crop of any (H, W, C) array around each box: (N, S, S, C), image's dtype.
+
+    The frame is padded once (edge replication) by the largest margin any window needs, then
+    each window is a slice of it; if that padding would more than quadruple the frame (very
+    near, very large boxes) the windows are gathered with clipped indices instead (same
+    values, less memory). Each window is resized bilinearly (cv2 INTER_LINEAR) to S x S.
+    """
     size = int(size)
     if size < 1:
         raise CropsError(f"size must be >= 1, got {size}")
     win = crop_windows(boxes, scale)
-    out = np.empty((len(win), 2, size, size), dtype=np.float32)
+    H, W, C = image.shape
+    out = np.empty((len(win), size, size, C), dtype=image.dtype)
     if len(win) == 0:
         return out
-    H, W = flow.shape[:2]
     x0, y0, n = win[:, 0], win[:, 1], win[:, 2]
     margin = int(max(0, -x0.min(), -y0.min(), (x0 + n).max() - W, (y0 + n).max() - H))
     if (H + 2 * margin) * (W + 2 * margin) <= 4 * H * W:
-        src = flow
+        src = image
         if margin:
             src = cv2.copyMakeBorder(
-                flow, margin, margin, margin, margin, cv2.BORDER_REPLICATE
+                image, margin, margin, margin, margin, cv2.BORDER_REPLICATE
             )
         for i, (x, y, k) in enumerate(win.tolist()):
             patch = src[y + margin : y + margin + k, x + margin : x + margin + k]
@@ -111,14 +117,14 @@ def crop_boxes(flow: np.ndarray, boxes: np.ndarray, size: int, scale: float = 3.
         for i, (x, y, k) in enumerate(win.tolist()):
             rows = np.clip(np.arange(y, y + k), 0, H - 1)
             cols = np.clip(np.arange(x, x + k), 0, W - 1)
-            out[i] = _resize(flow[np.ix_(rows, cols)], size)
+            out[i] = _resize(image[np.ix_(rows, cols)], size)
     return out
 
 
 def _resize(patch: np.ndarray, size: int) -> np.ndarray:
-    """(n, n, 2) -> (2, S, S), bilinear (cv2 INTER_LINEAR)."""
-    r = cv2.resize(patch, (size, size), interpolation=cv2.INTER_LINEAR)
-    return r.transpose(2, 0, 1)
+    """(n, n, C) -> (S, S, C), bilinear (cv2 INTER_LINEAR)."""
+    return cv2.resize(patch, (size, size), interpolation=cv2.INTER_LINEAR).reshape(
+        size, size, patch.shape[2])
 
 
 def hflip(x: T) -> T:

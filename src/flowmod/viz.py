@@ -120,24 +120,20 @@ def histogram(values: dict[str, np.ndarray], bins: np.ndarray, xlabel: str,
 
 def object_thumbnails(dataroot: str | Path, pairs: pd.DataFrame, objects: pd.DataFrame,
                       scale: float = 3.0, size: int = 192) -> list[np.ndarray]:
-    """For each object row: the frame-1 image around its box (square, ``scale`` x the box's
-    longer side, edge-padded), box drawn in its label colour, resized to ``size`` px."""
+    """For each object row: the frame-1 image cropped like the classifier's input
+    (:func:`flowmod.crops.crop_image`: square, ``scale`` x the box's longer side,
+    edge-padded), box drawn in its label colour, resized to ``size`` px."""
+    from flowmod.crops import crop_image
+
     paths = pairs.set_index("pair_id")["path_1"]
     out = []
     for row in objects.itertuples():
         img = cv2.imread(str(Path(dataroot) / paths[row.pair_id]))
         if img is None:
             raise FileNotFoundError(f"cannot read {Path(dataroot) / paths[row.pair_id]}")
-        img = draw_boxes(img, np.array([[row.xmin, row.ymin, row.xmax, row.ymax]]),
-                         label_colors([row.label]), thickness=1)
-        cx, cy = (row.xmin + row.xmax) / 2, (row.ymin + row.ymax) / 2
-        half = max(row.xmax - row.xmin, row.ymax - row.ymin) * scale / 2
-        x0, y0 = int(round(cx - half)), int(round(cy - half))
-        side = max(int(round(2 * half)), 2)
-        pad = side + 1
-        padded = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
-        crop = padded[y0 + pad:y0 + pad + side, x0 + pad:x0 + pad + side]
-        out.append(cv2.resize(crop, (size, size), interpolation=cv2.INTER_LINEAR))
+        box = np.array([[row.xmin, row.ymin, row.xmax, row.ymax]])
+        img = draw_boxes(img, box, label_colors([row.label]), thickness=1)
+        out.append(crop_image(img, box, size, scale)[0])
     return out
 
 
