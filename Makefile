@@ -51,11 +51,10 @@ run: env  ## execute notebooks/NN_*.ipynb in order with params/$(PROFILE).yaml i
 	$(PY) -m flowmod.runner --profile $(PROFILE) --out $(EXECUTED) $(RUN_SET)
 
 book: run browser  ## run, then render the book into build/html (and check it in Chromium)
-	$(PY) -m flowmod.book --executed $(EXECUTED) --out $(HTML)
-	$(PY) -m flowmod.browser $(HTML) --screenshot build/book-screenshot.png
+	$(PY) -m flowmod.report.book --executed $(EXECUTED) --out $(HTML)
+	$(PY) -m flowmod.report.browser $(HTML) --screenshot build/book-screenshot.png
 
-test: env browser  ## unit tests, notebooks on the smoke profile, the book build, lint
-	$(PY) -m ruff check src tests benchmarks notebooks
+test: env browser lint  ## lint, unit tests, notebooks on the smoke profile, the book build
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 browser:  ## install headless Chromium for the browser check of the book (apt-get; root or sudo)
@@ -79,8 +78,9 @@ browser:  ## install headless Chromium for the browser check of the book (apt-ge
 bench: env  ## throughput and memory figures into benchmarks/results/ (never asserted)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b; done
 
-lint: env  ## ruff
+lint: env  ## ruff, and import-linter: no import cycle, every import points down the layers
 	$(PY) -m ruff check src tests benchmarks notebooks
+	$(VENV)/bin/lint-imports --no-cache
 
 clean:  ## remove generated outputs (keeps the venv and data/; `make clean-all` removes them too)
 	rm -rf build/executed build/html build/book-src build/book-extra runs .pytest_cache .ruff_cache

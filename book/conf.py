@@ -1,7 +1,7 @@
 """Sphinx configuration of the flowmod book (Sphinx + myst-nb + sphinx-book-theme).
 
 The book renders notebooks that papermill already executed (``nb_execution_mode = "off"``):
-``python -m flowmod.book`` copies these sources and the executed notebooks into a staging
+``python -m flowmod.report.book`` copies these sources and the executed notebooks into a staging
 folder and runs ``sphinx-build -W -n --keep-going`` there. MathJax is served from the book
 itself (vendored from npm ``mathjax@3`` by ``make env``), so the built book makes no network
 request.

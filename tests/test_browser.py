@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from flowmod import browser, video
+from flowmod.report import browser, video
 
 pytestmark = pytest.mark.slow
 

@@ -1,4 +1,4 @@
-"""flowmod.flow and flowmod.flow_nets: estimators, networks' plumbing, the cached stage, metrics.
+"""flowmod.flow and flowmod.flow.nets: estimators, networks' plumbing, the cached stage, metrics.
 
 No trained network weights exist here: the network tests check shapes, padding, scaling and
 key layouts with random or hand-set weights and never claim accuracy for them. DIS and
@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from flowmod import flow as fl
-from flowmod import flow_nets as fn
+from flowmod.flow import nets as fn
 
 torch.set_num_threads(1)  # the test machine is shared
 
@@ -599,15 +599,15 @@ def test_index_written_while_computing_lists_only_finished_pairs(tmp_path, monke
     """The periodic index write (so timings survive a kill) must not name unfinished pairs."""
     root = tmp_path / "data"
     pairs = make_dataroot(root, n=3)
-    monkeypatch.setattr(fl, "INDEX_WRITE_SECONDS", -1.0)  # write after every pair
+    monkeypatch.setattr(fl.stage, "INDEX_WRITE_SECONDS", -1.0)  # write after every pair
     seen = []
-    real = fl._write_index
+    real = fl.stage._write_index
 
     def spy(path, rows, order):
         seen.append(sorted(rows))
         return real(path, rows, order)
 
-    monkeypatch.setattr(fl, "_write_index", spy)
+    monkeypatch.setattr(fl.stage, "_write_index", spy)
     res = fl.compute_flow(pairs, "dis", tmp_path / "flow", dataroot=root, version="v",
                           n_jobs=1, progress=False, preset="fast")
     assert res["computed"].all()

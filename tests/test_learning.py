@@ -8,13 +8,15 @@ import pytest
 import torch
 from sklearn.metrics import accuracy_score, confusion_matrix, precision_recall_fscore_support
 
-from flowmod import evaluate as ev
+from flowmod import metrics as ev
 from flowmod.model import (
     RESNET18_PARAMS,
     CheckpointError,
     count_parameters,
     load_model,
     motion_resnet18,
+    predict,
+    predict_logits,
 )
 from flowmod.train import HISTORY_COLUMNS, TrainingError, epoch_plan, train_model
 
@@ -111,7 +113,7 @@ def test_training_lowers_the_loss_and_writes_artefacts(data, run_a) -> None:
     tx, tdf, vx, vdf = data
     out, hist = run_a
     torch.manual_seed(KW["seed"])  # the initial model of the run
-    z0 = ev.predict_logits(motion_resnet18(), vx, device="cpu")
+    z0 = predict_logits(motion_resnet18(), vx, device="cpu")
     y = vdf["label"].to_numpy()
     loss0 = float(np.mean(np.maximum(z0, 0) - z0 * y + np.log1p(np.exp(-np.abs(z0)))))
     assert list(hist.columns) == HISTORY_COLUMNS and list(hist["epoch"]) == [1, 2]
@@ -273,7 +275,7 @@ def test_flips_are_used_in_training_only(data, run_a, tmp_path) -> None:
     model = load_model(run_a[0] / "best.pt")
     with torch.inference_mode():  # evaluation: plain forward pass, no flips
         direct = torch.sigmoid(model(torch.from_numpy(vx.astype(np.float32)))).numpy().ravel()
-    np.testing.assert_allclose(ev.predict(model, vx, batch_size=7, device="cpu"), direct,
+    np.testing.assert_allclose(predict(model, vx, batch_size=7, device="cpu"), direct,
                                rtol=1e-5, atol=1e-6)
 
 

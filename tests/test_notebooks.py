@@ -11,8 +11,9 @@ import nbformat
 import pandas as pd
 import pytest
 
-from flowmod import book, runner
+from flowmod import runner
 from flowmod.params import ProfileError
+from flowmod.report import book
 from flowmod.runner import NotebookFailed
 
 pytestmark = pytest.mark.slow
@@ -165,7 +166,7 @@ def test_book_builds_offline_with_warnings_as_errors(smoke_run, tmp_path):
     assert (out / "_static" / "_vendor" / "mathjax" / "tex-chtml.js").is_file()
     # and in a real browser: every page loads, every image resolves, no request leaves
     # localhost (headless Chromium, installed by `make browser`)
-    from flowmod import browser
+    from flowmod.report import browser
 
     try:
         browser.find_chromium()

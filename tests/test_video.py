@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from flowmod import video
+from flowmod.report import video
 
 
 def synthetic_clip(n=12, w=320, h=180):

@@ -12,10 +12,10 @@ import pytest
 from pyquaternion import Quaternion
 
 from flowmod import world
-from flowmod import world_render as wr
-from flowmod import world_report as wrep
-from flowmod import world_scene as ws
 from flowmod.params import TABLE1_CATEGORIES, validate
+from flowmod.report import world_report as wrep
+from flowmod.world import render as wr
+from flowmod.world import scene as ws
 
 
 def _world_json(dataroot, version) -> dict:
@@ -55,7 +55,7 @@ def _day_scene(nusc):
 def test_devkit_loads_all_tables_and_images(smoke_world, smoke_nusc):
     root, version = smoke_world
     nusc = smoke_nusc
-    assert {p.stem for p in (root / version).glob("*.json")} >= set(world.TABLES)
+    assert {p.stem for p in (root / version).glob("*.json")} >= set(world.dataset.TABLES)
     assert len(nusc.scene) == 4 and all(s["name"].startswith("synth-") for s in nusc.scene)
     assert [s["nbr_samples"] for s in nusc.scene] == [4] * 4
     items = [i.strip().lower() for s in nusc.scene for i in s["description"].split(",")]

@@ -8,13 +8,17 @@ The new ``conv1`` and ``fc`` keep PyTorch's default initialisation, as in the or
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 
 from flowmod.artefacts import CheckpointError, state_dict_mismatch
 from flowmod.environment import resolve_device
+from flowmod.metrics import sigmoid
 
 #: Parameters of torchvision's resnet18 (3 input channels, 1000 classes).
 RESNET18_PARAMS = 11_689_512
@@ -75,3 +79,59 @@ def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu")
     check_state_dict(state, model, str(path))
     model.load_state_dict(state)
     return model.to(resolve_device(device)).eval()
+
+
+# --- predictions -----------------------------------------------------------------------------
+
+
+def _batches(n: int, batch_size: int) -> Iterable[slice]:
+    for a in range(0, n, batch_size):
+        yield slice(a, min(a + batch_size, n))
+
+
+def predict_logits(
+    model: nn.Module, x: Any, batch_size: int = 256, device: str | torch.device = "auto",
+    amp: str | None = None,
+) -> np.ndarray:
+    """Logits (N,) float64 for crops x: (N, 2, S, S) (float16 memmap or any array), pixels.
+
+    Runs in eval mode under ``torch.inference_mode`` (no flips, no augmentation); the model's
+    train/eval mode is restored afterwards. ``amp``: None, 'bf16' or 'fp16' autocast.
+    """
+    dev = resolve_device(device)
+    was_training = model.training
+    model.eval()
+    out = np.empty(len(x), dtype=np.float64)
+    dtype = _amp_dtype(amp)
+    try:
+        with torch.inference_mode():
+            for sl in _batches(len(x), batch_size):
+                xb = torch.from_numpy(np.asarray(x[sl], dtype=np.float32))
+                xb = xb.to(dev, non_blocking=True).contiguous(memory_format=torch.channels_last)
+                with torch.autocast(dev.type, dtype=dtype, enabled=dtype is not None):
+                    logits = model(xb)
+                out[sl] = logits.float().reshape(-1).cpu().numpy()
+    finally:
+        model.train(was_training)
+    return out
+
+
+def predict(
+    model: nn.Module, x: Any, batch_size: int = 256, device: str | torch.device = "auto",
+    amp: str | None = None,
+) -> np.ndarray:
+    """Probabilities of 'moving' (N,) float64 for crops x: (N, 2, S, S), pixels."""
+    z = predict_logits(model, x, batch_size=batch_size, device=device, amp=amp)
+    return sigmoid(z)
+
+
+
+def _amp_dtype(amp: str | None) -> torch.dtype | None:
+    if amp in (None, "none", False):
+        return None
+    if amp == "bf16":
+        return torch.bfloat16
+    if amp == "fp16":
+        return torch.float16
+    raise ValueError(f"amp={amp!r}: use None, 'bf16' or 'fp16'")
+

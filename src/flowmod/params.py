@@ -232,6 +232,17 @@ def subset_hash(p: Params, keys: list[str] | tuple[str, ...]) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    """``["epochs=2", "flow_methods=[dis]"]`` -> ``{"epochs": 2, "flow_methods": ["dis"]}``."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise ProfileError(f"override {item!r} must look like key=value")
+        out[key.strip()] = yaml.safe_load(raw) if raw.strip() else None
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m flowmod.params PROFILE``: validate a profile and print it."""
     import argparse

@@ -19,11 +19,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from flowmod import environment
 from flowmod.artefacts import write_json
-from flowmod.params import Params, ProfileError, load_profile, profile_path
+from flowmod.params import Params, ProfileError, load_profile, parse_overrides, profile_path
 from flowmod.paths import repo_root
 
 
@@ -60,17 +58,6 @@ def notebook_parameters(nb: Path, p: Params) -> dict[str, Any]:
         )
     values = p.model_dump()
     return {k: values[k] for k in declared}
-
-
-def parse_overrides(items: list[str]) -> dict[str, Any]:
-    """``["epochs=2", "flow_methods=[dis]"]`` -> ``{"epochs": 2, "flow_methods": ["dis"]}``."""
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, raw = item.partition("=")
-        if not sep or not key:
-            raise ProfileError(f"override {item!r} must look like key=value")
-        out[key.strip()] = yaml.safe_load(raw) if raw.strip() else None
-    return out
 
 
 def run(

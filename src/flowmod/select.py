@@ -508,32 +508,6 @@ def split_sizes(sel: Selection, kind: str = "keyframe") -> pd.DataFrame:
     return out
 
 
-def example_frames(sel: Selection, dataroot: str | Path, n: int = 4, seed: int = 0,
-                   kind: str = "keyframe") -> tuple[list[np.ndarray], list[str]]:
-    """``n`` frame-1 images of random pairs with their selected boxes drawn (blue still,
-    red moving), and titles."""
-    import cv2
-
-    from flowmod import viz
-
-    pairs = sel.pairs[sel.pairs["set"] == kind]
-    counts = sel.objects[sel.objects["set"] == kind].groupby("pair_id").size()
-    rich = pairs[pairs["pair_id"].isin(counts[counts >= 2].index)]
-    pick = (rich if len(rich) >= n else pairs).sample(min(n, len(pairs)), random_state=seed)
-    images, titles = [], []
-    for row in pick.itertuples():
-        img = cv2.imread(str(Path(dataroot) / row.path_1))
-        if img is None:
-            raise SelectionError(f"cannot read image {Path(dataroot) / row.path_1}")
-        obj = sel.objects[sel.objects["pair_id"] == row.pair_id]
-        boxes = obj[["xmin", "ymin", "xmax", "ymax"]].to_numpy()
-        texts = [f"{d:.0f} m {s:.1f} m/s" for d, s in zip(obj["distance"], obj["speed"],
-                                                          strict=True)]
-        images.append(viz.draw_boxes(img, boxes, viz.label_colors(obj["label"]), texts))
-        titles.append(f"{row.pair_id} ({len(obj)} targets)")
-    return images, titles
-
-
 def load(run_dir: str | Path) -> tuple[Selection, dict]:
     """Read the selection artefacts of a run and the parameters that made them.
 

@@ -38,8 +38,8 @@ from torch.utils.data import DataLoader, Dataset
 
 from flowmod.artefacts import atomic_path
 from flowmod.crops import hflip
-from flowmod.evaluate import metrics, predict_logits, sigmoid
-from flowmod.model import motion_resnet18, resolve_device
+from flowmod.metrics import metrics, sigmoid
+from flowmod.model import motion_resnet18, predict_logits, resolve_device
 
 HISTORY_COLUMNS = [
     "epoch", "train_loss", "val_loss", "val_f1", "val_precision", "val_recall", "lr", "seconds",
@@ -196,7 +196,7 @@ def _monitor_scores(model: nn.Module, monitor: tuple[Any, pd.DataFrame] | None, 
     """Whole-set and original-protocol F1 on the monitored set (NaN without one)."""
     if monitor is None:
         return {"monitor_f1": float("nan"), "monitor_paper_f1": float("nan")}
-    from flowmod.evaluate import paper_protocol_f1, thin_still
+    from flowmod.metrics import paper_protocol_f1, thin_still
 
     y = monitor[1][label_col].to_numpy().astype(np.int64)
     z = predict_logits(model, monitor[0], batch_size=eval_batch_size, device=dev, amp=amp_mode)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import cv2
 import matplotlib.pyplot as plt
@@ -273,7 +274,7 @@ def prediction_frames(dataroot: str | Path, pairs: pd.DataFrame, preds: pd.DataF
 
 def confusion_and_pr(results: dict[str, pd.DataFrame], threshold: float = 0.5) -> plt.Figure:
     """Confusion matrix per method and all precision-recall curves (prob vs label)."""
-    from flowmod.evaluate import metrics, pr_curve
+    from flowmod.metrics import metrics, pr_curve
 
     n = len(results)
     fig, axes = plt.subplots(1, n + 1, figsize=(3.2 * (n + 1), 3.2))
@@ -313,7 +314,7 @@ def scene_clip(dataroot: str | Path, pairs: pd.DataFrame, preds: pd.DataFrame, l
     """Frames of a clip: each pair's frame 1 with boxes coloured by the prediction (blue
     still, red moving), beside its flow; pairs in time order, ``width`` px per half."""
     from flowmod.flow import flow_to_color
-    from flowmod.video import side_by_side
+    from flowmod.report.video import side_by_side
 
     frames = []
     for row in pairs.sort_values("timestamp_1").itertuples():
@@ -328,3 +329,25 @@ def scene_clip(dataroot: str | Path, pairs: pd.DataFrame, preds: pd.DataFrame, l
         frames.append(side_by_side(small, cv2.resize(f, (width, h),
                                                      interpolation=cv2.INTER_AREA)))
     return frames
+
+
+def example_frames(sel: Any, dataroot: str | Path, n: int = 4, seed: int = 0,
+                   kind: str = "keyframe") -> tuple[list[np.ndarray], list[str]]:
+    """``n`` frame-1 images of random pairs with their selected boxes drawn (blue still,
+    red moving), and titles."""
+    pairs = sel.pairs[sel.pairs["set"] == kind]
+    counts = sel.objects[sel.objects["set"] == kind].groupby("pair_id").size()
+    rich = pairs[pairs["pair_id"].isin(counts[counts >= 2].index)]
+    pick = (rich if len(rich) >= n else pairs).sample(min(n, len(pairs)), random_state=seed)
+    images, titles = [], []
+    for row in pick.itertuples():
+        img = cv2.imread(str(Path(dataroot) / row.path_1))
+        if img is None:
+            raise FileNotFoundError(f"cannot read image {Path(dataroot) / row.path_1}")
+        obj = sel.objects[sel.objects["pair_id"] == row.pair_id]
+        boxes = obj[["xmin", "ymin", "xmax", "ymax"]].to_numpy()
+        texts = [f"{d:.0f} m {s:.1f} m/s" for d, s in zip(obj["distance"], obj["speed"],
+                                                          strict=True)]
+        images.append(draw_boxes(img, boxes, label_colors(obj["label"]), texts))
+        titles.append(f"{row.pair_id} ({len(obj)} targets)")
+    return images, titles

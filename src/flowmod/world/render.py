@@ -28,8 +28,8 @@ import cv2
 import numpy as np
 from pyquaternion import Quaternion
 
-from flowmod import world_scene as ws
-from flowmod import world_textures as wt
+from flowmod.world import scene as ws
+from flowmod.world import textures as wt
 
 H_IMG, W_IMG = 900, 1600
 Z_NEAR = 0.15  # m
@@ -196,7 +196,7 @@ def _facade_factory(
 
 
 class SceneGeometry:
-    """Renderable form of a scene description (see :mod:`flowmod.world_scene`)."""
+    """Renderable form of a scene description (see :mod:`flowmod.world.scene`)."""
 
     def __init__(self, scene: dict):
         self.scene = scene

@@ -1,6 +1,6 @@
 """Check the built book in headless Chromium: pages load, nothing is broken, nothing leaves.
 
-    python -m flowmod.browser build/html [--screenshot build/book-screenshot.png]
+    python -m flowmod.report.browser build/html [--screenshot build/book-screenshot.png]
 
 :func:`check_book` serves the book folder on a loopback HTTP server (127.0.0.1, a free port),
 opens every page in headless Chromium, driven over the Chrome DevTools Protocol (CDP), and
@@ -711,7 +711,7 @@ def main(argv: list[str] | None = None) -> int:
     """CLI: 0 if the book is fine, 1 with the list of problems, 2 if it cannot be checked."""
     from flowmod.paths import repo_root
 
-    ap = argparse.ArgumentParser(prog="python -m flowmod.browser",
+    ap = argparse.ArgumentParser(prog="python -m flowmod.report.browser",
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("html_dir", type=Path, nargs="?", default=repo_root() / "build" / "html",
                     help="the built book (default build/html)")

@@ -1,6 +1,6 @@
 """Assemble and build the HTML book from executed notebooks.
 
-    python -m flowmod.book --executed build/executed --out build/html
+    python -m flowmod.report.book --executed build/executed --out build/html
 
 Steps: check the run record (``run_info.json``) and every executed notebook (a notebook that
 failed, or was not executed, is refused: it is never rendered as if it had passed); copy
@@ -104,7 +104,7 @@ This page is written from the record of the run that produced this book
 make book PROFILE={info["profile"]}
 # or, notebook by notebook:
 .venv/bin/python -m flowmod.runner --profile {info["profile"]} {over}
-.venv/bin/python -m flowmod.book
+.venv/bin/python -m flowmod.report.book
 ```
 
 ## Seconds per notebook
@@ -196,7 +196,7 @@ def build(executed: Path, out: Path, staging: Path | None = None) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m flowmod.book", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m flowmod.report.book", description=__doc__.split("\n\n")[0])
     root = repo_root()
     ap.add_argument("--executed", type=Path, default=root / "build" / "executed")
     ap.add_argument("--out", type=Path, default=root / "build" / "html")

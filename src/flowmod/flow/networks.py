@@ -1,0 +1,274 @@
+"""Flow networks as estimators: RAFT (torchvision ``raft_large`` / ``raft_small``) and
+FastFlowNet (:mod:`flowmod.flow.nets`), always with trained weights.
+
+Network methods never run from random weights: without a weights file they raise
+:class:`MissingWeightsError` saying which file to put where. torch is imported lazily.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+
+from flowmod.environment import resolve_device
+from flowmod.flow.registry import (
+    FlowEstimator,
+    MissingWeightsError,
+    _check_pair,
+    _resize_image,
+    register_estimator,
+    resize_flow,
+)
+
+if TYPE_CHECKING:
+    import torch
+
+    from flowmod.params import Params
+
+class _NetworkEstimator(FlowEstimator):
+    """A torch network; ``weights``: a checkpoint path or an in-memory state_dict.
+
+    ``model`` (an already-loaded ``nn.Module``) bypasses the weights search: for tests and
+    timing only.
+    """
+
+    cpu_bound = False
+    weights_param: ClassVar[str] = ""
+
+    def __init__(
+        self,
+        weights: str | os.PathLike[str] | Mapping[str, Any] | None = None,
+        *,
+        device: Any = "auto",
+        scale: float = 1.0,
+        batch_size: int | None = None,
+        model: Any = None,
+    ) -> None:
+        super().__init__(scale)
+        self.device = resolve_device(device)
+        self.batch_size = int(batch_size or (4 if self.device.type == "cuda" else 1))
+        if model is not None:
+            self.weights_source = "<model given>"
+        else:
+            model = self._build_and_load(weights)
+        self.model = model.to(self.device).eval()
+
+    def _build_and_load(self, weights: Any) -> Any:
+        raise NotImplementedError
+
+    def _flow_tensor(self, img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) float BGR in [0, 255] -> (B, 2, H, W) flow in pixels."""
+        raise NotImplementedError
+
+    def _estimate(self, img1: np.ndarray, img2: np.ndarray) -> np.ndarray:
+        return self._run([img1], [img2])[0]
+
+    def _run(self, img1s: Sequence[np.ndarray], img2s: Sequence[np.ndarray]) -> list[np.ndarray]:
+        import torch
+
+        def to_tensor(imgs: Sequence[np.ndarray]) -> torch.Tensor:
+            x = torch.from_numpy(np.stack(imgs)).to(self.device)
+            return x.permute(0, 3, 1, 2).float()
+
+        with torch.inference_mode():
+            flow = self._flow_tensor(to_tensor(img1s), to_tensor(img2s))
+        return list(flow.permute(0, 2, 3, 1).float().cpu().numpy())
+
+    def estimate_batch(
+        self, img1s: Sequence[np.ndarray], img2s: Sequence[np.ndarray]
+    ) -> list[np.ndarray]:
+        """Flows for many pairs; same-size pairs run ``batch_size`` at a time."""
+        if len(img1s) != len(img2s):
+            raise ValueError(f"{len(img1s)} first images but {len(img2s)} second images")
+        for a, b in zip(img1s, img2s, strict=True):
+            _check_pair(a, b)
+        small1 = [_resize_image(a, self.scale) for a in img1s]
+        small2 = [_resize_image(b, self.scale) for b in img2s]
+        groups: dict[tuple[int, ...], list[int]] = {}
+        for i, a in enumerate(small1):
+            groups.setdefault(a.shape, []).append(i)
+        out: list[np.ndarray | None] = [None] * len(img1s)
+        for idx in groups.values():
+            for s in range(0, len(idx), self.batch_size):
+                chunk = idx[s : s + self.batch_size]
+                flows = self._run([small1[i] for i in chunk], [small2[i] for i in chunk])
+                for i, f in zip(chunk, flows, strict=True):
+                    out[i] = resize_flow(f, img1s[i].shape[:2])
+        return out  # type: ignore[return-value]
+
+    def options(self) -> dict[str, Any]:
+        return {"scale": self.scale, "weights": self.weights_source}
+
+
+def _missing_weights(method: str, param: str, what: str, cache_files: Sequence[str]) -> str:
+    from flowmod.flow.nets import hub_checkpoint_dir
+
+    cache = hub_checkpoint_dir()
+    return (
+        f"{method} needs trained weights and none were found (flow is never computed from "
+        f"random weights). Either set the parameter {param} to {what}, or put "
+        f"{cache_files[0]} into {cache}/ (the folder is $TORCH_HOME/hub/checkpoints; "
+        f"also looked for: {', '.join(cache_files[1:]) or '-'})."
+    )
+
+
+@register_estimator
+class RAFTFlow(_NetworkEstimator):
+    """RAFT (torchvision ``raft_large``); 12 flow updates by default.
+
+    Weights: ``weights`` (path to a torchvision state_dict .pth or an original princeton-vl
+    checkpoint, mapped by key), else the torchvision file in the TORCH_HOME hub cache
+    (``Raft_Large_Weights.C_T_SKHT_K_V1`` preferred: KITTI fine-tuned).
+    """
+
+    name = "raft"
+    arch: ClassVar[str] = "raft_large"
+    weights_param = "raft_weights"
+
+    def __init__(
+        self,
+        weights: str | os.PathLike[str] | Mapping[str, Any] | None = None,
+        *,
+        num_flow_updates: int = 12,
+        device: Any = "auto",
+        scale: float = 1.0,
+        batch_size: int | None = None,
+        model: Any = None,
+    ) -> None:
+        self.num_flow_updates = int(num_flow_updates)
+        super().__init__(weights, device=device, scale=scale, batch_size=batch_size, model=model)
+
+    def _build_and_load(self, weights: Any) -> Any:
+        from flowmod.flow import nets as fn
+
+        model = fn.build_raft(self.arch)
+        files = fn.torchvision_weight_files(self.arch)
+        if weights is None:
+            for _enum, fname in files:
+                p = fn.hub_checkpoint_dir() / fname
+                if p.is_file():
+                    weights = p
+                    break
+            else:
+                what = (
+                    f"a .pth file (a torchvision state_dict such as {files[0][1]} of "
+                    f"{files[0][0]}, or an original princeton-vl RAFT checkpoint"
+                    + (
+                        " such as raft-kitti.pth)"
+                        if self.arch == "raft_large"
+                        else " raft-small.pth)"
+                    )
+                )
+                raise MissingWeightsError(
+                    _missing_weights(self.name, self.weights_param, what, [f for _, f in files])
+                )
+        if isinstance(weights, Mapping):
+            sd, source = fn.strip_prefix(weights), "the given state_dict"
+            self.weights_source = "<state_dict>"
+        else:
+            path = Path(weights).expanduser()
+            if not path.is_file():
+                raise MissingWeightsError(
+                    f"{self.name}: weights file not found: {path} (parameter "
+                    f"{self.weights_param}; expected a torchvision {self.arch} state_dict such "
+                    f"as {files[0][1]} or an original RAFT checkpoint)"
+                )
+            sd, source = fn.read_checkpoint(path), f"weights file {path}"
+            self.weights_source = str(path)
+        if fn.is_original_raft(sd):
+            try:
+                sd = fn.raft_original_to_torchvision(sd)
+            except fn.CheckpointError as e:
+                raise fn.CheckpointError(f"{source}: {e}") from e
+            source += " (original RAFT layout, keys mapped to torchvision)"
+        return fn.load_weights(model, sd, source)
+
+    def _flow_tensor(self, img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
+        from flowmod.flow.nets import raft_flow
+
+        rgb = [2, 1, 0]  # cv2 gives BGR; RAFT was trained on RGB
+        return raft_flow(self.model, img1[:, rgb], img2[:, rgb], self.num_flow_updates)
+
+    def options(self) -> dict[str, Any]:
+        return {**super().options(), "num_flow_updates": self.num_flow_updates}
+
+
+@register_estimator
+class RAFTSmallFlow(RAFTFlow):
+    """RAFT small (torchvision ``raft_small``); parameter ``raft_small_weights``."""
+
+    name = "raft_small"
+    arch = "raft_small"
+    weights_param = "raft_small_weights"
+
+
+@register_estimator
+class FastFlowNetFlow(_NetworkEstimator):
+    """FastFlowNet (:class:`flowmod.flow.nets.FastFlowNet`) with the official checkpoints.
+
+    Weights: ``weights`` (path or state_dict), else one of the official file names
+    (``fastflownet_ft_kitti.pth`` first) in the TORCH_HOME hub cache.
+    """
+
+    name = "fastflownet"
+    weights_param = "fastflownet_weights"
+
+    def _build_and_load(self, weights: Any) -> Any:
+        from flowmod.flow import nets as fn
+
+        model = fn.FastFlowNet()
+        if weights is None:
+            for fname in fn.FFN_CHECKPOINT_NAMES:
+                if (fn.hub_checkpoint_dir() / fname).is_file():
+                    weights = fn.hub_checkpoint_dir() / fname
+                    break
+            else:
+                what = (
+                    "an official FastFlowNet checkpoint (checkpoints/fastflownet_ft_kitti.pth of "
+                    "the FastFlowNet repository, KITTI fine-tuned as in the paper)"
+                )
+                raise MissingWeightsError(
+                    _missing_weights(self.name, self.weights_param, what, fn.FFN_CHECKPOINT_NAMES)
+                )
+        if isinstance(weights, Mapping):
+            self.weights_source = "<state_dict>"
+            return fn.load_weights(model, fn.strip_prefix(weights), "the given state_dict")
+        path = Path(weights).expanduser()
+        if not path.is_file():
+            raise MissingWeightsError(
+                f"{self.name}: weights file not found: {path} (parameter {self.weights_param}; "
+                "expected an official checkpoint such as fastflownet_ft_kitti.pth)"
+            )
+        self.weights_source = str(path)
+        return fn.load_weights(model, fn.read_checkpoint(path), f"weights file {path}")
+
+    def _flow_tensor(self, img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
+        from flowmod.flow.nets import fastflownet_flow
+
+        return fastflownet_flow(self.model, img1, img2)
+
+
+def estimator_options(params: Params, method: str) -> dict[str, Any]:
+    """The ``get_estimator``/``compute_flow`` options of ``method`` from a profile.
+
+    ``gt`` gets none here (``compute_flow`` passes dataroot and version itself).
+    """
+    if method == "gt":
+        return {}
+    opts: dict[str, Any] = {"scale": params.flow_scale}
+    if method == "dis":
+        opts["preset"] = params.dis_preset
+    elif method in ("raft", "raft_small", "fastflownet"):
+        param = {"raft": "raft_weights", "raft_small": "raft_small_weights"}.get(
+            method, "fastflownet_weights"
+        )
+        value = getattr(params, param, None)
+        opts["weights"] = params.path(value) if value else None
+        opts["device"] = params.device
+    return opts
+
+

@@ -1,0 +1,155 @@
+"""Flow on disk: Middlebury .flo, .npy (float16/float32, atomic), storage at a reduced scale.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from flowmod.artefacts import atomic_path
+from flowmod.flow.registry import FlowFileError
+
+FLO_MAGIC = 202021.25
+
+
+def _check_flow(flow: np.ndarray, what: str = "flow") -> None:
+    if not (isinstance(flow, np.ndarray) and flow.ndim == 3 and flow.shape[2] == 2):
+        raise ValueError(f"{what} must be an (H, W, 2) array, got {getattr(flow, 'shape', flow)}")
+
+
+def write_flo(path: str | os.PathLike[str], flow: np.ndarray) -> None:
+    """Write (H, W, 2) flow in the Middlebury .flo format (little-endian float32), atomically."""
+    _check_flow(flow)
+    h, w = flow.shape[:2]
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.array([FLO_MAGIC], "<f4").tofile(f)
+        np.array([w, h], "<i4").tofile(f)
+        np.ascontiguousarray(flow, dtype="<f4").tofile(f)
+
+
+def read_flo(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read a Middlebury .flo file -> (H, W, 2) float32; :class:`FlowFileError` if invalid."""
+    data = Path(path).read_bytes()
+    if len(data) < 12 or np.frombuffer(data[:4], "<f4")[0] != np.float32(FLO_MAGIC):
+        raise FlowFileError(f"{path}: not a .flo file (magic number 202021.25 missing)")
+    w, h = (int(x) for x in np.frombuffer(data[4:12], "<i4"))
+    if w <= 0 or h <= 0 or len(data) != 12 + 8 * w * h:
+        raise FlowFileError(
+            f"{path}: corrupt .flo file ({w}x{h} needs {12 + 8 * max(w * h, 0)} bytes, "
+            f"has {len(data)})"
+        )
+    return np.frombuffer(data[12:], "<f4").reshape(h, w, 2).astype(np.float32)
+
+
+def save_flow_npy(path: str | os.PathLike[str], flow: np.ndarray, dtype: str = "float16") -> None:
+    """Save (H, W, 2) flow as .npy of ``dtype`` (float16 / float32), atomically.
+
+    For float16, values beyond its range (+-65504 px: only invalid pixels, e.g. points that
+    pass behind the camera) are clipped instead of becoming inf.
+    """
+    _check_flow(flow)
+    if dtype not in ("float16", "float32"):
+        raise ValueError(f"dtype={dtype!r}; allowed: float16, float32")
+    if dtype == "float16":
+        big = float(np.finfo(np.float16).max)
+        flow = np.clip(flow, -big, big)
+    with atomic_path(path) as tmp:
+        np.save(tmp, np.ascontiguousarray(flow, dtype=dtype), allow_pickle=False)
+
+
+def load_flow_npy(path: str | os.PathLike[str]) -> np.ndarray:
+    """Load a .npy flow -> (H, W, 2) float32; :class:`FlowFileError` naming a bad file."""
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise
+    except Exception as e:  # noqa: BLE001 - truncated, garbage, pickled...: name the file
+        raise FlowFileError(
+            f"{path}: corrupt or truncated flow file ({type(e).__name__}: {e})"
+        ) from e
+    if arr.ndim != 3 or arr.shape[2] != 2:
+        raise FlowFileError(f"{path}: expected an (H, W, 2) flow, found shape {arr.shape}")
+    return arr.astype(np.float32)
+
+
+def _npy_header(path: Path) -> tuple[tuple[int, ...], bool, np.dtype, int]:
+    """(shape, fortran_order, dtype, data offset) from a .npy header, without reading data."""
+    fmt = np.lib.format
+    with open(path, "rb") as f:
+        version = fmt.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dt = fmt.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, fortran, dt = fmt.read_array_header_2_0(f)
+        else:
+            raise ValueError(f"unsupported .npy version {version}")
+        return tuple(shape), bool(fortran), np.dtype(dt), f.tell()
+
+
+def _npy_ok(path: Path, dtype: str) -> bool:
+    """True if ``path`` is a complete .npy of an (H, W, 2) ``dtype`` array (header + size)."""
+    try:
+        shape, fortran, dt, offset = _npy_header(path)
+        size = path.stat().st_size
+    except Exception:  # noqa: BLE001 - anything unreadable is simply not done
+        return False
+    return (
+        dt == np.dtype(dtype)
+        and len(shape) == 3
+        and shape[2] == 2
+        and not fortran
+        and size == offset + math.prod(shape) * dt.itemsize
+    )
+
+
+def full_shape(stored: tuple[int, ...], store_scale: float) -> tuple[int, int]:
+    """(H, W) of the image whose flow was stored at ``store_scale`` with shape ``stored``."""
+    return int(round(stored[0] / store_scale)), int(round(stored[1] / store_scale))
+
+
+def store_flow(path: str | os.PathLike[str], flow: np.ndarray, dtype: str = "float16",
+               store_scale: float = 1.0) -> None:
+    """Save flow (H, W, 2) px at ``store_scale`` of its size (area-averaged), values kept in
+    pixels of the full image, so :func:`load_flow` can restore the full size."""
+    if store_scale != 1.0:
+        h, w = flow.shape[:2]
+        size = (int(round(h * store_scale)), int(round(w * store_scale)))
+        if min(size) < 1 or full_shape(size, store_scale) != (h, w):
+            raise ValueError(f"store_scale={store_scale} cannot store a {h}x{w} flow so that its "
+                             "size is recovered; use a scale like 0.5 or 0.25")
+        flow = cv2.resize(np.asarray(flow, np.float32), size[::-1], interpolation=cv2.INTER_AREA)
+    save_flow_npy(path, flow, dtype)
+
+
+def _store_scale(folder: Path) -> float:
+    """The store_scale recorded in a method folder's config.json (1.0 if none)."""
+    cfg = folder / "config.json"
+    if not cfg.is_file():
+        return 1.0
+    return float(_read_config(str(cfg), cfg.stat().st_mtime_ns).get("store_scale", 1.0))
+
+
+@functools.lru_cache(maxsize=64)
+def _read_config(path: str, mtime_ns: int) -> dict[str, Any]:
+    return json.loads(Path(path).read_text())
+
+
+def load_flow(out_dir: str | os.PathLike[str], method: str, pair_id: str) -> np.ndarray:
+    """Flow of one pair written by :func:`compute_flow`: (H, W, 2) float32, pixels of the full
+    image, frame 1 -> 2 (bilinearly restored to full size when stored at a reduced scale)."""
+    folder = Path(out_dir) / method
+    flow = load_flow_npy(folder / f"{pair_id}.npy")
+    scale = _store_scale(folder)
+    if scale == 1.0:
+        return flow
+    h, w = full_shape(flow.shape, scale)
+    return cv2.resize(flow, (w, h), interpolation=cv2.INTER_LINEAR)
+
+

@@ -1,0 +1,37 @@
+"""A procedural driving world written in the nuScenes v1.0 on-disk format (CAM_FRONT only).
+
+The official devkit loads it, so the pipeline runs unchanged on it and on real nuScenes.
+Modules: :mod:`~flowmod.world.scene` (what happens: roads, ego plan, agents, trajectories),
+:mod:`~flowmod.world.render` (drawing frames, depth and surface ids as homographies),
+:mod:`~flowmod.world.textures` (procedural textures), :mod:`~flowmod.world.dataset` (writing the
+tables and JPEGs: :func:`generate_world`, :func:`ensure_world`) and
+:mod:`~flowmod.world.truth` (reading a world back: :func:`is_synthetic`, exact
+:func:`gt_flow` and :func:`true_velocity`). ``python -m flowmod.world --profile demo`` builds
+a profile's world.
+"""
+
+from flowmod.world.dataset import GENERATOR_VERSION, ensure_world, generate_world
+from flowmod.world.truth import (
+    WORLD_FILE,
+    WorldError,
+    flow_between,
+    gt_flow,
+    is_synthetic,
+    scene_of,
+    true_velocity,
+    world_params,
+)
+
+__all__ = [
+    "GENERATOR_VERSION",
+    "WORLD_FILE",
+    "WorldError",
+    "ensure_world",
+    "flow_between",
+    "generate_world",
+    "gt_flow",
+    "is_synthetic",
+    "scene_of",
+    "true_velocity",
+    "world_params",
+]
