@@ -20,7 +20,7 @@ PYTEST_ARGS ?=
 
 RUN_SET    := $(if $(DATAROOT),--set dataroot=$(DATAROOT)) $(foreach s,$(SET),--set $(s))
 
-.PHONY: help env data run book test bench lint clean browser
+.PHONY: help env data run status book test bench lint clean browser
 
 help:  ## list the targets
 	@echo "flowmod: optical-flow motion detection, reproduced"
@@ -50,9 +50,12 @@ data: env  ## build the synthetic world of PROFILE (demo: data/demo)
 run: env  ## execute notebooks/NN_*.ipynb in order with params/$(PROFILE).yaml into build/executed
 	$(PY) -m flowmod.runner --profile $(PROFILE) --out $(EXECUTED) $(RUN_SET)
 
+status: env  ## per stage of PROFILE (+SET): up to date or stale, and why; runs nothing
+	$(PY) -m flowmod.runner --profile $(PROFILE) --status $(RUN_SET)
+
 book: run browser  ## run, then render the book into build/html (and check it in Chromium)
 	$(PY) -m flowmod.report.book --executed $(EXECUTED) --out $(HTML)
-	$(PY) -m flowmod.report.browser $(HTML) --screenshot build/book-screenshot.png
+	$(PY) -m flowmod.report.browser $(HTML) --screenshot build/book-screenshot.png --screenshots build/screenshots
 
 test: env browser lint  ## lint, unit tests, notebooks on the smoke profile, the book build
 	$(PY) -m pytest $(PYTEST_ARGS)
@@ -83,7 +86,8 @@ lint: env  ## ruff, and import-linter: no import cycle, every import points down
 	$(VENV)/bin/lint-imports --no-cache
 
 clean:  ## remove generated outputs (keeps the venv and data/; `make clean-all` removes them too)
-	rm -rf build/executed build/html build/book-src build/book-extra runs .pytest_cache .ruff_cache
+	rm -rf build/executed build/html build/book-src build/book-extra build/book-media \
+	  build/screenshots build/book-screenshot.png runs .pytest_cache .ruff_cache
 
 .PHONY: clean-all
 clean-all: clean

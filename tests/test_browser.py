@@ -116,7 +116,7 @@ def test_broken_site_reports_exactly_its_faults(tmp_path):
     assert not report.ok and shot.is_file()
     text = report.format()
     assert "4 problem(s)" in text and "HTTP 404" in text
-    assert "https://example.com/x.png" in report.requests  # seen by CDP, not only in the DOM
+    assert "https://example.com/x.png" in report.requests  # seen by the browser, not only the DOM
     with pytest.raises(AssertionError, match="missing.html"):
         browser.assert_book_ok(site, screenshot=shot)
 
@@ -150,13 +150,43 @@ def test_requests_made_by_scripts_and_styles_are_caught(tmp_path):
 def test_cli_lists_problems_and_exits_nonzero(tmp_path, capsys):
     site = make_site(tmp_path / "html", broken=True)
     (site / "page2.html").unlink()  # now index.html's links to it break too
-    rc = browser.main([str(site), "--screenshot", str(tmp_path / "cli.png")])
+    rc = browser.main([str(site), "--screenshot", str(tmp_path / "cli.png"),
+                       "--screenshots", str(tmp_path / "shots")])
     err = capsys.readouterr().err
     assert rc == 1
+    assert sorted(p.relative_to(tmp_path / "shots").as_posix()
+                  for p in (tmp_path / "shots").rglob("*.png")) == ["index.png", "sub/page3.png"]
     assert "index.html: link: missing.html" in err
     assert "index.html: link: page2.html" in err and "index.html: link: page2.html#results" in err
     assert (tmp_path / "cli.png").is_file()
     assert browser.main([str(tmp_path / "nothing-here")]) == 2
+
+
+def png_size(path):
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR", path
+    return struct.unpack(">II", data[16:24])
+
+
+def test_every_page_gets_a_full_page_screenshot(tmp_path):
+    site = make_site(tmp_path / "html", broken=False)
+    write(site, "07_evaluation.html", page("long", '<p id="top-of-it">x</p>'
+                                           '<div style="height:3000px;background:#cde"></div>'))
+    shots = tmp_path / "screenshots"
+    report = browser.check_book(site, screenshot=tmp_path / "landing.png", screenshots=shots)
+    assert report.ok, report.format()
+    names = ["index.png", "07_evaluation.png", "page2.png", "sub/page3.png"]
+    assert report.screenshots == [shots / n for n in names]
+    assert sorted(p.relative_to(shots).as_posix() for p in shots.rglob("*")
+                  if p.is_file()) == sorted(names)  # one per page, none for _static/
+    for path in report.screenshots:
+        w, h = png_size(path)
+        assert w == 1280 and h >= 900, (path, w, h)
+        img = cv2.imread(str(path))
+        assert img is not None and img.shape[:2] == (h, w)
+    assert png_size(shots / "07_evaluation.png")[1] >= 3000  # the whole page, not the viewport
+    assert png_size(tmp_path / "landing.png") == (1280, 900)  # the landing shot stays as it was
+    assert f"4 page screenshots: {shots}" in report.format()
 
 
 def test_missing_chromium_is_a_clear_error(tmp_path, monkeypatch):

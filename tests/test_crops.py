@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from flowmod import crops
-from flowmod.crops import CropsError, build_crops, crop_boxes, crop_windows, hflip, open_crops
+from flowmod.crops import CropsError, build_crops, crop_boxes, crop_windows, hflip, read_crops
 
 # --- a slow, explicit reference of the paper's preprocessing ---------------------------------
 
@@ -155,27 +155,28 @@ def make_world(tmp_path: Path, flow_shape=(H, W)) -> tuple[pd.DataFrame, Path]:
 
 
 class CountingLoader:
-    def __init__(self) -> None:
+    """``load(pair_id)`` over the flow files of make_world, counting reads (and able to die)."""
+
+    def __init__(self, flow_dir: Path) -> None:
+        self.flow_dir = flow_dir
         self.calls: list[str] = []
         self.fail_at: int | None = None
-        self.orig = crops._load_flow
 
-    def __call__(self, flow_dir, method, pair_id):
+    def __call__(self, pair_id):
         if self.fail_at is not None and len(self.calls) == self.fail_at:
             raise KeyboardInterrupt("simulated interruption")
         self.calls.append(pair_id)
-        return self.orig(flow_dir, method, pair_id)
+        return np.load(self.flow_dir / "dis" / f"{pair_id}.npy").astype(np.float32)
 
 
-def test_build_crops_content_order_and_one_read_per_pair(tmp_path, monkeypatch) -> None:
+def test_build_crops_content_order_and_one_read_per_pair(tmp_path) -> None:
     objects, flow_dir = make_world(tmp_path)
-    counter = CountingLoader()
-    monkeypatch.setattr(crops, "_load_flow", counter)
-    out = build_crops(objects, flow_dir, "dis", tmp_path / "crops", size=16, **QUIET)
+    counter = CountingLoader(flow_dir)
+    out = build_crops(objects, counter, tmp_path / "crops", size=16, **QUIET)
     assert set(out) == {"train", "val"}
     assert sorted(counter.calls) == ["p0", "p1", "p2"]  # each flow file read once
     for split in ("train", "val"):
-        x, idx = open_crops(tmp_path / "crops", "dis", split)
+        x, idx = read_crops(tmp_path / "crops", split)
         assert x.dtype == np.float16 and x.shape == (len(idx), 2, 16, 16)
         assert list(idx.columns) == list(objects.columns)
         assert idx["pair_id"].is_monotonic_increasing
@@ -184,76 +185,81 @@ def test_build_crops_content_order_and_one_read_per_pair(tmp_path, monkeypatch) 
             want = crop_boxes(flow, grp[["xmin", "ymin", "xmax", "ymax"]].to_numpy(), 16)
             np.testing.assert_array_equal(x[grp.index.to_numpy()], want.astype(np.float16))
     n_train = (objects["split"] == "train").sum()
-    assert len(open_crops(tmp_path / "crops", "dis", "train")[1]) == n_train
+    assert len(read_crops(tmp_path / "crops", "train")[1]) == n_train
+    assert out["train"]["rows"] == n_train
     # no temporary files left behind
-    leftovers = [p.name for p in (tmp_path / "crops" / "dis").iterdir() if p.name.startswith(".")]
+    leftovers = [p.name for p in (tmp_path / "crops").iterdir()
+                 if p.name.startswith(".") and "done" not in p.name]
     assert leftovers == []
 
 
-def test_build_crops_skips_when_up_to_date_and_rebuilds_on_change(tmp_path, monkeypatch):
+def test_build_crops_skips_when_up_to_date_and_rebuilds_on_change(tmp_path):
     objects, flow_dir = make_world(tmp_path)
-    counter = CountingLoader()
-    monkeypatch.setattr(crops, "_load_flow", counter)
+    counter = CountingLoader(flow_dir)
     kw = dict(size=8, **QUIET)
-    build_crops(objects, flow_dir, "dis", tmp_path / "c", **kw)
+    build_crops(objects, counter, tmp_path / "c", **kw)
     assert len(counter.calls) == 3
-    build_crops(objects, flow_dir, "dis", tmp_path / "c", **kw)
+    build_crops(objects, counter, tmp_path / "c", **kw)
     assert len(counter.calls) == 3  # up to date: nothing read
-    build_crops(objects, flow_dir, "dis", tmp_path / "c", size=8, scale=2.0, **QUIET)
+    build_crops(objects, counter, tmp_path / "c", size=8, scale=2.0, **QUIET)
     assert len(counter.calls) == 6  # new parameters: rebuilt
     changed = objects.copy()
     changed.loc[changed["pair_id"] == "p1", "xmin"] -= 1.0
-    build_crops(changed, flow_dir, "dis", tmp_path / "c", size=8, scale=2.0, **QUIET)
+    build_crops(changed, counter, tmp_path / "c", size=8, scale=2.0, **QUIET)
     assert counter.calls[6:] == ["p1"]  # only the changed split (val) is rebuilt
 
 
-def test_build_crops_is_atomic_and_resumes(tmp_path, monkeypatch) -> None:
+def test_build_crops_is_atomic_and_resumes(tmp_path) -> None:
     objects, flow_dir = make_world(tmp_path)
     train_only = objects[objects["split"] == "train"]
-    counter = CountingLoader()
+    counter = CountingLoader(flow_dir)
     counter.fail_at = 1  # die while loading the second pair of the split
-    monkeypatch.setattr(crops, "_load_flow", counter)
     with pytest.raises(KeyboardInterrupt):
-        build_crops(train_only, flow_dir, "dis", tmp_path / "c", size=8, **QUIET,
-                    checkpoint_every=1)
-    npy, index = crops.crop_paths(tmp_path / "c", "dis", "train")
+        build_crops(train_only, counter, tmp_path / "c", size=8, **QUIET, checkpoint_every=1)
+    npy, index = crops.crop_paths(tmp_path / "c", "train")
     assert not npy.exists() and not index.exists()  # nothing half-written under final names
     counter.fail_at = None
-    build_crops(train_only, flow_dir, "dis", tmp_path / "c", size=8, **QUIET)
+    build_crops(train_only, counter, tmp_path / "c", size=8, **QUIET)
     assert counter.calls == ["p0", "p2"]  # resumed: p0 was not read again
     fresh = tmp_path / "fresh"
-    build_crops(train_only, flow_dir, "dis", fresh, size=8, **QUIET)
-    np.testing.assert_array_equal(np.load(npy), np.load(crops.crop_paths(fresh, "dis", "train")[0]))
+    build_crops(train_only, CountingLoader(flow_dir), fresh, size=8, **QUIET)
+    np.testing.assert_array_equal(np.load(npy), np.load(crops.crop_paths(fresh, "train")[0]))
 
 
 def test_boxes_are_scaled_to_a_reduced_flow_grid(tmp_path) -> None:
     objects, flow_dir = make_world(tmp_path, flow_shape=(H // 2, W // 2))
-    build_crops(objects, flow_dir, "dis", tmp_path / "c", size=8, **QUIET)
-    x, idx = open_crops(tmp_path / "c", "dis", "val")
+    build_crops(objects, CountingLoader(flow_dir), tmp_path / "c", size=8, **QUIET)
+    x, idx = read_crops(tmp_path / "c", "val")
     flow = np.load(flow_dir / "dis" / "p1.npy").astype(np.float32)
     want = crop_boxes(flow, idx[["xmin", "ymin", "xmax", "ymax"]].to_numpy() / 2, 8)
     np.testing.assert_array_equal(x, want.astype(np.float16))
 
 
-def test_open_crops_errors_name_both_files(tmp_path) -> None:
+def test_read_crops_errors_name_both_files(tmp_path) -> None:
     objects, flow_dir = make_world(tmp_path)
-    build_crops(objects, flow_dir, "dis", tmp_path / "c", size=8, **QUIET)
-    npy, index = crops.crop_paths(tmp_path / "c", "dis", "train")
+    build_crops(objects, CountingLoader(flow_dir), tmp_path / "c", size=8, **QUIET)
+    npy, index = crops.crop_paths(tmp_path / "c", "train")
     pd.read_parquet(index).iloc[:-1].to_parquet(index)
     with pytest.raises(CropsError, match="disagree") as e:
-        open_crops(tmp_path / "c", "dis", "train")
+        read_crops(tmp_path / "c", "train")
     assert str(npy) in str(e.value) and str(index) in str(e.value)
     with pytest.raises(CropsError, match="missing"):
-        open_crops(tmp_path / "c", "dis", "test")
-    with pytest.raises(CropsError, match="flow file missing"):
-        build_crops(objects.assign(pair_id="nope"), flow_dir, "dis", tmp_path / "d", size=8,
-                    **QUIET)
+        read_crops(tmp_path / "c", "test")
+
+
+def test_empty_split_gets_an_empty_array(tmp_path) -> None:
+    objects, flow_dir = make_world(tmp_path)
+    info = build_crops(objects, CountingLoader(flow_dir), tmp_path / "c", size=8,
+                       splits=("train", "val", "test"), **QUIET)
+    assert info["test"]["rows"] == 0
+    x, idx = read_crops(tmp_path / "c", "test")
+    assert x.shape == (0, 2, 8, 8) and len(idx) == 0
 
 
 def test_padded_flow_grid_is_refused(tmp_path) -> None:
     objects, flow_dir = make_world(tmp_path, flow_shape=(H + 4, W))  # like RAFT's 904 rows
     with pytest.raises(CropsError, match="padded"):
-        build_crops(objects, flow_dir, "dis", tmp_path / "c", size=8, **QUIET)
+        build_crops(objects, CountingLoader(flow_dir), tmp_path / "c", size=8, **QUIET)
 
 
 def test_nonfinite_flow_is_zeroed_and_recorded(tmp_path) -> None:
@@ -261,7 +267,7 @@ def test_nonfinite_flow_is_zeroed_and_recorded(tmp_path) -> None:
     f = np.load(flow_dir / "dis" / "p1.npy")
     f[:, : W // 2] = np.nan  # invalid pixels (e.g. GT flow leaving the image)
     np.save(flow_dir / "dis" / "p1.npy", f)
-    build_crops(objects, flow_dir, "dis", tmp_path / "c", size=8, **QUIET)
-    x, _ = open_crops(tmp_path / "c", "dis", "val")
+    info = build_crops(objects, CountingLoader(flow_dir), tmp_path / "c", size=8, **QUIET)
+    x, _ = read_crops(tmp_path / "c", "val")
     assert np.isfinite(x).all()
-    assert crops.crops_manifest(tmp_path / "c", "dis", "val")["nonfinite_flow_values_zeroed"] > 0
+    assert info["val"]["nonfinite_flow_values_zeroed"] > 0

@@ -404,81 +404,108 @@ def make_dataroot(root: Path, n: int = 4, size=(60, 80)) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def loaded(res: pd.DataFrame, pool: Path, pair_id: str, store_scale: float = 1.0) -> np.ndarray:
+    """The flow of one pair from compute_flow's result rows."""
+    return fl.load_stored_flow(pool / res.set_index("pair_id").loc[pair_id, "file"], store_scale)
+
+
+KW = {"version": "v1.0-synth", "world": "w0", "n_jobs": 1, "progress": False}
+
+
 def test_compute_flow_writes_resumes_and_survives_a_kill(tmp_path):
-    root, out = tmp_path / "data", tmp_path / "flow"
+    root, pool = tmp_path / "data", tmp_path / "pool"
     pairs = make_dataroot(root)
-    kw = {"dataroot": root, "version": "v1.0-synth", "n_jobs": 1, "progress": False}
-    first = fl.compute_flow(pairs, "dis", out, preset="fast", **kw)
+    kw = {"dataroot": root, **KW}
+    first = fl.compute_flow(pairs, "dis", pool, preset="fast", **kw)
     assert first["computed"].all() and list(first["pair_id"]) == list(pairs["pair_id"])
-    index = pd.read_parquet(out / "dis" / "index.parquet")
-    assert list(index.columns) == ["pair_id", "seconds", "shape", "file"]
-    assert (index["seconds"] > 0).all() and list(index["shape"].iloc[0]) == [60, 80, 2]
-    arr = np.load(out / "dis" / "p1.npy")
+    assert list(first.columns) == ["pair_id", "key", "file", "seconds", "shape", "computed"]
+    assert (first["seconds"] > 0).all() and list(first["shape"].iloc[0]) == [60, 80, 2]
+    files = {r.pair_id: pool / r.file for r in first.itertuples()}
+    arr = np.load(files["p1"])
     assert arr.dtype == np.float16 and arr.shape == (60, 80, 2)
-    flow = fl.load_flow(out, "dis", "p1")
     direct = fl.get_estimator("dis", preset="fast").estimate(
         fl.read_image(root / pairs.path_1[1]), fl.read_image(root / pairs.path_2[1]))
-    np.testing.assert_allclose(flow, direct, atol=0.01)
+    np.testing.assert_allclose(loaded(first, pool, "p1"), direct, atol=0.01)
 
-    mtimes = {p: p.stat().st_mtime_ns for p in (out / "dis").glob("*.npy")}
-    again = fl.compute_flow(pairs, "dis", out, preset="fast", **kw)
+    stats = {p: (p.stat().st_mtime_ns, p.stat().st_ino) for p in files.values()}
+    again = fl.compute_flow(pairs, "dis", pool, preset="fast", **kw)
     assert not again["computed"].any()
-    assert {p: p.stat().st_mtime_ns for p in (out / "dis").glob("*.npy")} == mtimes
+    assert {p: (p.stat().st_mtime_ns, p.stat().st_ino) for p in files.values()} == stats
+    pd.testing.assert_frame_equal(again.drop(columns="computed"), first.drop(columns="computed"))
 
     # simulated kill: p1 only got as far as a temporary file, p2 was left truncated
-    (out / "dis" / "p1.npy").unlink()
-    (out / "dis" / ".p1.abc123.tmp.npy").write_bytes(b"\x93NUMPY partial")
-    data = (out / "dis" / "p2.npy").read_bytes()
-    (out / "dis" / "p2.npy").write_bytes(data[: len(data) // 2])
-    with pytest.raises(fl.FlowFileError, match="p2.npy"):
-        fl.load_flow(out, "dis", "p2")
-    resumed = fl.compute_flow(pairs, "dis", out, preset="fast", **kw)
+    files["p1"].unlink()
+    (files["p1"].parent / ".p1.abc123.tmp.npy").write_bytes(b"\x93NUMPY partial")
+    data = files["p2"].read_bytes()
+    files["p2"].write_bytes(data[: len(data) // 2])
+    with pytest.raises(fl.FlowFileError, match=files["p2"].name):
+        fl.load_stored_flow(files["p2"])
+    resumed = fl.compute_flow(pairs, "dis", pool, preset="fast", **kw)
     assert set(resumed.loc[resumed["computed"], "pair_id"]) == {"p1", "p2"}
-    assert not list((out / "dis").glob(".*tmp*"))
-    assert fl.load_flow(out, "dis", "p2").shape == (60, 80, 2)
+    assert not list(pool.rglob(".*tmp*"))
+    assert loaded(resumed, pool, "p2").shape == (60, 80, 2)
 
-    # other options: the cache is stale and everything is recomputed (float32 this time)
-    changed = fl.compute_flow(pairs, "dis", out, preset="medium", dtype="float32", **kw)
-    assert changed["computed"].all()
-    assert np.load(out / "dis" / "p0.npy").dtype == np.float32
+    # other options live beside: the first files stay, and switching back costs nothing
+    changed = fl.compute_flow(pairs, "dis", pool, preset="medium", dtype="float32", **kw)
+    assert changed["computed"].all() and set(changed["key"]) == set(first["key"])
+    assert changed["file"].str.split("/").str[0].nunique() == 1
+    assert np.load(pool / changed["file"].iloc[0]).dtype == np.float32
+    back = fl.compute_flow(pairs, "dis", pool, preset="fast", **kw)
+    assert not back["computed"].any()
+
+
+def test_pair_keys_follow_the_data_not_the_pair_id(tmp_path):
+    """Another world (seed, dataroot content), other tokens or other image files never match."""
+    root = tmp_path / "data"
+    pairs = make_dataroot(root, n=2)
+    keys = fl.stage.pair_keys(pairs, root, "world-A")
+    assert len(set(keys)) == 2
+    assert fl.stage.pair_keys(pairs, root, "world-B") != keys, "another world"
+    other_tokens = pairs.assign(sd_token_1=["x", "y"])
+    assert fl.stage.pair_keys(other_tokens, root, "world-A") != keys, "other frames"
+    img = root / pairs.path_2[0]
+    img.write_bytes(img.read_bytes() + b"\0")  # another image file behind the same name
+    changed = fl.stage.pair_keys(pairs, root, "world-A")
+    assert changed[0] != keys[0] and changed[1] == keys[1]
+    img.unlink()
+    with pytest.raises(fl.ImageError, match="image missing"):
+        fl.stage.pair_keys(pairs, root, "world-A")
 
 
 def test_compute_flow_parallel_matches_direct(tmp_path):
     root = tmp_path / "data"
     pairs = make_dataroot(root, n=3)
-    res = fl.compute_flow(pairs, "farneback", tmp_path / "flow", dataroot=root,
-                          version="v", n_jobs=2, progress=False, dtype="float32")
+    kw = {**KW, "n_jobs": 2}
+    res = fl.compute_flow(pairs, "farneback", tmp_path / "pool", dataroot=root, dtype="float32",
+                          **kw)
     assert res["computed"].all()
     for r in pairs.itertuples():
         direct = fl.get_estimator("farneback").estimate(
             fl.read_image(root / r.path_1), fl.read_image(root / r.path_2))
-        np.testing.assert_allclose(fl.load_flow(tmp_path / "flow", "farneback", r.pair_id),
-                                   direct, atol=1e-4)
+        np.testing.assert_allclose(loaded(res, tmp_path / "pool", r.pair_id), direct, atol=1e-4)
 
 
 def test_compute_flow_reports_bad_images_before_starting(tmp_path):
     root = tmp_path / "data"
     pairs = make_dataroot(root)
-    (root / pairs.path_2[0]).unlink()
+    (root / pairs.path_2[0]).write_bytes(b"")
     data = (root / pairs.path_1[3]).read_bytes()
     (root / pairs.path_1[3]).write_bytes(data[: len(data) // 2])
     with pytest.raises(fl.ImageError) as e:
-        fl.compute_flow(pairs, "dis", tmp_path / "flow", dataroot=root, version="v",
-                        n_jobs=1, progress=False)
+        fl.compute_flow(pairs, "dis", tmp_path / "pool", dataroot=root, **KW)
     msg = str(e.value)
     assert "2 of 8 images" in msg and pairs.path_2[0] in msg and pairs.path_1[3] in msg
-    assert "truncated" in msg and "missing" in msg
-    assert not list((tmp_path / "flow" / "dis").glob("*.npy"))
+    assert "truncated" in msg and "empty" in msg
+    assert not list((tmp_path / "pool").rglob("*.npy"))
 
 
 def test_compute_flow_network_batches(tmp_path):
     root = tmp_path / "data"
     pairs = make_dataroot(root, n=3, size=(50, 70))
-    res = fl.compute_flow(pairs, "fastflownet", tmp_path / "flow", dataroot=root, version="v",
-                          progress=False, model=_hand_set_fastflownet(0.05, 0.0),
-                          device="cpu", batch_size=2)
+    res = fl.compute_flow(pairs, "fastflownet", tmp_path / "pool", dataroot=root, **KW,
+                          model=_hand_set_fastflownet(0.05, 0.0), device="cpu", batch_size=2)
     assert res["computed"].all()
-    f = fl.load_flow(tmp_path / "flow", "fastflownet", "p2")
+    f = loaded(res, tmp_path / "pool", "p2")
     np.testing.assert_allclose(f[..., 0], 20 * 0.05 * 70 / 128, rtol=1e-3)
 
 
@@ -495,18 +522,17 @@ def test_gt_method_works_from_tokens(tmp_path, monkeypatch):
     world.is_synthetic = lambda dataroot, version: Path(dataroot).name == "synth"
     world.gt_flow = gt_flow
     monkeypatch.setitem(sys.modules, "flowmod.world", world)
-    pairs = make_dataroot(tmp_path / "synth", n=2).drop(columns=["path_1", "path_2"])
-    res = fl.compute_flow(pairs, "gt", tmp_path / "flow", dataroot=tmp_path / "synth",
-                          version="v1.0-synth", n_jobs=1, progress=False)
+    pairs = make_dataroot(tmp_path / "synth", n=2)
+    res = fl.compute_flow(pairs, "gt", tmp_path / "pool", dataroot=tmp_path / "synth", **KW)
     assert res["computed"].all() and calls == [("t0a", "t0b"), ("t1a", "t1b")]
-    f = fl.load_flow(tmp_path / "flow", "gt", "p1")
+    f = loaded(res, tmp_path / "pool", "p1")
     assert f.shape == (6, 8, 2) and f[0, 0, 0] == 0 and f[1, 1, 0] == 3
     with pytest.raises(TypeError, match="tokens"):
         fl.get_estimator("gt", dataroot=tmp_path / "synth", version="v").estimate(
             SHIFT[0], SHIFT[1])
+    make_dataroot(tmp_path / "real", n=2)
     with pytest.raises(fl.NotSyntheticError, match="not one"):
-        fl.compute_flow(pairs, "gt", tmp_path / "flow2", dataroot=tmp_path / "real",
-                        version="v1.0-mini", n_jobs=1, progress=False)
+        fl.compute_flow(pairs, "gt", tmp_path / "pool2", dataroot=tmp_path / "real", **KW)
 
 
 # --------------------------------------------------------------------------------------------
@@ -595,25 +621,6 @@ def test_estimator_options_from_a_profile(tmp_path):
     fl.get_estimator("dis", **fl.estimator_options(p, "dis"))
 
 
-def test_index_written_while_computing_lists_only_finished_pairs(tmp_path, monkeypatch):
-    """The periodic index write (so timings survive a kill) must not name unfinished pairs."""
-    root = tmp_path / "data"
-    pairs = make_dataroot(root, n=3)
-    monkeypatch.setattr(fl.stage, "INDEX_WRITE_SECONDS", -1.0)  # write after every pair
-    seen = []
-    real = fl.stage._write_index
-
-    def spy(path, rows, order):
-        seen.append(sorted(rows))
-        return real(path, rows, order)
-
-    monkeypatch.setattr(fl.stage, "_write_index", spy)
-    res = fl.compute_flow(pairs, "dis", tmp_path / "flow", dataroot=root, version="v",
-                          n_jobs=1, progress=False, preset="fast")
-    assert res["computed"].all()
-    assert seen[0] == ["p0"] and seen[-1] == ["p0", "p1", "p2"]
-
-
 def test_float16_flow_is_clipped_not_inf(tmp_path):
     flow = np.zeros((4, 5, 2), np.float32)
     flow[1, 2] = [1e6, -1e6]
@@ -623,24 +630,22 @@ def test_float16_flow_is_clipped_not_inf(tmp_path):
 
 
 def test_flow_stored_at_reduced_scale_loads_at_full_size(tmp_path):
-    root = tmp_path / "data"
+    root, pool = tmp_path / "data", tmp_path / "pool"
     pairs = make_dataroot(root, n=2)
-    out = tmp_path / "flow"
-    res = fl.compute_flow(pairs, "farneback", out, dataroot=root, version="v", n_jobs=1,
-                          progress=False, dtype="float32", store_scale=0.5)
+    kw = {"dataroot": root, "dtype": "float32", **KW}
+    res = fl.compute_flow(pairs, "farneback", pool, store_scale=0.5, **kw)
     assert list(res["shape"].iloc[0]) == [60, 80, 2], "the index records the full size"
-    assert np.load(out / "farneback" / "p0.npy").shape == (30, 40, 2), "a quarter of the disk"
-    full = fl.load_flow(out, "farneback", "p0")
+    assert np.load(pool / res["file"].iloc[0]).shape == (30, 40, 2), "a quarter of the disk"
+    full = loaded(res, pool, "p0", 0.5)
     assert full.shape == (60, 80, 2)
     direct = fl.get_estimator("farneback").estimate(
         fl.read_image(root / pairs.path_1[0]), fl.read_image(root / pairs.path_2[0]))
     # values stay in full-image pixels: a smooth flow survives the round trip
     assert np.median(np.abs(full - direct)) < 0.1
     assert abs(float(full[..., 0].mean()) - float(direct[..., 0].mean())) < 0.1
-    # another scale is another cache
-    again = fl.compute_flow(pairs, "farneback", out, dataroot=root, version="v", n_jobs=1,
-                            progress=False, dtype="float32", store_scale=0.5)
+    again = fl.compute_flow(pairs, "farneback", pool, store_scale=0.5, **kw)
     assert not again["computed"].any()
+    other = fl.compute_flow(pairs, "farneback", pool, store_scale=1.0, **kw)
+    assert other["computed"].all(), "another scale is another cache"
     with pytest.raises(ValueError, match="store_scale"):
-        fl.compute_flow(pairs, "farneback", out, dataroot=root, version="v", n_jobs=1,
-                        progress=False, store_scale=0.0)
+        fl.compute_flow(pairs, "farneback", pool, store_scale=0.0, **kw)

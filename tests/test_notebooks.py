@@ -214,7 +214,7 @@ def test_paper_profile_runs_on_a_devkit_dataset_by_parameters_only(smoke_world, 
     assert record["status"] == "ok" and record["parameters"]["version"] == "v1.0-mini"
     g2 = book.read_glue(tmp_path / "executed" / "02_filtering.ipynb")
     assert g2["n_keyframe_objects"] > 0 and g2["n_general_objects"] > 0
-    scenes = pd.read_parquet(tmp_path / "runs" / "pairs.parquet")["scene"]
+    scenes = pd.read_parquet(tmp_path / "runs" / "select" / "pairs.parquet")["scene"]
     assert scenes.str.startswith("scene-1").all()
     assert "true_agreement" not in book.read_glue(tmp_path / "executed" / "04_labeling.ipynb")
     g7 = book.read_glue(tmp_path / "executed" / "07_evaluation.ipynb")

@@ -92,3 +92,18 @@ def test_installed_versions_match_the_pins():
         if have.split("+")[0] != pin:
             wrong[name] = (pin, have)
     assert not wrong, f"installed versions differ from requirements.txt (run make env): {wrong}"
+
+
+@pytest.mark.parametrize("nb_path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_notebook_declares_every_parameter_its_stages_read(nb_path):
+    """A chapter that builds a stage must receive every parameter the stage reads, or the
+    stage would silently fingerprint (and use) the demo default instead of the profile's."""
+    from flowmod import dag
+
+    p = load_profile("demo")
+    declared = set(papermill.inspect_notebook(str(nb_path)))
+    for node in dag.nodes_of_chapter(p, nb_path.stem[:2]):
+        missing = set(dag.reads(node)) - declared
+        assert not missing, f"{nb_path.name} builds {node} but does not declare {sorted(missing)}"
+        if node.stage != "world":
+            assert "force" in declared, f"{nb_path.name} builds {node}: declare force"

@@ -14,6 +14,7 @@ from pyquaternion import Quaternion
 from flowmod import world
 from flowmod.params import TABLE1_CATEGORIES, validate
 from flowmod.report import world_report as wrep
+from flowmod.world import geometry as wg
 from flowmod.world import render as wr
 from flowmod.world import scene as ws
 
@@ -55,7 +56,7 @@ def _day_scene(nusc):
 def test_devkit_loads_all_tables_and_images(smoke_world, smoke_nusc):
     root, version = smoke_world
     nusc = smoke_nusc
-    assert {p.stem for p in (root / version).glob("*.json")} >= set(world.dataset.TABLES)
+    assert {p.stem for p in (root / version).glob("*.json")} >= set(world.records.TABLES)
     assert len(nusc.scene) == 4 and all(s["name"].startswith("synth-") for s in nusc.scene)
     assert [s["nbr_samples"] for s in nusc.scene] == [4] * 4
     items = [i.strip().lower() for s in nusc.scene for i in s["description"].split(",")]
@@ -234,8 +235,8 @@ def test_gt_flow_warps_frame_two_onto_frame_one(smoke_world, smoke_nusc):
     back = cv2.remap(im2, gx + flow[..., 0], gy + flow[..., 1], cv2.INTER_LINEAR)
     # static surfaces (the world's own surface ids), away from the image border
     sc, t1 = world.scene_of(root, version, sd1["token"])
-    fr = wr.render(wr.SceneGeometry(sc), t1, textured=False)
-    static = (fr.sid < wr.SID_AGENT0) & valid
+    fr = wr.render(wg.SceneGeometry(sc), t1, textured=False)
+    static = (fr.sid < wg.SID_AGENT0) & valid
     static[:8], static[-8:], static[:, :8], static[:, -8:] = False, False, False, False
     moved = np.linalg.norm(flow, axis=2) > 1.0  # where the flow matters
     sel = static & moved
@@ -245,7 +246,7 @@ def test_gt_flow_warps_frame_two_onto_frame_one(smoke_world, smoke_nusc):
     err_zero = np.abs(gain * im2 - im1)[sel].mean()
     assert err_flow < 5.0 and err_flow < 0.4 * err_zero, (err_flow, err_zero)
     # moving objects: the warp also holds on agents that are visible in both frames
-    agents = (fr.sid >= wr.SID_AGENT0) & valid & moved
+    agents = (fr.sid >= wg.SID_AGENT0) & valid & moved
     if agents.sum() > 2000:
         assert np.abs(back - im1)[agents].mean() < 0.6 * np.abs(im2 - im1)[agents].mean()
 
@@ -269,7 +270,7 @@ def test_gt_flow_of_pure_ego_translation_over_the_ground(smoke_world):
         "rotation": [0.5, -0.5, 0.5, -0.5],
         "translation": [1.7, 0.0, h],
     }
-    geo = wr.SceneGeometry(sc)
+    geo = wg.SceneGeometry(sc)
     flow, valid = world.flow_between(geo, 1.0, 1.5)
     d = speed * 0.5
     for u, v in [(800, 700), (300, 850), (1400, 600), (1000, 520)]:

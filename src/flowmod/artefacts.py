@@ -1,15 +1,18 @@
-"""Stage artefacts: atomic writes and up-to-date manifests.
+"""Stage artefacts: atomic writes, fingerprints, manifests and content digests.
 
 Every stage writes its outputs through :func:`atomic_path` (a temporary name in the same
 folder, renamed into place only when the write finished), so an interrupted run never leaves a
-half-written file that a later stage could mistake for a result. Beside a stage's outputs, a
-manifest (``<name>.manifest.json``) records the hash of the parameters that produced them;
-:func:`is_up_to_date` compares it with the current parameters.
+half-written file that a later stage could mistake for a result. A stage's outputs carry a
+manifest (``manifest.json``) whose ``fingerprint`` is :func:`fingerprint` of what made them
+(stage, code version, parameter values, the fingerprints of the artefacts it read); the
+bookkeeping over stages and nodes is :mod:`flowmod.dag`. :func:`file_digest` identifies input
+files by content (sha256), with a stat cache so that unchanged files are not read again.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import tempfile
@@ -45,26 +48,59 @@ def write_json(path: str | os.PathLike[str], obj: Any) -> None:
         tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n")
 
 
-def manifest_path(path: str | os.PathLike[str]) -> Path:
-    path = Path(path)
-    return path.with_name(path.name + ".manifest.json")
+def canonical(obj: Any) -> str:
+    """Stable JSON text of ``obj`` (sorted keys, no spaces; tuples as lists, floats as repr)."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
 
 
-def is_up_to_date(path: str | os.PathLike[str], params_hash: str) -> bool:
-    """True if ``path`` exists and its manifest records ``params_hash``."""
-    path = Path(path)
-    m = manifest_path(path)
-    if not (path.exists() and m.is_file()):
-        return False
+def fingerprint(payload: Any, n: int = 16) -> str:
+    """First ``n`` hex digits of sha256 of :func:`canonical` ``payload``."""
+    return hashlib.sha256(canonical(payload).encode()).hexdigest()[:n]
+
+
+def read_manifest(path: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """The manifest at ``path`` (a ``manifest.json``), or None if absent or unreadable."""
     try:
-        return json.loads(m.read_text()).get("params_hash") == params_hash
-    except (OSError, json.JSONDecodeError):
-        return False
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) and "fingerprint" in data else None
 
 
-def mark_done(path: str | os.PathLike[str], params_hash: str, **info: Any) -> None:
-    """Record that ``path`` was produced by parameters with ``params_hash``."""
-    write_json(manifest_path(path), {"params_hash": params_hash, "written": time.time(), **info})
+def write_manifest(path: str | os.PathLike[str], record: Mapping[str, Any]) -> None:
+    """Write a manifest (must hold ``fingerprint``) atomically, stamped with the time."""
+    if "fingerprint" not in record:
+        raise ValueError("a manifest needs a fingerprint")
+    write_json(path, {**record, "written": time.time()})
+
+
+_DIGESTS: dict[str, tuple[int, int, str]] = {}
+
+
+def file_digest(path: str | os.PathLike[str], cache: str | os.PathLike[str] | None = None) -> str:
+    """sha256 (hex) of a file's content. ``cache``: a JSON file that remembers digests by
+    (resolved path, size, mtime_ns), so a file is read again only when its stat changed (the
+    stat only decides whether to re-read: it never enters a digest)."""
+    p = Path(path).resolve()
+    st = p.stat()
+    key = str(p)
+    if cache is not None and not _DIGESTS:
+        try:
+            _DIGESTS.update({k: tuple(v) for k, v in json.loads(Path(cache).read_text()).items()})
+        except (OSError, ValueError):
+            pass
+    hit = _DIGESTS.get(key)
+    if hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
+        return hit[2]
+    h = hashlib.sha256()
+    with open(p, "rb") as f:
+        for block in iter(lambda: f.read(1 << 22), b""):
+            h.update(block)
+    _DIGESTS[key] = (st.st_size, st.st_mtime_ns, h.hexdigest())
+    if cache is not None:
+        with contextlib.suppress(OSError):
+            write_json(cache, _DIGESTS)
+    return h.hexdigest()
 
 
 class CheckpointError(ValueError):

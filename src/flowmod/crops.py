@@ -21,6 +21,7 @@ import hashlib
 import json
 import os
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -28,10 +29,9 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from flowmod.artefacts import atomic_path, is_up_to_date, manifest_path, mark_done
+from flowmod.artefacts import atomic_path, write_json
+from flowmod.progress import bar
 
-#: Bump when the crop geometry or the file layout changes (invalidates built crops).
-CROPS_VERSION = 1
 #: The nuScenes CAM_FRONT image size (width, height) in which object boxes are given.
 IMAGE_SIZE = (1600, 900)
 BOX_COLUMNS = ("xmin", "ymin", "xmax", "ymax")
@@ -150,43 +150,17 @@ def hflip(x: T) -> T:
 # --- I/O: building and opening the crop artefacts -------------------------------------------
 
 
-def _load_flow(flow_dir: Path, method: str, pair_id: str) -> np.ndarray:
-    """One pair's flow, (H, W, 2) float32 pixels (via :func:`flowmod.flow.load_flow`)."""
-    from flowmod.flow import load_flow
-
-    try:
-        return load_flow(flow_dir, method, pair_id)
-    except FileNotFoundError:
-        path = Path(flow_dir) / method / f"{pair_id}.npy"
-        raise CropsError(
-            f"flow file missing: {path} (run the flow stage for method {method!r}; crops cannot "
-            "be rebuilt once full-frame flow was deleted)"
-        ) from None
-
-
-def crop_paths(out_dir: str | os.PathLike[str], method: str, split: str) -> tuple[Path, Path]:
-    """``(<out_dir>/<method>/<split>.npy, <out_dir>/<method>/<split>.parquet)``."""
-    d = Path(out_dir) / method
+def crop_paths(out_dir: str | os.PathLike[str], split: str) -> tuple[Path, Path]:
+    """``(<out_dir>/<split>.npy, <out_dir>/<split>.parquet)``."""
+    d = Path(out_dir)
     return d / f"{split}.npy", d / f"{split}.parquet"
 
 
-def _split_hash(
-    objects: pd.DataFrame, method: str, size: int, scale: float, image_size: tuple[int, int],
-    flow_dir: Path,
-) -> str:
-    """Parameters + identity of the split's objects (+ the flow index's stat, if present)."""
-    h = hashlib.sha256()
-    flow_index = Path(flow_dir) / method / "index.parquet"
-    stamp = None
-    if flow_index.is_file():
-        st = flow_index.stat()
-        stamp = [st.st_size, st.st_mtime_ns]
-    meta = {
-        "version": CROPS_VERSION, "method": method, "size": int(size), "scale": float(scale),
-        "image_size": list(image_size), "columns": list(map(str, objects.columns)),
-        "flow_index": stamp,
-    }
-    h.update(json.dumps(meta, sort_keys=True).encode())
+def _split_hash(objects: pd.DataFrame, size: int, scale: float, image_size: tuple[int, int]) -> str:
+    """Identity of a split's build (for resuming a partial one): its rows and the geometry."""
+    meta = {"size": int(size), "scale": float(scale),
+            "image_size": list(image_size), "columns": list(map(str, objects.columns))}
+    h = hashlib.sha256(json.dumps(meta, sort_keys=True).encode())
     h.update(pd.util.hash_pandas_object(objects, index=False).to_numpy().tobytes())
     return h.hexdigest()[:16]
 
@@ -200,69 +174,70 @@ def _check_objects(objects: pd.DataFrame) -> None:
 
 def build_crops(
     objects: pd.DataFrame,
-    flow_dir: str | os.PathLike[str],
-    method: str,
+    load_flow: Callable[[str], np.ndarray],
     out_dir: str | os.PathLike[str],
     *,
     size: int,
     scale: float = 3.0,
+    splits: Sequence[str] | None = None,
     image_size: tuple[int, int] = IMAGE_SIZE,
-    force: bool = False,
     progress: bool = True,
     checkpoint_every: int = 200,
-) -> dict[str, Path]:
+    label: str = "crops",
+) -> dict[str, dict[str, Any]]:
     """Crop every object of ``objects`` from its pair's flow; one artefact pair per split.
 
     objects: one row per (pair, vehicle) with pair_id, split and the box (xmin, ymin, xmax,
-    ymax in pixels of ``image_size`` = (width, height)); if a flow file has another
-    resolution (flow computed at a reduced scale), boxes are scaled to its grid and the flow
-    values are used as stored. Non-finite flow values (invalid pixels) become 0.
+    ymax in pixels of ``image_size`` = (width, height)); ``load_flow(pair_id)`` -> (H, W, 2)
+    flow in pixels (if it has another resolution, boxes are scaled to its grid and the flow
+    values are used as they are). Non-finite flow values become 0 (and are counted).
 
-    Writes ``<out_dir>/<method>/<split>.npy`` (N, 2, S, S) float16 (filled through a
-    memmap under a temporary name, renamed when complete) and ``<split>.parquet`` (the
-    objects' rows, sorted by pair_id, in array order). Each flow file is read once. A split
-    whose outputs are up to date (same size, scale, method, objects, flow index) is skipped;
-    an interrupted split resumes from its last checkpoint (every ``checkpoint_every`` pairs).
-    Returns ``{split: path of the .npy}``.
+    Writes ``<out_dir>/<split>.npy`` (N, 2, S, S) float16 (filled through a memmap under a
+    temporary name, renamed when complete) and ``<split>.parquet`` (the objects' rows, sorted
+    by pair_id, in array order) for every split of ``splits`` (default: those present; a
+    split without objects gets an empty array). Each flow is read once. A split already
+    complete in ``out_dir`` is kept; an interrupted split resumes from its last checkpoint
+    (every ``checkpoint_every`` pairs). Returns ``{split: build info}``.
     """
     _check_objects(objects)
-    flow_dir = Path(flow_dir)
-    out: dict[str, Path] = {}
-    for split in sorted(objects["split"].astype(str).unique()):
+    out: dict[str, dict[str, Any]] = {}
+    names = list(splits) if splits is not None else sorted(objects["split"].astype(str).unique())
+    for split in names:
         sel = objects[objects["split"].astype(str) == split]
         # Stable sort by pair: each pair's rows are contiguous, its flow is read once.
         df = sel.sort_values("pair_id", kind="mergesort").reset_index(drop=True)
         out[split] = _build_split(
-            df, flow_dir, method, Path(out_dir), split, size=size, scale=scale,
-            image_size=image_size, force=force, progress=progress,
-            checkpoint_every=checkpoint_every,
+            df, load_flow, Path(out_dir), split, size=size, scale=scale,
+            image_size=image_size, progress=progress, checkpoint_every=checkpoint_every,
+            label=label,
         )
     return out
 
 
 def _build_split(
-    df: pd.DataFrame, flow_dir: Path, method: str, out_dir: Path, split: str, *, size: int,
-    scale: float, image_size: tuple[int, int], force: bool, progress: bool,
-    checkpoint_every: int,
-) -> Path:
-    from tqdm.auto import tqdm
-
-    npy, index = crop_paths(out_dir, method, split)
-    phash = _split_hash(df, method, size, scale, image_size, flow_dir)
-    if not force and is_up_to_date(npy, phash) and is_up_to_date(index, phash):
-        return npy
-    npy.parent.mkdir(parents=True, exist_ok=True)
+    df: pd.DataFrame, load_flow: Callable[[str], np.ndarray], out_dir: Path, split: str, *,
+    size: int, scale: float, image_size: tuple[int, int], progress: bool, checkpoint_every: int,
+    label: str = "crops",
+) -> dict[str, Any]:
+    npy, index = crop_paths(out_dir, split)
+    phash = _split_hash(df, size, scale, image_size)
+    done_file = npy.with_name(f".{split}.done.json")
+    if npy.is_file() and index.is_file() and done_file.is_file():
+        info = json.loads(done_file.read_text())
+        if info.get("hash") == phash:
+            return info
+    out_dir.mkdir(parents=True, exist_ok=True)
     partial = npy.with_name(f".{split}.partial.npy")
     state_file = npy.with_name(f".{split}.progress.json")
     shape = (len(df), 2, size, size)
 
     pair_ids = df["pair_id"].astype(str).to_numpy()
-    starts = np.flatnonzero(np.r_[True, pair_ids[1:] != pair_ids[:-1]]) if len(df) else []
-    bounds = list(zip(starts, list(starts[1:]) + [len(df)], strict=True))
+    starts = list(np.flatnonzero(np.r_[True, pair_ids[1:] != pair_ids[:-1]])) if len(df) else []
+    bounds = list(zip(starts, starts[1:] + [len(df)], strict=False))
 
     done, n_nonfinite = 0, 0
     arr = None
-    if not force and partial.is_file() and state_file.is_file():
+    if partial.is_file() and state_file.is_file():
         try:
             state = json.loads(state_file.read_text())
             if state.get("params_hash") == phash:
@@ -282,14 +257,12 @@ def _build_split(
     boxes_all = df[list(BOX_COLUMNS)].to_numpy(dtype=np.float64)
     flow_shape = [image_size[1], image_size[0]]
     last_ckpt = time.monotonic()
-    bar = tqdm(
-        total=len(bounds), initial=done, desc=f"crops {method}/{split}", unit="pair",
-        disable=not progress,
-    )
+    pbar = bar(total=len(bounds), initial=done, desc=f"{label}/{split}", unit="pair",
+               disable=not progress)
     try:
         for k in range(done, len(bounds)):
             a, b = bounds[k]
-            flow = _load_flow(flow_dir, method, pair_ids[a])
+            flow = np.asarray(load_flow(pair_ids[a]), dtype=np.float32)
             bad = ~np.isfinite(flow)
             if bad.any():
                 n_nonfinite += int(bad.sum())
@@ -308,14 +281,14 @@ def _build_split(
                 boxes[:, [0, 2]] *= sx
                 boxes[:, [1, 3]] *= sy
             arr[a:b] = crop_boxes(flow, boxes, size, scale)
-            bar.update(1)
+            pbar.update(1)
             due = bool(checkpoint_every) and (k + 1 - done) % checkpoint_every == 0
             if due or time.monotonic() - last_ckpt > 60:
                 arr.flush()
                 _write_state(state_file, phash, k + 1, n_nonfinite)
                 last_ckpt = time.monotonic()
     finally:
-        bar.close()
+        pbar.close()
     arr.flush()
     del arr
     with atomic_path(index) as tmp:
@@ -323,13 +296,12 @@ def _build_split(
     os.replace(partial, npy)
     state_file.unlink(missing_ok=True)
     info: dict[str, Any] = {
-        "method": method, "split": split, "size": size, "scale": scale, "rows": len(df),
+        "hash": phash, "split": split, "size": size, "scale": scale, "rows": len(df),
         "pairs": len(bounds), "nonfinite_flow_values_zeroed": n_nonfinite,
         "flow_shape": flow_shape,
     }
-    mark_done(index, phash, **info)
-    mark_done(npy, phash, **info)
-    return npy
+    write_json(done_file, info)
+    return info
 
 
 def _write_state(path: Path, phash: str, pairs_done: int, nonfinite: int) -> None:
@@ -338,20 +310,18 @@ def _write_state(path: Path, phash: str, pairs_done: int, nonfinite: int) -> Non
         tmp.write_text(json.dumps(state))
 
 
-def open_crops(
-    out_dir: str | os.PathLike[str], method: str, split: str
-) -> tuple[np.memmap, pd.DataFrame]:
-    """Open a split's crops read-only: ``(x, index)``.
+def read_crops(folder: str | os.PathLike[str], split: str) -> tuple[np.memmap, pd.DataFrame]:
+    """Open a split's crops in ``folder`` read-only: ``(x, index)``.
 
     x: (N, 2, S, S) float16 memmap, pixels; index: the objects' rows in the same order.
     Raises :class:`CropsError` naming both files if either is missing or they disagree.
     """
-    npy, index = crop_paths(out_dir, method, split)
+    npy, index = crop_paths(folder, split)
     for p in (npy, index):
         if not p.is_file():
             raise CropsError(
                 f"crop artefact missing: {p} (pair: {npy.name} + {index.name}); "
-                "run build_crops (stage 05) for this method"
+                "run the crops stage (chapter 05) for this method"
             )
     x = np.load(npy, mmap_mode="r", allow_pickle=False)
     df = pd.read_parquet(index)
@@ -374,50 +344,61 @@ def check_crops(
         )
 
 
-def crops_manifest(out_dir: str | os.PathLike[str], method: str, split: str) -> dict[str, Any]:
-    """The build record of a split (rows, pairs, size, zeroed flow values...), or {}."""
-    m = manifest_path(crop_paths(out_dir, method, split)[0])
-    return json.loads(m.read_text()) if m.is_file() else {}
+#: Splits of each part of the crops stage.
+PART_SPLITS = {"keyframe": ("train", "val", "test"), "general": ("general",)}
 
 
-# --- the stage (notebook 05) ----------------------------------------------------------------
+def part_of(split: str) -> str:
+    """The crops part holding ``split`` (``general`` or ``keyframe``)."""
+    return "general" if split == "general" else "keyframe"
 
 
-def crops_dir(params: Any) -> Path:
-    """``<run_dir>/crops``."""
-    return params.run_path / "crops"
+def open_crops(params: Any, method: str, split: str) -> tuple[np.memmap, pd.DataFrame]:
+    """The published crops of one split of ``method``: ``(x (N, 2, S, S) float16, index)``."""
+    from flowmod import dag
+
+    return read_crops(dag.published(params, dag.Node("crops", method, part_of(split))), split)
 
 
-def stage_objects(objects: pd.DataFrame) -> pd.DataFrame:
-    """Objects with the generalisation set as its own split ``general`` (keyframe objects keep
-    train / val / test)."""
-    out = objects.copy()
-    out.loc[out["set"] == "general", "split"] = "general"
+def run(params: Any, progress: bool = True) -> dict[str, dict[str, Path]]:
+    """Build every ``crops[<method>/<part>]`` node (:mod:`flowmod.dag`) that is stale, from the
+    published flow of the same part. Returns ``{method: {part: published folder}}``."""
+    from flowmod import dag
+    from flowmod.flow import FlowReader
+
+    out: dict[str, dict[str, Path]] = {}
+    for m in params.flow_methods:
+        for part, splits in PART_SPLITS.items():
+            b = dag.begin(params, dag.Node("crops", m, part))
+            if not b.up_to_date:
+                q = b.params
+                objects_node = dag.Node("select") if part == "keyframe" else dag.Node("general")
+                objects = pd.read_parquet(b.input_dir(objects_node) / "objects.parquet")
+                if part == "general":
+                    objects = objects.assign(split="general")
+                reader = FlowReader(params, m, part)
+                info = build_crops(objects if len(objects) else pd.DataFrame(
+                    columns=["pair_id", "split", *BOX_COLUMNS]), reader.load,
+                    b.start(fresh=q.force), size=q.crop_size, scale=q.crop_scale,
+                    splits=splits, progress=progress, label=f"crops {m}")
+                b.publish(splits=info, rows=sum(i["rows"] for i in info.values()))
+            out.setdefault(m, {})[part] = b.final
     return out
-
-
-def run(params: Any, objects: pd.DataFrame, progress: bool = True) -> dict[str, dict[str, Path]]:
-    """Crops of every object for each flow method of the profile: ``{method: {split: npy}}``."""
-    from flowmod.flow import flow_dir
-
-    obj = stage_objects(objects)
-    return {
-        m: build_crops(obj, flow_dir(params), m, crops_dir(params), size=params.crop_size,
-                       scale=params.crop_scale, force=params.force, progress=progress)
-        for m in params.flow_methods
-    }
 
 
 def storage_table(params: Any) -> pd.DataFrame:
     """Disk used per item: crops per object vs full-frame flow per pair, for each method."""
-    from flowmod.flow import flow_dir
+    from flowmod import dag
+    from flowmod.flow import FlowReader
 
     rows = []
     for m in params.flow_methods:
-        npys = sorted((crops_dir(params) / m).glob("*.npy"))
+        npys = [f for part in PART_SPLITS
+                for f in dag.published(params, dag.Node("crops", m, part)).glob("*.npy")]
         n_obj = sum(int(np.load(p, mmap_mode="r").shape[0]) for p in npys)
         crop_bytes = sum(p.stat().st_size for p in npys)
-        flows = list((flow_dir(params) / m).glob("*.npy"))
+        flows = [r.path(pid) for part in PART_SPLITS
+                 for r in [FlowReader(params, m, part)] for pid in r.index["pair_id"]]
         flow_bytes = sum(p.stat().st_size for p in flows)
         rows.append({
             "method": m, "objects": n_obj, "crops total (MB)": crop_bytes / 1e6,

@@ -13,25 +13,19 @@ import pandas as pd
 from flowmod.metrics import apply_threshold, bootstrap_f1_ci, fit_threshold, metrics
 from flowmod.model import predict, resolve_device
 
-#: Distance bins (m) of the breakdown tables (Table 1 range 30-70 m, plus the near field).
-
-# --- the stage (notebooks 07 and 08) ---------------------------------------------------------
+# --- the stages (chapters 07 and 08) -------------------------------------------------------
 
 
-def metrics_dir(params: Any) -> Any:
-    """``<run_dir>/metrics``."""
-    return params.run_path / "metrics"
-
-
-def predictions(params: Any, method: str, split: str) -> pd.DataFrame:
-    """The split's objects (crop index order) with ``prob``: the model of ``method``
-    (``models/<method>/best.pt``, chosen on validation) applied to its crops."""
-    from flowmod import crops, train
+def predict_split(model_file: Any, crops_folder: Any, split: str, device: Any = "auto"
+                  ) -> pd.DataFrame:
+    """The split's objects (crop index order) with ``prob``: the model in ``model_file``
+    (a best.pt) applied to the split's crops in ``crops_folder``."""
+    from flowmod.crops import read_crops
     from flowmod.model import load_model
 
-    model = load_model(train.models_dir(params) / method / "best.pt", resolve_device(params.device))
-    x, df = crops.open_crops(crops.crops_dir(params), method, split)
-    return df.assign(prob=predict(model, x, device=params.device))
+    model = load_model(model_file, resolve_device(device))
+    x, df = read_crops(crops_folder, split)
+    return df.assign(prob=predict(model, x, device=device))
 
 
 def score(df: pd.DataFrame, label_col: str = "label", seed: int = 0) -> dict[str, Any]:
@@ -40,38 +34,92 @@ def score(df: pd.DataFrame, label_col: str = "label", seed: int = 0) -> dict[str
     return {**metrics(y, p), "ci": bootstrap_f1_ci(y, p, seed=seed)}
 
 
-def run(params: Any, split: str = "test") -> dict[str, tuple[pd.DataFrame, dict[str, Any]]]:
-    """Score each method's model on ``split``; writes ``metrics/<method>.json`` and
-    ``metrics/<method>_<split>.parquet`` (predictions). Returns ``{method: (preds, scores)}``."""
-    from flowmod.artefacts import atomic_path, write_json
-
-    out = {}
-    for m in params.flow_methods:
-        df = predictions(params, m, split)
-        s = score(df, seed=params.seed)
-        write_json(metrics_dir(params) / f"{m}.json", {"split": split, **s})
-        with atomic_path(metrics_dir(params) / f"{m}_{split}.parquet") as tmp:
-            df.to_parquet(tmp, index=False)
-        out[m] = (df, s)
-    return out
-
-
-def geometric_baseline(params: Any, pairs: pd.DataFrame, objects: pd.DataFrame,
-                       method: str) -> tuple[pd.DataFrame, dict[str, Any]]:
-    """The residual baseline on ``method``'s flow: threshold on the static-world residual
-    (m/s, :mod:`flowmod.geometry`) fitted on train, scored on test."""
-    from flowmod import flow, geometry
+def geometric_baseline(pairs: pd.DataFrame, objects: pd.DataFrame, load_flow: Any,
+                       seed: int = 0) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """The residual baseline on one method's flow (``load_flow(pair_id)``): threshold on the
+    static-world residual (m/s, :mod:`flowmod.geometry`) fitted on train, scored on test."""
+    from flowmod import geometry
 
     key = objects[objects["set"] == "keyframe"]
     sub = key[key["split"].isin(["train", "test"])].reset_index(drop=True)
-    res = geometry.residual_scores(
-        sub, pairs, lambda pid: flow.load_flow(flow.flow_dir(params), method, pid))
+    res = geometry.residual_scores(sub, pairs, load_flow)
     sub = pd.concat([sub, res], axis=1)
     train = sub[sub["split"] == "train"]
     t = fit_threshold(train["residual_speed"], train["label"])
     test = sub[sub["split"] == "test"].assign(
         prob=lambda d: apply_threshold(d["residual_speed"], t).astype(float))
-    return test, {**score(test, seed=params.seed), "threshold_m_s": t}
+    return test, {**score(test, seed=seed), "threshold_m_s": t}
+
+
+def _write(folder: Any, frames: Mapping[str, pd.DataFrame], scores: Mapping[str, Any]) -> None:
+    from flowmod.artefacts import atomic_path, write_json
+
+    for name, df in frames.items():
+        with atomic_path(folder / f"{name}.parquet") as tmp:
+            df.to_parquet(tmp, index=False)
+    for name, s in scores.items():
+        write_json(folder / f"{name}.json", s)
+
+
+def run(params: Any) -> dict[str, tuple[pd.DataFrame, dict[str, Any]]]:
+    """Build every stale ``evaluate[<method>]`` node (:mod:`flowmod.dag`): the model chosen on
+    validation scored once on the test split, and the geometric baseline on the same flow.
+    Files: ``test.parquet`` + ``scores.json`` (the model), ``baseline.parquet`` +
+    ``baseline.json``. Returns ``{method: (predictions, scores)}`` of the model."""
+    from flowmod import dag
+    from flowmod.flow import FlowReader
+
+    out = {}
+    for m in params.flow_methods:
+        b = dag.begin(params, dag.Node("evaluate", m))
+        if not b.up_to_date:
+            q = b.params
+            preds = predict_split(b.input_dir(dag.Node("train", m)) / "best.pt",
+                                  b.input_dir(dag.Node("crops", m, "keyframe")), "test",
+                                  q.device)
+            sel = b.input_dir(dag.Node("select"))
+            base, base_s = geometric_baseline(
+                pd.read_parquet(sel / "pairs.parquet"), pd.read_parquet(sel / "objects.parquet"),
+                FlowReader(params, m, "keyframe").load, seed=q.seed)
+            d = b.start(fresh=True)
+            _write(d, {"test": preds, "baseline": base},
+                   {"scores": {"split": "test", **score(preds, seed=q.seed)}, "baseline": base_s})
+            b.publish(n=len(preds))
+        out[m] = results(params, m, "test")
+    return out
+
+
+def run_general(params: Any) -> dict[str, pd.DataFrame]:
+    """Build every stale ``generalise[<method>]`` node: each model (chosen on validation in
+    chapter 06) applied to the generalisation crops, without retraining. Returns
+    ``{method: predictions}``."""
+    from flowmod import dag
+
+    out = {}
+    for m in params.flow_methods:
+        b = dag.begin(params, dag.Node("generalise", m))
+        if not b.up_to_date:
+            preds = predict_split(b.input_dir(dag.Node("train", m)) / "best.pt",
+                                  b.input_dir(dag.Node("crops", m, "general")), "general",
+                                  b.params.device)
+            _write(b.start(fresh=True), {"general": preds}, {})
+            b.publish(n=len(preds))
+        out[m] = results(params, m, "general")[0]
+    return out
+
+
+def results(params: Any, method: str, name: str = "test") -> tuple[pd.DataFrame, dict[str, Any]]:
+    """Published predictions and scores: ``name`` = ``test`` (the model on the test split),
+    ``baseline`` (the geometric baseline) or ``general`` (scores empty)."""
+    import json
+
+    from flowmod import dag
+
+    node = dag.Node("generalise" if name == "general" else "evaluate", method)
+    folder = dag.published(params, node)
+    preds = pd.read_parquet(folder / f"{name}.parquet")
+    js = folder / ("scores.json" if name == "test" else f"{name}.json")
+    return preds, (json.loads(js.read_text()) if js.is_file() else {})
 
 
 def table4(preds: Mapping[str, pd.DataFrame]) -> pd.DataFrame:

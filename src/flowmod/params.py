@@ -38,83 +38,149 @@ class ProfileError(ValueError):
     """A profile or a notebook parameter is invalid; the message names the key and the fix."""
 
 
+def _field(default: Any = ..., *, read_by: tuple[str, ...] = (), role: str = "input",
+           methods: tuple[str, ...] = (), file: bool = False, **kw: Any) -> Any:
+    """A :class:`Params` field that also declares who reads it (the provenance declaration).
+
+    ``read_by``: the stages whose artefacts depend on the value (their fingerprints include
+    it, :mod:`flowmod.dag`); ``methods``: only for these flow methods' nodes; ``file``: the
+    value is a path whose file content (not its name) enters the fingerprint. ``role``:
+    ``input`` (the default: read by ``read_by``), ``run`` (how to run: device, workers, force;
+    never makes an artefact stale), ``location`` (where data lives: readable by every stage,
+    its identity enters through the world's fingerprint) or ``plan`` (which nodes exist:
+    ``flow_methods``).
+    """
+    if role not in ROLES:
+        raise ValueError(f"role={role!r}; allowed: {ROLES}")
+    extra = {"read_by": list(read_by), "role": role, "methods": list(methods), "file": file}
+    if callable(default):
+        return Field(default_factory=default, json_schema_extra=extra, **kw)
+    return Field(default, json_schema_extra=extra, **kw)
+
+
+#: Roles of a parameter (see :func:`_field`).
+ROLES = ("input", "run", "location", "plan")
+
+_FLOW = ("flow",)
+_TRAIN = ("train",)
+
+
 class Params(BaseModel):
-    """Every parameter of the study, with its unit and allowed range.
+    """Every parameter of the study, with its unit, allowed range and the stages that read it.
 
     Defaults are the ``demo`` profile's values, so a notebook run without a profile behaves
-    like the embedded default.
+    like the embedded default. ``read_by`` (see :func:`_field`) is the one declaration of
+    which stage depends on which parameter: the fingerprints of :mod:`flowmod.dag` and
+    ``runner --status`` both use it, and a stage that reads an undeclared parameter fails.
     """
 
     model_config = ConfigDict(extra="forbid", strict=False, validate_default=True)
 
     # --- run ---------------------------------------------------------------------------
-    profile: str = Field("demo", description="profile name; artefacts go to runs/<profile>/")
-    seed: int = Field(0, ge=0, description="master seed for every random choice")
-    run_dir: str = Field("runs/demo", description="stage artefacts (relative to the repo root)")
-    device: Literal["auto", "cpu", "cuda"] = Field("auto", description="torch device")
-    force: bool = Field(False, description="recompute stages whose outputs are up to date")
+    profile: str = _field("demo", role="run",
+                          description="profile name; artefacts go to runs/<profile>/")
+    seed: int = _field(0, ge=0, read_by=("world", "select", "train", "evaluate"),
+                       description="master seed for every random choice")
+    run_dir: str = _field("runs/demo", role="run",
+                          description="stage artefacts (relative to the repo root)")
+    device: Literal["auto", "cpu", "cuda"] = _field("auto", role="run",
+                                                    description="torch device")
+    force: bool = _field(False, role="run",
+                         description="recompute stages whose outputs are up to date")
 
     # --- data --------------------------------------------------------------------------
-    dataroot: str | None = Field("data/demo", description="nuScenes-format data root")
-    version: str = Field("v1.0-synth", description="table folder under dataroot, e.g. v1.0-mini")
-    synthetic: bool = Field(True, description="build the synthetic world when dataroot is absent")
-    world_scenes: int = Field(40, ge=1, le=2000, description="synthetic world: number of scenes")
-    world_keyframes: int = Field(20, ge=2, le=60, description="keyframes (2 Hz) per scene")
-    world_sweep_scenes: int = Field(4, ge=0, description="scenes that also get ~12 Hz sweeps")
-    world_vehicles: int = Field(28, ge=1, le=200, description="vehicles per scene (mean)")
+    dataroot: str | None = _field("data/demo", role="location",
+                                  description="nuScenes-format data root")
+    version: str = _field("v1.0-synth", role="location",
+                          description="table folder under dataroot, e.g. v1.0-mini")
+    synthetic: bool = _field(True, role="run",
+                             description="build the synthetic world when dataroot is absent")
+    world_scenes: int = _field(40, ge=1, le=2000, read_by=("world",),
+                               description="synthetic world: number of scenes")
+    world_keyframes: int = _field(20, ge=2, le=60, read_by=("world",),
+                                  description="keyframes (2 Hz) per scene")
+    world_sweep_scenes: int = _field(4, ge=0, read_by=("world",),
+                                     description="scenes that also get ~12 Hz sweeps")
+    world_vehicles: int = _field(28, ge=1, le=200, read_by=("world",),
+                                 description="vehicles per scene (mean)")
 
     # --- selection (Table 1) -----------------------------------------------------------
-    categories: list[str] = Field(default_factory=lambda: list(TABLE1_CATEGORIES))
-    min_distance: float = Field(30.0, ge=0.0, description="m, nearest target vehicle")
-    max_distance: float = Field(70.0, gt=0.0, description="m, farthest target vehicle")
-    distance_mode: Literal["ego", "camera"] = Field(
-        "ego", description="distance from the ego-pose origin (paper code) or the camera"
+    categories: list[str] = _field(lambda: list(TABLE1_CATEGORIES),
+                                   read_by=("select", "general"),
+                                   description="target categories (Table 1)")
+    min_distance: float = _field(30.0, ge=0.0, read_by=("select",),
+                                 description="m, nearest target vehicle")
+    max_distance: float = _field(70.0, gt=0.0, read_by=("select",),
+                                 description="m, farthest target vehicle")
+    distance_mode: Literal["ego", "camera"] = _field(
+        "ego", read_by=("select", "general"),
+        description="distance from the ego-pose origin (paper code) or the camera",
     )
-    visibility_tokens: list[Literal["1", "2", "3", "4"]] = Field(
-        default_factory=lambda: ["4"], description="nuScenes visibility bins ('4' = 80-100 %)"
+    visibility_tokens: list[Literal["1", "2", "3", "4"]] = _field(
+        lambda: ["4"], read_by=("select", "general"),
+        description="nuScenes visibility bins ('4' = 80-100 %)",
     )
-    exclude_descriptions: list[str] = Field(
-        default_factory=lambda: ["night", "rain", "lightning"],
+    exclude_descriptions: list[str] = _field(
+        lambda: ["night", "rain", "lightning"], read_by=("select",),
         description="drop scenes with a comma-separated description item equal to one of these",
     )
-    split_fractions: list[float] = Field(
-        default_factory=lambda: [0.7, 0.15, 0.15], description="train, val, test (by scene)"
+    split_fractions: list[float] = _field(
+        lambda: [0.7, 0.15, 0.15], read_by=("select",),
+        description="train, val, test (by scene)",
     )
-    missing_images: Literal["error", "skip"] = Field("error", description="on missing JPEGs")
+    missing_images: Literal["error", "skip"] = _field(
+        "error", read_by=("select", "general"), description="on missing JPEGs")
 
     # --- labels ------------------------------------------------------------------------
-    speed_threshold: float = Field(2.0, gt=0.0, description="m/s; moving if speed >= this")
+    speed_threshold: float = _field(2.0, gt=0.0, read_by=("select", "general", "difficulty"),
+                                    description="m/s; moving if speed >= this")
 
     # --- generalisation ----------------------------------------------------------------
-    general_interval: int = Field(4, ge=1, le=12, description="camera frames between the pair")
-    general_min_distance: float = Field(0.0, ge=0.0, description="m, near vehicles included")
-    general_max_distance: float = Field(100.0, gt=0.0, description="m, farthest vehicle")
-    general_max_scenes: int = Field(4, ge=0, description="held-out scenes used (0 = none)")
+    general_interval: int = _field(4, ge=1, le=12, read_by=("general",),
+                                   description="camera frames between the pair")
+    general_min_distance: float = _field(0.0, ge=0.0, read_by=("general",),
+                                         description="m, near vehicles included")
+    general_max_distance: float = _field(100.0, gt=0.0, read_by=("general",),
+                                         description="m, farthest vehicle")
+    general_max_scenes: int = _field(4, ge=0, read_by=("general",),
+                                     description="held-out scenes used (0 = none)")
 
     # --- optical flow ------------------------------------------------------------------
-    flow_methods: list[Literal[FLOW_METHODS]] = Field(  # type: ignore[valid-type]
-        default_factory=lambda: ["gt", "dis", "farneback"]
+    flow_methods: list[Literal[FLOW_METHODS]] = _field(  # type: ignore[valid-type]
+        lambda: ["gt", "dis", "farneback"], role="plan",
+        description="flow methods; one chain of flow, crops, model and scores each",
     )
-    flow_scale: float = Field(0.5, gt=0.0, le=1.0, description="image scale at which flow is computed and stored")
-    dis_preset: Literal["ultrafast", "fast", "medium"] = Field("medium")
-    flow_dtype: Literal["float16", "float32"] = Field("float16")
-    raft_weights: str | None = Field(None, description="path to RAFT weights (.pth)")
-    raft_small_weights: str | None = Field(None, description="path to RAFT-small weights")
-    fastflownet_weights: str | None = Field(None, description="path to FastFlowNet weights")
-    n_jobs: int = Field(2, ge=1, le=64, description="parallel CPU workers")
+    flow_scale: float = _field(0.5, gt=0.0, le=1.0, read_by=_FLOW,
+                               description="image scale at which flow is computed and stored")
+    dis_preset: Literal["ultrafast", "fast", "medium"] = _field(
+        "medium", read_by=_FLOW, methods=("dis",), description="OpenCV DIS preset")
+    flow_dtype: Literal["float16", "float32"] = _field("float16", read_by=_FLOW,
+                                                      description="stored flow dtype")
+    raft_weights: str | None = _field(None, read_by=_FLOW, methods=("raft",), file=True,
+                                      description="path to RAFT weights (.pth)")
+    raft_small_weights: str | None = _field(None, read_by=_FLOW, methods=("raft_small",),
+                                            file=True,
+                                            description="path to RAFT-small weights")
+    fastflownet_weights: str | None = _field(None, read_by=_FLOW, methods=("fastflownet",),
+                                             file=True,
+                                             description="path to FastFlowNet weights")
+    n_jobs: int = _field(2, ge=1, le=64, role="run", description="parallel CPU workers")
 
     # --- crops and learning (Table 2) --------------------------------------------------
-    crop_size: int = Field(64, ge=16, le=512, description="px, side of the resized crop (224)")
-    crop_scale: float = Field(3.0, ge=1.0, le=10.0, description="crop side / box side")
-    epochs: int = Field(8, ge=1, le=500)
-    batch_size: int = Field(128, ge=1, le=4096)
-    lr: float = Field(0.01, gt=0.0, le=10.0)
-    momentum: float = Field(0.9, ge=0.0, lt=1.0)
-    weight_decay: float = Field(0.01, ge=0.0)
-    step_size: int = Field(10, ge=1, description="StepLR step, epochs")
-    gamma: float = Field(0.5, gt=0.0, le=1.0, description="StepLR factor")
-    hflip_p: float = Field(0.5, ge=0.0, le=1.0, description="training-only horizontal flip")
-    num_workers: int = Field(0, ge=0, le=64, description="DataLoader workers")
+    crop_size: int = _field(64, ge=16, le=512, read_by=("crops",),
+                            description="px, side of the resized crop (224)")
+    crop_scale: float = _field(3.0, ge=1.0, le=10.0, read_by=("crops",),
+                               description="crop side / box side")
+    epochs: int = _field(8, ge=1, le=500, read_by=_TRAIN, description="training epochs")
+    batch_size: int = _field(128, ge=1, le=4096, read_by=_TRAIN, description="Table 2")
+    lr: float = _field(0.01, gt=0.0, le=10.0, read_by=_TRAIN, description="SGD learning rate")
+    momentum: float = _field(0.9, ge=0.0, lt=1.0, read_by=_TRAIN, description="SGD momentum")
+    weight_decay: float = _field(0.01, ge=0.0, read_by=_TRAIN, description="SGD weight decay")
+    step_size: int = _field(10, ge=1, read_by=_TRAIN, description="StepLR step, epochs")
+    gamma: float = _field(0.5, gt=0.0, le=1.0, read_by=_TRAIN, description="StepLR factor")
+    hflip_p: float = _field(0.5, ge=0.0, le=1.0, read_by=_TRAIN,
+                            description="training-only horizontal flip")
+    num_workers: int = _field(0, ge=0, le=64, role="run", description="DataLoader workers")
 
     @model_validator(mode="after")
     def _cross_checks(self) -> Params:

@@ -3,23 +3,33 @@
     python -m flowmod.runner --profile demo                 # every notebook
     python -m flowmod.runner --profile smoke --only 00_setup
     python -m flowmod.runner --profile paper --set dataroot=/data/nuscenes --set epochs=2
+    python -m flowmod.runner --profile demo --status      # what is stale, and why; runs nothing
 
 The profile is validated (with the overrides) before anything runs. Each notebook receives only
 the parameters its ``parameters`` cell declares; its executed copy goes to ``--out``
 (``build/executed/`` by default). The run stops at the first failing notebook and prints its
 error; ``run_info.json`` beside the executed notebooks records the profile, the parameters,
-package versions, the git commit and the seconds each notebook took.
+package versions, the git commit and the seconds each notebook took. While a notebook runs,
+the progress of its stages (items done / total, rate, ETA) is echoed to the terminal through
+:mod:`flowmod.progress`'s side channel; the book's pages never show it.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import re
+import shutil
 import sys
+import tempfile
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from flowmod import environment
+from flowmod import environment, progress
 from flowmod.artefacts import write_json
 from flowmod.params import Params, ProfileError, load_profile, parse_overrides, profile_path
 from flowmod.paths import repo_root
@@ -58,6 +68,65 @@ def notebook_parameters(nb: Path, p: Params) -> dict[str, Any]:
         )
     values = p.model_dump()
     return {k: values[k] for k in declared}
+
+
+@contextlib.contextmanager
+def _echo_progress(path: Path, name: str, every: float = 10.0) -> Iterator[None]:
+    """Point :mod:`flowmod.progress` at ``path`` and echo its latest bar to the terminal: when
+    a new bar starts, when one finishes, and every ``every`` seconds in between."""
+    path.write_text("")
+    old = os.environ.get(progress.ENV)
+    os.environ[progress.ENV] = str(path)
+    stop = threading.Event()
+
+    def loop() -> None:
+        pos, shown, last = 0, {"": ""}, 0.0
+        while True:
+            stopping = stop.wait(1.0)
+            chunk = ""
+            with contextlib.suppress(OSError), open(path, encoding="utf-8") as f:
+                f.seek(pos)
+                chunk = f.read()
+                pos = f.tell()
+            latest: dict[str, str] = {}  # each bar's last state in this chunk, in order
+            for seg in re.split(r"[\r\n]", chunk):
+                if seg.strip():
+                    latest[seg.split(":", 1)[0].strip()] = seg.strip()
+            now = time.monotonic()
+            for i, (desc, line) in enumerate(latest.items()):
+                new_bar = desc not in shown
+                final = i < len(latest) - 1 or "100%" in line or stopping
+                if line != shown.get(desc) and (new_bar or final or now - last >= every):
+                    print(f"[flowmod]   {name}: {line}", flush=True)
+                    shown[desc], last = line, now
+            if stopping:
+                return
+
+    t = threading.Thread(target=loop, daemon=True)
+    t.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        t.join(timeout=5)
+        if old is None:
+            os.environ.pop(progress.ENV, None)
+        else:
+            os.environ[progress.ENV] = old
+
+
+def _kernel_manager(folder: Path) -> type:
+    """A kernel manager whose kernels talk over local IPC sockets in ``folder`` rather than
+    TCP ports (nothing listens on the network, and ipykernel has nothing to warn about)."""
+    from jupyter_client.manager import AsyncKernelManager
+
+    class IPCKernelManager(AsyncKernelManager):
+        def __init__(self, **kw: Any) -> None:
+            kw.setdefault("transport", "ipc")
+            kw.setdefault("ip", str(folder / "kernel"))
+            super().__init__(**kw)
+
+    return IPCKernelManager
 
 
 def run(
@@ -121,28 +190,34 @@ def run(
                                    if k not in {nb.stem for nb, _ in plan}}
             record["started"] = old["started"]
     write_json(info_path, record)
-    for nb, values in plan:
-        target = out_dir / nb.name
-        print(f"[flowmod] {nb.name} ...", flush=True)
-        t0 = time.perf_counter()
-        try:
-            papermill.execute_notebook(
-                str(nb), str(target), parameters=values, kernel_name=kernel,
-                cwd=str(nb.parent), progress_bar=False, log_output=False,
-            )
-        except papermill.PapermillExecutionError as e:
+    ipc = Path(tempfile.mkdtemp(prefix="flowmod-kernel-"))
+    try:
+        for nb, values in plan:
+            target = out_dir / nb.name
+            print(f"[flowmod] {nb.name} ...", flush=True)
+            t0 = time.perf_counter()
+            try:
+                with _echo_progress(out_dir / ".progress.log", nb.stem):
+                    papermill.execute_notebook(
+                        str(nb), str(target), parameters=values, kernel_name=kernel,
+                        cwd=str(nb.parent), progress_bar=False, log_output=False,
+                        kernel_manager_class=_kernel_manager(ipc),
+                    )
+            except papermill.PapermillExecutionError as e:
+                seconds = time.perf_counter() - t0
+                record["notebooks"][nb.stem] = {"status": "failed", "seconds": round(seconds, 1)}
+                record["status"] = "failed"
+                write_json(info_path, record)
+                raise NotebookFailed(
+                    f"{nb.name} failed in cell {e.exec_count}: {e.ename}: {e.evalue}\n"
+                    f"executed copy with the traceback: {target}"
+                ) from None
             seconds = time.perf_counter() - t0
-            record["notebooks"][nb.stem] = {"status": "failed", "seconds": round(seconds, 1)}
-            record["status"] = "failed"
+            record["notebooks"][nb.stem] = {"status": "ok", "seconds": round(seconds, 1)}
             write_json(info_path, record)
-            raise NotebookFailed(
-                f"{nb.name} failed in cell {e.exec_count}: {e.ename}: {e.evalue}\n"
-                f"executed copy with the traceback: {target}"
-            ) from None
-        seconds = time.perf_counter() - t0
-        record["notebooks"][nb.stem] = {"status": "ok", "seconds": round(seconds, 1)}
-        write_json(info_path, record)
-        print(f"[flowmod] {nb.name} ok ({seconds:.1f} s)", flush=True)
+            print(f"[flowmod] {nb.name} ok ({seconds:.1f} s)", flush=True)
+    finally:
+        shutil.rmtree(ipc, ignore_errors=True)
     record["status"] = "ok"
     record["finished"] = time.strftime("%Y-%m-%d %H:%M:%S %Z")
     write_json(info_path, record)
@@ -159,8 +234,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", action="append", default=None, metavar="NN",
                     help="run only notebooks whose name starts with this, repeatable")
     ap.add_argument("--out", type=Path, default=None, help="folder for executed notebooks")
+    ap.add_argument("--status", action="store_true",
+                    help="print, per stage, whether its artefacts are up to date and why not; "
+                         "run nothing")
     args = ap.parse_args(argv)
     try:
+        if args.status:
+            from flowmod import pipeline
+
+            print(pipeline.format_status(load_profile(args.profile,
+                                                      **parse_overrides(args.overrides))))
+            return 0
         run(args.profile, parse_overrides(args.overrides), out_dir=args.out, only=args.only)
     except ProfileError as e:
         print(f"ProfileError: {e}", file=sys.stderr)

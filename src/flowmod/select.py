@@ -19,18 +19,17 @@ closest previous keyframe.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from tqdm.auto import tqdm
 
-from flowmod import labels
-from flowmod.artefacts import atomic_path, is_up_to_date, mark_done
-from flowmod.params import Params, subset_hash
+from flowmod import dag, labels
+from flowmod.artefacts import atomic_path
+from flowmod.params import Params
+from flowmod.progress import bar
 
 TABLES = (
     "attribute", "calibrated_sensor", "category", "ego_pose", "instance", "log", "map",
@@ -38,17 +37,6 @@ TABLES = (
 )
 CAMERA = "CAM_FRONT"
 SPLITS = ("train", "val", "test")
-
-#: Parameters that change what this stage selects (for the up-to-date check).
-STAGE_KEYS = (
-    "dataroot", "version", "seed", "categories", "min_distance", "max_distance",
-    "distance_mode", "visibility_tokens", "exclude_descriptions", "split_fractions",
-    "missing_images", "speed_threshold", "general_interval", "general_min_distance",
-    "general_max_distance",
-    "general_max_scenes", "world_scenes", "world_keyframes", "world_sweep_scenes",
-    "world_vehicles",
-)
-
 
 class SelectionError(ValueError):
     """Bad or empty input to the selection; the message names the thing and the fix."""
@@ -276,7 +264,7 @@ def keyframe_set(
     """
     cats, vis = set(p.categories), set(p.visibility_tokens)
     pair_rows, obj_rows = [], []
-    for sc in tqdm(scenes.itertuples(), total=len(scenes), desc="keyframe pairs",
+    for sc in bar(scenes.itertuples(), total=len(scenes), desc="keyframe pairs",
                    disable=not progress):
         frames = camera_frames(nusc, sc.scene_token, keyframes_only=True)
         quals = [qualifying_boxes(nusc, sd, cats, p.min_distance, p.max_distance,
@@ -330,7 +318,7 @@ def general_set(
     """
     cats, vis = set(p.categories), set(p.visibility_tokens)
     pair_rows, obj_rows = [], []
-    for sc in tqdm(scenes.itertuples(), total=len(scenes), desc="generalisation pairs",
+    for sc in bar(scenes.itertuples(), total=len(scenes), desc="generalisation pairs",
                    disable=not progress):
         frames = camera_frames(nusc, sc.scene_token, keyframes_only=False)
         for i in range(len(frames) - p.general_interval):
@@ -391,9 +379,33 @@ def _add_true_speed(objects: pd.DataFrame, pairs: pd.DataFrame, p: Params) -> pd
     return objects
 
 
-def select(p: Params, progress: bool = True) -> Selection:
-    """Run the whole selection (no caching; see :func:`run`)."""
-    nusc = open_nuscenes(p.dataroot_path, p.version)
+def _missing_images(p: Params, pairs: pd.DataFrame, objects: pd.DataFrame
+                    ) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Drop pairs whose images are missing (``missing_images: skip``) or raise (``error``)."""
+    missing = check_images(p.dataroot_path, list(pairs["path_1"]) + list(pairs["path_2"]))
+    if not missing:
+        return pairs, objects
+    msg = f"{len(missing)} image files are missing under {p.dataroot_path}, e.g. {missing[:3]}"
+    if p.missing_images == "error":
+        raise SelectionError(msg + " (set missing_images: skip to drop their pairs)")
+    bad = pairs["path_1"].isin(missing) | pairs["path_2"].isin(missing)
+    pairs = pairs[~bad].reset_index(drop=True)
+    return pairs, objects[objects["pair_id"].isin(pairs["pair_id"])].reset_index(drop=True)
+
+
+def _finish(p: Params, pairs: pd.DataFrame, objects: pd.DataFrame
+            ) -> tuple[pd.DataFrame, pd.DataFrame]:
+    from flowmod import world
+
+    pairs, objects = _missing_images(p, pairs, objects)
+    if world.is_synthetic(p.dataroot_path, p.version) and len(objects):
+        objects = _add_true_speed(objects, pairs, p)
+    return pairs, objects
+
+
+def select_keyframes(p: Params, nusc=None, progress: bool = True) -> Selection:
+    """The paper's keyframe set and the scene split (no caching; see :func:`run`)."""
+    nusc = nusc or open_nuscenes(p.dataroot_path, p.version)
     scenes = filter_scenes(scene_table(nusc), p.exclude_descriptions)
     kept = scenes[scenes["excluded_by"] == ""]
     if kept.empty:
@@ -412,51 +424,58 @@ def select(p: Params, progress: bool = True) -> Selection:
             f"{p.categories}, distance [{p.min_distance}, {p.max_distance}] m and visibility "
             f"{p.visibility_tokens}"
         )
-    held_out = kept[(kept["split"] == "test") & kept["has_sweeps"]].head(p.general_max_scenes)
-    if len(held_out):
-        gp, go = general_set(nusc, held_out, p, progress)
-        pairs, objects = pd.concat([pairs, gp], ignore_index=True), pd.concat(
-            [objects, go], ignore_index=True)
-    missing = check_images(p.dataroot_path, list(pairs["path_1"]) + list(pairs["path_2"]))
-    if missing:
-        msg = (f"{len(missing)} image files are missing under {p.dataroot_path}, e.g. "
-               f"{missing[:3]}")
-        if p.missing_images == "error":
-            raise SelectionError(msg + " (set missing_images: skip to drop their pairs)")
-        bad = pairs["path_1"].isin(missing) | pairs["path_2"].isin(missing)
-        pairs = pairs[~bad].reset_index(drop=True)
-        objects = objects[objects["pair_id"].isin(pairs["pair_id"])].reset_index(drop=True)
-    from flowmod import world
-
-    if world.is_synthetic(p.dataroot_path, p.version):
-        objects = _add_true_speed(objects, pairs, p)
-    return Selection(pairs, objects, scenes)
+    return Selection(*_finish(p, pairs, objects), scenes)
 
 
-def stage_paths(p: Params) -> dict[str, Path]:
-    run = p.run_path
-    return {"pairs": run / "pairs.parquet", "objects": run / "objects.parquet",
-            "scenes": run / "scenes.parquet"}
+def select_general(p: Params, scenes: pd.DataFrame, nusc=None, progress: bool = True
+                   ) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The generalisation set over the held-out scenes of ``scenes`` (the keyframe stage's
+    scene table with its split): test scenes with sweeps, at most ``general_max_scenes``."""
+    held_out = scenes[(scenes["split"] == "test") & scenes["has_sweeps"]].head(
+        p.general_max_scenes)
+    if held_out.empty:
+        return pd.DataFrame(), pd.DataFrame()
+    nusc = nusc or open_nuscenes(p.dataroot_path, p.version)
+    return _finish(p, *general_set(nusc, held_out, p, progress))
+
+
+def select(p: Params, progress: bool = True) -> Selection:
+    """Both sets at once, uncached: keyframe pairs and objects, then the generalisation set
+    appended (``set`` column); the scene table."""
+    nusc = open_nuscenes(p.dataroot_path, p.version)
+    sel = select_keyframes(p, nusc, progress)
+    gp, go = select_general(p, sel.scenes, nusc, progress)
+    return Selection(pd.concat([sel.pairs, gp], ignore_index=True),
+                     pd.concat([sel.objects, go], ignore_index=True), sel.scenes)
+
+
+def _write(d: Path, frames: dict[str, pd.DataFrame]) -> None:
+    for key, df in frames.items():
+        with atomic_path(d / f"{key}.parquet") as tmp:
+            df.to_parquet(tmp, index=False)
 
 
 def run(p: Params, progress: bool = True) -> Selection:
-    """The selection stage: reuse ``pairs/objects/scenes.parquet`` when up to date, else
-    (building the synthetic world first if needed) select and write them atomically."""
-    paths = stage_paths(p)
-    h = subset_hash(p, STAGE_KEYS)
-    if not p.force and all(is_up_to_date(x, h) for x in paths.values()):
-        return Selection(*(pd.read_parquet(paths[k]) for k in ("pairs", "objects", "scenes")))
-    if p.synthetic:
-        from flowmod import world
-
-        world.ensure_world(p)
-    sel = select(p, progress)
-    for key, df in (("pairs", sel.pairs), ("objects", sel.objects), ("scenes", sel.scenes)):
-        with atomic_path(paths[key]) as tmp:
-            df.to_parquet(tmp, index=False)
-        mark_done(paths[key], h, rows=len(df), params=json.loads(
-            json.dumps({k: getattr(p, k) for k in STAGE_KEYS}, default=str)))
-    return sel
+    """The selection stages of chapter 02: ``select`` (keyframe set, scene split) and
+    ``general`` (generalisation set), each rebuilt only when its fingerprint changed
+    (:mod:`flowmod.dag`). Returns what is published (both sets)."""
+    b = dag.begin(p, dag.Node("select"))
+    nusc = None
+    if not b.up_to_date:
+        nusc = open_nuscenes(b.params.dataroot_path, b.params.version)
+        sel = select_keyframes(b.params, nusc, progress)
+        _write(b.start(fresh=True), {"pairs": sel.pairs, "objects": sel.objects,
+                                     "scenes": sel.scenes})
+        b.publish(rows=len(sel.objects), pairs=len(sel.pairs))
+    g = dag.begin(p, dag.Node("general"))
+    if not g.up_to_date:
+        scenes = pd.read_parquet(g.input_dir(dag.Node("select")) / "scenes.parquet")
+        if nusc is None:
+            nusc = open_nuscenes(g.params.dataroot_path, g.params.version)
+        gp, go = select_general(g.params, scenes, nusc, progress)
+        _write(g.start(fresh=True), {"pairs": gp, "objects": go})
+        g.publish(rows=len(go), pairs=len(gp))
+    return load(p)[0]
 
 
 def table1(p: Params) -> pd.DataFrame:
@@ -508,22 +527,17 @@ def split_sizes(sel: Selection, kind: str = "keyframe") -> pd.DataFrame:
     return out
 
 
-def load(run_dir: str | Path) -> tuple[Selection, dict]:
-    """Read the selection artefacts of a run and the parameters that made them.
-
-    Raises a clear error when the selection stage (notebook 02) has not run.
-    """
-    run_dir = Path(run_dir)
+def load(p: Params) -> tuple[Selection, dict]:
+    """The published selection (both sets, ``set`` column) and the parameters that made the
+    keyframe set. :class:`flowmod.dag.MissingInput` names chapter 02 if it never ran."""
     frames = {}
-    for key in ("pairs", "objects", "scenes"):
-        path = run_dir / f"{key}.parquet"
-        if not path.is_file():
-            raise SelectionError(
-                f"{path} not found: run the selection first (notebooks/02_filtering.ipynb, "
-                "or `make run`)"
-            )
-        frames[key] = pd.read_parquet(path)
-    from flowmod.artefacts import manifest_path
-
-    made_with = json.loads(manifest_path(run_dir / "objects.parquet").read_text())["params"]
-    return Selection(frames["pairs"], frames["objects"], frames["scenes"]), made_with
+    for node in (dag.Node("select"), dag.Node("general")):
+        d = dag.published(p, node)
+        frames[node.stage] = {k: pd.read_parquet(f) for k in ("pairs", "objects", "scenes")
+                              if (f := d / f"{k}.parquet").is_file()}
+    key, gen = frames["select"], frames["general"]
+    sel = Selection(pd.concat([key["pairs"], gen["pairs"]], ignore_index=True),
+                    pd.concat([key["objects"], gen["objects"]], ignore_index=True),
+                    key["scenes"])
+    made_with = dag.recorded(p, dag.Node("select"))["params"]
+    return sel, made_with

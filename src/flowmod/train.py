@@ -249,6 +249,7 @@ def train_model(
     resume: bool = True,
     progress: bool = True,
     monitor: tuple[Any, pd.DataFrame] | None = None,
+    desc: str = "train",
 ) -> pd.DataFrame:
     """Train motion_resnet18 on crops; select the epoch with the best validation F1.
 
@@ -273,7 +274,7 @@ def train_model(
         )
     if epochs < 1 or batch_size < 2:
         raise TrainingError(f"need epochs >= 1 and batch_size >= 2, got {epochs}, {batch_size}")
-    from tqdm.auto import tqdm
+    from flowmod.progress import bar as tqdm
 
     dev = resolve_device(device)
     amp_mode = _resolve_amp(amp, dev)
@@ -324,7 +325,7 @@ def train_model(
                 torch.cuda.set_rng_state_all(ck["rng"]["cuda"])
 
         ds = CropDataset(train_x, y_tr)
-        bar = tqdm(range(start + 1, epochs + 1), desc="epochs", unit="epoch",
+        bar = tqdm(range(start + 1, epochs + 1), desc=desc, unit="epoch",
                    disable=not progress, initial=start, total=epochs)
         for epoch in bar:
             t0 = time.perf_counter()
@@ -335,7 +336,7 @@ def train_model(
             model.train()
             loss_sum = torch.zeros((), dtype=torch.float64, device=dev)
             n_seen, pos = 0, 0
-            inner = tqdm(loader, desc=f"epoch {epoch}", unit="batch", leave=False,
+            inner = tqdm(loader, desc=f"{desc}, epoch {epoch}", unit="batch", leave=False,
                          disable=not progress)
             for i, (xb, yb) in enumerate(inner):
                 b = len(yb)
@@ -403,29 +404,49 @@ def train_model(
 # --- the stage (notebook 06) ------------------------------------------------------------------
 
 
-def models_dir(params: Any) -> Path:
-    """``<run_dir>/models``; one folder per flow method (best.pt, last.pt, history.csv)."""
-    return params.run_path / "models"
-
-
 def run(params: Any, progress: bool = True) -> dict[str, pd.DataFrame]:
-    """Train one classifier per flow method of the profile on its crops (Table 2 settings
-    from the profile); returns ``{method: history}``. Finished runs are reused."""
-    from flowmod import crops
+    """Build every stale ``train[<method>]`` node (:mod:`flowmod.dag`): one classifier per
+    flow method on its published train/val crops, Table 2 settings from the profile.
+    Returns ``{method: history}`` of the published models (``attrs`` best_epoch, best_f1)."""
+    from flowmod import crops, dag
 
     out = {}
     for m in params.flow_methods:
-        tx, tdf = crops.open_crops(crops.crops_dir(params), m, "train")
-        vx, vdf = crops.open_crops(crops.crops_dir(params), m, "val")
-        monitor = crops.open_crops(crops.crops_dir(params), m, "test")
-        out[m] = train_model(
-            tx, tdf, vx, vdf, models_dir(params) / m, epochs=params.epochs, monitor=monitor,
-            batch_size=params.batch_size, lr=params.lr, momentum=params.momentum,
-            weight_decay=params.weight_decay, step_size=params.step_size, gamma=params.gamma,
-            hflip_p=params.hflip_p, num_workers=params.num_workers, seed=params.seed,
-            device=params.device, resume=not params.force, progress=progress,
-        )
+        b = dag.begin(params, dag.Node("train", m))
+        if not b.up_to_date:
+            q = b.params
+            folder = b.input_dir(dag.Node("crops", m, "keyframe"))
+            tx, tdf = crops.read_crops(folder, "train")
+            vx, vdf = crops.read_crops(folder, "val")
+            monitor = crops.read_crops(folder, "test")
+            h = train_model(
+                tx, tdf, vx, vdf, b.start(fresh=q.force), epochs=q.epochs, monitor=monitor,
+                batch_size=q.batch_size, lr=q.lr, momentum=q.momentum,
+                weight_decay=q.weight_decay, step_size=q.step_size, gamma=q.gamma,
+                hflip_p=q.hflip_p, num_workers=q.num_workers, seed=q.seed, device=q.device,
+                resume=True, progress=progress, desc=f"train {m}",
+            )
+            b.publish(best_epoch=int(h.attrs["best_epoch"]), best_f1=float(h.attrs["best_f1"]))
+        out[m] = history(params, m)
     return out
+
+
+def model_path(params: Any, method: str) -> Path:
+    """The published ``best.pt`` of ``method`` (state_dict of the best validation epoch)."""
+    from flowmod import dag
+
+    return dag.published(params, dag.Node("train", method)) / "best.pt"
+
+
+def history(params: Any, method: str) -> pd.DataFrame:
+    """The published training history of ``method`` (``attrs`` best_epoch, best_f1)."""
+    from flowmod import dag
+
+    node = dag.Node("train", method)
+    rec = dag.recorded(params, node) or {}
+    df = pd.read_csv(dag.published(params, node) / "history.csv")
+    df.attrs.update(best_epoch=rec.get("best_epoch"), best_f1=rec.get("best_f1"))
+    return df
 
 
 def table2(params: Any) -> pd.DataFrame:

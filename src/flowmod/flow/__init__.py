@@ -34,17 +34,26 @@ from flowmod.flow.registry import (
     resize_flow,
 )
 from flowmod.flow.stage import (
+    FlowReader,
     accuracy_table,
     box_flow_magnitude,
     check_images,
     compute_flow,
-    flow_dir,
+    flow_root,
     run,
 )
-from flowmod.flow.store import load_flow, load_flow_npy, read_flo, save_flow_npy, write_flo
+from flowmod.flow.store import (
+    load_flow_npy,
+    load_stored_flow,
+    read_flo,
+    save_flow_npy,
+    store_flow,
+    write_flo,
+)
 
 __all__ = [
     "FlowEstimator",
+    "FlowReader",
     "FlowFileError",
     "ImageError",
     "MissingWeightsError",
@@ -54,7 +63,7 @@ __all__ = [
     "box_flow_magnitude",
     "check_images",
     "compute_flow",
-    "flow_dir",
+    "flow_root",
     "boxes_mask",
     "endpoint_error",
     "epe",
@@ -63,7 +72,7 @@ __all__ = [
     "flow_metrics",
     "flow_to_color",
     "get_estimator",
-    "load_flow",
+    "load_stored_flow",
     "load_flow_npy",
     "read_flo",
     "read_image",
@@ -71,5 +80,6 @@ __all__ = [
     "resize_flow",
     "run",
     "save_flow_npy",
+    "store_flow",
     "write_flo",
 ]

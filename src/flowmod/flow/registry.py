@@ -101,6 +101,8 @@ class FlowEstimator:
     """
 
     name: ClassVar[str] = ""
+    #: Bump when a change of the estimator's code changes its flow (invalidates cached files).
+    code_version: ClassVar[int] = 1
     inputs: ClassVar[Literal["images", "tokens"]] = "images"
     cpu_bound: ClassVar[bool] = True
 

@@ -1,4 +1,20 @@
-"""The flow stage: every selected pair with every method of the profile, cached and resumable.
+"""The flow stage (chapter 03): the flow of every selected pair with each method of the profile.
+
+Two levels of caching, both keyed so that nothing made from other inputs can ever match:
+
+* the **pool** of per-pair flow files, ``<run>/flow/<method>/pool/<options>/<pair key>.npy``:
+  ``options`` is the fingerprint of the method, its code version, its options with their
+  defaults, the storage dtype and scale; a pair's key is the fingerprint of the world (the
+  data's identity, :func:`flowmod.dag.world_fingerprint`), the pair's two sample_data tokens
+  and its image files' names and sizes. Files are written atomically one by one, so a killed
+  run resumes where it stopped; a forced recompute replaces each file only when its new flow
+  is written; other options live side by side (switching back costs nothing).
+* the **nodes** ``flow[<method>/<part>]`` of :mod:`flowmod.dag` (parts ``keyframe``,
+  ``general``): ``index.parquet`` listing, for the part's pairs, their pool file and the
+  estimation time, with the node's manifest.
+
+Images are checked (exist and decode) before any flow is computed; nothing is ever deleted
+first. :class:`FlowReader` reads a published node's flow back at full image size.
 """
 
 from __future__ import annotations
@@ -17,7 +33,8 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from flowmod.artefacts import atomic_path
+from flowmod import dag
+from flowmod.artefacts import atomic_path, fingerprint
 from flowmod.flow.metrics import boxes_mask, epe, fl_all
 from flowmod.flow.networks import estimator_options
 from flowmod.flow.registry import (
@@ -28,18 +45,18 @@ from flowmod.flow.registry import (
     available_methods,
     read_image,
 )
-from flowmod.flow.store import _npy_header, _npy_ok, full_shape, load_flow, store_flow
+from flowmod.flow.store import _npy_header, _npy_ok, full_shape, load_stored_flow, store_flow
+from flowmod.progress import bar
 
 if TYPE_CHECKING:
     from flowmod.params import Params
 
 log = logging.getLogger(__name__)
-#: While computing, the index is rewritten this often (s), so timings survive an interruption.
-INDEX_WRITE_SECONDS = 30.0
 
-# --------------------------------------------------------------------------------------------
-# the stage runner
-# --------------------------------------------------------------------------------------------
+#: Estimation seconds of each pool file, one JSON line per computed pair (last one wins).
+TIMINGS = "seconds.jsonl"
+
+# --- images --------------------------------------------------------------------------------
 
 _JPEG_SOI, _JPEG_EOI = b"\xff\xd8", b"\xff\xd9"
 _PNG_SIG = b"\x89PNG\r\n\x1a\n"
@@ -85,12 +102,24 @@ def check_images(paths: Sequence[str | os.PathLike[str]], n_jobs: int = 2, show:
         )
 
 
+# --- keys ----------------------------------------------------------------------------------
 
+#: Estimator arguments that do not change the result (where and how fast it runs) or that
+#: the pair key already covers (the data).
 _NOT_CONFIG = ("device", "batch_size", "model", "dataroot", "version")
 
 
-def _config(cls: type[FlowEstimator], dtype: str, options: Mapping[str, Any]) -> dict[str, Any]:
-    """What the cached flows depend on: method, dtype and the options with their defaults."""
+def options_config(method: str, dtype: str, store_scale: float,
+                   options: Mapping[str, Any]) -> dict[str, Any]:
+    """What a method's flow files depend on besides the pair: method, its code version,
+    its options with their defaults, the storage dtype and scale."""
+    if method not in _REGISTRY:
+        raise ValueError(f"unknown flow method {method!r}; known: {', '.join(available_methods())}")
+    if dtype not in ("float16", "float32"):
+        raise ValueError(f"dtype={dtype!r}; allowed: float16, float32")
+    if not 0.0 < store_scale <= 1.0:
+        raise ValueError(f"store_scale={store_scale}; allowed: 0 < store_scale <= 1")
+    cls = _REGISTRY[method]
     extra = {"dataroot": None, "version": None} if cls.inputs == "tokens" else {}
     try:
         bound = inspect.signature(cls).bind(**extra, **options)
@@ -98,14 +127,50 @@ def _config(cls: type[FlowEstimator], dtype: str, options: Mapping[str, Any]) ->
         raise TypeError(f"flow method {cls.name!r}: {e}") from None
     bound.apply_defaults()
     opts = {k: _describe(v) for k, v in sorted(bound.arguments.items()) if k not in _NOT_CONFIG}
-    return {"method": cls.name, "dtype": dtype, "options": opts, "format": 1}
+    return {"method": method, "code_version": cls.code_version, "dtype": dtype,
+            "store_scale": float(store_scale), "options": opts}
 
 
-def _one_image_pair(
-    est: FlowEstimator, pid: str, path1: str, path2: str, out: Path, storage: tuple[str, float],
-    threads: int,
-) -> tuple[str, float, tuple[int, ...]]:
-    """Worker: read, estimate, save one pair; returns (pair_id, seconds, shape)."""
+def pair_keys(pairs: pd.DataFrame, dataroot: str | os.PathLike[str], world: str) -> list[str]:
+    """Per-pair cache keys: fingerprint of (world, sample_data tokens, image names and sizes).
+
+    A missing image raises :class:`ImageError` naming it."""
+    root = Path(dataroot)
+    keys = []
+    for r in pairs.itertuples(index=False):
+        sizes = []
+        for rel in (r.path_1, r.path_2):
+            try:
+                sizes.append((str(rel), (root / rel).stat().st_size))
+            except OSError:
+                raise ImageError(f"image missing: {root / rel}") from None
+        keys.append(fingerprint({"world": world, "sd": [r.sd_token_1, r.sd_token_2],
+                                 "images": sizes}))
+    return keys
+
+
+def read_timings(pool: Path) -> dict[str, float]:
+    """Seconds per pool file from :data:`TIMINGS` (unreadable lines of a killed run skipped)."""
+    out: dict[str, float] = {}
+    f = pool / TIMINGS
+    if f.is_file():
+        for line in f.read_text().splitlines():
+            try:
+                rec = json.loads(line)
+                out[str(rec["key"])] = float(rec["seconds"])
+            except (ValueError, KeyError, TypeError):
+                continue
+    return out
+
+
+# --- computing ------------------------------------------------------------------------------
+
+Result = tuple[str, float, tuple[int, ...]]
+
+
+def _one_image_pair(est: FlowEstimator, key: str, path1: str, path2: str, out: Path,
+                    storage: tuple[str, float], threads: int) -> Result:
+    """Worker: read, estimate, save one pair; returns (key, seconds, shape)."""
     if threads:
         cv2.setNumThreads(threads)
     img1, img2 = read_image(path1), read_image(path2)
@@ -113,13 +178,11 @@ def _one_image_pair(
     flow = est.estimate(img1, img2)
     seconds = time.perf_counter() - t0
     store_flow(out, flow, *storage)
-    return pid, seconds, flow.shape
+    return key, seconds, flow.shape
 
 
-def _one_token_pair(
-    est: FlowEstimator, pid: str, tok1: str, tok2: str, out: Path, storage: tuple[str, float],
-    threads: int,
-) -> tuple[str, float, tuple[int, ...]]:
+def _one_token_pair(est: FlowEstimator, key: str, tok1: str, tok2: str, out: Path,
+                    storage: tuple[str, float], threads: int) -> Result:
     """Worker for token methods (``gt``)."""
     if threads:
         cv2.setNumThreads(threads)
@@ -127,12 +190,11 @@ def _one_token_pair(
     flow = est.estimate_tokens(tok1, tok2)  # type: ignore[attr-defined]
     seconds = time.perf_counter() - t0
     store_flow(out, flow, *storage)
-    return pid, seconds, flow.shape
+    return key, seconds, flow.shape
 
 
-def _batched(
-    est: FlowEstimator, jobs: list[tuple[str, str, str, Path]], storage: tuple[str, float]
-) -> Iterator[tuple[str, float, tuple[int, ...]]]:
+def _batched(est: FlowEstimator, jobs: list[tuple[str, str, str, Path]],
+             storage: tuple[str, float]) -> Iterator[Result]:
     """Sequential batches for networks; the next batch's images load in a thread meanwhile."""
     bs = max(1, getattr(est, "batch_size", 1))
     chunks = [jobs[i : i + bs] for i in range(0, len(jobs), bs)]
@@ -149,78 +211,44 @@ def _batched(
             t0 = time.perf_counter()
             flows = est.estimate_batch([a for a, _ in imgs], [b for _, b in imgs])
             seconds = (time.perf_counter() - t0) / len(chunk)
-            for (pid, _, _, out), flow in zip(chunk, flows, strict=True):
+            for (key, _, _, out), flow in zip(chunk, flows, strict=True):
                 store_flow(out, flow, *storage)
-                yield pid, seconds, flow.shape
-
-
-def _read_index(path: Path) -> pd.DataFrame | None:
-    if not path.is_file():
-        return None
-    try:
-        df = pd.read_parquet(path)
-    except Exception as e:  # noqa: BLE001 - a bad index is rebuilt from the files
-        log.warning("ignoring unreadable flow index %s (%s)", path, e)
-        return None
-    return df if "pair_id" in df.columns else None
-
-
-def _write_index(
-    path: Path, rows: Mapping[str, dict[str, Any]], order: Sequence[str]
-) -> pd.DataFrame:
-    known = set(order)
-    ids = [p for p in order if p in rows] + [p for p in rows if p not in known]
-    df = pd.DataFrame(
-        {
-            "pair_id": ids,
-            "seconds": [float(rows[p]["seconds"]) for p in ids],
-            "shape": [[int(x) for x in rows[p]["shape"]] for p in ids],
-            "file": [f"{p}.npy" for p in ids],
-        }
-    )
-    with atomic_path(path) as tmp:
-        df.to_parquet(tmp, index=False)
-    return df
+                yield key, seconds, flow.shape
 
 
 def compute_flow(
     pairs: pd.DataFrame,
     method: str,
-    out_dir: str | os.PathLike[str],
+    pool_root: str | os.PathLike[str],
     *,
     dataroot: str | os.PathLike[str],
     version: str,
+    world: str,
     dtype: str = "float16",
     n_jobs: int = 2,
     progress: bool = True,
     force: bool = False,
     store_scale: float = 1.0,
+    label: str = "",
     **options: Any,
 ) -> pd.DataFrame:
-    """Flow of every pair of ``pairs`` (rows of pairs.parquet) with ``method``.
+    """Flow of every pair of ``pairs`` (rows of pairs.parquet) with ``method``, in the pool.
 
-    ``store_scale`` < 1 stores each flow at that fraction of the image size (values still in
-    full-image pixels; :func:`load_flow` restores the size): 0.5 needs a quarter of the disk.
+    Files: ``<pool_root>/<options fingerprint>/<pair key>.npy``, (h, w, 2) ``dtype``, pixels of
+    the full image, frame 1 -> 2, stored at ``store_scale`` of the image size (a quarter of
+    the disk at 0.5; :func:`flowmod.flow.store.load_stored_flow` restores the size). ``world``
+    is the data's fingerprint (it enters every pair key). Pairs whose file is complete are
+    not recomputed (``force`` recomputes them, each file replaced only when its new flow is
+    written). Images of the pairs to compute are checked before any work. CPU methods run in
+    ``n_jobs`` processes; networks in sequential batches.
 
-    Writes ``<out_dir>/<method>/<pair_id>.npy`` ((H, W, 2) ``dtype``, pixels, frame 1 -> 2)
-    and ``<out_dir>/<method>/index.parquet`` (pair_id, seconds = estimation time per pair,
-    shape, file name in that folder), both atomically. Resumable: pairs whose .npy is complete
-    (header, dtype and size checked) are not recomputed; temporary and truncated files are.
-    A change of method options or dtype (recorded in ``config.json``), or ``force``, deletes
-    the folder's flows first. Images (``path_1``, ``path_2`` relative to ``dataroot``) are
-    checked before any work. CPU methods run pairs in ``n_jobs`` processes; networks run
-    sequential batches. Returns the index rows of ``pairs`` plus ``computed`` (bool, this
-    call). One run per method folder at a time.
+    Returns one row per pair in ``pairs``' order: pair_id, key, file (path relative to
+    ``pool_root``), seconds (estimation time; NaN if unknown), shape (full (H, W, 2)),
+    computed (bool, this call).
     """
-    if method not in _REGISTRY:
-        raise ValueError(f"unknown flow method {method!r}; known: {', '.join(available_methods())}")
-    if dtype not in ("float16", "float32"):
-        raise ValueError(f"dtype={dtype!r}; allowed: float16, float32")
+    config = options_config(method, dtype, store_scale, options)
     cls = _REGISTRY[method]
-    need = [
-        "pair_id",
-        *(("sd_token_1", "sd_token_2") if cls.inputs == "tokens" else ("path_1", "path_2")),
-    ]
+    need = ["pair_id", "sd_token_1", "sd_token_2", "path_1", "path_2"]
     missing_cols = [c for c in need if c not in pairs.columns]
     if missing_cols:
         raise ValueError(f"pairs lacks column(s) {missing_cols} needed by method {method!r}")
@@ -228,166 +256,137 @@ def compute_flow(
     dup = pd.Series(ids)[pd.Series(ids).duplicated()].unique().tolist()
     if dup:
         raise ValueError(f"duplicate pair_id in pairs: {dup[:5]}")
-    bad = [p for p in ids if not p or "/" in p or "\\" in p or p.startswith(".")]
-    if bad:
-        raise ValueError(f"pair_id values must be plain file names: {bad[:5]}")
-
-    folder = Path(out_dir) / method
-    folder.mkdir(parents=True, exist_ok=True)
-    index_path = folder / "index.parquet"
-    config_path = folder / "config.json"
-    if not 0.0 < store_scale <= 1.0:
-        raise ValueError(f"store_scale={store_scale}; allowed: 0 < store_scale <= 1")
-    config = {**_config(cls, dtype, options), "store_scale": float(store_scale)}
-    storage = (dtype, float(store_scale))
-    old_config = None
-    if config_path.is_file():
-        try:
-            old_config = json.loads(config_path.read_text())
-        except (OSError, json.JSONDecodeError):
-            old_config = None
-    stale = force or (old_config is not None and old_config != config)
-    for tmp in folder.glob(".*.tmp*"):  # left by an interrupted run
-        tmp.unlink(missing_ok=True)
-    if stale:
-        log.warning(
-            "flow/%s: %s; deleting its cached flows",
-            method,
-            "forced" if force else f"options changed ({old_config} -> {config})",
-        )
-        for f in folder.glob("*.npy"):
-            f.unlink()
-        index_path.unlink(missing_ok=True)
-    if stale or old_config is None:
-        with atomic_path(config_path) as tmp:
+    opts_fp = fingerprint(config)
+    pool = Path(pool_root) / opts_fp
+    pool.mkdir(parents=True, exist_ok=True)
+    cfg_file = pool / "config.json"
+    if not cfg_file.is_file():
+        with atomic_path(cfg_file) as tmp:
             tmp.write_text(json.dumps(config, indent=2, sort_keys=True) + "\n")
-
-    rows: dict[str, dict[str, Any]] = {}
-    old = _read_index(index_path)
-    if old is not None:
-        for r in old.itertuples(index=False):
-            if (folder / f"{r.pair_id}.npy").is_file():
-                rows[str(r.pair_id)] = {"seconds": r.seconds, "shape": list(r.shape)}
-    done = set()
-    for pid in ids:
-        f = folder / f"{pid}.npy"
-        if _npy_ok(f, dtype):
-            done.add(pid)
-            if pid not in rows:  # finished before the index was last written
-                stored = _npy_header(f)[0]
-                rows[pid] = {"seconds": float("nan"),
-                             "shape": [*full_shape(stored, store_scale), *stored[2:]]}
-        else:
-            rows.pop(pid, None)
-    todo = pairs[[pid not in done for pid in ids]]
-
+    for tmp in pool.glob(".*.tmp*"):  # left by a killed run
+        tmp.unlink(missing_ok=True)
     root = Path(dataroot)
-    if len(todo) and cls.inputs == "images":
-        paths = [root / p for p in (*todo["path_1"], *todo["path_2"])]
-        check_images(paths, n_jobs=n_jobs)
+    keys = pair_keys(pairs, root, world)
+    todo = [i for i, k in enumerate(keys) if force or not _npy_ok(pool / f"{k}.npy", dtype)]
+    rows = pairs.iloc[todo]
+    if len(rows) and cls.inputs == "images":
+        check_images([root / p for p in (*rows["path_1"], *rows["path_2"])], n_jobs=n_jobs)
 
     computed: set[str] = set()
-    if len(todo):
-        if cls.inputs == "tokens":
-            est = cls(dataroot=dataroot, version=version, **options)  # type: ignore[call-arg]
-        else:
-            est = cls(**options)
-        parallel = est.cpu_bound and n_jobs > 1 and len(todo) > 1
+    if len(rows):
+        est = (cls(dataroot=dataroot, version=version, **options)  # type: ignore[call-arg]
+               if cls.inputs == "tokens" else cls(**options))
+        storage = (dtype, float(store_scale))
+        parallel = est.cpu_bound and n_jobs > 1 and len(rows) > 1
         threads = 1 if parallel else 0
-        results: Iterator[tuple[str, float, tuple[int, ...]]] | Any
-        if cls.inputs == "tokens":
-            calls = [
-                (
-                    _one_token_pair,
-                    (
-                        est,
-                        str(r.pair_id),
-                        r.sd_token_1,
-                        r.sd_token_2,
-                        folder / f"{r.pair_id}.npy",
-                        storage,
-                        threads,
-                    ),
-                )
-                for r in todo.itertuples(index=False)
-            ]
-        else:
-            calls = [
-                (
-                    _one_image_pair,
-                    (
-                        est,
-                        str(r.pair_id),
-                        str(root / r.path_1),
-                        str(root / r.path_2),
-                        folder / f"{r.pair_id}.npy",
-                        storage,
-                        threads,
-                    ),
-                )
-                for r in todo.itertuples(index=False)
-            ]
+        fn = _one_token_pair if cls.inputs == "tokens" else _one_image_pair
+        calls = [
+            (est, keys[i], *((r.sd_token_1, r.sd_token_2) if cls.inputs == "tokens" else
+                             (str(root / r.path_1), str(root / r.path_2))),
+             pool / f"{keys[i]}.npy", storage, threads)
+            for i, r in zip(todo, rows.itertuples(index=False), strict=True)
+        ]
+        results: Iterator[Result] | Any
         if parallel:
             from joblib import Parallel, delayed
 
             results = Parallel(n_jobs=n_jobs, return_as="generator_unordered")(
-                delayed(fn)(*args) for fn, args in calls
-            )
+                delayed(fn)(*args) for args in calls)
         elif est.cpu_bound:
-            results = (fn(*args) for fn, args in calls)
+            results = (fn(*args) for args in calls)
         else:
-            jobs = [(a[1], a[2], a[3], a[4]) for _, a in calls]
-            results = _batched(est, jobs, storage)
+            results = _batched(est, [(a[1], a[2], a[3], a[4]) for a in calls], storage)
+        with (bar(total=len(rows), desc=label or f"flow {method}", unit="pair",
+                  disable=not progress) as pbar, open(pool / TIMINGS, "a") as log_f):
+            for key, seconds, _shape in results:
+                log_f.write(json.dumps({"key": key, "seconds": round(seconds, 6)}) + "\n")
+                log_f.flush()
+                computed.add(key)
+                pbar.update(1)
+    timings = read_timings(pool)
+    shapes = []
+    for k in keys:
+        stored = _npy_header(pool / f"{k}.npy")[0]
+        shapes.append([*full_shape(stored, store_scale), *stored[2:]])
+    return pd.DataFrame({
+        "pair_id": ids, "key": keys, "file": [f"{opts_fp}/{k}.npy" for k in keys],
+        "seconds": [timings.get(k, float("nan")) for k in keys], "shape": shapes,
+        "computed": [k in computed for k in keys],
+    })
 
-        from tqdm import tqdm
 
-        last_write = time.monotonic()
-        with tqdm(total=len(todo), desc=f"flow {method}", unit="pair", disable=not progress) as bar:
-            for pid, seconds, shape in results:
-                rows[pid] = {"seconds": seconds, "shape": list(shape)}
-                computed.add(pid)
-                bar.update(1)
-                if time.monotonic() - last_write > INDEX_WRITE_SECONDS:  # if interrupted
-                    _write_index(index_path, rows, ids)
-                    last_write = time.monotonic()
-    index = _write_index(index_path, rows, ids)
-    out = index[index["pair_id"].isin(set(ids))].reset_index(drop=True)
-    out["computed"] = out["pair_id"].isin(computed)
-    return out
+# --- the stage ------------------------------------------------------------------------------
 
-
-# --------------------------------------------------------------------------------------------
-# the stage (notebook 03)
-# --------------------------------------------------------------------------------------------
-
-def flow_dir(params: Params) -> Path:
+def flow_root(params: Params) -> Path:
     """``<run_dir>/flow``."""
     return params.run_path / "flow"
 
 
-def run(params: Params, pairs: pd.DataFrame, progress: bool = True) -> dict[str, pd.DataFrame]:
-    """Flow of every pair for each method of ``params.flow_methods``; cached and resumable.
+def _objects_node(part: str) -> dag.Node:
+    return dag.Node("select") if part == "keyframe" else dag.Node("general")
 
-    Returns ``{method: index}`` (pair_id, seconds, shape, file, computed).
-    """
-    out = {}
+
+def run(params: Params, progress: bool = True) -> dict[str, dict[str, pd.DataFrame]]:
+    """Build every ``flow[<method>/<part>]`` node of the profile (:mod:`flowmod.dag`):
+    recomputed only when stale, from the pool where possible. Returns
+    ``{method: {part: index}}`` of the published nodes."""
+    out: dict[str, dict[str, pd.DataFrame]] = {}
     for method in params.flow_methods:
-        out[method] = compute_flow(
-            pairs, method, flow_dir(params), dataroot=params.dataroot_path,
-            version=params.version, dtype=params.flow_dtype, n_jobs=params.n_jobs,
-            progress=progress, force=params.force, store_scale=params.flow_scale,
-            **estimator_options(params, method),
-        )
+        for part in dag.PARTS:
+            b = dag.begin(params, dag.Node("flow", method, part))
+            if not b.up_to_date:
+                q = b.params
+                pairs_file = b.input_dir(_objects_node(part)) / "pairs.parquet"
+                pairs = pd.read_parquet(pairs_file)
+                idx = compute_flow(
+                    pairs, method, flow_root(q) / method / "pool", dataroot=q.dataroot_path,
+                    version=q.version, world=b.inputs["world"]["fingerprint"],
+                    dtype=q.flow_dtype, n_jobs=q.n_jobs, progress=progress, force=q.force,
+                    store_scale=q.flow_scale, label=f"flow {method}/{part}",
+                    **estimator_options(q, method))
+                with atomic_path(b.start(fresh=True) / "index.parquet") as tmp:
+                    idx.drop(columns="computed").to_parquet(tmp, index=False)
+                b.publish(pairs=len(idx), computed=int(idx["computed"].sum()),
+                          store_scale=q.flow_scale, dtype=q.flow_dtype)
+            out.setdefault(method, {})[part] = FlowReader(params, method, part).index
     return out
 
 
-def accuracy_table(
-    params: Params, pairs: pd.DataFrame, objects: pd.DataFrame, indexes: dict[str, pd.DataFrame],
-    n_pairs: int = 20, seed: int = 0,
-) -> pd.DataFrame:
+class FlowReader:
+    """The published flow of one node: ``reader.load(pair_id)`` -> (H, W, 2) float32, pixels
+    of the full image, frame 1 -> 2."""
+
+    def __init__(self, params: Params, method: str, part: str = "keyframe") -> None:
+        node = dag.Node("flow", method, part)
+        folder = dag.published(params, node)
+        self.method, self.part = method, part
+        self.index = pd.read_parquet(folder / "index.parquet")
+        rec = dag.recorded(params, node) or {}
+        self.store_scale = float(rec.get("store_scale", 1.0))
+        self.pool = flow_root(params) / method / "pool"
+        self._files = dict(zip(self.index["pair_id"], self.index["file"], strict=True))
+
+    def __contains__(self, pair_id: str) -> bool:
+        return pair_id in self._files
+
+    def path(self, pair_id: str) -> Path:
+        if pair_id not in self._files:
+            raise KeyError(f"pair {pair_id!r} is not in flow[{self.method}/{self.part}]")
+        return self.pool / self._files[pair_id]
+
+    def load(self, pair_id: str) -> np.ndarray:
+        return load_stored_flow(self.path(pair_id), self.store_scale)
+
+
+# --- what the flow shows (chapter 03) -------------------------------------------------------
+
+def accuracy_table(params: Params, pairs: pd.DataFrame, objects: pd.DataFrame,
+                   readers: Mapping[str, Mapping[str, FlowReader]], n_pairs: int = 20,
+                   seed: int = 0) -> pd.DataFrame:
     """EPE / Fl-all against the world's exact flow, overall and inside far (keyframe set,
     min-max distance) and near (generalisation set, < min_distance) vehicle boxes, with the
-    median seconds per pair; on ``n_pairs`` random pairs of each set (synthetic world only)."""
+    median seconds per pair; on ``n_pairs`` random pairs of each set (synthetic world only).
+    ``readers``: ``{method: {part: FlowReader}}``."""
     from flowmod import world
 
     rng = np.random.default_rng(seed)
@@ -401,10 +400,11 @@ def accuracy_table(
         sub = pairs.set_index("pair_id").loc[pick]
         gts = {pid: world.gt_flow(params.dataroot_path, params.version, r.sd_token_1,
                                   r.sd_token_2) for pid, r in sub.iterrows()}
-        for method in indexes:
+        for method, parts in readers.items():
+            reader = parts[kind]
             acc: dict[str, list[float]] = {"epe": [], "fl": [], "epe_box": [], "fl_box": []}
             for pid, (gt, valid) in gts.items():
-                est = load_flow(flow_dir(params), method, pid)
+                est = reader.load(pid)
                 obj = objects[(objects["pair_id"] == pid) & objects["distance"].between(dmin, dmax)]
                 mask = boxes_mask(obj[["xmin", "ymin", "xmax", "ymax"]].to_numpy(), gt.shape)
                 acc["epe"].append(epe(est, gt, valid))
@@ -412,7 +412,7 @@ def accuracy_table(
                 if (mask & valid).any():
                     acc["epe_box"].append(epe(est, gt, valid, mask))
                     acc["fl_box"].append(fl_all(est, gt, valid, mask))
-            secs = indexes[method]["seconds"]
+            secs = reader.index["seconds"]
             rows.append({
                 "set": kind, "vehicles": f"{dmin:g}-{dmax:g} m", "method": method,
                 "EPE all (px)": np.mean(acc["epe"]), "Fl-all (%)": np.mean(acc["fl"]),
@@ -441,4 +441,3 @@ def box_flow_magnitude(objects: pd.DataFrame, load: Any, inner: float = 0.6) -> 
             x0, x1 = int(max(cx - hw, 0)), int(min(cx + hw, mag.shape[1] - 1)) + 1
             out[i] = float(np.median(mag[y0:y1, x0:x1]))
     return out
-

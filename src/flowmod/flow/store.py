@@ -3,12 +3,9 @@
 
 from __future__ import annotations
 
-import functools
-import json
 import math
 import os
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
@@ -128,28 +125,11 @@ def store_flow(path: str | os.PathLike[str], flow: np.ndarray, dtype: str = "flo
     save_flow_npy(path, flow, dtype)
 
 
-def _store_scale(folder: Path) -> float:
-    """The store_scale recorded in a method folder's config.json (1.0 if none)."""
-    cfg = folder / "config.json"
-    if not cfg.is_file():
-        return 1.0
-    return float(_read_config(str(cfg), cfg.stat().st_mtime_ns).get("store_scale", 1.0))
-
-
-@functools.lru_cache(maxsize=64)
-def _read_config(path: str, mtime_ns: int) -> dict[str, Any]:
-    return json.loads(Path(path).read_text())
-
-
-def load_flow(out_dir: str | os.PathLike[str], method: str, pair_id: str) -> np.ndarray:
-    """Flow of one pair written by :func:`compute_flow`: (H, W, 2) float32, pixels of the full
-    image, frame 1 -> 2 (bilinearly restored to full size when stored at a reduced scale)."""
-    folder = Path(out_dir) / method
-    flow = load_flow_npy(folder / f"{pair_id}.npy")
-    scale = _store_scale(folder)
-    if scale == 1.0:
+def load_stored_flow(path: str | os.PathLike[str], store_scale: float = 1.0) -> np.ndarray:
+    """A flow file written by :func:`store_flow`: (H, W, 2) float32, pixels of the full image,
+    frame 1 -> 2 (bilinearly restored to full size when stored at a reduced scale)."""
+    flow = load_flow_npy(path)
+    if store_scale == 1.0:
         return flow
-    h, w = full_shape(flow.shape, scale)
+    h, w = full_shape(flow.shape, store_scale)
     return cv2.resize(flow, (w, h), interpolation=cv2.INTER_LINEAR)
-
-

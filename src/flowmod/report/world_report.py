@@ -333,24 +333,20 @@ def gt_flow_figure(
     return fig
 
 
-#: Parameters the difficulty report depends on (for the up-to-date check).
-REPORT_KEYS = ("dataroot", "version", "seed", "world_scenes", "world_keyframes",
-               "world_sweep_scenes", "world_vehicles", "speed_threshold")
+def difficulty_report(params: Any, nusc: Any = None, progress: bool = True) -> dict:
+    """:func:`naive_rule_report`'s numbers for a profile: the ``difficulty`` node of
+    :mod:`flowmod.dag` (``<run_dir>/difficulty/difficulty.json``), recomputed only when the
+    world or the speed threshold changed."""
+    from flowmod import dag
+    from flowmod.artefacts import write_json
 
-
-def difficulty_report(params: Any, nusc: Any, progress: bool = True) -> dict:
-    """:func:`naive_rule_report`'s numbers for a profile, cached in
-    ``<run_dir>/difficulty.json`` (recomputed when the world or the threshold changes)."""
-    from flowmod.artefacts import is_up_to_date, mark_done, write_json
-    from flowmod.params import subset_hash
-
-    path = params.run_path / "difficulty.json"
-    h = subset_hash(params, REPORT_KEYS)
-    if not params.force and is_up_to_date(path, h):
-        return json.loads(path.read_text())
-    report = naive_rule_report(nusc, params.version, speed_threshold=params.speed_threshold,
-                               n_jobs=params.n_jobs)
-    numbers = {k: v for k, v in report.items() if k != "table"}
-    write_json(path, numbers)
-    mark_done(path, h)
-    return numbers
+    b = dag.begin(params, dag.Node("difficulty"))
+    if not b.up_to_date:
+        q = b.params
+        report = naive_rule_report(nusc or q.dataroot_path, q.version,
+                                   speed_threshold=q.speed_threshold,
+                                   n_jobs=q.n_jobs)
+        write_json(b.start(fresh=True) / "difficulty.json",
+                   {k: v for k, v in report.items() if k != "table"})
+        b.publish()
+    return json.loads((b.final / "difficulty.json").read_text())

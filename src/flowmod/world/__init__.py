@@ -1,12 +1,16 @@
 """A procedural driving world written in the nuScenes v1.0 on-disk format (CAM_FRONT only).
 
 The official devkit loads it, so the pipeline runs unchanged on it and on real nuScenes.
-Modules: :mod:`~flowmod.world.scene` (what happens: roads, ego plan, agents, trajectories),
-:mod:`~flowmod.world.render` (drawing frames, depth and surface ids as homographies),
-:mod:`~flowmod.world.textures` (procedural textures), :mod:`~flowmod.world.dataset` (writing the
-tables and JPEGs: :func:`generate_world`, :func:`ensure_world`) and
+Modules, from the bottom up: :mod:`~flowmod.world.scene` (trajectories, roads, weather),
+:mod:`~flowmod.world.layout` (the street and the ego's plan), :mod:`~flowmod.world.agents`
+(vehicles and pedestrians placed where the camera sees them), :mod:`~flowmod.world.textures`
+(procedural textures), :mod:`~flowmod.world.geometry` (camera, surfaces, projection),
+:mod:`~flowmod.world.shading` (background, light, weather, sensor look),
+:mod:`~flowmod.world.render` (frames, depth and surface ids as homographies),
 :mod:`~flowmod.world.truth` (reading a world back: :func:`is_synthetic`, exact
-:func:`gt_flow` and :func:`true_velocity`). ``python -m flowmod.world --profile demo`` builds
+:func:`gt_flow` and :func:`true_velocity`), :mod:`~flowmod.world.records` (the nuScenes
+records of one scene) and :mod:`~flowmod.world.dataset` (writing the tables and JPEGs:
+:func:`generate_world`, :func:`ensure_world`). ``python -m flowmod.world --profile demo`` builds
 a profile's world.
 """
 

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-WORLD_FILE = "synth_world.json"
+from flowmod.dag import WORLD_FILE
 
 
 class WorldError(RuntimeError):
@@ -67,9 +67,9 @@ def _load_world(path: str, mtime: float) -> dict:
 
 @lru_cache(maxsize=4)
 def _geometry(path: str, mtime: float, scene_index: int):
-    from flowmod.world import render as wr
+    from flowmod.world import geometry as wg
 
-    return wr.SceneGeometry(_load_world(path, mtime)["scenes"][scene_index])
+    return wg.SceneGeometry(_load_world(path, mtime)["scenes"][scene_index])
 
 
 def scene_of(dataroot: str | os.PathLike[str], version: str, sd_token: str) -> tuple[dict, float]:
@@ -111,11 +111,12 @@ def gt_flow(
 
 def flow_between(geo: Any, t1: float, t2: float) -> tuple[np.ndarray, np.ndarray]:
     """GT flow between scene times t1 and t2 (s) of a :class:`SceneGeometry` (see gt_flow)."""
+    from flowmod.world import geometry as wg
     from flowmod.world import render as wr
 
     f1 = wr.render(geo, t1, textured=False)
     f2 = wr.render(geo, t2, textured=False)
-    H, W = wr.H_IMG, wr.W_IMG
+    H, W = wg.H_IMG, wg.W_IMG
     K = f1.K
 
     def T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -130,14 +131,14 @@ def flow_between(geo: Any, t1: float, t2: float) -> tuple[np.ndarray, np.ndarray
     def A(motion: np.ndarray) -> np.ndarray:
         return P2 @ T_2w @ motion @ T_w1
 
-    rays = wr.pixel_rays(K)
+    rays = wg.pixel_rays(K)
     rho = f1.invz.ravel().astype(np.float64)
     sid = f1.sid.ravel()
     a0 = A(np.eye(4))
     p = a0[:, :3] @ rays + a0[:, 3:4] * rho[None, :]
-    counts = np.bincount(sid, minlength=wr.SID_AGENT0 + len(geo.agents))
+    counts = np.bincount(sid, minlength=wg.SID_AGENT0 + len(geo.agents))
     for i in range(len(geo.agents)):
-        s = wr.SID_AGENT0 + i
+        s = wg.SID_AGENT0 + i
         if counts[s] == 0:
             continue
         R1, c1 = geo.agent_pose(i, t1)

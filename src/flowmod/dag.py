@@ -1,0 +1,460 @@
+"""The study as a graph of stages: what each one reads, where its artefacts live, whether they
+are up to date, and why not. One mechanism for every stage (DESIGN section 1).
+
+A *node* is one stage for one flow method and part (``crops[dis/keyframe]``). Its
+*fingerprint* is :func:`flowmod.artefacts.fingerprint` of
+
+    (stage name, the stage's code version, the node's method and part,
+     the values of exactly the parameters the stage reads,
+     the fingerprints of the artefacts it read)
+
+where "the parameters the stage reads" is the ``read_by`` declaration on the
+:class:`~flowmod.params.Params` fields (the only list; a stage that reads an undeclared
+parameter fails, see :class:`StageParams`). The world's fingerprint is that of its
+generation parameters for a generated world and that of its tables' content for real data,
+so the identity of the data (another seed, another dataroot holding other data) reaches
+every node below it. No file time enters any fingerprint.
+
+An artefact is up to date iff the fingerprint in its ``manifest.json`` equals the one computed
+now. A stage builds a stale node in a building folder beside the published one
+(``.<name>.building-<fp>``, where a killed build resumes) and publishes it only when it
+succeeded; the previous result is kept as a variant (``.<name>.variant-<fp>``, the last
+:data:`KEEP_VARIANTS`), so a failed rerun loses nothing and switching a parameter back
+restores instead of recomputing. :func:`status` reports every node without running anything.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from flowmod.artefacts import (
+    canonical,
+    file_digest,
+    fingerprint,
+    read_manifest,
+    write_manifest,
+)
+from flowmod.params import Params
+
+#: File of a generated world (in ``<dataroot>/<version>/``) that real nuScenes lacks.
+WORLD_FILE = "synth_world.json"
+#: The world's manifest, beside its tables (written by ``flowmod.world.ensure_world``).
+WORLD_MANIFEST = "flowmod.manifest.json"
+#: Previous results kept per node (published results replaced by a rebuild).
+KEEP_VARIANTS = 2
+#: The two parts of the flow and crops stages: the paper's keyframe pairs and the
+#: generalisation pairs.
+PARTS = ("keyframe", "general")
+
+
+@dataclass(frozen=True)
+class Stage:
+    """A stage of the study: its name, code/format version, chapter, artefact folder."""
+
+    name: str
+    #: Bump when the stage's code changes what it writes: every node of it becomes stale.
+    version: int
+    chapter: str
+    #: Folder under the run directory (``{method}``, ``{part}`` filled per node).
+    folder: str
+    doc: str
+
+
+#: The stages in data order (the pipeline at a glance).
+STAGES: dict[str, Stage] = {s.name: s for s in (
+    Stage("world", 1, "01", "", "the data: a generated world or nuScenes tables"),
+    Stage("difficulty", 1, "01", "difficulty", "the naive exact-flow rule on the world"),
+    Stage("select", 2, "02", "select", "Table-1 keyframe pairs and objects, scene split"),
+    Stage("general", 2, "02", "general", "generalisation pairs and objects (held-out scenes)"),
+    Stage("flow", 2, "03", "flow/{method}/{part}", "optical flow of every pair"),
+    Stage("crops", 2, "05", "crops/{method}/{part}", "flow crops around every object"),
+    Stage("train", 2, "06", "models/{method}", "the classifier, best validation epoch"),
+    Stage("evaluate", 2, "07", "metrics/{method}/test", "test predictions, baseline, scores"),
+    Stage("generalise", 2, "08", "metrics/{method}/general", "generalisation predictions"),
+)}
+
+
+class MissingInput(RuntimeError):
+    """A stage's input has not been built; the message names it and the chapter to run."""
+
+
+class UndeclaredParameter(AttributeError):
+    """A stage read a parameter that its ``read_by`` declaration does not name."""
+
+
+@dataclass(frozen=True, order=True)
+class Node:
+    """One stage for one flow method and part (None where the stage has none)."""
+
+    stage: str
+    method: str | None = None
+    part: str | None = None
+
+    def __str__(self) -> str:
+        inner = "/".join(x for x in (self.method, self.part) if x)
+        return f"{self.stage}[{inner}]" if inner else self.stage
+
+
+# --- the graph ------------------------------------------------------------------------------
+
+def inputs(node: Node) -> tuple[Node, ...]:
+    """The nodes whose artefacts ``node`` reads."""
+    s, m, part = node.stage, node.method, node.part
+    world, select = Node("world"), Node("select")
+    objects = select if part in (None, "keyframe") else Node("general")
+    table: dict[str, tuple[Node, ...]] = {
+        "world": (),
+        "difficulty": (world,),
+        "select": (world,),
+        "general": (world, select),
+        "flow": (world, objects),
+        "crops": (Node("flow", m, part), objects),
+        "train": (Node("crops", m, "keyframe"),),
+        "evaluate": (Node("train", m), Node("crops", m, "keyframe"),
+                     Node("flow", m, "keyframe"), select),
+        "generalise": (Node("train", m), Node("crops", m, "general"), Node("general")),
+    }
+    return table[s]
+
+
+def is_generated_world(p: Params) -> bool:
+    """True if the profile's data is (or will be made as) a generated world."""
+    vdir = p.dataroot_path / p.version
+    if (vdir / WORLD_FILE).is_file():
+        return True
+    return p.synthetic and not (vdir / "scene.json").is_file()
+
+
+def nodes(p: Params) -> list[Node]:
+    """Every node of a run with profile ``p``, in data order."""
+    out = [Node("world")]
+    if is_generated_world(p):
+        out.append(Node("difficulty"))
+    out += [Node("select"), Node("general")]
+    for stage in ("flow", "crops"):
+        out += [Node(stage, m, part) for m in p.flow_methods for part in PARTS]
+    for stage in ("train", "evaluate", "generalise"):
+        out += [Node(stage, m) for m in p.flow_methods]
+    return out
+
+
+def nodes_of_chapter(p: Params, chapter: str) -> list[Node]:
+    """The nodes a chapter (``"05"``) builds."""
+    return [n for n in nodes(p) if STAGES[n.stage].chapter == chapter]
+
+
+def _meta(name: str) -> dict[str, Any]:
+    return Params.model_fields[name].json_schema_extra  # type: ignore[return-value]
+
+
+def reads(node: Node) -> tuple[str, ...]:
+    """The parameters whose values enter ``node``'s fingerprint (the ``read_by`` declaration)."""
+    out = []
+    for name in Params.model_fields:
+        meta = _meta(name)
+        if node.stage in meta["read_by"] and (not meta["methods"] or node.method in meta["methods"]):
+            out.append(name)
+    return tuple(out)
+
+
+def free_parameters() -> tuple[str, ...]:
+    """Parameters every stage may read without declaring them: how to run (``run``), where
+    the data lives (``location``; its identity is the world's) and which nodes exist
+    (``plan``). None of them enters a fingerprint."""
+    return tuple(n for n in Params.model_fields if _meta(n)["role"] != "input")
+
+
+def values(p: Params, node: Node) -> dict[str, Any]:
+    """``{parameter: value}`` of :func:`reads`; a ``file`` parameter contributes the sha256 of
+    the file it names (so a replaced weights file is a change, a renamed copy is not)."""
+    out: dict[str, Any] = {}
+    for name in reads(node):
+        v = getattr(p, name)
+        if _meta(name)["file"] and v:
+            path = p.path(v)
+            v = {"sha256": file_digest(path, digest_cache(p))} if path.is_file() else {
+                "missing": str(v)}
+        out[name] = v
+    return out
+
+
+def payload(p: Params, node: Node, input_fps: Mapping[str, str]) -> dict[str, Any]:
+    """What ``node``'s fingerprint is the hash of."""
+    return {"stage": node.stage, "version": STAGES[node.stage].version, "node": str(node),
+            "params": values(p, node), "inputs": dict(sorted(input_fps.items()))}
+
+
+# --- where artefacts live -------------------------------------------------------------------
+
+def node_dir(p: Params, node: Node) -> Path:
+    """The published folder of ``node`` (the world's: ``<dataroot>/<version>``)."""
+    if node.stage == "world":
+        return p.dataroot_path / p.version
+    rel = STAGES[node.stage].folder.format(method=node.method, part=node.part)
+    return p.run_path / rel
+
+
+def manifest_file(p: Params, node: Node) -> Path:
+    d = node_dir(p, node)
+    return d / (WORLD_MANIFEST if node.stage == "world" else "manifest.json")
+
+
+def digest_cache(p: Params) -> Path:
+    """The run's stat cache of file digests (never part of a fingerprint)."""
+    return p.run_path / ".digests.json"
+
+
+def tables_digest(p: Params) -> str:
+    """sha256 over the content of every ``*.json`` table of ``<dataroot>/<version>``."""
+    vdir = p.dataroot_path / p.version
+    files = sorted(f for f in vdir.glob("*.json") if f.name != WORLD_MANIFEST)
+    return fingerprint([(f.name, file_digest(f, digest_cache(p))) for f in files], n=64)
+
+
+def world_fingerprint(p: Params) -> str | None:
+    """The world node's fingerprint now: generation parameters for a world generated (or
+    about to be) from this profile, content of the tables for any other data; None when the
+    data is missing."""
+    vdir = p.dataroot_path / p.version
+    generated = (vdir / WORLD_FILE).is_file()
+    if (vdir / "scene.json").is_file() and not generated:
+        return fingerprint({"stage": "world", "tables": tables_digest(p)})
+    if p.synthetic:
+        return fingerprint(payload(p, Node("world"), {}))
+    if generated:  # someone's generated world, used as it is
+        rec = read_manifest(vdir / WORLD_MANIFEST)
+        return rec["fingerprint"] if rec else fingerprint({"stage": "world",
+                                                            "tables": tables_digest(p)})
+    return None
+
+
+def recorded(p: Params, node: Node) -> dict[str, Any] | None:
+    """The manifest of ``node``'s published artefacts (None if never built). Real nuScenes
+    has no manifest: its record is its content fingerprint."""
+    rec = read_manifest(manifest_file(p, node))
+    if rec is None and node.stage == "world" and not (p.synthetic and is_generated_world(p)):
+        fp = world_fingerprint(p)
+        return {"fingerprint": fp, "node": "world"} if fp else None
+    return rec
+
+
+# --- what is up to date ---------------------------------------------------------------------
+
+def expected(p: Params) -> dict[Node, str | None]:
+    """Every node's fingerprint for the parameters ``p`` (None below a missing input)."""
+    exp: dict[Node, str | None] = {}
+    for node in nodes(p):
+        if node.stage == "world":
+            exp[node] = world_fingerprint(p)
+            continue
+        ins = inputs(node)
+        if any(exp.get(i) is None for i in ins):
+            exp[node] = None
+        else:
+            exp[node] = fingerprint(payload(p, node, {str(i): exp[i] for i in ins}))
+    return exp
+
+
+@dataclass
+class NodeStatus:
+    """One line of :func:`status`."""
+
+    node: Node
+    state: str  # "up to date" | "stale" | "missing"
+    why: str
+    path: Path
+    fingerprint: str | None = None
+    recorded: str | None = None
+
+
+def _variant(final: Path, fp: str) -> Path:
+    return final.parent / f".{final.name}.variant-{fp}"
+
+
+def _diff(old: Mapping[str, Any], new: Mapping[str, Any], n: int = 3) -> list[str]:
+    keys = [k for k in sorted(set(old) | set(new)) if canonical(old.get(k)) != canonical(new.get(k))]
+    out = [f"{k}: {_short(old.get(k, '-'))} -> {_short(new.get(k, '-'))}" for k in keys[:n]]
+    return out + ([f"(+{len(keys) - n} more)"] if len(keys) > n else [])
+
+
+def _short(v: Any) -> str:
+    s = repr(v)
+    return s if len(s) <= 40 else s[:37] + "..."
+
+
+def status(p: Params) -> list[NodeStatus]:
+    """Every node of the run: up to date, stale or missing, and why, in one line each.
+    Runs nothing and writes nothing (file digests of real data are cached)."""
+    exp = expected(p)
+    out: dict[Node, NodeStatus] = {}
+    for node in nodes(p):
+        path = node_dir(p, node)
+        rec = recorded(p, node)
+        fp = exp[node]
+        ins = inputs(node)
+        if rec is not None and fp is not None and rec["fingerprint"] == fp:
+            out[node] = NodeStatus(node, "up to date", "", path, fp, fp)
+            continue
+        if node.stage == "world":
+            why = (f"no data at {path}" if fp is None else
+                   f"not generated yet at {path}" if rec is None else
+                   "generated with other parameters: " + "; ".join(
+                       _diff(rec.get("params", {}), values(p, node))))
+            out[node] = NodeStatus(node, "missing" if rec is None else "stale", why, path, fp,
+                                   rec and rec["fingerprint"])
+            continue
+        waiting = [i for i in ins if out[i].state != "up to date"]
+        if rec is None:
+            why = "never built" + (f"; waits for {waiting[-1]}" if waiting else "")
+            out[node] = NodeStatus(node, "missing", why, path, fp, None)
+            continue
+        reasons = []
+        if rec.get("version") != STAGES[node.stage].version:
+            reasons.append(f"code version {rec.get('version')} -> {STAGES[node.stage].version}")
+        reasons += _diff(rec.get("params", {}), values(p, node))
+        for i in ins:
+            if rec.get("inputs", {}).get(str(i)) != exp[i]:
+                reasons.append(f"input {i} " + ("is stale" if i in waiting else "changed"))
+        if fp is not None and (_variant(path, fp) / "manifest.json").is_file():
+            reasons.append("a kept copy matches and will be restored, nothing recomputed")
+        out[node] = NodeStatus(node, "stale", "; ".join(reasons) or "fingerprint differs", path,
+                               fp, rec["fingerprint"])
+    return list(out.values())
+
+
+# --- building a node ------------------------------------------------------------------------
+
+class StageParams:
+    """``Params`` as one node sees them: the parameters it declares (``read_by``) and the free
+    ones (:func:`free_parameters`); reading any other raises :class:`UndeclaredParameter`,
+    so the declaration that the fingerprint uses cannot silently fall behind the code."""
+
+    def __init__(self, p: Params, node: Node) -> None:
+        object.__setattr__(self, "_p", p)
+        object.__setattr__(self, "_node", node)
+        object.__setattr__(self, "_allowed", set(reads(node)) | set(free_parameters()))
+
+    def __getattr__(self, name: str) -> Any:
+        if name in Params.model_fields and name not in self._allowed:
+            raise UndeclaredParameter(
+                f"stage {self._node} read parameter {name!r}, which it does not declare: add "
+                f"{self._node.stage!r} to read_by of Params.{name} (flowmod/params.py), so that "
+                "its fingerprint follows the value"
+            )
+        return getattr(self._p, name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError("parameters are read-only")
+
+
+@dataclass
+class Build:
+    """Building one node: its fingerprint from the recorded fingerprints of its inputs, the
+    published folder, and a building folder that becomes the published one on success.
+
+    ``up_to_date``: nothing to do (the published artefacts, or a kept variant now restored,
+    carry this fingerprint, and ``force`` is off). Otherwise write into :meth:`start`'s
+    folder and call :meth:`publish`.
+    """
+
+    node: Node
+    params: StageParams
+    inputs: dict[str, dict[str, Any]]
+    payload: dict[str, Any]
+    fingerprint: str
+    final: Path
+    up_to_date: bool
+    restored: bool = False
+    dir: Path = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.dir = self.final.parent / f".{self.final.name}.building-{self.fingerprint}"
+
+    def input_dir(self, node: Node) -> Path:
+        """The published folder of one of this node's inputs."""
+        return node_dir(self.params._p, node)
+
+    def start(self, fresh: bool = False) -> Path:
+        """The building folder (created; kept from a killed build unless ``fresh``)."""
+        if fresh and self.dir.exists():
+            shutil.rmtree(self.dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        return self.dir
+
+    def publish(self, **info: Any) -> Path:
+        """Write the manifest into the building folder and make it the published one; the
+        previous result becomes a variant. Returns the published folder."""
+        write_manifest(self.dir / "manifest.json", {**self.payload, "fingerprint": self.fingerprint,
+                                                    **info})
+        _swap_in(self.dir, self.final)
+        return self.final
+
+
+def _swap_in(src: Path, final: Path) -> None:
+    """Make ``src`` the published ``final``; the old ``final`` becomes a variant."""
+    old = read_manifest(final / "manifest.json") if final.is_dir() else None
+    if final.exists():
+        aside = _variant(final, old["fingerprint"]) if old else final.parent / (
+            f".{final.name}.old-{os.getpid()}")
+        if aside.exists():
+            shutil.rmtree(aside)
+        os.replace(final, aside)
+        if old is None:
+            shutil.rmtree(aside, ignore_errors=True)
+    os.replace(src, final)
+    variants = sorted(final.parent.glob(f".{final.name}.variant-*"),
+                      key=lambda d: (d / "manifest.json").stat().st_mtime
+                      if (d / "manifest.json").is_file() else 0.0)
+    for d in variants[:-KEEP_VARIANTS] if KEEP_VARIANTS else variants:
+        shutil.rmtree(d, ignore_errors=True)
+
+
+def begin(p: Params, node: Node) -> Build:
+    """Start building ``node``: read its inputs' manifests (:class:`MissingInput` if one was
+    never built), compute its fingerprint, and decide whether anything must be done (a kept
+    variant with this fingerprint is restored instead of recomputed)."""
+    recs: dict[str, dict[str, Any]] = {}
+    for i in inputs(node):
+        rec = recorded(p, i)
+        if rec is None:
+            ch = STAGES[i.stage].chapter
+            raise MissingInput(
+                f"{node} reads {i}, which has not been built: run chapter {ch} first "
+                f"(python -m flowmod.runner --only {ch})"
+            )
+        recs[str(i)] = rec
+    pl = payload(p, node, {k: r["fingerprint"] for k, r in recs.items()})
+    fp = fingerprint(pl)
+    final = node_dir(p, node)
+    current = read_manifest(final / "manifest.json")
+    up = not p.force and current is not None and current["fingerprint"] == fp
+    b = Build(node, StageParams(p, node), recs, pl, fp, final, up)
+    if not up and not p.force and (_variant(final, fp) / "manifest.json").is_file():
+        _swap_in(_variant(final, fp), final)
+        b.up_to_date = b.restored = True
+    return b
+
+
+def published(p: Params, node: Node) -> Path:
+    """The published folder of ``node`` for reading; :class:`MissingInput` if never built."""
+    if recorded(p, node) is None:
+        ch = STAGES[node.stage].chapter
+        raise MissingInput(f"{node} has not been built: run chapter {ch} first "
+                           f"(python -m flowmod.runner --only {ch})")
+    return node_dir(p, node)
+
+
+@contextlib.contextmanager
+def removed_on_error(path: Path) -> Iterator[Path]:
+    """Yield ``path``; remove it if the block raises (for building folders that cannot resume)."""
+    try:
+        yield path
+    except BaseException:
+        shutil.rmtree(path, ignore_errors=True)
+        raise

@@ -1,0 +1,295 @@
+"""Reruns that never lie: one provenance mechanism (flowmod.dag) for every stage.
+
+On a finished smoke run: every parameter, perturbed, makes exactly the stages that read it and
+everything downstream stale in ``--status`` (nothing runs); real reruns recompute exactly
+those nodes, rewrite nothing else, and give the numbers of a run from scratch; switching a
+parameter back restores instead of recomputing; a failed forced rerun loses nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from flowmod import dag, evaluate, pipeline
+from flowmod.flow import ImageError
+from flowmod.params import Params, load_profile
+
+pytestmark = pytest.mark.slow
+
+#: Every parameter: (a valid other value, the stages that read it, only for these methods).
+#: This is the specification the ``read_by`` declarations in flowmod/params.py must meet;
+#: the test below fails if the two disagree or if the status does not follow them.
+SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
+    "profile": ("other", set(), ()),
+    "seed": (1, {"world", "select", "train", "evaluate"}, ()),
+    "device": ("cpu", set(), ()),
+    "force": (True, set(), ()),
+    "synthetic": (False, set(), ()),
+    "world_scenes": (5, {"world"}, ()),
+    "world_keyframes": (5, {"world"}, ()),
+    "world_sweep_scenes": (2, {"world"}, ()),
+    "world_vehicles": (17, {"world"}, ()),
+    "categories": (["vehicle.car", "vehicle.truck"], {"select", "general"}, ()),
+    "min_distance": (25.0, {"select"}, ()),
+    "max_distance": (65.0, {"select"}, ()),
+    "distance_mode": ("camera", {"select", "general"}, ()),
+    "visibility_tokens": (["3", "4"], {"select", "general"}, ()),
+    "exclude_descriptions": (["night"], {"select"}, ()),
+    "split_fractions": ([0.6, 0.2, 0.2], {"select"}, ()),
+    "missing_images": ("skip", {"select", "general"}, ()),
+    "speed_threshold": (2.5, {"select", "general", "difficulty"}, ()),
+    "general_interval": (3, {"general"}, ()),
+    "general_min_distance": (1.0, {"general"}, ()),
+    "general_max_distance": (90.0, {"general"}, ()),
+    "general_max_scenes": (2, {"general"}, ()),
+    "flow_scale": (0.5, {"flow"}, ()),
+    "dis_preset": ("fast", {"flow"}, ("dis",)),
+    "flow_dtype": ("float32", {"flow"}, ()),
+    "raft_weights": ("weights/raft.pth", {"flow"}, ("raft",)),
+    "raft_small_weights": ("weights/raft_small.pth", {"flow"}, ("raft_small",)),
+    "fastflownet_weights": ("weights/ffn.pth", {"flow"}, ("fastflownet",)),
+    "n_jobs": (2, set(), ()),
+    "crop_size": (48, {"crops"}, ()),
+    "crop_scale": (2.5, {"crops"}, ()),
+    "epochs": (2, {"train"}, ()),
+    "batch_size": (8, {"train"}, ()),
+    "lr": (0.02, {"train"}, ()),
+    "momentum": (0.8, {"train"}, ()),
+    "weight_decay": (0.02, {"train"}, ()),
+    "step_size": (5, {"train"}, ()),
+    "gamma": (0.4, {"train"}, ()),
+    "hflip_p": (0.3, {"train"}, ()),
+    "num_workers": (1, set(), ()),
+}
+#: Parameters whose change is not "some stages read another value" (checked on their own).
+SPECIAL = {"run_dir", "dataroot", "version", "flow_methods"}
+
+
+def downstream(p: Params, start: set[dag.Node]) -> set[dag.Node]:
+    """``start`` and every node that reads one of them, directly or not."""
+    out = set(start)
+    for n in dag.nodes(p):  # data order: inputs come first
+        if any(i in out for i in dag.inputs(n)):
+            out.add(n)
+    return out
+
+
+def not_up_to_date(p: Params) -> set[dag.Node]:
+    return {s.node for s in dag.status(p) if s.state != "up to date"}
+
+
+@pytest.fixture(scope="module")
+def finished(smoke_world, tmp_path_factory) -> Params:
+    """A finished smoke run (all chapters) in a fresh run folder, on the session's world."""
+    root, version = smoke_world
+    p = load_profile("smoke", dataroot=str(root), version=version,
+                     run_dir=str(tmp_path_factory.mktemp("prov") / "runs"))
+    pipeline.build(p)
+    assert not_up_to_date(p) == set()
+    return p
+
+
+def test_spec_covers_every_parameter():
+    assert set(SPEC) | SPECIAL == set(Params.model_fields)
+
+
+@pytest.mark.parametrize("name", sorted(SPEC))
+def test_every_parameter_makes_exactly_its_readers_and_downstream_stale(finished, name):
+    value, stages, methods = SPEC[name]
+    assert getattr(finished, name) != value
+    p = finished.model_copy(update={name: value})
+    direct = {n for n in dag.nodes(p)
+              if n.stage in stages and (not methods or n.method in methods)}
+    assert not_up_to_date(p) == downstream(p, direct)
+    for s in dag.status(p):
+        if s.node in direct and s.node.stage != "world":
+            assert name in s.why, f"{s.node}: the one-line reason names the parameter: {s.why}"
+
+
+def test_special_parameters(finished, tmp_path):
+    nodes = set(dag.nodes(finished))
+    # another place for the data (not there yet): only the world is missing; what was built
+    # from an identical world stays valid, since the world's identity is its content
+    for name, value in (("dataroot", str(tmp_path / "elsewhere")), ("version", "v1.0-other")):
+        st = {s.node: s for s in dag.status(finished.model_copy(update={name: value}))}
+        assert st[dag.Node("world")].state == "missing"
+        assert {n for n, s in st.items() if s.state != "up to date"} == {dag.Node("world")}
+    # another run folder: nothing built there yet
+    fresh = finished.model_copy(update={"run_dir": str(tmp_path / "runs")})
+    assert not_up_to_date(fresh) == nodes - {dag.Node("world")}
+    # one more flow method: its chain is missing, nothing else changes
+    more = finished.model_copy(update={"flow_methods": [*finished.flow_methods, "farneback"]})
+    assert not_up_to_date(more) == {n for n in dag.nodes(more) if n.method == "farneback"}
+
+
+def test_status_explains_in_one_line(finished):
+    p = finished.model_copy(update={"dis_preset": "fast"})
+    text = pipeline.format_status(p)
+    line = next(ln for ln in text.splitlines() if "flow[dis/keyframe]" in ln)
+    assert "stale" in line and "dis_preset: 'medium' -> 'fast'" in line
+    assert "input flow[dis/keyframe] is stale" in next(
+        ln for ln in text.splitlines() if "crops[dis/keyframe]" in ln)
+    assert text.splitlines()[-1].startswith("11 of 18 up to date; 7 to build")
+
+
+def test_stage_reading_an_undeclared_parameter_fails(finished):
+    q = dag.StageParams(finished, dag.Node("crops", "dis", "keyframe"))
+    assert q.crop_size == finished.crop_size and q.run_path == finished.run_path
+    assert q.n_jobs == finished.n_jobs, "run settings are free"
+    with pytest.raises(dag.UndeclaredParameter, match="read_by of Params.epochs"):
+        _ = q.epochs
+
+
+# --- real reruns ------------------------------------------------------------------------------
+
+def snapshot(run: Path) -> dict[Path, tuple[int, int]]:
+    """Every artefact file with its (mtime, inode); kept variants, building folders and the
+    append-only timing logs of the flow pools are not artefacts of a node."""
+    return {f: (f.stat().st_mtime_ns, f.stat().st_ino) for f in run.rglob("*")
+            if f.is_file() and f.name not in (".digests.json", "seconds.jsonl")
+            and not any(".variant-" in x or ".building-" in x for x in f.parts)}
+
+
+def manifests(p: Params) -> dict[dag.Node, float]:
+    return {n: (dag.recorded(p, n) or {}).get("written") for n in dag.nodes(p)}
+
+
+def scores(p: Params) -> dict[str, object]:
+    out = {}
+    for m in p.flow_methods:
+        preds, s = evaluate.results(p, m, "test")
+        out[m] = (round(s["f1"], 12), preds["prob"].round(9).tolist(),
+                  evaluate.results(p, m, "general")[0]["prob"].round(9).tolist())
+    return out
+
+
+def rerun(p: Params) -> set[dag.Node]:
+    """Build ``p``; return the nodes rebuilt, checking that nothing outside them was touched."""
+    before_files, before = snapshot(p.run_path), manifests(p)
+    stale = not_up_to_date(p)
+    pipeline.build(p)
+    after = manifests(p)
+    rebuilt = {n for n in after if after[n] != before.get(n)}
+    assert rebuilt == stale, "exactly the stale nodes are recomputed"
+    inside = [dag.node_dir(p, n) for n in rebuilt]
+    now = snapshot(p.run_path)
+    for f, stat in before_files.items():
+        if any(d == f.parent or d in f.parents for d in inside):
+            continue  # the rebuilt node's folder (its old content is now a kept variant)
+        assert now.get(f) == stat, f"{f} was rewritten although its node is up to date"
+    assert not_up_to_date(p) == set()
+    return rebuilt
+
+
+def test_reruns_recompute_exactly_what_changed_and_match_a_fresh_run(finished, tmp_path):
+    run = tmp_path / "runs"
+    shutil.copytree(finished.run_path, run, symlinks=True)
+    p = finished.model_copy(update={"run_dir": str(run)})
+    assert rerun(p) == set(), "nothing changed: nothing is rebuilt (crops included)"
+    steps = [("min_distance", 25.0), ("general_interval", 3), ("dis_preset", "fast"),
+             ("crop_scale", 2.5), ("epochs", 2)]
+    for name, value in steps:
+        if name == "epochs":
+            at_step_4 = manifests(p)
+        p = p.model_copy(update={name: value})
+        direct = {n for n in dag.nodes(p) if name in dag.reads(n)}
+        assert rerun(p) == downstream(p, direct), name
+    # the crop change retrained the models and chapter 07 scores the new ones
+    rec = dag.recorded(p, dag.Node("train", "dis"))
+    assert rec["inputs"]["crops[dis/keyframe]"] == dag.recorded(
+        p, dag.Node("crops", "dis", "keyframe"))["fingerprint"]
+    # the same parameters from scratch (same world) give the same numbers
+    scratch = p.model_copy(update={"run_dir": str(tmp_path / "scratch")})
+    pipeline.build(scratch)
+    assert scores(scratch) == scores(p)
+    # switching a parameter back restores the kept variants: nothing is computed again
+    back = p.model_copy(update={"epochs": 1})
+    stale = [s for s in dag.status(back) if s.state != "up to date"]
+    assert stale and all("will be restored" in s.why for s in stale)
+    rebuilt = rerun(back)
+    assert {n.stage for n in rebuilt} == {"train", "evaluate", "generalise"}
+    for n in rebuilt:
+        assert dag.recorded(back, n)["written"] == at_step_4[n], f"{n} restored, not retrained"
+    # the flow of an earlier option comes back from the pool, no pair computed again
+    pools = sorted((run / "flow" / "dis" / "pool").rglob("*.npy"))
+    back = back.model_copy(update={"dis_preset": "medium"})
+    st = {s.node: s.why for s in dag.status(back)}
+    assert all("will be restored" in st[dag.Node("flow", "dis", part)] for part in dag.PARTS)
+    rerun(back)
+    assert sorted((run / "flow" / "dis" / "pool").rglob("*.npy")) == pools
+
+
+def test_another_world_in_the_same_run_folder_recomputes_flow(finished, tmp_path):
+    """The old bug: pair ids repeat across worlds, so flow was reused from the last world."""
+    run = tmp_path / "runs"
+    shutil.copytree(finished.run_path, run, symlinks=True)
+    p = finished.model_copy(update={"run_dir": str(run)})
+    other = p.model_copy(update={"dataroot": str(tmp_path / "world2"), "world_vehicles": 12})
+    st = {s.node: s for s in dag.status(other)}
+    assert st[dag.Node("flow", "gt", "keyframe")].state == "stale"
+    old = {m: set(pd.read_parquet(dag.node_dir(p, dag.Node("flow", m, "keyframe"))
+                                  / "index.parquet")["key"]) for m in p.flow_methods}
+    pipeline.build(other, ["01", "02", "03"])
+    for method in other.flow_methods:
+        idx = pd.read_parquet(dag.node_dir(other, dag.Node("flow", method, "keyframe"))
+                              / "index.parquet")
+        assert not set(idx["key"]) & old[method], "no flow of the old world is reused"
+        rec = dag.recorded(other, dag.Node("flow", method, "keyframe"))
+        assert rec["computed"] == rec["pairs"] == len(idx)
+
+
+def test_failed_forced_rerun_loses_nothing(finished, tmp_path):
+    run, data = tmp_path / "runs", tmp_path / "data"
+    shutil.copytree(finished.run_path, run, symlinks=True)
+    shutil.copytree(finished.dataroot_path, data)
+    p = finished.model_copy(update={"run_dir": str(run), "dataroot": str(data)})
+    assert not_up_to_date(p) == set(), "a copy of identical data is the same world"
+    pairs = pd.read_parquet(dag.node_dir(p, dag.Node("select")) / "pairs.parquet")
+    victim = data / pairs["path_2"].iloc[len(pairs) // 2]
+    victim.write_bytes(victim.read_bytes()[: victim.stat().st_size // 2])  # truncated JPEG
+    before = snapshot(run)
+    forced = p.model_copy(update={"force": True, "flow_methods": ["dis"]})
+    with pytest.raises(ImageError, match=str(victim.name)):
+        pipeline.build(forced, ["03"])
+    assert snapshot(run) == before, "nothing was removed or rewritten"
+    assert not_up_to_date(p) == set(), "and everything is still up to date"
+    n_files = [f for f in before if f.suffix == ".npy" and "pool" in f.parts]
+    assert n_files and all(f.is_file() for f in n_files)
+
+
+def test_killed_flow_build_resumes_without_recomputing_finished_pairs(finished, tmp_path,
+                                                                      monkeypatch):
+    from flowmod.flow import stage
+
+    run = tmp_path / "runs"
+    p = finished.model_copy(update={"run_dir": str(run), "flow_methods": ["dis"]})
+    pipeline.build(p, ["01", "02"])
+    real, calls = stage._one_image_pair, []
+
+    def dying(*args):
+        if len(calls) == 3:
+            raise KeyboardInterrupt("killed")
+        calls.append(args[1])
+        return real(*args)
+
+    monkeypatch.setattr(stage, "_one_image_pair", dying)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.build(p, ["03"])
+    assert dag.recorded(p, dag.Node("flow", "dis", "keyframe")) is None, "not published"
+    first = list(calls)
+    calls.clear()
+    monkeypatch.setattr(stage, "_one_image_pair", lambda *a: calls.append(a[1]) or real(*a))
+    pipeline.build(p, ["03"])
+    assert not set(first) & set(calls), "finished pairs are not computed again"
+    rec = dag.recorded(p, dag.Node("flow", "dis", "keyframe"))
+    assert rec["computed"] == rec["pairs"] - 3
+    idx = pd.read_parquet(dag.node_dir(p, dag.Node("flow", "dis", "keyframe")) / "index.parquet")
+    assert np.isfinite(idx["seconds"]).all(), "timings of the killed run survive"
+    assert json.loads((dag.node_dir(p, dag.Node("flow", "dis", "keyframe"))
+                       / "manifest.json").read_text())["pairs"] == len(idx)
