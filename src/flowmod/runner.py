@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
 import os
 import re
 import shutil
@@ -29,10 +30,11 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from flowmod import environment, progress
-from flowmod.artefacts import write_json
+from flowmod import dag, environment, progress
+from flowmod.artefacts import atomic_path, fingerprint, write_json
 from flowmod.params import Params, ProfileError, load_profile, parse_overrides, profile_path
 from flowmod.paths import repo_root
+from flowmod.report.book import check_executed
 
 
 class NotebookFailed(RuntimeError):
@@ -115,6 +117,54 @@ def _echo_progress(path: Path, name: str, every: float = 10.0) -> Iterator[None]
             os.environ[progress.ENV] = old
 
 
+def code_digest() -> str:
+    """Fingerprint of the library's source (every ``src/flowmod/**/*.py``)."""
+    pkg = Path(__file__).resolve().parent
+    return fingerprint([(str(f.relative_to(pkg)), hashlib.sha256(f.read_bytes()).hexdigest())
+                        for f in sorted(pkg.rglob("*.py"))])
+
+
+def notebook_fingerprint(nb: Path, values: dict[str, Any], p: Params,
+                         device: dict[str, Any]) -> str | None:
+    """What an executed chapter depends on: its source cells, the parameters it received,
+    the fingerprints of every node of its and earlier chapters (:mod:`flowmod.dag`), the
+    library's code and the device; None while one of those nodes cannot be known yet."""
+    import nbformat
+
+    chapter = nb.stem[:2]
+    nodes = {str(n): fp for n, fp in dag.expected(p).items()
+             if dag.STAGES[n.stage].chapter <= chapter}
+    if any(fp is None for fp in nodes.values()):
+        return None
+    cells = [(c.cell_type, c.source, sorted(c.metadata.get("tags", [])))
+             for c in nbformat.read(str(nb), as_version=4).cells]
+    return fingerprint({"cells": cells, "parameters": values, "nodes": nodes,
+                        "code": code_digest(), "device": device})
+
+
+def _executed_fingerprint(target: Path) -> str | None:
+    """The fingerprint an executed copy was stamped with (None if absent or failed)."""
+    import nbformat
+
+    if not target.is_file():
+        return None
+    try:
+        nb = nbformat.read(str(target), as_version=4)
+        check_executed(target)
+    except Exception:  # noqa: BLE001 - any unreadable or failed copy is simply not reusable
+        return None
+    return nb.metadata.get("flowmod", {}).get("fingerprint")
+
+
+def _stamp(target: Path, fp: str | None) -> None:
+    import nbformat
+
+    nb = nbformat.read(str(target), as_version=4)
+    nb.metadata["flowmod"] = {"fingerprint": fp}
+    with atomic_path(target) as tmp:
+        nbformat.write(nb, str(tmp))
+
+
 def _kernel_manager(folder: Path) -> type:
     """A kernel manager whose kernels talk over local IPC sockets in ``folder`` rather than
     TCP ports (nothing listens on the network, and ipykernel has nothing to warn about)."""
@@ -194,6 +244,12 @@ def run(
     try:
         for nb, values in plan:
             target = out_dir / nb.name
+            fp = notebook_fingerprint(nb, values, p, device)
+            if fp is not None and not p.force and _executed_fingerprint(target) == fp:
+                record["notebooks"][nb.stem] = {"status": "ok", "seconds": 0.0, "reused": True}
+                write_json(info_path, record)
+                print(f"[flowmod] {nb.name} up to date (executed copy reused)", flush=True)
+                continue
             print(f"[flowmod] {nb.name} ...", flush=True)
             t0 = time.perf_counter()
             try:
@@ -213,6 +269,7 @@ def run(
                     f"executed copy with the traceback: {target}"
                 ) from None
             seconds = time.perf_counter() - t0
+            _stamp(target, notebook_fingerprint(nb, values, p, device))
             record["notebooks"][nb.stem] = {"status": "ok", "seconds": round(seconds, 1)}
             write_json(info_path, record)
             print(f"[flowmod] {nb.name} ok ({seconds:.1f} s)", flush=True)

@@ -79,7 +79,9 @@ def reproduce_page(info: dict[str, Any]) -> str:
         [{"package": k, "version": v} for k, v in info["versions"].items()]
     )
     timings = pd.DataFrame(
-        [{"notebook": k, "status": v["status"], "seconds": v["seconds"]}
+        [{"notebook": k, "status": v["status"] + (" (executed copy reused: nothing it depends "
+                                                  "on changed)" if v.get("reused") else ""),
+          "seconds": v["seconds"]}
          for k, v in info["notebooks"].items()]
     )
     total = sum(v["seconds"] for v in info["notebooks"].values())
