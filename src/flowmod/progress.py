@@ -22,7 +22,10 @@ def _side_channel() -> IO[str] | None:
     if not path:
         return None
     if _channel is None or _channel[0] != path:
-        _channel = (path, open(path, "a", buffering=1, encoding="utf-8"))  # noqa: SIM115
+        try:
+            _channel = (path, open(path, "a", buffering=1, encoding="utf-8"))  # noqa: SIM115
+        except OSError:  # an unusable side channel never stops the work: bars go to stderr
+            return None
     return _channel[1]
 
 

@@ -196,7 +196,7 @@ def run(
     import papermill
 
     p = load_profile(profile, **(overrides or {}))
-    out_dir = Path(out_dir or repo_root() / "build" / "executed")
+    out_dir = Path(out_dir or repo_root() / "build" / "executed").resolve()
     selected = notebooks(notebooks_dir)
     if only:
         selected = [nb for nb in selected if any(nb.stem.startswith(o) for o in only)]
