@@ -21,8 +21,9 @@ def reference_crop(flow: np.ndarray, box, size: int, scale: float) -> np.ndarray
     xmin, ymin, xmax, ymax = box
     side = scale * max(xmax - xmin, ymax - ymin)
     n = max(1, math.floor(side + 0.5))
-    x0 = math.floor((xmin + xmax) / 2 - n / 2 + 0.5)
-    y0 = math.floor((ymin + ymax) / 2 - n / 2 + 0.5)
+    # pixel i's centre is at i: the n pixels whose span is centred on the box centre
+    x0 = math.floor((xmin + xmax) / 2 - (n - 1) / 2 + 0.5)
+    y0 = math.floor((ymin + ymax) / 2 - (n - 1) / 2 + 0.5)
     h, w = flow.shape[:2]
     pad = max(0, -x0, -y0, x0 + n - w, y0 + n - h)
     padded = np.pad(flow, ((pad, pad), (pad, pad), (0, 0)), mode="edge")
@@ -80,7 +81,13 @@ def test_huge_windows_use_the_gather_path_with_equal_values(frame: np.ndarray) -
 
 
 def test_window_geometry_and_bad_boxes() -> None:
-    np.testing.assert_array_equal(crop_windows([[10, 20, 20, 24]], 3.0), [[0, 7, 30]])
+    np.testing.assert_array_equal(crop_windows([[10, 20, 20, 24]], 3.0), [[1, 8, 30]])
+    # the window's span [x0 - 0.5, x0 + n - 0.5] is centred on the box centre (to 0.5 px)
+    boxes = random_boxes(np.random.default_rng(3), 128, 72, 200)
+    win = crop_windows(boxes, 3.0)
+    for axis in (0, 1):
+        centre = (boxes[:, axis] + boxes[:, axis + 2]) / 2
+        assert np.abs(win[:, axis] + (win[:, 2] - 1) / 2 - centre).max() <= 0.5
     np.testing.assert_array_equal(crop_windows([[5, 5, 5, 5]], 3.0), [[5, 5, 1]])
     assert crop_boxes(np.zeros((8, 8, 2)), np.zeros((0, 4)), 4).shape == (0, 2, 4, 4)
     with pytest.raises(CropsError, match="NaN"):
@@ -231,7 +238,8 @@ def test_boxes_are_scaled_to_a_reduced_flow_grid(tmp_path) -> None:
     build_crops(objects, CountingLoader(flow_dir), tmp_path / "c", size=8, **QUIET)
     x, idx = read_crops(tmp_path / "c", "val")
     flow = np.load(flow_dir / "dis" / "p1.npy").astype(np.float32)
-    want = crop_boxes(flow, idx[["xmin", "ymin", "xmax", "ymax"]].to_numpy() / 2, 8)
+    # pixel centres of the half-size grid: x_small = (x + 0.5) / 2 - 0.5
+    want = crop_boxes(flow, (idx[["xmin", "ymin", "xmax", "ymax"]].to_numpy() + 0.5) / 2 - 0.5, 8)
     np.testing.assert_array_equal(x, want.astype(np.float16))
 
 

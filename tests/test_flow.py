@@ -515,8 +515,10 @@ def test_gt_method_works_from_tokens(tmp_path, monkeypatch):
     def gt_flow(dataroot, version, t1, t2):
         calls.append((t1, t2))
         flow = np.full((6, 8, 2), float(len(t1)), np.float32)
-        flow[0, 0] = np.nan
-        return flow, np.ones((6, 8), bool)
+        flow[0, 0] = 7.0
+        valid = np.ones((6, 8), bool)
+        valid[0, 0] = False  # e.g. the point leaves the image
+        return flow, valid
 
     world = types.ModuleType("flowmod.world")
     world.is_synthetic = lambda dataroot, version: Path(dataroot).name == "synth"
@@ -526,7 +528,9 @@ def test_gt_method_works_from_tokens(tmp_path, monkeypatch):
     res = fl.compute_flow(pairs, "gt", tmp_path / "pool", dataroot=tmp_path / "synth", **KW)
     assert res["computed"].all() and calls == [("t0a", "t0b"), ("t1a", "t1b")]
     f = loaded(res, tmp_path / "pool", "p1")
-    assert f.shape == (6, 8, 2) and f[0, 0, 0] == 0 and f[1, 1, 0] == 3
+    assert f.shape == (6, 8, 2) and f[0, 0, 0] == 7 and f[1, 1, 0] == 3
+    valid = fl.stage.load_stored_valid(tmp_path / "pool" / res["file"].iloc[1])
+    assert valid.shape == (6, 8) and not valid[0, 0] and valid[1:].all(), "the mask is stored"
     with pytest.raises(TypeError, match="tokens"):
         fl.get_estimator("gt", dataroot=tmp_path / "synth", version="v").estimate(
             SHIFT[0], SHIFT[1])

@@ -242,18 +242,62 @@ def test_thin_still_matches_the_original_counter() -> None:
     np.testing.assert_array_equal(ev.thin_still(y, 3, 5), _original_thinning(y, (3, 5)))
 
 
-def test_bootstrap_breakdown_and_table3() -> None:
-    lo, hi = ev.bootstrap_f1_ci(Y, P, n=300, seed=1)
-    assert 0 <= lo <= ev.metrics(Y, P)["f1"] <= hi <= 1
-    assert (lo, hi) == ev.bootstrap_f1_ci(Y, P, n=300, seed=1)
+def test_scene_bootstrap_resamples_whole_scenes() -> None:
+    # one scene: every replicate is that scene, the interval is the point itself
+    lo, hi = ev.bootstrap_f1_ci(Y, P, np.zeros(12), n=200, seed=1)
+    assert lo == hi == pytest.approx(ev.metrics(Y, P)["f1"])
+    # two scenes, A all right, B all wrong: replicates draw AA, AB/BA, BB with 1/4, 1/2, 1/4
+    y = np.array([1, 1, 0, 1, 0, 0])
+    p = np.array([0.9, 0.9, 0.1, 0.1, 0.9, 0.9])
+    g = np.array(["A", "A", "A", "B", "B", "B"])
+    f_aa = 1.0  # tp 4, fp 0, fn 0
+    f_ab = ev.metrics(y, p)["f1"]  # tp 2, fp 2, fn 1: 4 / 7
+    f_bb = 0.0
+    reps = ev.scene_bootstrap(y, p, g, n=4000, seed=0)
+    for value, share in ((f_aa, 0.25), (f_ab, 0.5), (f_bb, 0.25)):
+        assert np.mean(np.isclose(reps, value)) == pytest.approx(share, abs=0.03)
+    assert set(np.round(reps, 9)) == {round(f_aa, 9), round(f_ab, 9), round(f_bb, 9)}
+    # resampling objects one by one (ignoring the scenes) would be much narrower
+    objects = ev.scene_bootstrap(y, p, np.arange(6), n=4000, seed=0)
+    assert np.subtract(*np.quantile(reps, [0.975, 0.025])) > np.subtract(
+        *np.quantile(objects, [0.975, 0.025]))
+    assert (ev.bootstrap_f1_ci(y, p, g, n=300, seed=1)
+            == ev.bootstrap_f1_ci(y, p, g, n=300, seed=1)), "seeded"
+
+
+def test_seed_summary_and_paired_comparison() -> None:
+    y = np.array([1, 1, 0, 0, 1, 0, 1, 0])
+    good = np.where(y == 1, 0.9, 0.1)
+    half = np.array([0.9, 0.1, 0.1, 0.9, 0.9, 0.1, 0.1, 0.1])  # tp 2, fp 1, fn 2
+    scenes = np.array(["s1"] * 4 + ["s2"] * 4)
+    s = ev.seed_summary(y, np.stack([good, half]), scenes, instances=["a", "a", "b", "c"] * 2)
+    f_half = 2 * 2 / (2 * 2 + 1 + 2)
+    assert s["seeds"] == 2 and s["f1_max"] == 1.0 and s["f1_min"] == pytest.approx(f_half)
+    assert s["f1"] == pytest.approx((1 + f_half) / 2)
+    assert (s["n"], s["n_scenes"], s["n_instances"], s["n_moving"]) == (8, 2, 3, 4)
+    assert s["ci"][0] <= s["f1"] <= s["ci"][1]
+    same = ev.paired_comparison(y, good, good, scenes)
+    assert same["delta_f1"] == 0.0 and same["ci"] == (0.0, 0.0) and same["p_not_better"] == 1
+    d = ev.paired_comparison(y, good, half, scenes, n=500)
+    assert d["delta_f1"] == pytest.approx(1 - f_half) and d["per_seed"] == [
+        pytest.approx(1 - f_half)]
+    assert 0 < d["ci"][0] <= d["ci"][1] and d["p_not_better"] == 0.0
+    t3 = ev.table3([{"method": "two seeds", **s}])
+    assert t3.loc[0, "F1 (%)"] == round(100 * s["f1"], 1)
+    assert t3.loc[0, "F1 range over seeds (%)"] == f"{100 * f_half:.1f}-100.0"
+    assert (t3.loc[0, "scenes"], t3.loc[0, "objects"], t3.loc[0, "vehicles"]) == (2, 8, 3)
+    cmp = ev.comparison_table({"good - half": d})
+    assert cmp.loc[0, "ΔF1 (points)"] == round(100 * (1 - f_half), 1)
+
+
+def test_breakdown() -> None:
     df = pd.DataFrame({"category": ["car", "truck"] * 6, "distance": np.linspace(30, 69, 12)})
     by_cat = ev.breakdown(df, Y, P, by="category")
     assert by_cat["n"].sum() == 12 and set(by_cat["category"]) == {"car", "truck"}
+    car = by_cat.set_index("category").loc["car"]
+    assert car["f1"] == pytest.approx(ev.metrics(Y[::2], P[::2])["f1"])
     by_dist = ev.breakdown(df, Y, P, by="distance")
     assert by_dist["n"].sum() == 12 and "distance_bin" in by_dist
-    t3 = ev.table3([{"method": "gt", **ev.metrics(Y, P), "ci": (lo, hi)}])
-    assert list(t3.columns[:4]) == ["Method", "F1 (%)", "Precision (%)", "Recall (%)"]
-    assert t3.loc[0, "F1 (%)"] == round(100 * ev.metrics(Y, P)["f1"], 1)
 
 
 def test_fit_threshold_maximises_train_f1() -> None:

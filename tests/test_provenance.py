@@ -65,17 +65,20 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "step_size": (5, {"train"}, ()),
     "gamma": (0.4, {"train"}, ()),
     "hflip_p": (0.3, {"train"}, ()),
+    "amp": ("bf16", {"train"}, ()),
+    "general_beyond_distance": (80.0, {"general"}, ()),
+    "raft_iters": (12, {"flow"}, ("raft", "raft_small")),
     "num_workers": (1, set(), ()),
 }
 #: Parameters whose change is not "some stages read another value" (checked on their own).
-SPECIAL = {"run_dir", "dataroot", "version", "flow_methods"}
+SPECIAL = {"run_dir", "dataroot", "version", "flow_methods", "seeds"}
 
 
 def downstream(p: Params, start: set[dag.Node]) -> set[dag.Node]:
     """``start`` and every node that reads one of them, directly or not."""
     out = set(start)
     for n in dag.nodes(p):  # data order: inputs come first
-        if any(i in out for i in dag.inputs(n)):
+        if any(i in out for i in dag.inputs(n, p)):
             out.add(n)
     return out
 
@@ -126,6 +129,11 @@ def test_special_parameters(finished, tmp_path):
     # one more flow method: its chain is missing, nothing else changes
     more = finished.model_copy(update={"flow_methods": [*finished.flow_methods, "farneback"]})
     assert not_up_to_date(more) == {n for n in dag.nodes(more) if n.method == "farneback"}
+    # one more training seed: its models are missing, and the scores that average over seeds
+    # are stale; the first seed's models are untouched
+    two = finished.model_copy(update={"seeds": 2})
+    assert not_up_to_date(two) == {n for n in dag.nodes(two) if n.part == "s1"} | {
+        n for n in dag.nodes(two) if n.stage in ("evaluate", "generalise")}
 
 
 def test_status_explains_in_one_line(finished):

@@ -107,3 +107,7 @@ def test_notebook_declares_every_parameter_its_stages_read(nb_path):
         assert not missing, f"{nb_path.name} builds {node} but does not declare {sorted(missing)}"
         if node.stage != "world":
             assert "force" in declared, f"{nb_path.name} builds {node}: declare force"
+        if node.method:
+            assert "flow_methods" in declared, f"{nb_path.name} builds {node}: flow_methods"
+        if node.stage in ("train", "evaluate", "generalise"):
+            assert "seeds" in declared, f"{nb_path.name} builds {node}: declare seeds"

@@ -6,13 +6,18 @@ crop, bilinear resize (``cv2.resize`` ``INTER_LINEAR``) to ``S x S``. Flow value
 they are (pixels of the flow grid; not rescaled by the resize), as in the paper.
 
 Window convention (documented choice; the original code used ``floor``/``ceil`` bounds with an
-inclusive end, which gives windows 1-2 px larger and sometimes not square): pixel ``i`` covers
-``[i, i + 1)``; the window is ``n = max(1, round(scale * max(w, h)))`` pixels on each side,
-starting at ``round(c - n / 2)`` (halves rounded up) for the box centre ``c``.
+inclusive end, which gives windows 1-2 px larger and sometimes not square): box coordinates
+are continuous, with pixel ``i``'s centre at ``i`` (it covers ``[i - 0.5, i + 0.5)``), as the
+projection of the 3D corners through the camera matrix gives them. The window is
+``n = max(1, round(scale * max(w, h)))`` pixels on each side, the ``n`` pixels whose span is
+centred on the box centre ``c`` (to the nearest pixel): first pixel ``round(c - (n - 1) / 2)``,
+halves rounded up. On a flow grid stored at scale ``s``, box coordinates map as
+``(x + 0.5) * s - 0.5`` (the centres of the reduced pixels).
 
-Artefacts (``build_crops``): ``<out_dir>/<method>/<split>.npy``, an ``(N, 2, S, S)`` float16
-array (channel 0 = u, 1 = v, pixels), and ``<split>.parquet``, the objects' rows in the same
-order. :func:`open_crops` opens both and checks that they agree.
+Artefacts (``build_crops``): ``<out_dir>/<split>.npy``, an ``(N, 2, S, S)`` float16 array
+(channel 0 = u, 1 = v, pixels), and ``<split>.parquet``, the objects' rows in the same order.
+:func:`read_crops` opens both and checks that they agree; :func:`open_crops` opens a published
+split of the crops stage (:mod:`flowmod.dag`).
 """
 
 from __future__ import annotations
@@ -69,8 +74,8 @@ def crop_windows(boxes: np.ndarray, scale: float = 3.0) -> np.ndarray:
     n = np.maximum(1, _round_half_up(scale * np.maximum(w, h)))
     cx = (b[:, 0] + b[:, 2]) / 2
     cy = (b[:, 1] + b[:, 3]) / 2
-    x0 = _round_half_up(cx - n / 2)
-    y0 = _round_half_up(cy - n / 2)
+    x0 = _round_half_up(cx - (n - 1) / 2)
+    y0 = _round_half_up(cy - (n - 1) / 2)
     return np.stack([x0, y0, n], axis=1)
 
 
@@ -278,8 +283,8 @@ def _build_split(
                         f"{image_size[0]}x{image_size[1]} image (or a rescaled copy): padded "
                         "flow not unpadded? (RAFT pads 900 rows to 904)"
                     )
-                boxes[:, [0, 2]] *= sx
-                boxes[:, [1, 3]] *= sy
+                boxes[:, [0, 2]] = (boxes[:, [0, 2]] + 0.5) * sx - 0.5
+                boxes[:, [1, 3]] = (boxes[:, [1, 3]] + 0.5) * sy - 0.5
             arr[a:b] = crop_boxes(flow, boxes, size, scale)
             pbar.update(1)
             due = bool(checkpoint_every) and (k + 1 - done) % checkpoint_every == 0

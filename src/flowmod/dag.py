@@ -70,13 +70,13 @@ class Stage:
 STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("world", 1, "01", "", "the data: a generated world or nuScenes tables"),
     Stage("difficulty", 1, "01", "difficulty", "the naive exact-flow rule on the world"),
-    Stage("select", 2, "02", "select", "Table-1 keyframe pairs and objects, scene split"),
-    Stage("general", 2, "02", "general", "generalisation pairs and objects (held-out scenes)"),
+    Stage("select", 3, "02", "select", "Table-1 keyframe pairs and objects, scene split"),
+    Stage("general", 3, "02", "general", "generalisation pairs and objects (held-out scenes)"),
     Stage("flow", 2, "03", "flow/{method}/{part}", "optical flow of every pair"),
-    Stage("crops", 2, "05", "crops/{method}/{part}", "flow crops around every object"),
-    Stage("train", 2, "06", "models/{method}", "the classifier, best validation epoch"),
-    Stage("evaluate", 2, "07", "metrics/{method}/test", "test predictions, baseline, scores"),
-    Stage("generalise", 2, "08", "metrics/{method}/general", "generalisation predictions"),
+    Stage("crops", 3, "05", "crops/{method}/{part}", "flow crops around every object"),
+    Stage("train", 3, "06", "models/{method}/{part}", "the classifier of one training seed"),
+    Stage("evaluate", 3, "07", "metrics/{method}/test", "test predictions, baseline, scores"),
+    Stage("generalise", 3, "08", "metrics/{method}/general", "generalisation predictions"),
 )}
 
 
@@ -103,9 +103,15 @@ class Node:
 
 # --- the graph ------------------------------------------------------------------------------
 
-def inputs(node: Node) -> tuple[Node, ...]:
-    """The nodes whose artefacts ``node`` reads."""
+def seed_parts(p: Params) -> list[str]:
+    """The parts of the train stage: one per training seed (``s0`` .. ``s<seeds-1>``)."""
+    return [f"s{k}" for k in range(p.seeds)]
+
+
+def inputs(node: Node, p: Params) -> tuple[Node, ...]:
+    """The nodes whose artefacts ``node`` reads (a model per training seed of ``p``)."""
     s, m, part = node.stage, node.method, node.part
+    models = tuple(Node("train", m, k) for k in seed_parts(p))
     world, select = Node("world"), Node("select")
     objects = select if part in (None, "keyframe") else Node("general")
     table: dict[str, tuple[Node, ...]] = {
@@ -116,9 +122,8 @@ def inputs(node: Node) -> tuple[Node, ...]:
         "flow": (world, objects),
         "crops": (Node("flow", m, part), objects),
         "train": (Node("crops", m, "keyframe"),),
-        "evaluate": (Node("train", m), Node("crops", m, "keyframe"),
-                     Node("flow", m, "keyframe"), select),
-        "generalise": (Node("train", m), Node("crops", m, "general"), Node("general")),
+        "evaluate": (*models, Node("crops", m, "keyframe"), Node("flow", m, "keyframe"), select),
+        "generalise": (*models, Node("crops", m, "general"), Node("general")),
     }
     return table[s]
 
@@ -139,7 +144,8 @@ def nodes(p: Params) -> list[Node]:
     out += [Node("select"), Node("general")]
     for stage in ("flow", "crops"):
         out += [Node(stage, m, part) for m in p.flow_methods for part in PARTS]
-    for stage in ("train", "evaluate", "generalise"):
+    out += [Node("train", m, k) for m in p.flow_methods for k in seed_parts(p)]
+    for stage in ("evaluate", "generalise"):
         out += [Node(stage, m) for m in p.flow_methods]
     return out
 
@@ -253,7 +259,7 @@ def expected(p: Params) -> dict[Node, str | None]:
         if node.stage == "world":
             exp[node] = world_fingerprint(p)
             continue
-        ins = inputs(node)
+        ins = inputs(node, p)
         if any(exp.get(i) is None for i in ins):
             exp[node] = None
         else:
@@ -297,7 +303,7 @@ def status(p: Params) -> list[NodeStatus]:
         path = node_dir(p, node)
         rec = recorded(p, node)
         fp = exp[node]
-        ins = inputs(node)
+        ins = inputs(node, p)
         if rec is not None and fp is not None and rec["fingerprint"] == fp:
             out[node] = NodeStatus(node, "up to date", "", path, fp, fp)
             continue
@@ -420,7 +426,7 @@ def begin(p: Params, node: Node) -> Build:
     never built), compute its fingerprint, and decide whether anything must be done (a kept
     variant with this fingerprint is restored instead of recomputed)."""
     recs: dict[str, dict[str, Any]] = {}
-    for i in inputs(node):
+    for i in inputs(node, p):
         rec = recorded(p, i)
         if rec is None:
             ch = STAGES[i.stage].chapter

@@ -10,28 +10,82 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from flowmod.metrics import apply_threshold, bootstrap_f1_ci, fit_threshold, metrics
+from flowmod.metrics import (
+    apply_threshold,
+    fit_threshold,
+    metrics,
+    paper_protocol_f1,
+    seed_summary,
+    thin_still,
+)
+from flowmod.metrics import table3 as metrics_table3
 from flowmod.model import predict, resolve_device
 
 # --- the stages (chapters 07 and 08) -------------------------------------------------------
 
 
-def predict_split(model_file: Any, crops_folder: Any, split: str, device: Any = "auto"
-                  ) -> pd.DataFrame:
-    """The split's objects (crop index order) with ``prob``: the model in ``model_file``
-    (a best.pt) applied to the split's crops in ``crops_folder``."""
+def _models(b: Any, method: str) -> list[tuple[str, Any, str | None]]:
+    """(part, best.pt, amp) of every training seed among a node's inputs."""
+    from flowmod import dag
+
+    out = []
+    for name, rec in b.inputs.items():
+        if name.startswith(f"train[{method}/"):
+            part = name[len(f"train[{method}/"):-1]
+            amp = rec.get("amp", "off")
+            out.append((part, b.input_dir(dag.Node("train", method, part)) / "best.pt",
+                        None if amp in (None, "off") else amp))
+    return sorted(out)
+
+
+def predict_seeds(models: list[tuple[str, Any, str | None]], crops_folder: Any, split: str,
+                  device: Any = "auto") -> pd.DataFrame:
+    """The split's objects (crop index order) with ``prob_<part>`` of every model (in the
+    precision it was trained and selected in) and ``prob`` = the first seed's (the single
+    model the figures show)."""
     from flowmod.crops import read_crops
     from flowmod.model import load_model
 
-    model = load_model(model_file, resolve_device(device))
     x, df = read_crops(crops_folder, split)
-    return df.assign(prob=predict(model, x, device=device))
+    probs = {}
+    for part, path, amp in models:
+        model = load_model(path, resolve_device(device))
+        probs[f"prob_{part}"] = predict(model, x, device=device, amp=amp)
+    return df.assign(**probs, prob=probs[f"prob_{models[0][0]}"])
+
+
+def seed_columns(df: pd.DataFrame) -> list[str]:
+    """The per-seed probability columns of a predictions table."""
+    return sorted(c for c in df.columns if c.startswith("prob_s"))
+
+
+def seed_probs(df: pd.DataFrame) -> np.ndarray:
+    """(S, N) probabilities of every training seed (``prob`` alone if there are none)."""
+    cols = seed_columns(df) or ["prob"]
+    return df[cols].to_numpy(dtype=np.float64).T
 
 
 def score(df: pd.DataFrame, label_col: str = "label", seed: int = 0) -> dict[str, Any]:
-    """Whole-set metrics of ``df.prob`` against ``df[label_col]``, with a bootstrap 95 % CI."""
-    y, p = df[label_col].to_numpy(), df["prob"].to_numpy()
-    return {**metrics(y, p), "ci": bootstrap_f1_ci(y, p, seed=seed)}
+    """Scores of ``df``'s models against ``df[label_col]``: per seed, their mean and range,
+    the interval of the mean F1 with whole scenes resampled (:func:`seed_summary`)."""
+    return seed_summary(df[label_col].to_numpy(), seed_probs(df), df["scene"].to_numpy(),
+                        instances=df.get("instance_token"), seed=seed)
+
+
+def original_protocol(df: pd.DataFrame, epoch_probs: list[np.ndarray], batch_size: int = 128
+                      ) -> dict[str, Any]:
+    """What the original code would report for each seed: the best over epochs (the epoch
+    chosen on the reported set) of F1 averaged per batch on the test split with still
+    objects thinned 1 of 2; beside the clean number (best validation epoch, whole split).
+    ``epoch_probs``: per seed, (epochs, N) probabilities saved during training."""
+    y = df["label"].to_numpy().astype(np.int64)
+    keep = thin_still(y)
+    clean = [metrics(y, p)["f1"] for p in seed_probs(df)]
+    original = [max(paper_protocol_f1(y[keep], e[keep], batch_size) for e in ep)
+                for ep in epoch_probs]
+    return {"clean": float(np.mean(clean)), "original": float(np.mean(original)),
+            "original_minus_clean": float(np.mean(original) - np.mean(clean)),
+            "per_seed_clean": clean, "per_seed_original": original}
 
 
 def geometric_baseline(pairs: pd.DataFrame, objects: pd.DataFrame, load_flow: Any,
@@ -62,46 +116,49 @@ def _write(folder: Any, frames: Mapping[str, pd.DataFrame], scores: Mapping[str,
 
 
 def run(params: Any) -> dict[str, tuple[pd.DataFrame, dict[str, Any]]]:
-    """Build every stale ``evaluate[<method>]`` node (:mod:`flowmod.dag`): the model chosen on
-    validation scored once on the test split, and the geometric baseline on the same flow.
-    Files: ``test.parquet`` + ``scores.json`` (the model), ``baseline.parquet`` +
-    ``baseline.json``. Returns ``{method: (predictions, scores)}`` of the model."""
+    """Build every stale ``evaluate[<method>]`` node (:mod:`flowmod.dag`): every training
+    seed's model (chosen on validation) scored once on the test split, the geometric
+    baseline on the same flow, and the original protocol from the probabilities saved during
+    training. Files: ``test.parquet`` + ``scores.json`` (the models), ``baseline.parquet``
+    + ``baseline.json``, ``original.json``. Returns ``{method: (predictions, scores)}``."""
     from flowmod import dag
     from flowmod.flow import FlowReader
+    from flowmod.train import EPOCH_PROBS
 
     out = {}
     for m in params.flow_methods:
         b = dag.begin(params, dag.Node("evaluate", m))
         if not b.up_to_date:
             q = b.params
-            preds = predict_split(b.input_dir(dag.Node("train", m)) / "best.pt",
-                                  b.input_dir(dag.Node("crops", m, "keyframe")), "test",
-                                  q.device)
+            models = _models(b, m)
+            preds = predict_seeds(models, b.input_dir(dag.Node("crops", m, "keyframe")),
+                                  "test", q.device)
             sel = b.input_dir(dag.Node("select"))
             base, base_s = geometric_baseline(
                 pd.read_parquet(sel / "pairs.parquet"), pd.read_parquet(sel / "objects.parquet"),
                 FlowReader(params, m, "keyframe").load, seed=q.seed)
-            d = b.start(fresh=True)
-            _write(d, {"test": preds, "baseline": base},
-                   {"scores": {"split": "test", **score(preds, seed=q.seed)}, "baseline": base_s})
-            b.publish(n=len(preds))
+            epochs = [np.load(path.parent / EPOCH_PROBS) for _, path, _ in models]
+            batch = int(b.inputs[f"train[{m}/{models[0][0]}]"]["params"]["batch_size"])
+            _write(b.start(fresh=True), {"test": preds, "baseline": base},
+                   {"scores": {"split": "test", **score(preds, seed=q.seed)},
+                    "baseline": base_s, "original": original_protocol(preds, epochs, batch)})
+            b.publish(n=len(preds), seeds=len(models))
         out[m] = results(params, m, "test")
     return out
 
 
 def run_general(params: Any) -> dict[str, pd.DataFrame]:
-    """Build every stale ``generalise[<method>]`` node: each model (chosen on validation in
-    chapter 06) applied to the generalisation crops, without retraining. Returns
-    ``{method: predictions}``."""
+    """Build every stale ``generalise[<method>]`` node: every seed's model (chosen on
+    validation in chapter 06) applied to the generalisation crops, without retraining.
+    Returns ``{method: predictions}``."""
     from flowmod import dag
 
     out = {}
     for m in params.flow_methods:
         b = dag.begin(params, dag.Node("generalise", m))
         if not b.up_to_date:
-            preds = predict_split(b.input_dir(dag.Node("train", m)) / "best.pt",
-                                  b.input_dir(dag.Node("crops", m, "general")), "general",
-                                  b.params.device)
+            preds = predict_seeds(_models(b, m), b.input_dir(dag.Node("crops", m, "general")),
+                                  "general", b.params.device)
             _write(b.start(fresh=True), {"general": preds}, {})
             b.publish(n=len(preds))
         out[m] = results(params, m, "general")[0]
@@ -109,7 +166,7 @@ def run_general(params: Any) -> dict[str, pd.DataFrame]:
 
 
 def results(params: Any, method: str, name: str = "test") -> tuple[pd.DataFrame, dict[str, Any]]:
-    """Published predictions and scores: ``name`` = ``test`` (the model on the test split),
+    """Published predictions and scores: ``name`` = ``test`` (the models on the test split),
     ``baseline`` (the geometric baseline) or ``general`` (scores empty)."""
     import json
 
@@ -122,31 +179,54 @@ def results(params: Any, method: str, name: str = "test") -> tuple[pd.DataFrame,
     return preds, (json.loads(js.read_text()) if js.is_file() else {})
 
 
-def table4(preds: Mapping[str, pd.DataFrame]) -> pd.DataFrame:
-    """Table 4 per flow method, scored against the paper's label (the previous keyframe
-    pair's eq.-1 label) and, where the data set knows it, the true per-frame label."""
+def original_vs_clean(params: Any, method: str) -> dict[str, Any]:
+    """The published original-protocol comparison of ``method`` (see
+    :func:`original_protocol`)."""
+    import json
+
+    from flowmod import dag
+
+    return json.loads((dag.published(params, dag.Node("evaluate", method))
+                       / "original.json").read_text())
+
+
+def table4(preds: Mapping[str, pd.DataFrame], max_distance: float) -> pd.DataFrame:
+    """Table 4 per flow method (mean over training seeds, with their range): the paper's
+    range (distance <= ``max_distance``) scored against the paper's label (the previous
+    keyframe pair's eq.-1 label) and, where the data set knows it, the true label at the
+    frame; then the vehicles beyond that range, apart."""
     rows = []
     for m, df in preds.items():
-        for name, col in (("paper rule (previous keyframe)", "label"),
-                          ("true label at the frame", "true_label")):
-            if col not in df or (df[col] < 0).all():
-                continue
-            d = df[df[col] >= 0]
-            s = metrics(d[col], d["prob"])
-            rows.append({"method": m, "scored against": name, "n": s["n"],
-                         "F1 (%)": round(100 * s["f1"], 1),
-                         "Precision (%)": round(100 * s["precision"], 1),
-                         "Recall (%)": round(100 * s["recall"], 1)})
+        for rng, d0 in ((f"0-{max_distance:g} m (Table 4)", df[df["distance"] <= max_distance]),
+                        (f"beyond {max_distance:g} m", df[df["distance"] > max_distance])):
+            for name, col in (("paper rule (previous keyframe)", "label"),
+                              ("true label at the frame", "true_label")):
+                if len(d0) == 0 or col not in d0 or (d0[col] < 0).all():
+                    continue
+                d = d0[d0[col] >= 0]
+                s = seed_summary(d[col].to_numpy(), seed_probs(d), d["scene"].to_numpy(),
+                                 instances=d.get("instance_token"))
+                rows.append({"method": m, "vehicles": rng, "scored against": name,
+                             "objects": s["n"], "scenes": s["n_scenes"],
+                             "F1 (%)": round(100 * s["f1"], 1),
+                             "F1 range over seeds (%)": f"{100 * s['f1_min']:.1f}-"
+                                                         f"{100 * s['f1_max']:.1f}",
+                             "Precision (%)": round(100 * s["precision"], 1),
+                             "Recall (%)": round(100 * s["recall"], 1),
+                             "F1 95% CI over scenes (%)": f"{100 * s['ci'][0]:.1f}-"
+                                                           f"{100 * s['ci'][1]:.1f}"})
     return pd.DataFrame(rows)
 
 
-def failure_reasons(df: pd.DataFrame, threshold: float = 0.5, speed_threshold: float = 2.0,
-                    scale: float = 3.0) -> pd.DataFrame:
+def failure_reasons(df: pd.DataFrame, boxes: pd.DataFrame, threshold: float = 0.5,
+                    speed_threshold: float = 2.0, scale: float = 3.0) -> pd.DataFrame:
     """Tag each wrong prediction with the paper's two failure reasons.
 
     ``unclear flow``: remote (> 50 m) or slow (speed within 1 m/s of the threshold);
-    ``other objects in the crop``: another object's box overlaps this object's crop window
-    (the tripled square). Adds columns wrong, unclear_flow, crowded.
+    ``other objects in the crop``: the box of any other annotated object of the frame (any
+    category, any visibility: ``boxes`` with pair_id, instance_token and the 2D box)
+    overlaps this object's crop window (the tripled square). Adds columns wrong,
+    unclear_flow, crowded.
     """
     from flowmod.crops import crop_windows
 
@@ -154,14 +234,107 @@ def failure_reasons(df: pd.DataFrame, threshold: float = 0.5, speed_threshold: f
     out["wrong"] = (out["prob"] > threshold).astype(int) != out["label"]
     out["unclear_flow"] = (out["distance"] > 50) | ((out["speed"] - speed_threshold).abs() < 1)
     crowded = np.zeros(len(out), dtype=bool)
-    boxes = out[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float)
-    win = crop_windows(boxes, scale)
-    for _, idx in out.groupby("pair_id").indices.items():
-        for i in idx:
-            x0, y0, n = win[i]
-            others = boxes[[j for j in idx if j != i]]
-            if len(others):
-                crowded[i] = bool(((others[:, 0] < x0 + n) & (others[:, 2] > x0)
-                                   & (others[:, 1] < y0 + n) & (others[:, 3] > y0)).any())
+    win = crop_windows(out[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float), scale)
+    by_pair = {pid: g for pid, g in boxes.groupby("pair_id")}
+    for i, (pid, inst) in enumerate(zip(out["pair_id"], out["instance_token"], strict=True)):
+        g = by_pair.get(pid)
+        if g is None:
+            continue
+        others = g.loc[g["instance_token"] != inst, ["xmin", "ymin", "xmax", "ymax"]].to_numpy()
+        x0, y0, n = win[i]
+        crowded[i] = bool(((others[:, 0] < x0 + n) & (others[:, 2] > x0)
+                           & (others[:, 1] < y0 + n) & (others[:, 3] > y0)).any())
     out["crowded"] = crowded
+    return out
+
+
+# --- chapter 07's tables ---------------------------------------------------------------------
+
+def table3(params: Any) -> pd.DataFrame:
+    """Table 3 of this build: one row per flow method (the classifiers, mean over training
+    seeds with their range) and one per geometric baseline on the same flow, with the
+    scene-level 95 % interval and what it resamples."""
+    rows = [{"method": f"ResNet18 on {m} flow", **results(params, m, "test")[1]}
+            for m in params.flow_methods]
+    rows += [{"method": f"geometric residual, {m} flow", **results(params, m, "baseline")[1]}
+             for m in params.flow_methods]
+    return metrics_table3(rows)
+
+
+def comparisons(params: Any) -> pd.DataFrame:
+    """Paired comparisons of the classifiers on the same test objects: every pair of flow
+    methods (earlier minus later in the profile's order), the exact flow against each
+    estimate first."""
+    from itertools import combinations
+
+    from flowmod.metrics import comparison_table, paired_comparison
+
+    preds = {m: results(params, m, "test")[0] for m in params.flow_methods}
+    rows = {}
+    for a, b in combinations(params.flow_methods, 2):
+        da, db = preds[a], preds[b]
+        if not da["ann_token"].equals(db["ann_token"]):
+            raise ValueError(f"{a} and {b} were scored on different objects")
+        rows[f"{a} - {b}"] = paired_comparison(da["label"].to_numpy(), seed_probs(da),
+                                               seed_probs(db), da["scene"].to_numpy(),
+                                               seed=params.seed)
+    return comparison_table(rows)
+
+
+def protocols(params: Any) -> pd.DataFrame:
+    """Per method: the clean F1 (best validation epoch, whole test split) and what the
+    original code's protocol reports for the same models (epoch chosen on the test split,
+    stills thinned 1 of 2, F1 averaged per batch), means over training seeds, and
+    original minus clean."""
+    rows = []
+    for m in params.flow_methods:
+        r = original_vs_clean(params, m)
+        rows.append({"method": m, "clean F1 (%)": round(100 * r["clean"], 1),
+                     "original protocol F1 (%)": round(100 * r["original"], 1),
+                     "original - clean (points)": round(100 * r["original_minus_clean"], 1)})
+    return pd.DataFrame(rows)
+
+
+def chapter07_numbers(params: Any) -> dict[str, Any]:
+    """The numbers chapter 07 records for the book's other pages and the tests: per method
+    the classifiers' mean test F1 (%), the baseline's, the objects and scenes scored, the
+    headline method (the first estimated flow of the profile) and the protocol gap."""
+    out: dict[str, Any] = {}
+    gaps = []
+    for m in params.flow_methods:
+        s = results(params, m, "test")[1]
+        out[f"test_f1_{m}"] = round(100 * s["f1"], 1)
+        out[f"test_f1_min_{m}"] = round(100 * s["f1_min"], 1)
+        out[f"test_f1_max_{m}"] = round(100 * s["f1_max"], 1)
+        out[f"baseline_f1_{m}"] = round(100 * results(params, m, "baseline")[1]["f1"], 1)
+        gaps.append(original_vs_clean(params, m)["original_minus_clean"])
+        out["n_test"], out["n_test_scenes"] = s["n"], s["n_scenes"]
+        out["seeds"] = s["seeds"]
+    head = next((m for m in params.flow_methods if m != "gt"), params.flow_methods[0])
+    s = results(params, head, "test")[1]
+    out.update(headline_method=head, headline_f1=round(100 * s["f1"], 1),
+               headline_precision=round(100 * s["precision"], 1),
+               headline_recall=round(100 * s["recall"], 1),
+               headline_ci_lo=round(100 * s["ci"][0], 1), headline_ci_hi=round(100 * s["ci"][1], 1),
+               headline_baseline_f1=out[f"baseline_f1_{head}"],
+               protocol_gap=round(100 * float(np.mean(gaps)), 1))
+    return out
+
+
+def chapter08_numbers(params: Any, table: pd.DataFrame) -> dict[str, Any]:
+    """The numbers chapter 08 records: Table 4's F1 per method (paper's range, both
+    labels), the objects scored, and the headline method's F1."""
+    out: dict[str, Any] = {}
+    t4 = table[table["vehicles"].str.endswith("(Table 4)")]
+    for r in t4.itertuples(index=False):
+        key = "paper" if r[2].startswith("paper") else "true"
+        out[f"general_f1_{r.method}_{key}"] = r[5]
+    paper = t4[t4["scored against"].str.startswith("paper")]
+    out["n_general"] = int(paper["objects"].iloc[0]) if len(paper) else 0
+    head = next((m for m in params.flow_methods if m != "gt"), params.flow_methods[0])
+    out["headline_general_f1"] = out.get(f"general_f1_{head}_paper", float("nan"))
+    beyond = table[~table["vehicles"].str.endswith("(Table 4)")
+                   & table["scored against"].str.startswith("paper")]
+    for r in beyond.itertuples(index=False):
+        out[f"beyond_f1_{r.method}"] = r[5]
     return out

@@ -8,7 +8,9 @@ vehicle's speed across the line of sight (m/s). A threshold on it, tuned on the 
 split, is the baseline's classifier.
 
 Inputs come from ``pairs.parquet`` (``intrinsic`` 3x3, ``cam2global_1/2`` 4x4, row-major
-lists) and ``objects.parquet`` (2D box, global box centre), so no devkit is needed here.
+lists) and ``objects.parquet`` (2D box; the annotated 3D box: global centre, size (w, l, h),
+rotation (w, x, y, z)), so no devkit table is read here (pyquaternion, a devkit
+dependency, turns the rotation into a matrix).
 """
 
 from __future__ import annotations
@@ -37,6 +39,45 @@ def static_flow(
     return xy2 - xy
 
 
+def quaternion_matrix(q: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of a unit quaternion (w, x, y, z) (the nuScenes convention)."""
+    from pyquaternion import Quaternion
+
+    return Quaternion(np.asarray(q, dtype=np.float64)).rotation_matrix
+
+
+def ray_box_depth(xy: np.ndarray, K: np.ndarray, center_cam: np.ndarray, size_wlh: np.ndarray,
+                  rot_cam: np.ndarray) -> np.ndarray:
+    """Camera-z depth (m) where the ray through each pixel first meets a 3D box, NaN where
+    it misses.
+
+    xy: (N, 2) px; K: (3, 3); the box in camera coordinates: centre (3,) m, size (w, l, h) m
+    (nuScenes: x along the length, y across, z up in the box frame) and rotation (3, 3).
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    rays = np.linalg.solve(K, np.stack([xy[:, 0], xy[:, 1], np.ones(len(xy))]))  # z = 1
+    half = np.array([size_wlh[1], size_wlh[0], size_wlh[2]], dtype=np.float64) / 2
+    o = rot_cam.T @ (-np.asarray(center_cam, dtype=np.float64))  # camera origin, box frame
+    d = rot_cam.T @ rays  # (3, N)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (-half[:, None] - o[:, None]) / d
+        t2 = (half[:, None] - o[:, None]) / d
+    t1 = np.where(np.isnan(t1), -np.inf, t1)
+    t2 = np.where(np.isnan(t2), np.inf, t2)
+    t_near = np.minimum(t1, t2).max(axis=0)
+    t_far = np.maximum(t1, t2).min(axis=0)
+    hit = (t_far >= np.maximum(t_near, 0.0)) & (t_near > 0)
+    return np.where(hit, t_near, np.nan)  # rays have z = 1: the ray parameter is the depth
+
+
+def box_in_camera(cam2global: np.ndarray, center_global: np.ndarray, q_global: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """A global box pose as (centre (3,), rotation (3, 3)) in a camera with ``cam2global``."""
+    g2c = np.linalg.inv(cam2global)
+    c = g2c[:3, :3] @ np.asarray(center_global, dtype=np.float64) + g2c[:3, 3]
+    return c, g2c[:3, :3] @ quaternion_matrix(q_global)
+
+
 def _sample(flow: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Nearest-pixel flow values (N, 2) at ``xy`` (N, 2), clipped to the image."""
     h, w = flow.shape[:2]
@@ -47,30 +88,40 @@ def _sample(flow: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 def box_residual(
     flow: np.ndarray, box: np.ndarray, center_global: np.ndarray, K: np.ndarray,
-    cam2global_1: np.ndarray, cam2global_2: np.ndarray, dt_s: float, grid: int = 7,
-    inner: float = 0.6,
+    cam2global_1: np.ndarray, cam2global_2: np.ndarray, dt_s: float, grid: int = 9,
+    size_wlh: np.ndarray | None = None, q_global: np.ndarray | None = None,
 ) -> tuple[float, float]:
-    """Residual of the measured flow inside a box against the static prediction.
+    """Residual of the measured flow on a vehicle against the flow it would have if still.
 
-    flow: (H, W, 2) px; box: (4,) xmin, ymin, xmax, ymax px; center_global: (3,) m. Samples a
-    ``grid`` x ``grid`` lattice over the central ``inner`` fraction of the box (to stay on the
-    vehicle), all at the depth of the box centre. Returns (median residual in px, the
-    residual converted to m/s across the line of sight).
+    flow: (H, W, 2) px; box: (4,) xmin, ymin, xmax, ymax px; the annotated 3D box at frame 1:
+    global centre (3,) m, size (w, l, h) m and global rotation (w, x, y, z). Samples a
+    ``grid`` x ``grid`` lattice over the 2D box and keeps the points whose ray meets the 3D
+    box, each at the depth where it does (:func:`ray_box_depth`), so every sample lies on the
+    vehicle at its true depth. Without size/rotation (or if no ray hits) it falls back to the
+    box centre's depth at the central point. Returns (median residual in px, the residual
+    converted to m/s across the line of sight at the vehicle's median depth).
     """
     x0, y0, x1, y1 = np.asarray(box, dtype=np.float64)
-    cx, cy, hw, hh = (x0 + x1) / 2, (y0 + y1) / 2, (x1 - x0) * inner / 2, (y1 - y0) * inner / 2
-    gx, gy = np.meshgrid(np.linspace(cx - hw, cx + hw, grid), np.linspace(cy - hh, cy + hh, grid))
+    gx, gy = np.meshgrid(np.linspace(x0, x1, grid), np.linspace(y0, y1, grid))
     xy = np.stack([gx.ravel(), gy.ravel()], axis=1)
-    c = np.linalg.solve(cam2global_1, np.append(np.asarray(center_global, dtype=float), 1.0))
-    depth = float(c[2])
-    pred = static_flow(xy, np.full(len(xy), depth), K, cam2global_1, cam2global_2)
+    c_cam, r_cam = (box_in_camera(cam2global_1, center_global, q_global)
+                    if q_global is not None else (None, None))
+    depth = (ray_box_depth(xy, K, c_cam, np.asarray(size_wlh, dtype=np.float64), r_cam)
+             if size_wlh is not None and c_cam is not None else np.full(len(xy), np.nan))
+    hit = np.isfinite(depth)
+    if not hit.any():
+        c = np.linalg.solve(cam2global_1, np.append(np.asarray(center_global, dtype=float), 1.0))
+        xy, depth = np.array([[(x0 + x1) / 2, (y0 + y1) / 2]]), np.array([float(c[2])])
+    else:
+        xy, depth = xy[hit], depth[hit]
+    pred = static_flow(xy, depth, K, cam2global_1, cam2global_2)
     res = _sample(flow, xy) - pred
     res_px = float(np.linalg.norm(np.median(res, axis=0)))
-    return res_px, res_px * depth / float(K[0, 0]) / dt_s
+    return res_px, res_px * float(np.median(depth)) / float(K[0, 0]) / dt_s
 
 
 def residual_scores(
-    objects: pd.DataFrame, pairs: pd.DataFrame, load_flow, grid: int = 7
+    objects: pd.DataFrame, pairs: pd.DataFrame, load_flow, grid: int = 9
 ) -> pd.DataFrame:
     """Residuals for every object: columns residual_px and residual_speed (m/s).
 
@@ -87,8 +138,11 @@ def residual_scores(
         dt = (row["timestamp_2"] - row["timestamp_1"]) / 1e6
         for i in idx:
             o = objects.iloc[i]
+            has_box = "size_w" in o.index and np.isfinite(o.get("size_w", np.nan))
             out[i] = box_residual(
                 flow, o[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float),
                 o[["center_x", "center_y", "center_z"]].to_numpy(float), K, T1, T2, dt, grid,
+                o[["size_w", "size_l", "size_h"]].to_numpy(float) if has_box else None,
+                o[["qw", "qx", "qy", "qz"]].to_numpy(float) if has_box else None,
             )
     return pd.DataFrame(out, columns=["residual_px", "residual_speed"], index=objects.index)

@@ -100,31 +100,113 @@ def pr_curve(y_true: Any, y_prob: Any) -> tuple[pd.DataFrame, float]:
     return df.iloc[::-1].reset_index(drop=True), float(average_precision_score(y, p))
 
 
-def bootstrap_f1_ci(
-    y_true: Any, y_prob: Any, n: int = 1000, seed: int = 0, threshold: float = 0.5,
-    level: float = 0.95,
-) -> tuple[float, float]:
-    """Percentile bootstrap CI of the whole-set F1 (objects resampled with replacement).
+def _counts(y: np.ndarray, probs: np.ndarray, groups: np.ndarray, threshold: float
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """tp, fp, fn per (model, group): each (S, G) for probs (S, N)."""
+    _, gi = np.unique(groups, return_inverse=True)
+    n_groups = int(gi.max()) + 1 if len(gi) else 0
+    out = []
+    for cond in ((1, 1), (1, 0), (0, 1)):  # (predicted, true): tp, fp, fn
+        rows = []
+        for p in probs:
+            yhat = (p > threshold).astype(np.int64)
+            hit = ((yhat == cond[0]) & (y == cond[1])).astype(np.float64)
+            rows.append(np.bincount(gi, weights=hit, minlength=n_groups))
+        out.append(np.asarray(rows))
+    return out[0], out[1], out[2]
 
-    Returns (lo, hi) as fractions; ``level`` 0.95 = 95 %. Note objects of one pair/scene are
-    correlated, so this interval is optimistic (too narrow) rather than conservative.
+
+def _as_models(y_true: Any, y_prob: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(y (N,), probs (S, N)): one row per model (a training seed)."""
+    y = np.asarray(y_true).astype(np.int64).reshape(-1)
+    probs = np.asarray(y_prob, dtype=np.float64)
+    probs = probs[None] if probs.ndim == 1 else probs
+    if probs.shape[-1] != len(y):
+        raise ValueError(f"y_true has {len(y)} values but y_prob has shape {probs.shape}")
+    if not np.isin(y, (0, 1)).all():
+        raise ValueError("y_true must hold 0 (still) / 1 (moving) only")
+    return y, probs
+
+
+def scene_bootstrap(y_true: Any, y_prob: Any, groups: Any, n: int = 2000, seed: int = 0,
+                    threshold: float = 0.5) -> np.ndarray:
+    """Bootstrap replicates of the whole-set F1 with whole *groups* (scenes) resampled.
+
+    Objects of one scene are not independent (one vehicle appears in many consecutive
+    pairs; a scene shares its light, traffic and ego motion), so the unit resampled is the
+    scene: each replicate draws as many scenes as there are, with replacement, and keeps all
+    their objects. y_prob: (N,) or (S, N) for S models (training seeds) scored on the same
+    objects; a replicate's value is the mean over models of their F1 on the drawn scenes.
+    Returns (n,) replicates.
     """
-    y, yhat = _binary(y_true, y_prob, threshold)
+    y, probs = _as_models(y_true, y_prob)
+    g = np.asarray(groups).reshape(-1)
+    if len(g) != len(y):
+        raise ValueError(f"groups has {len(g)} values but y_true has {len(y)}")
     if len(y) == 0:
-        return (0.0, 0.0)
-    is_tp = ((yhat == 1) & (y == 1)).astype(np.int32)
-    is_fp = ((yhat == 1) & (y == 0)).astype(np.int32)
-    is_fn = ((yhat == 0) & (y == 1)).astype(np.int32)
+        return np.zeros(n)
+    tp, fp, fn = _counts(y, probs, g, threshold)
     rng = np.random.default_rng(seed)
-    f1s = np.empty(n)
-    chunk = max(1, min(n, 2_000_000 // max(1, len(y))))
-    for a in range(0, n, chunk):
-        b = min(n, a + chunk)
-        idx = rng.integers(0, len(y), size=(b - a, len(y)))
-        f1s[a:b] = _prf(is_tp[idx].sum(1), is_fp[idx].sum(1), is_fn[idx].sum(1))[2]
+    k = tp.shape[1]
+    w = rng.multinomial(k, np.full(k, 1.0 / k), size=n).astype(np.float64)  # (n, G)
+    f1 = _prf(w @ tp.T, w @ fp.T, w @ fn.T)[2]  # (n, S)
+    return f1.mean(axis=1)
+
+
+def interval(replicates: Any, level: float = 0.95) -> tuple[float, float]:
+    """Percentile interval of bootstrap replicates."""
     alpha = (1 - level) / 2
-    lo, hi = np.quantile(f1s, [alpha, 1 - alpha])
+    lo, hi = np.quantile(np.asarray(replicates, dtype=np.float64), [alpha, 1 - alpha])
     return float(lo), float(hi)
+
+
+def bootstrap_f1_ci(y_true: Any, y_prob: Any, groups: Any, n: int = 2000, seed: int = 0,
+                    threshold: float = 0.5, level: float = 0.95) -> tuple[float, float]:
+    """Scene-level percentile bootstrap interval of the (seed-mean) F1; see
+    :func:`scene_bootstrap`."""
+    return interval(scene_bootstrap(y_true, y_prob, groups, n, seed, threshold), level)
+
+
+def seed_summary(y_true: Any, y_prob: Any, groups: Any, instances: Any = None, n: int = 2000,
+                 seed: int = 0, threshold: float = 0.5, level: float = 0.95) -> dict[str, Any]:
+    """Scores of S models (training seeds) on the same objects: per-seed precision, recall
+    and F1; their mean, min and max; the scene-level interval of the mean F1; and what the
+    interval resamples: number of scenes, objects and (if given) vehicle instances."""
+    y, probs = _as_models(y_true, y_prob)
+    per = [metrics(y, p, threshold) for p in probs]
+    f1 = np.array([m["f1"] for m in per])
+    out: dict[str, Any] = {
+        "seeds": len(per), "f1": float(f1.mean()), "f1_min": float(f1.min()),
+        "f1_max": float(f1.max()),
+        "precision": float(np.mean([m["precision"] for m in per])),
+        "recall": float(np.mean([m["recall"] for m in per])),
+        "per_seed": [{k: m[k] for k in ("f1", "precision", "recall", "tp", "fp", "fn")}
+                     for m in per],
+        "ci": bootstrap_f1_ci(y, probs, groups, n, seed, threshold, level), "level": level,
+        "n": len(y), "n_moving": int(y.sum()), "n_scenes": int(len(np.unique(groups))),
+    }
+    if instances is not None:
+        out["n_instances"] = int(len(np.unique(np.asarray(instances))))
+    return out
+
+
+def paired_comparison(y_true: Any, prob_a: Any, prob_b: Any, groups: Any, n: int = 2000,
+                      seed: int = 0, threshold: float = 0.5, level: float = 0.95
+                      ) -> dict[str, Any]:
+    """Method A minus method B on the same objects: the difference of their seed-mean F1,
+    its scene-level interval (the same resampled scenes for both methods, so what they share
+    cancels), the per-seed differences (seed k of A against seed k of B) and the share of
+    replicates in which A is not better."""
+    y, pa = _as_models(y_true, prob_a)
+    _, pb = _as_models(y_true, prob_b)
+    ra = scene_bootstrap(y, pa, groups, n, seed, threshold)
+    rb = scene_bootstrap(y, pb, groups, n, seed, threshold)  # same seed: same draws
+    fa = np.array([metrics(y, p, threshold)["f1"] for p in pa])
+    fb = np.array([metrics(y, p, threshold)["f1"] for p in pb])
+    k = min(len(fa), len(fb))
+    return {"delta_f1": float(fa.mean() - fb.mean()), "ci": interval(ra - rb, level),
+            "per_seed": (fa[:k] - fb[:k]).tolist(), "p_not_better": float(np.mean(ra - rb <= 0)),
+            "n": len(y), "n_scenes": int(len(np.unique(groups)))}
 
 
 def breakdown(
@@ -159,29 +241,50 @@ def breakdown(
 
 
 def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
-    """The paper's Table 3 from per-method results.
+    """The paper's Table 3 from per-method results (:func:`seed_summary` dicts, or any dict
+    with f1, precision, recall and optionally f1_min/f1_max, seeds, ci, n, n_scenes,
+    n_instances; a mapping method -> such a dict also works).
 
-    rows: dicts with method, f1, precision, recall (fractions) and optionally ci (lo, hi)
-    and n; or a mapping method -> such a dict. Returns columns Method, F1 (%),
-    Precision (%), Recall (%), F1 95% CI (%), n; percentages rounded to 0.1.
+    Columns: Method, F1 (%) (mean over training seeds), F1 range over seeds (%), seeds,
+    Precision (%), Recall (%), F1 95 % CI over scenes (%), scenes, objects, vehicles;
+    percentages to 0.1.
     """
     if isinstance(rows, Mapping):
         rows = [{"method": k, **v} for k, v in rows.items()]
     out = []
     for r in rows:
         ci = r.get("ci")
+        lo, hi = r.get("f1_min"), r.get("f1_max")
         out.append({
             "Method": r["method"],
             "F1 (%)": round(100 * float(r["f1"]), 1),
+            "F1 range over seeds (%)": (f"{100 * lo:.1f}-{100 * hi:.1f}"
+                                        if lo is not None and r.get("seeds", 1) > 1 else ""),
+            "seeds": r.get("seeds", ""),
             "Precision (%)": round(100 * float(r["precision"]), 1),
             "Recall (%)": round(100 * float(r["recall"]), 1),
-            "F1 95% CI (%)": (
-                f"{100 * ci[0]:.1f}-{100 * ci[1]:.1f}" if ci is not None else ""
-            ),
-            "n": r.get("n"),
+            "F1 95% CI over scenes (%)": (
+                f"{100 * ci[0]:.1f}-{100 * ci[1]:.1f}" if ci is not None else ""),
+            "scenes": r.get("n_scenes", ""),
+            "objects": r.get("n", ""),
+            "vehicles": r.get("n_instances", ""),
         })
-    return pd.DataFrame(out, columns=["Method", "F1 (%)", "Precision (%)", "Recall (%)",
-                                      "F1 95% CI (%)", "n"])
+    return pd.DataFrame(out, columns=list(out[0]) if out else ["Method"])
+
+
+def comparison_table(rows: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
+    """Paired differences ``{"A - B": paired_comparison(...)}`` as a table (F1 points)."""
+    out = []
+    for name, r in rows.items():
+        out.append({
+            "comparison": name,
+            "ΔF1 (points)": round(100 * r["delta_f1"], 1),
+            "95% CI over scenes (points)": f"{100 * r['ci'][0]:.1f} to {100 * r['ci'][1]:.1f}",
+            "per seed (points)": ", ".join(f"{100 * d:+.1f}" for d in r["per_seed"]),
+            "share of replicates A <= B": round(r["p_not_better"], 3),
+            "scenes": r["n_scenes"], "objects": r["n"],
+        })
+    return pd.DataFrame(out)
 
 
 # --- the original code's protocol, for comparison --------------------------------------------

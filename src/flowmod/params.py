@@ -140,8 +140,13 @@ class Params(BaseModel):
                                    description="camera frames between the pair")
     general_min_distance: float = _field(0.0, ge=0.0, read_by=("general",),
                                          description="m, near vehicles included")
-    general_max_distance: float = _field(100.0, gt=0.0, read_by=("general",),
-                                         description="m, farthest vehicle")
+    general_max_distance: float = _field(70.0, gt=0.0, read_by=("general",),
+                                         description="m, farthest vehicle of Table 4 (the "
+                                                     "paper's range)")
+    general_beyond_distance: float = _field(
+        100.0, gt=0.0, read_by=("general",),
+        description="m, vehicles from general_max_distance to this are also selected and "
+                    "reported apart from Table 4 (0 = none)")
     general_max_scenes: int = _field(4, ge=0, read_by=("general",),
                                      description="held-out scenes used (0 = none)")
 
@@ -158,6 +163,8 @@ class Params(BaseModel):
                                                       description="stored flow dtype")
     raft_weights: str | None = _field(None, read_by=_FLOW, methods=("raft",), file=True,
                                       description="path to RAFT weights (.pth)")
+    raft_iters: int = _field(20, ge=1, le=64, read_by=_FLOW, methods=("raft", "raft_small"),
+                             description="RAFT flow updates (20 in the original code)")
     raft_small_weights: str | None = _field(None, read_by=_FLOW, methods=("raft_small",),
                                             file=True,
                                             description="path to RAFT-small weights")
@@ -180,6 +187,11 @@ class Params(BaseModel):
     gamma: float = _field(0.5, gt=0.0, le=1.0, read_by=_TRAIN, description="StepLR factor")
     hflip_p: float = _field(0.5, ge=0.0, le=1.0, read_by=_TRAIN,
                             description="training-only horizontal flip")
+    seeds: int = _field(3, ge=1, le=20, role="plan",
+                        description="training runs per flow method, seeds seed .. seed+seeds-1")
+    amp: Literal["off", "bf16", "fp16"] = _field(
+        "off", read_by=_TRAIN,
+        description="mixed precision for training and every prediction of its models")
     num_workers: int = _field(0, ge=0, le=64, role="run", description="DataLoader workers")
 
     @model_validator(mode="after")
@@ -205,6 +217,11 @@ class Params(BaseModel):
         if self.general_min_distance >= self.general_max_distance:
             raise ValueError(
                 f"general_min_distance={self.general_min_distance} must be < "
+                f"general_max_distance={self.general_max_distance}"
+            )
+        if 0 < self.general_beyond_distance < self.general_max_distance:
+            raise ValueError(
+                f"general_beyond_distance={self.general_beyond_distance} must be 0 or >= "
                 f"general_max_distance={self.general_max_distance}"
             )
         if self.world_sweep_scenes > self.world_scenes:

@@ -20,7 +20,7 @@ closest previous keyframe.
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -94,7 +94,8 @@ def scene_table(nusc) -> pd.DataFrame:
         sd = nusc.get("sample_data", first["data"][CAMERA])
         nxt = nusc.get("sample_data", sd["next"]) if sd["next"] else None
         rows.append({
-            "scene": sc["name"], "scene_token": sc["token"], "description": sc["description"],
+            "scene": sc["name"], "scene_token": sc["token"], "log_token": sc["log_token"],
+            "description": sc["description"],
             "n_samples": sc["nbr_samples"],
             "has_sweeps": bool(nxt is not None and not nxt["is_key_frame"]),
         })
@@ -116,33 +117,50 @@ def filter_scenes(scenes: pd.DataFrame, exclude: Iterable[str]) -> pd.DataFrame:
 
 
 def split_scenes(
-    scenes: list[str], fractions: list[float], seed: int, prefer_test: Iterable[str] = ()
+    scenes: list[str], fractions: list[float], seed: int, prefer_test: Iterable[str] = (),
+    groups: dict[str, str] | None = None,
 ) -> dict[str, str]:
-    """Assign each scene to train / val / test (no scene in two splits), seeded.
+    """Assign each scene to train / val / test, seeded, keeping every *group* of scenes
+    (``groups``: scene -> group, e.g. its log) in one split; without groups each scene is
+    its own group.
 
-    Scenes in ``prefer_test`` (those that carry sweeps, for the generalisation stage) fill the
-    test split first; when every scene is preferred (real nuScenes) this is a plain shuffle.
+    Split sizes are counted in scenes (at least one scene each in val and test when there
+    are three or more groups). Groups holding a scene of ``prefer_test`` (those that carry
+    sweeps, for the generalisation stage) fill the test split first; when every scene is
+    preferred (real nuScenes) this is a plain shuffle.
     """
     rng = np.random.default_rng(seed)
     scenes = sorted(scenes)
+    groups = {s: (groups or {}).get(s, s) for s in scenes}
+    members: dict[str, list[str]] = {}
+    for s in scenes:
+        members.setdefault(groups[s], []).append(s)
+    names = sorted(members)
     n = len(scenes)
     n_test = int(round(fractions[2] * n))
     n_val = int(round(fractions[1] * n))
-    if n >= 3:
+    if len(names) >= 3:
         n_test, n_val = max(n_test, 1), max(n_val, 1)
-    n_test = min(n_test, n)
-    n_val = min(n_val, n - n_test)
     preferred = set(prefer_test)
-    first = [s for s in scenes if s in preferred]
-    rest = [s for s in scenes if s not in preferred]
+    first = [g for g in names if preferred & set(members[g])]
+    rest = [g for g in names if g not in set(first)]
     order = list(rng.permutation(first)) + list(rng.permutation(rest))
-    test = order[:n_test]
-    remaining = [s for s in scenes if s not in set(test)]
-    remaining = list(rng.permutation(remaining))
-    val = remaining[:n_val]
     out = {s: "train" for s in scenes}
-    out.update({s: "val" for s in val})
-    out.update({s: "test" for s in test})
+    test: list[str] = []
+    for g in order:
+        if sum(len(members[x]) for x in test) >= n_test:
+            break
+        test.append(g)
+    remaining = list(rng.permutation([g for g in names if g not in set(test)]))
+    val: list[str] = []
+    for g in remaining:
+        if sum(len(members[x]) for x in val) >= n_val or len(val) == len(remaining) - 1:
+            break
+        val.append(g)
+    for g in val:
+        out.update({s: "val" for s in members[g]})
+    for g in test:
+        out.update({s: "test" for s in members[g]})
     return out
 
 
@@ -178,6 +196,9 @@ class Candidate:
     distance: float
     box: tuple[float, float, float, float]
     center: tuple[float, float, float]
+    #: (w, l, h) m and the global orientation quaternion (w, x, y, z) at this frame's time
+    size: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rotation: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
 
 
 def qualifying_boxes(
@@ -191,6 +212,7 @@ def qualifying_boxes(
     interpolated for sweeps).
     """
     from nuscenes.utils.geometry_utils import BoxVisibility, view_points
+    from pyquaternion import Quaternion
 
     _, boxes, K = nusc.get_sample_data(sd["token"], box_vis_level=BoxVisibility.ALL)
     if not boxes:
@@ -213,9 +235,32 @@ def qualifying_boxes(
         if not (min_d <= dist <= max_d):
             continue
         corners = view_points(box.corners(), K, normalize=True)
+        rot = Quaternion(matrix=cam2global[:3, :3]) * box.orientation
         out[ann["instance_token"]] = Candidate(
-            ann["token"], box.name, dist, box_2d(corners), tuple(center.tolist())
+            ann["token"], box.name, dist, box_2d(corners), tuple(center.tolist()),
+            tuple(float(x) for x in box.wlh), tuple(float(x) for x in rot.elements),
         )
+    return out
+
+
+def frame_boxes(nusc, sd: dict) -> list[dict]:
+    """Every annotated object of ``sd``'s frame (any category, any visibility) that has a
+    corner in front of the camera and inside the image: instance token, category and the
+    2D box of its corners in front of the camera, clipped to the image (px)."""
+    from nuscenes.utils.geometry_utils import BoxVisibility, view_points
+
+    _, boxes, K = nusc.get_sample_data(sd["token"], box_vis_level=BoxVisibility.ANY)
+    w, h = sd["width"], sd["height"]
+    out = []
+    for box in boxes:
+        c = box.corners()
+        front = c[:, c[2] > 0.1]
+        if front.shape[1] == 0:
+            continue
+        x0, y0, x1, y1 = box_2d(view_points(front, K, normalize=True))
+        out.append({"instance_token": nusc.get("sample_annotation", box.token)["instance_token"],
+                    "category": box.name, "xmin": max(x0, 0.0), "ymin": max(y0, 0.0),
+                    "xmax": min(x1, w - 1.0), "ymax": min(y1, h - 1.0)})
     return out
 
 
@@ -298,6 +343,8 @@ def _object_row(nusc, pair_id, sc, kind, inst, c: Candidate, ann: dict, v, p: Pa
         "distance": c.distance, "visibility": ann["visibility_token"],
         "center_x": c.center[0], "center_y": c.center[1], "center_z": c.center[2],
         "xmin": c.box[0], "ymin": c.box[1], "xmax": c.box[2], "ymax": c.box[3],
+        "size_w": c.size[0], "size_l": c.size[1], "size_h": c.size[2],
+        "qw": c.rotation[0], "qx": c.rotation[1], "qy": c.rotation[2], "qz": c.rotation[3],
         "vx": float(v[0]), "vy": float(v[1]), "vz": float(v[2]), "speed": spd,
         "label": int(spd >= p.speed_threshold),
         "attribute": _attribute(nusc, ann), "box_speed": box_speed,
@@ -307,17 +354,20 @@ def _object_row(nusc, pair_id, sc, kind, inst, c: Candidate, ann: dict, v, p: Pa
 
 def general_set(
     nusc, scenes: pd.DataFrame, p: Params, progress: bool = True
-) -> tuple[pd.DataFrame, pd.DataFrame]:
+) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
     """The generalisation manifest: frame pairs ``general_interval`` apart in held-out scenes.
 
     Objects: Table-1 vehicles in frame 1 (interpolated devkit boxes, all corners visible,
-    distance in [general_min_distance, general_max_distance], the previous keyframe's visibility
+    distance from general_min_distance to general_max_distance, the paper's range, and on to
+    general_beyond_distance for a separate breakdown; the previous keyframe's visibility
     token), present in the previous and next keyframes. ``label`` follows the paper (the
     eq.-1 label of the previous keyframe pair); ``speed`` and ``label`` are those of that
-    keyframe pair.
+    keyframe pair. Boxes: every annotated object of each pair's frame 1
+    (:func:`frame_boxes`), for the failure analysis. Returns (pairs, objects, boxes).
     """
     cats, vis = set(p.categories), set(p.visibility_tokens)
-    pair_rows, obj_rows = [], []
+    far = max(p.general_max_distance, p.general_beyond_distance)
+    pair_rows, obj_rows, box_rows = [], [], []
     for sc in bar(scenes.itertuples(), total=len(scenes), desc="generalisation pairs",
                    disable=not progress):
         frames = camera_frames(nusc, sc.scene_token, keyframes_only=False)
@@ -329,8 +379,8 @@ def general_set(
             if prev is None or not prev["next"]:
                 continue
             after = nusc.get("sample", prev["next"])
-            quals = qualifying_boxes(nusc, sd1, cats, p.general_min_distance,
-                                     p.general_max_distance, p.distance_mode, None)
+            quals = qualifying_boxes(nusc, sd1, cats, p.general_min_distance, far,
+                                     p.distance_mode, None)
             prev_anns = {nusc.get("sample_annotation", t)["instance_token"]: t
                          for t in prev["anns"]}
             after_anns = {nusc.get("sample_annotation", t)["instance_token"]: t
@@ -350,7 +400,8 @@ def general_set(
             if rows:
                 pair_rows.append(_pair_row(nusc, pair_id, sc.scene, sc.split, "general", sd1, sd2))
                 obj_rows.extend(rows)
-    return pd.DataFrame(pair_rows), pd.DataFrame(obj_rows)
+                box_rows.extend({"pair_id": pair_id, **b} for b in frame_boxes(nusc, sd1))
+    return pd.DataFrame(pair_rows), pd.DataFrame(obj_rows), pd.DataFrame(box_rows)
 
 
 # --- the stage ---------------------------------------------------------------------------
@@ -362,6 +413,8 @@ class Selection:
     pairs: pd.DataFrame
     objects: pd.DataFrame
     scenes: pd.DataFrame
+    #: every annotated object of the generalisation pairs' frame 1 (failure analysis)
+    boxes: pd.DataFrame = field(default_factory=pd.DataFrame)
 
 
 def _add_true_speed(objects: pd.DataFrame, pairs: pd.DataFrame, p: Params) -> pd.DataFrame:
@@ -413,9 +466,17 @@ def select_keyframes(p: Params, nusc=None, progress: bool = True) -> Selection:
             f"all {len(scenes)} scenes were excluded by their descriptions "
             f"({sorted(set(scenes['excluded_by']))}); change exclude_descriptions"
         )
+    # Consecutive scenes of one nuScenes drive share places and parked cars: split by log.
+    # A generated world's scenes are independent of each other: split by scene.
+    from flowmod import world
+
+    unit = "scene" if world.is_synthetic(p.dataroot_path, p.version) else "log"
+    groups = dict(zip(kept["scene"], kept["scene" if unit == "scene" else "log_token"],
+                      strict=True))
     split = split_scenes(list(kept["scene"]), p.split_fractions, p.seed,
-                         prefer_test=kept.loc[kept["has_sweeps"], "scene"])
+                         prefer_test=kept.loc[kept["has_sweeps"], "scene"], groups=groups)
     scenes["split"] = scenes["scene"].map(split).fillna("excluded")
+    scenes["split_unit"] = unit
     kept = scenes[scenes["split"] != "excluded"]
     pairs, objects = keyframe_set(nusc, kept, p, progress)
     if objects.empty:
@@ -428,15 +489,18 @@ def select_keyframes(p: Params, nusc=None, progress: bool = True) -> Selection:
 
 
 def select_general(p: Params, scenes: pd.DataFrame, nusc=None, progress: bool = True
-                   ) -> tuple[pd.DataFrame, pd.DataFrame]:
+                   ) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
     """The generalisation set over the held-out scenes of ``scenes`` (the keyframe stage's
-    scene table with its split): test scenes with sweeps, at most ``general_max_scenes``."""
+    scene table with its split): test scenes with sweeps, at most ``general_max_scenes``.
+    Returns (pairs, objects, boxes of every annotated object in frame 1)."""
     held_out = scenes[(scenes["split"] == "test") & scenes["has_sweeps"]].head(
         p.general_max_scenes)
     if held_out.empty:
-        return pd.DataFrame(), pd.DataFrame()
+        return pd.DataFrame(), pd.DataFrame(), pd.DataFrame()
     nusc = nusc or open_nuscenes(p.dataroot_path, p.version)
-    return _finish(p, *general_set(nusc, held_out, p, progress))
+    pairs, objects, boxes = general_set(nusc, held_out, p, progress)
+    pairs, objects = _finish(p, pairs, objects)
+    return pairs, objects, boxes[boxes["pair_id"].isin(pairs["pair_id"])].reset_index(drop=True)
 
 
 def select(p: Params, progress: bool = True) -> Selection:
@@ -444,7 +508,7 @@ def select(p: Params, progress: bool = True) -> Selection:
     appended (``set`` column); the scene table."""
     nusc = open_nuscenes(p.dataroot_path, p.version)
     sel = select_keyframes(p, nusc, progress)
-    gp, go = select_general(p, sel.scenes, nusc, progress)
+    gp, go, _ = select_general(p, sel.scenes, nusc, progress)
     return Selection(pd.concat([sel.pairs, gp], ignore_index=True),
                      pd.concat([sel.objects, go], ignore_index=True), sel.scenes)
 
@@ -472,8 +536,8 @@ def run(p: Params, progress: bool = True) -> Selection:
         scenes = pd.read_parquet(g.input_dir(dag.Node("select")) / "scenes.parquet")
         if nusc is None:
             nusc = open_nuscenes(g.params.dataroot_path, g.params.version)
-        gp, go = select_general(g.params, scenes, nusc, progress)
-        _write(g.start(fresh=True), {"pairs": gp, "objects": go})
+        gp, go, gb = select_general(g.params, scenes, nusc, progress)
+        _write(g.start(fresh=True), {"pairs": gp, "objects": go, "boxes": gb})
         g.publish(rows=len(go), pairs=len(gp))
     return load(p)[0]
 
@@ -533,11 +597,12 @@ def load(p: Params) -> tuple[Selection, dict]:
     frames = {}
     for node in (dag.Node("select"), dag.Node("general")):
         d = dag.published(p, node)
-        frames[node.stage] = {k: pd.read_parquet(f) for k in ("pairs", "objects", "scenes")
+        frames[node.stage] = {k: pd.read_parquet(f) for k in ("pairs", "objects", "scenes",
+                                                              "boxes")
                               if (f := d / f"{k}.parquet").is_file()}
     key, gen = frames["select"], frames["general"]
     sel = Selection(pd.concat([key["pairs"], gen["pairs"]], ignore_index=True),
                     pd.concat([key["objects"], gen["objects"]], ignore_index=True),
-                    key["scenes"])
+                    key["scenes"], gen.get("boxes", pd.DataFrame()))
     made_with = dag.recorded(p, dag.Node("select"))["params"]
     return sel, made_with

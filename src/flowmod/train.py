@@ -43,11 +43,11 @@ from flowmod.model import motion_resnet18, predict_logits, resolve_device
 
 HISTORY_COLUMNS = [
     "epoch", "train_loss", "val_loss", "val_f1", "val_precision", "val_recall", "lr", "seconds",
-    # a monitored set (the test split, for the protocol comparison only; never used to select):
-    # whole-set F1 and the original code's F1 (stills thinned 1 of 2, averaged per batch)
-    "monitor_f1", "monitor_paper_f1",
 ]
-CHECKPOINT_FORMAT = "flowmod-train-1"
+CHECKPOINT_FORMAT = "flowmod-train-2"
+#: Probabilities of the ``record`` crops after every epoch, (epochs, N) float32, never scored
+#: during training (chapter 07 uses them to show what the original protocol would report).
+EPOCH_PROBS = "epoch_probs.npy"
 
 
 class TrainingError(ValueError):
@@ -190,20 +190,13 @@ def _save(obj: Any, path: Path) -> None:
         torch.save(obj, tmp)
 
 
-def _monitor_scores(model: nn.Module, monitor: tuple[Any, pd.DataFrame] | None, label_col: str,
-                    batch_size: int, eval_batch_size: int, dev: torch.device,
-                    amp_mode: str | None) -> dict[str, float]:
-    """Whole-set and original-protocol F1 on the monitored set (NaN without one)."""
-    if monitor is None:
-        return {"monitor_f1": float("nan"), "monitor_paper_f1": float("nan")}
-    from flowmod.metrics import paper_protocol_f1, thin_still
-
-    y = monitor[1][label_col].to_numpy().astype(np.int64)
-    z = predict_logits(model, monitor[0], batch_size=eval_batch_size, device=dev, amp=amp_mode)
-    p = sigmoid(z)
-    keep = thin_still(y)
-    return {"monitor_f1": metrics(y, p)["f1"],
-            "monitor_paper_f1": paper_protocol_f1(y[keep], p[keep], batch_size)}
+def _append_probs(path: Path, epoch: int, probs: np.ndarray) -> None:
+    """Store ``probs`` as row ``epoch - 1`` of the (epochs, N) array at ``path`` (atomic; rows
+    of later epochs, left by a run that was resumed from an earlier checkpoint, dropped)."""
+    old = np.load(path) if path.is_file() else np.zeros((0, len(probs)), np.float32)
+    arr = np.concatenate([old[: epoch - 1], probs[None].astype(np.float32)])
+    with atomic_path(path) as tmp:
+        np.save(tmp, arr, allow_pickle=False)
 
 
 def _history_dict(rows: list[dict[str, Any]]) -> dict[str, list[Any]]:
@@ -248,7 +241,7 @@ def train_model(
     eval_batch_size: int = 256,
     resume: bool = True,
     progress: bool = True,
-    monitor: tuple[Any, pd.DataFrame] | None = None,
+    record: Any | None = None,
     desc: str = "train",
 ) -> pd.DataFrame:
     """Train motion_resnet18 on crops; select the epoch with the best validation F1.
@@ -259,9 +252,10 @@ def train_model(
     With ``resume`` and an ``out_dir/last.pt`` of the same settings, training continues
     after its last epoch (``epochs`` may be raised to train longer).
 
-    ``monitor`` (crops, index), e.g. the test split, is scored after every epoch only to
-    show what picking the epoch on the reported set would give (the original's protocol);
-    it never influences training or selection.
+    ``record`` (crops, e.g. the test split): their probabilities after every epoch are saved
+    to ``out_dir/epoch_probs.npy`` and never scored or looked at here, so that evaluation can
+    show afterwards what choosing the epoch on the reported set (the original's protocol)
+    would give; nothing of them influences training or selection.
 
     Returns the history (columns :data:`HISTORY_COLUMNS`; ``attrs`` best_epoch, best_f1),
     also written to ``out_dir/history.csv``. Weights: ``best.pt``, ``last.pt``.
@@ -375,9 +369,11 @@ def train_model(
                 "val_f1": m["f1"], "val_precision": m["precision"], "val_recall": m["recall"],
                 "lr": lr_now, "seconds": time.perf_counter() - t0,
             }
-            row.update(_monitor_scores(model, monitor, label_col, batch_size, eval_batch_size,
-                                       dev, amp_mode))
             rows.append(row)
+            if record is not None:
+                z_rec = predict_logits(model, record, batch_size=eval_batch_size, device=dev,
+                                       amp=amp_mode)
+                _append_probs(out / EPOCH_PROBS, epoch, sigmoid(z_rec))
             if m["f1"] > best_f1:  # strict: ties keep the earlier epoch
                 best_f1, best_epoch = m["f1"], epoch
                 _save(model.state_dict(), best_path)
@@ -404,48 +400,55 @@ def train_model(
 # --- the stage (notebook 06) ------------------------------------------------------------------
 
 
-def run(params: Any, progress: bool = True) -> dict[str, pd.DataFrame]:
-    """Build every stale ``train[<method>]`` node (:mod:`flowmod.dag`): one classifier per
-    flow method on its published train/val crops, Table 2 settings from the profile.
-    Returns ``{method: history}`` of the published models (``attrs`` best_epoch, best_f1)."""
+def run(params: Any, progress: bool = True) -> dict[str, list[pd.DataFrame]]:
+    """Build every stale ``train[<method>/s<k>]`` node (:mod:`flowmod.dag`): for each flow
+    method, ``seeds`` classifiers (seeds ``seed`` .. ``seed + seeds - 1``) on its published
+    train/val crops, Table 2 settings from the profile. Returns ``{method: [history per
+    seed]}`` of the published models (``attrs`` best_epoch, best_f1, seed)."""
     from flowmod import crops, dag
 
-    out = {}
+    out: dict[str, list[pd.DataFrame]] = {}
     for m in params.flow_methods:
-        b = dag.begin(params, dag.Node("train", m))
-        if not b.up_to_date:
-            q = b.params
-            folder = b.input_dir(dag.Node("crops", m, "keyframe"))
-            tx, tdf = crops.read_crops(folder, "train")
-            vx, vdf = crops.read_crops(folder, "val")
-            monitor = crops.read_crops(folder, "test")
-            h = train_model(
-                tx, tdf, vx, vdf, b.start(fresh=q.force), epochs=q.epochs, monitor=monitor,
-                batch_size=q.batch_size, lr=q.lr, momentum=q.momentum,
-                weight_decay=q.weight_decay, step_size=q.step_size, gamma=q.gamma,
-                hflip_p=q.hflip_p, num_workers=q.num_workers, seed=q.seed, device=q.device,
-                resume=True, progress=progress, desc=f"train {m}",
-            )
-            b.publish(best_epoch=int(h.attrs["best_epoch"]), best_f1=float(h.attrs["best_f1"]))
-        out[m] = history(params, m)
+        for k, part in enumerate(dag.seed_parts(params)):
+            b = dag.begin(params, dag.Node("train", m, part))
+            if not b.up_to_date:
+                q = b.params
+                folder = b.input_dir(dag.Node("crops", m, "keyframe"))
+                tx, tdf = crops.read_crops(folder, "train")
+                vx, vdf = crops.read_crops(folder, "val")
+                h = train_model(
+                    tx, tdf, vx, vdf, b.start(fresh=q.force), epochs=q.epochs,
+                    record=crops.read_crops(folder, "test")[0], batch_size=q.batch_size,
+                    lr=q.lr, momentum=q.momentum, weight_decay=q.weight_decay,
+                    step_size=q.step_size, gamma=q.gamma, hflip_p=q.hflip_p,
+                    num_workers=q.num_workers, seed=q.seed + k, device=q.device,
+                    amp=None if q.amp == "off" else q.amp, resume=True, progress=progress,
+                    desc=f"train {m} seed {q.seed + k}",
+                )
+                b.publish(best_epoch=int(h.attrs["best_epoch"]), best_f1=float(h.attrs["best_f1"]),
+                          seed=q.seed + k, amp=q.amp)
+            out.setdefault(m, []).append(history(params, m, part))
     return out
 
 
-def model_path(params: Any, method: str) -> Path:
-    """The published ``best.pt`` of ``method`` (state_dict of the best validation epoch)."""
+def model_path(params: Any, method: str, part: str = "s0") -> Path:
+    """The published ``best.pt`` of one training seed of ``method`` (state_dict of the best
+    validation epoch)."""
     from flowmod import dag
 
-    return dag.published(params, dag.Node("train", method)) / "best.pt"
+    return dag.published(params, dag.Node("train", method, part)) / "best.pt"
 
 
-def history(params: Any, method: str) -> pd.DataFrame:
-    """The published training history of ``method`` (``attrs`` best_epoch, best_f1)."""
+def history(params: Any, method: str, part: str = "s0") -> pd.DataFrame:
+    """The published training history of one seed of ``method`` (``attrs`` best_epoch,
+    best_f1, seed)."""
     from flowmod import dag
 
-    node = dag.Node("train", method)
+    node = dag.Node("train", method, part)
     rec = dag.recorded(params, node) or {}
     df = pd.read_csv(dag.published(params, node) / "history.csv")
-    df.attrs.update(best_epoch=rec.get("best_epoch"), best_f1=rec.get("best_f1"))
+    df.attrs.update(best_epoch=rec.get("best_epoch"), best_f1=rec.get("best_f1"),
+                    seed=rec.get("seed"))
     return df
 
 
@@ -462,5 +465,21 @@ def table2(params: Any) -> pd.DataFrame:
         ("Scheduler", "Gamma", params.gamma),
         ("Training", "Epochs", params.epochs),
         ("Training", "Horizontal flip p", params.hflip_p),
+        ("Training", "Seeds per flow method", params.seeds),
+        ("Training", "Mixed precision", params.amp),
         ("Input", "Crop size (px)", params.crop_size),
     ], columns=["Function", "Hyperparameter", "Setting"])
+
+
+def summary(histories: dict[str, list[pd.DataFrame]]) -> pd.DataFrame:
+    """One row per trained model: method, seed, chosen epoch, its validation F1 (%), the
+    last epoch's training loss and the seconds of training."""
+    rows = []
+    for m, hs in histories.items():
+        for h in hs:
+            best = h.attrs["best_epoch"]
+            rows.append({"method": m, "seed": h.attrs.get("seed"), "chosen epoch": best,
+                         "val F1 (%)": round(100 * float(h.attrs["best_f1"]), 1),
+                         "last train loss": round(float(h["train_loss"].iloc[-1]), 4),
+                         "training (s)": round(float(h["seconds"].sum()), 1)})
+    return pd.DataFrame(rows)

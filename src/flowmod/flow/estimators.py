@@ -93,14 +93,16 @@ class FarnebackFlow(FlowEstimator):
 class GTFlow(FlowEstimator):
     """The synthetic world's exact flow, from sample_data tokens (``flowmod.world.gt_flow``).
 
-    ``estimate_tokens(sd_token_1, sd_token_2) -> (H, W, 2) float32`` pixels. Pixels whose
-    flow the world marks invalid (leaving the image, occluded in frame 2) keep the flow of
-    their surface; non-finite values are set to 0. Use ``flowmod.world.gt_flow`` directly when
-    the valid mask is needed (evaluation).
+    ``estimate_tokens(sd_token_1, sd_token_2) -> (flow, valid)``: flow (H, W, 2) float32
+    pixels, finite everywhere (the point's motion wherever it goes; undefined pixels take
+    the nearest defined flow), and valid (H, W) bool: the point stays inside the image and
+    visible (:func:`flowmod.world.gt_flow`). The flow stage stores the mask beside the flow.
     """
 
     name = "gt"
     inputs = "tokens"
+    #: 2: the world's validity convention (issue 11): finite, physical values, stored mask.
+    code_version = 2
 
     def __init__(self, dataroot: str | os.PathLike[str], version: str) -> None:
         super().__init__(1.0)
@@ -120,11 +122,14 @@ class GTFlow(FlowEstimator):
 
         return importlib.import_module("flowmod.world")  # lazy: another stage, heavy import
 
-    def estimate_tokens(self, sd_token_1: str, sd_token_2: str) -> np.ndarray:
-        """Exact flow (H, W, 2) float32, pixels, from frame ``sd_token_1`` to ``sd_token_2``."""
-        flow, _valid = self._world().gt_flow(self.dataroot, self.version, sd_token_1, sd_token_2)
+    def estimate_tokens(self, sd_token_1: str, sd_token_2: str) -> tuple[np.ndarray, np.ndarray]:
+        """Exact flow (H, W, 2) float32 px and its valid mask (H, W) bool, frame
+        ``sd_token_1`` -> ``sd_token_2``."""
+        flow, valid = self._world().gt_flow(self.dataroot, self.version, sd_token_1, sd_token_2)
         flow = np.asarray(flow, dtype=np.float32)
-        return np.where(np.isfinite(flow), flow, np.float32(0.0))
+        if not np.isfinite(flow).all():
+            raise ValueError(f"gt flow {sd_token_1} -> {sd_token_2} has non-finite values")
+        return flow, np.asarray(valid, dtype=bool)
 
     def estimate(self, img1: np.ndarray, img2: np.ndarray) -> np.ndarray:
         raise TypeError(

@@ -118,7 +118,8 @@ def _missing_weights(method: str, param: str, what: str, cache_files: Sequence[s
 
 @register_estimator
 class RAFTFlow(_NetworkEstimator):
-    """RAFT (torchvision ``raft_large``); 12 flow updates by default.
+    """RAFT (torchvision ``raft_large``); 20 flow updates by default, as the original RAFT demo
+    and MotionDetection code run it (RAFT.forward's own default is 12).
 
     Weights: ``weights`` (path to a torchvision state_dict .pth or an original princeton-vl
     checkpoint, mapped by key), else the torchvision file in the TORCH_HOME hub cache
@@ -133,7 +134,7 @@ class RAFTFlow(_NetworkEstimator):
         self,
         weights: str | os.PathLike[str] | Mapping[str, Any] | None = None,
         *,
-        num_flow_updates: int = 12,
+        num_flow_updates: int = 20,
         device: Any = "auto",
         scale: float = 1.0,
         batch_size: int | None = None,
@@ -269,6 +270,8 @@ def estimator_options(params: Params, method: str) -> dict[str, Any]:
         value = getattr(params, param, None)
         opts["weights"] = params.path(value) if value else None
         opts["device"] = params.device
+        if method != "fastflownet":
+            opts["num_flow_updates"] = params.raft_iters
     return opts
 
 

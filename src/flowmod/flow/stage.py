@@ -45,7 +45,14 @@ from flowmod.flow.registry import (
     available_methods,
     read_image,
 )
-from flowmod.flow.store import _npy_header, _npy_ok, full_shape, load_stored_flow, store_flow
+from flowmod.flow.store import (
+    _npy_header,
+    _npy_ok,
+    full_shape,
+    load_stored_flow,
+    load_stored_valid,
+    store_flow,
+)
 from flowmod.progress import bar
 
 if TYPE_CHECKING:
@@ -187,9 +194,9 @@ def _one_token_pair(est: FlowEstimator, key: str, tok1: str, tok2: str, out: Pat
     if threads:
         cv2.setNumThreads(threads)
     t0 = time.perf_counter()
-    flow = est.estimate_tokens(tok1, tok2)  # type: ignore[attr-defined]
+    flow, valid = est.estimate_tokens(tok1, tok2)  # type: ignore[attr-defined]
     seconds = time.perf_counter() - t0
-    store_flow(out, flow, *storage)
+    store_flow(out, flow, *storage, valid=valid)
     return key, seconds, flow.shape
 
 
@@ -376,6 +383,10 @@ class FlowReader:
 
     def load(self, pair_id: str) -> np.ndarray:
         return load_stored_flow(self.path(pair_id), self.store_scale)
+
+    def load_valid(self, pair_id: str) -> np.ndarray | None:
+        """The stored valid mask (H, W) bool (``gt`` only), or None."""
+        return load_stored_valid(self.path(pair_id), self.store_scale)
 
 
 # --- what the flow shows (chapter 03) -------------------------------------------------------

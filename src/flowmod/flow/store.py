@@ -111,18 +111,56 @@ def full_shape(stored: tuple[int, ...], store_scale: float) -> tuple[int, int]:
     return int(round(stored[0] / store_scale)), int(round(stored[1] / store_scale))
 
 
+def valid_path(path: str | os.PathLike[str]) -> Path:
+    """Where the valid mask of the flow file ``path`` is kept (``<stem>.valid.npy``)."""
+    p = Path(path)
+    return p.with_name(p.stem + ".valid.npy")
+
+
 def store_flow(path: str | os.PathLike[str], flow: np.ndarray, dtype: str = "float16",
-               store_scale: float = 1.0) -> None:
-    """Save flow (H, W, 2) px at ``store_scale`` of its size (area-averaged), values kept in
-    pixels of the full image, so :func:`load_flow` can restore the full size."""
+               store_scale: float = 1.0, valid: np.ndarray | None = None) -> None:
+    """Save flow (H, W, 2) px at ``store_scale`` of its size, values kept in pixels of the
+    full image, so :func:`load_stored_flow` can restore the full size.
+
+    The reduction averages areas (cv2 INTER_AREA); with a ``valid`` mask (H, W) bool it
+    averages valid pixels only where a stored pixel covers any (invalid values never leak
+    into valid ones), and the mask is stored too (a stored pixel is valid when at least half
+    of its area is), written before the flow so a complete flow file always has its mask.
+    """
+    flow = np.asarray(flow, np.float32)
+    h, w = flow.shape[:2]
     if store_scale != 1.0:
-        h, w = flow.shape[:2]
         size = (int(round(h * store_scale)), int(round(w * store_scale)))
         if min(size) < 1 or full_shape(size, store_scale) != (h, w):
             raise ValueError(f"store_scale={store_scale} cannot store a {h}x{w} flow so that its "
                              "size is recovered; use a scale like 0.5 or 0.25")
-        flow = cv2.resize(np.asarray(flow, np.float32), size[::-1], interpolation=cv2.INTER_AREA)
+        area = cv2.resize(flow, size[::-1], interpolation=cv2.INTER_AREA)
+        if valid is not None:
+            m = np.asarray(valid, np.float32)
+            cover = cv2.resize(m, size[::-1], interpolation=cv2.INTER_AREA)
+            num = cv2.resize(flow * m[..., None], size[::-1], interpolation=cv2.INTER_AREA)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                area = np.where(cover[..., None] > 0, num / cover[..., None], area)
+            valid = cover >= 0.5
+        flow = area
+    if valid is not None:
+        with atomic_path(valid_path(path)) as tmp:
+            np.save(tmp, np.asarray(valid, dtype=bool), allow_pickle=False)
     save_flow_npy(path, flow, dtype)
+
+
+def load_stored_valid(path: str | os.PathLike[str], store_scale: float = 1.0
+                      ) -> np.ndarray | None:
+    """The valid mask stored beside the flow file ``path`` at full image size (nearest
+    neighbour), or None when the method has none (estimated flow)."""
+    vp = valid_path(path)
+    if not vp.is_file():
+        return None
+    m = np.load(vp, allow_pickle=False)
+    if store_scale == 1.0:
+        return m
+    h, w = full_shape(m.shape, store_scale)
+    return cv2.resize(m.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
 
 
 def load_stored_flow(path: str | os.PathLike[str], store_scale: float = 1.0) -> np.ndarray:

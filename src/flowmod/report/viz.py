@@ -217,19 +217,25 @@ def crop_gallery(x: np.ndarray, labels: np.ndarray, n: int = 8, seed: int = 0,
     return fig
 
 
-def training_curves(histories: dict[str, pd.DataFrame]) -> plt.Figure:
-    """Training loss, validation loss and validation F1 per epoch, one line per method."""
+def training_curves(histories: dict[str, list[pd.DataFrame]]) -> plt.Figure:
+    """Training loss, validation loss and validation F1 per epoch: one colour per method, one
+    line per training seed (the first seed solid, the others thin)."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.4))
-    for method, h in histories.items():
-        (line,) = axes[0].plot(h["epoch"], h["train_loss"], label=f"{method} train")
-        axes[0].plot(h["epoch"], h["val_loss"], ls="--", color=line.get_color(),
-                     label=f"{method} val")
-        axes[1].plot(h["epoch"], h["val_f1"], marker="o", ms=3, color=line.get_color(),
-                     label=method)
-        best = h.attrs.get("best_epoch")
-        if best:
-            axes[1].scatter([best], [h.loc[h["epoch"] == best, "val_f1"]], s=60,
-                            facecolors="none", edgecolors=line.get_color())
+    for i, (method, hs) in enumerate(histories.items()):
+        color = f"C{i}"
+        for k, h in enumerate(hs):
+            lw, alpha = (1.6, 1.0) if k == 0 else (0.8, 0.5)
+            lab = method if k == 0 else None
+            axes[0].plot(h["epoch"], h["train_loss"], color=color, lw=lw, alpha=alpha,
+                         label=f"{lab} train" if lab else None)
+            axes[0].plot(h["epoch"], h["val_loss"], ls="--", color=color, lw=lw, alpha=alpha,
+                         label=f"{lab} val" if lab else None)
+            axes[1].plot(h["epoch"], h["val_f1"], marker="o", ms=3, color=color, lw=lw,
+                         alpha=alpha, label=lab)
+            best = h.attrs.get("best_epoch")
+            if best:
+                axes[1].scatter([best], [h.loc[h["epoch"] == best, "val_f1"]], s=60,
+                                facecolors="none", edgecolors=color)
     axes[0].set(xlabel="epoch", ylabel="BCE loss", title="loss")
     axes[1].set(xlabel="epoch", ylabel="F1", title="validation F1 (circle: chosen epoch)",
                 ylim=(0, 1))

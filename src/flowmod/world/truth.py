@@ -87,9 +87,14 @@ def gt_flow(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Exact optical flow from frame 1 to frame 2 (any two CAM_FRONT frames of one scene).
 
-    Returns ``flow`` (900, 1600, 2) float32, pixels (u right, v down), frame1 -> frame2, and
-    ``valid`` (900, 1600) bool: False where the point leaves the image, goes behind the camera
-    or is hidden in frame 2. Sky pixels move with the camera rotation only (at infinity).
+    The convention of KITTI and Sintel: a pixel's flow is where the 3D point seen there in
+    frame 1 is in frame 2, wherever that is, inside the image or not, visible or hidden.
+    Returns ``flow`` (900, 1600, 2) float32, pixels (u right, v down), frame1 -> frame2,
+    finite everywhere, and ``valid`` (900, 1600) bool: the point stays inside the image and
+    is not hidden in frame 2 (score flow on these pixels only). Where the flow is undefined
+    (the point comes nearer than :data:`NEAR_FLOW_M` to camera 2, passes behind it, or moves
+    more than :data:`MAX_FLOW_PX`), ``valid`` is False and the value is that of the nearest
+    defined pixel (:func:`fill_undefined`). Sky pixels move with the camera rotation only.
     """
 
     key = _world_key(dataroot, version)
@@ -153,18 +158,40 @@ def flow_between(geo: Any, t1: float, t2: float) -> tuple[np.ndarray, np.ndarray
     u2 = p[0] / zs
     v2 = p[1] / zs
     vv, uu = np.divmod(np.arange(H * W), W)
-    flow = np.stack([np.where(front, u2 - uu, 0.0), np.where(front, v2 - vv, 0.0)], axis=1)
-    inside = front & (u2 >= -0.5) & (u2 <= W - 0.5) & (v2 >= -0.5) & (v2 <= H - 0.5)
-    ui = np.clip(np.round(u2), 0, W - 1).astype(np.int64)
-    vi = np.clip(np.round(v2), 0, H - 1).astype(np.int64)
+    du, dv = u2 - uu, v2 - vv
+    iz_pt = np.where(front, rho / zs, 0.0)  # inverse depth in frame 2 (0: at infinity)
+    defined = front & (iz_pt <= 1.0 / NEAR_FLOW_M) & (np.hypot(du, dv) <= MAX_FLOW_PX)
+    inside = defined & (u2 >= -0.5) & (u2 <= W - 0.5) & (v2 >= -0.5) & (v2 <= H - 0.5)
+    ui = np.clip(np.round(np.where(defined, u2, 0.0)), 0, W - 1).astype(np.int64)
+    vi = np.clip(np.round(np.where(defined, v2, 0.0)), 0, H - 1).astype(np.int64)
     tgt = vi * W + ui
-    iz_pt = np.where(front, rho / zs, 0.0)
     iz_buf = f2.invz.ravel()[tgt].astype(np.float64)
     sid_buf = f2.sid.ravel()[tgt]
     same = sid_buf == sid
     occluded = np.where(same, iz_buf > iz_pt * 1.02 + 6e-4, iz_buf > iz_pt * 1.003 + 1e-5)
     valid = inside & ~occluded
-    return flow.reshape(H, W, 2).astype(np.float32), valid.reshape(H, W)
+    flow = np.stack([du, dv], axis=1).reshape(H, W, 2)
+    return fill_undefined(flow, defined.reshape(H, W)), valid.reshape(H, W)
+
+
+#: Flow is undefined for points that come nearer than this to camera 2 (m) ...
+NEAR_FLOW_M = 0.3
+#: ... or move farther than this in the image (px): such points pass by or behind the camera.
+MAX_FLOW_PX = 3200.0
+
+
+def fill_undefined(flow: np.ndarray, defined: np.ndarray) -> np.ndarray:
+    """(H, W, 2) float32 flow whose undefined pixels take the flow of the nearest defined
+    pixel, so that every value is finite and physical (the stored ``gt`` flow)."""
+    flow = np.asarray(flow, dtype=np.float64)
+    if defined.all():
+        return flow.astype(np.float32)
+    if not defined.any():
+        return np.zeros(flow.shape, np.float32)
+    from scipy.ndimage import distance_transform_edt
+
+    iy, ix = distance_transform_edt(~defined, return_distances=False, return_indices=True)
+    return flow[iy, ix].astype(np.float32)
 
 
 def true_velocity(
