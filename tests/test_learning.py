@@ -323,6 +323,46 @@ def test_flips_are_used_in_training_only(data, run_a, tmp_path) -> None:
                                rtol=1e-5, atol=1e-6)
 
 
+def test_training_batches_are_flipped_with_u_negated(data, tmp_path, monkeypatch) -> None:
+    """Inside the training loop: each batch the model sees is the plan's crops, and exactly
+    the planned ones mirrored with u negated (the original flipped without negating u)."""
+    import flowmod.train as tr
+
+    tx, tdf, vx, vdf = data
+    seen: list[torch.Tensor] = []
+
+    def recording_model():
+        model = motion_resnet18()
+        model.register_forward_pre_hook(
+            lambda mod, args: seen.append(args[0].detach().clone()) if mod.training else None)
+        return model
+
+    monkeypatch.setattr(tr, "motion_resnet18", recording_model)
+    train_model(tx, tdf, vx, vdf, tmp_path, **{**KW, "epochs": 1, "hflip_p": 0.5})
+    batches, flips = epoch_plan(len(tx), KW["batch_size"], 0.5, KW["seed"], 1)
+    assert len(seen) == len(batches) and flips.any() and not flips.all()
+    pos = 0
+    for got, idx in zip(seen, batches, strict=True):
+        want = torch.from_numpy(tx[idx].astype(np.float32))
+        fl = torch.from_numpy(flips[pos : pos + len(idx)])
+        pos += len(idx)
+        want[fl] = torch.flip(want[fl], dims=(-1,))
+        want[fl, 0] = -want[fl, 0]
+        torch.testing.assert_close(got, want, rtol=0, atol=0)
+
+
+def test_record_stores_unscored_probabilities_per_epoch(data, tmp_path) -> None:
+    from flowmod.train import EPOCH_PROBS
+
+    tx, tdf, vx, vdf = data
+    hist = train_model(tx, tdf, vx, vdf, tmp_path, record=vx, **KW)
+    probs = np.load(tmp_path / EPOCH_PROBS)
+    assert probs.shape == (2, len(vx)) and ((probs >= 0) & (probs <= 1)).all()
+    assert not any(c.startswith(("monitor", "test")) for c in hist.columns), "no test scores"
+    last = predict(load_model(tmp_path / "last.pt"), vx, device="cpu")
+    np.testing.assert_allclose(probs[-1], last, atol=1e-6)
+
+
 def test_dataset_reopens_memmaps_in_workers(tmp_path) -> None:
     import pickle
 

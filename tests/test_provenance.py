@@ -209,7 +209,7 @@ def test_reruns_recompute_exactly_what_changed_and_match_a_fresh_run(finished, t
         direct = {n for n in dag.nodes(p) if name in dag.reads(n)}
         assert rerun(p) == downstream(p, direct), name
     # the crop change retrained the models and chapter 07 scores the new ones
-    rec = dag.recorded(p, dag.Node("train", "dis"))
+    rec = dag.recorded(p, dag.Node("train", "dis", "s0"))
     assert rec["inputs"]["crops[dis/keyframe]"] == dag.recorded(
         p, dag.Node("crops", "dis", "keyframe"))["fingerprint"]
     # the same parameters from scratch (same world) give the same numbers

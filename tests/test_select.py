@@ -207,3 +207,36 @@ def test_missing_images_error_or_skip(tmp_path, smoke_world, smoke_params):
     skipped = select.select(p.model_copy(update={"missing_images": "skip"}), progress=False)
     assert victim not in set(skipped.pairs["path_1"]) | set(skipped.pairs["path_2"])
     assert len(skipped.pairs) < len(sel.pairs)
+
+
+def test_generalisation_boxes_and_labels_against_the_devkit(smoke_nusc, selection):
+    """Frame-1 boxes are the devkit's interpolated 3D boxes projected (min/max of the 8
+    corners); labels are equation 1 between the previous keyframe and the next one."""
+    from nuscenes.utils.geometry_utils import BoxVisibility, view_points
+
+    nusc = smoke_nusc
+    gen = selection.objects[selection.objects["set"] == "general"]
+    pairs = selection.pairs.set_index("pair_id")
+    assert len(gen) > 0
+    for pid, objs in gen.groupby("pair_id"):
+        sd = nusc.get("sample_data", pairs.loc[pid, "sd_token_1"])
+        _, boxes, K = nusc.get_sample_data(sd["token"], box_vis_level=BoxVisibility.ALL)
+        by_inst = {nusc.get("sample_annotation", b.token)["instance_token"]: b for b in boxes}
+        sample = nusc.get("sample", sd["sample_token"])  # a sweep points to the next sample
+        prev = sample if sd["is_key_frame"] else nusc.get("sample", sample["prev"])
+        nxt = nusc.get("sample", prev["next"])
+        for o in objs.itertuples():
+            c = view_points(by_inst[o.instance_token].corners(), K, normalize=True)
+            np.testing.assert_allclose([o.xmin, o.ymin, o.xmax, o.ymax],
+                                       [c[0].min(), c[1].min(), c[0].max(), c[1].max()],
+                                       atol=1e-6)
+            a1, a2 = (next(nusc.get("sample_annotation", t) for t in s["anns"]
+                           if nusc.get("sample_annotation", t)["instance_token"]
+                           == o.instance_token) for s in (prev, nxt))
+            v = (np.array(a2["translation"]) - a1["translation"]) / (
+                (nxt["timestamp"] - prev["timestamp"]) / 1e6)
+            assert o.speed == pytest.approx(np.linalg.norm(v))
+            assert o.label == int(np.linalg.norm(v) >= 2.0)
+    boxes = selection.boxes
+    assert set(boxes["pair_id"]) == set(gen["pair_id"])
+    assert len(boxes) > len(gen), "every annotated object of the frame, not only the targets"

@@ -402,7 +402,9 @@ def test_difficulty_report_is_cached_per_world_and_threshold(smoke_world, smoke_
                         lambda *a, **k: calls.append(k) or real(*a, **k))
     first = wrep.difficulty_report(p, smoke_nusc)
     again = wrep.difficulty_report(p, smoke_nusc)
-    assert len(calls) == 1 and first == again and 0.0 <= first["f1_raw_vs_true"] <= 1.0
+    assert len(calls) == 1 and first == again and first["n_objects"] > 0
+    # the world's difficulty target: the naive rule on exact flow stays well below a model
+    assert first["f1_raw_vs_true"] <= 0.80, first
     wrep.difficulty_report(p.model_copy(update={"speed_threshold": 3.0}), smoke_nusc)
     assert len(calls) == 2 and calls[-1]["speed_threshold"] == 3.0
 

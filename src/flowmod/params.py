@@ -174,7 +174,7 @@ class Params(BaseModel):
     n_jobs: int = _field(2, ge=1, le=64, role="run", description="parallel CPU workers")
 
     # --- crops and learning (Table 2) --------------------------------------------------
-    crop_size: int = _field(64, ge=16, le=512, read_by=("crops",),
+    crop_size: int = _field(48, ge=16, le=512, read_by=("crops",),
                             description="px, side of the resized crop (224)")
     crop_scale: float = _field(3.0, ge=1.0, le=10.0, read_by=("crops",),
                                description="crop side / box side")

@@ -72,6 +72,10 @@ def notebook_parameters(nb: Path, p: Params) -> dict[str, Any]:
     return {k: values[k] for k in declared}
 
 
+#: Terminal control sequences (tqdm moves the cursor for nested bars).
+_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+
+
 @contextlib.contextmanager
 def _echo_progress(path: Path, name: str, every: float = 10.0) -> Iterator[None]:
     """Point :mod:`flowmod.progress` at ``path`` and echo its latest bar to the terminal: when
@@ -91,7 +95,7 @@ def _echo_progress(path: Path, name: str, every: float = 10.0) -> Iterator[None]
                 chunk = f.read()
                 pos = f.tell()
             latest: dict[str, str] = {}  # each bar's last state in this chunk, in order
-            for seg in re.split(r"[\r\n]", chunk):
+            for seg in re.split(r"[\r\n]", _ANSI.sub("", chunk)):
                 if seg.strip():
                     latest[seg.split(":", 1)[0].strip()] = seg.strip()
             now = time.monotonic()

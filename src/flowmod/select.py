@@ -477,6 +477,13 @@ def select_keyframes(p: Params, nusc=None, progress: bool = True) -> Selection:
                          prefer_test=kept.loc[kept["has_sweeps"], "scene"], groups=groups)
     scenes["split"] = scenes["scene"].map(split).fillna("excluded")
     scenes["split_unit"] = unit
+    empty = [s for s in SPLITS if s not in set(split.values())]
+    if empty:
+        raise SelectionError(
+            f"split(s) {empty} got no scene: {len(kept)} kept scenes in "
+            f"{len(set(groups.values()))} {unit}(s) cannot fill train, val and test "
+            f"(split_fractions={p.split_fractions}); use more scenes or other fractions"
+        )
     kept = scenes[scenes["split"] != "excluded"]
     pairs, objects = keyframe_set(nusc, kept, p, progress)
     if objects.empty:
