@@ -16,7 +16,6 @@ import shlex
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 from flowmod import dag
 from flowmod.artefacts import write_json
