@@ -211,15 +211,19 @@ def paired_comparison(y_true: Any, prob_a: Any, prob_b: Any, groups: Any, n: int
 
 def breakdown(
     df: pd.DataFrame, y_true: Any, y_prob: Any, by: str = "category", *,
-    bins: Sequence[float] | None = None, threshold: float = 0.5,
+    bins: Sequence[float] | None = None, threshold: float = 0.5, groups: Any = None,
+    n_boot: int = 1000, seed: int = 0,
 ) -> pd.DataFrame:
     """Metrics per group of objects: one row per value of ``df[by]``.
 
     ``by='distance'`` groups by distance bins (m, default :data:`DISTANCE_BINS`; empty bins
-    dropped); any other column groups by its values. Columns: the group, n, n_moving,
-    precision, recall, f1, accuracy.
+    dropped); any other column groups by its values. y_prob: (N,) or (S, N) for S training
+    seeds (scores are means over seeds). With ``groups`` (the scene of each object), each
+    row also gets the scene-level 95 % interval of its F1 (``ci_lo``, ``ci_hi``) and its
+    number of scenes. Columns: the group, n, n_moving, precision, recall, f1, accuracy
+    (and ci_lo, ci_hi, scenes).
     """
-    y, _ = _binary(y_true, y_prob, threshold)
+    y, probs = _as_models(y_true, y_prob)
     if len(df) != len(y):
         raise ValueError(f"df has {len(df)} rows but y_true has {len(y)} values")
     if by not in df.columns:
@@ -230,14 +234,23 @@ def breakdown(
         edges = list(DISTANCE_BINS if bins is None else bins)
         key = pd.cut(df[by].to_numpy(dtype=float), edges, right=False)
         name = f"{by}_bin"
-    p = np.asarray(y_prob, dtype=np.float64)
+    g = None if groups is None else np.asarray(groups).reshape(-1)
+    cols = [name, "n", "n_moving", "precision", "recall", "f1", "accuracy"]
     rows = []
-    for g, idx in pd.Series(np.arange(len(y))).groupby(key, observed=True, sort=True):
-        m = metrics(y[idx.to_numpy()], p[idx.to_numpy()], threshold)
-        rows.append({name: str(g), "n": m["n"], "n_moving": m["n_moving"],
-                     **{k: m[k] for k in ("precision", "recall", "f1", "accuracy")}})
-    return pd.DataFrame(rows, columns=[name, "n", "n_moving", "precision", "recall", "f1",
-                                       "accuracy"])
+    for k, idx in pd.Series(np.arange(len(y))).groupby(key, observed=True, sort=True):
+        i = idx.to_numpy()
+        ms = [metrics(y[i], p[i], threshold) for p in probs]
+        row = {name: str(k), "n": len(i), "n_moving": int(y[i].sum()),
+               **{m: float(np.mean([x[m] for x in ms]))
+                  for m in ("precision", "recall", "f1", "accuracy")}}
+        if g is not None:
+            row["ci_lo"], row["ci_hi"] = bootstrap_f1_ci(y[i], probs[:, i], g[i], n_boot, seed,
+                                                         threshold)
+            row["scenes"] = int(len(np.unique(g[i])))
+        rows.append(row)
+    if g is not None:
+        cols += ["ci_lo", "ci_hi", "scenes"]
+    return pd.DataFrame(rows, columns=cols)
 
 
 def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:

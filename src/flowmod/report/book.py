@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -68,6 +69,71 @@ def check_executed(nb_path: Path) -> None:
             raise BookError(f"{nb_path} holds an error output; fix it and rerun `make run`")
         if cell.get("source", "").strip() and cell.get("execution_count") is None:
             raise BookError(f"{nb_path} has cells that never ran; rerun `make run`")
+
+
+_DECLARED = re.compile(r"^(\w+)\s*:\s*[^=]+=\s*(.*?)\s*#\s*(.*)$")
+
+
+def declared_comments(source: str) -> dict[str, str]:
+    """``{name: comment}`` of a ``parameters`` cell's typed, commented assignments."""
+    out = {}
+    for line in source.splitlines():
+        m = _DECLARED.match(line.strip())
+        if m:
+            out[m.group(1)] = m.group(3)
+    return out
+
+
+def injected_values(source: str) -> dict[str, Any]:
+    """``{name: value}`` of papermill's injected-parameters cell (``name = literal``)."""
+    import ast
+
+    out: dict[str, Any] = {}
+    for node in ast.parse(source).body:
+        if isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Name):
+            out[node.targets[0].id] = ast.literal_eval(node.value)
+    return out
+
+
+def parameters_html(values: dict[str, Any], comments: dict[str, str]) -> str:
+    """One collapsed block: every parameter this chapter ran with, its value and meaning."""
+    import html
+
+    rows = "".join(
+        f"<tr><td><code>{html.escape(k)}</code></td>"
+        f"<td><code>{html.escape(json.dumps(v))}</code></td>"
+        f"<td>{html.escape(comments.get(k, ''))}</td></tr>" for k, v in values.items())
+    return (f'<details class="flowmod-parameters"><summary>The {len(values)} parameters this '
+            "chapter ran with (injected by papermill; the profile's values and overrides)"
+            "</summary>\n<table><thead><tr><th>parameter</th><th>value</th><th>meaning</th>"
+            f"</tr></thead><tbody>{rows}</tbody></table></details>")
+
+
+def for_the_page(nb: nbformat.NotebookNode) -> nbformat.NotebookNode:
+    """An executed notebook as the book shows it: the declared ``parameters`` cell removed
+    and papermill's injected cell replaced by one collapsed table of the values that ran,
+    explained by the declared comments. Cells tagged ``remove-cell`` / ``remove-input`` are
+    hidden by myst-nb itself."""
+    comments: dict[str, str] = {}
+    cells = []
+    for cell in nb.cells:
+        tags = cell.get("metadata", {}).get("tags", [])
+        if "parameters" in tags:
+            comments = declared_comments(cell.source)
+            continue
+        if "injected-parameters" in tags:
+            cell = nbformat.v4.new_markdown_cell(
+                parameters_html(injected_values(cell.source), comments))
+        cells.append(cell)
+    out = nbformat.from_dict(dict(nb))
+    out.cells = cells
+    return out
+
+
+def _write_if_changed(path: Path, text: str) -> None:
+    """Write ``text`` unless ``path`` holds it already (Sphinx rebuilds only what changed)."""
+    if not (path.is_file() and path.read_text() == text):
+        path.write_text(text)
 
 
 def reproduce_page(info: dict[str, Any]) -> str:
@@ -151,17 +217,32 @@ def assemble(executed: Path, staging: Path) -> dict[str, Any]:
             f"notebooks not executed in this run: {', '.join(missing)}; run `make run` "
             "(all notebooks) before `make book`"
         )
-    if staging.exists():
-        shutil.rmtree(staging)
-    shutil.copytree(repo_root() / "book", staging)
+    _sync(repo_root() / "book", staging, keep={nb.name for nb in sources} | {"reproduce.md"})
     for nb in sources:
         done = executed / nb.name
         if not done.is_file():
             raise BookError(f"{done} is missing; rerun `make run`")
         check_executed(done)
-        shutil.copy2(done, staging / nb.name)
-    (staging / "reproduce.md").write_text(reproduce_page(info))
+        page = for_the_page(nbformat.read(str(done), as_version=4))
+        _write_if_changed(staging / nb.name, nbformat.writes(page))
+    _write_if_changed(staging / "reproduce.md", reproduce_page(info))
     return info
+
+
+def _sync(src: Path, dst: Path, keep: set[str]) -> None:
+    """Make ``dst`` a copy of ``src`` (plus the files named in ``keep``), touching only files
+    whose content differs, so that Sphinx rebuilds only pages that changed."""
+    dst.mkdir(parents=True, exist_ok=True)
+    wanted = {p.relative_to(src) for p in src.rglob("*") if p.is_file()}
+    for rel in wanted:
+        target = dst / rel
+        if not (target.is_file() and target.read_bytes() == (src / rel).read_bytes()):
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src / rel, target)
+    for p in sorted(dst.rglob("*"), reverse=True):
+        rel = p.relative_to(dst)
+        if p.is_file() and rel not in wanted and str(rel) not in keep:
+            p.unlink()
 
 
 def build(executed: Path, out: Path, staging: Path | None = None) -> Path:
@@ -176,18 +257,14 @@ def build(executed: Path, out: Path, staging: Path | None = None) -> Path:
             "`make env` (it runs `npm install --prefix build/vendor mathjax@3`)"
         )
     extra = staging.parent / "book-extra"
-    if extra.exists():
-        shutil.rmtree(extra)
-    shutil.copytree(es5, extra / "_vendor" / "mathjax")
+    _sync(es5, extra / "_vendor" / "mathjax", keep=set())
     env = {**os.environ, "FLOWMOD_MATHJAX_EXTRA": str(extra)}
     # videos (and their posters) that notebooks show as raw HTML under media/
     media = Path(info["parameters"]["run_dir"])
     media = (media if media.is_absolute() else repo_root() / media) / "figures" / "media"
     if media.is_dir():
         pages_extra = staging.parent / "book-media"
-        if pages_extra.exists():
-            shutil.rmtree(pages_extra)
-        shutil.copytree(media, pages_extra / "media")
+        _sync(media, pages_extra / "media", keep=set())
         env["FLOWMOD_PAGES_EXTRA"] = str(pages_extra)
     cmd = [sys.executable, "-m", "sphinx", "-W", "-n", "--keep-going", "-q", "-b", "html",
            str(staging), str(out)]

@@ -303,16 +303,45 @@ def confusion_and_pr(results: dict[str, pd.DataFrame], threshold: float = 0.5) -
     return fig
 
 
-def f1_by(tables: dict[str, pd.DataFrame], key: str, xlabel: str) -> plt.Figure:
-    """F1 per group (e.g. distance bin) for each method, from :func:`evaluate.breakdown`."""
-    fig, ax = plt.subplots(figsize=(7, 3.2))
-    for name, t in tables.items():
-        ax.plot(t[key].astype(str), t["f1"], marker="o", label=name)
-    ax.set(xlabel=xlabel, ylabel="F1", ylim=(0, 1.02))
-    ax.legend(fontsize=7)
-    ax.tick_params(axis="x", labelrotation=30, labelsize=8)
+def f1_by(tables: dict[str, pd.DataFrame], key: str, xlabel: str, min_n: int = 10
+          ) -> plt.Figure:
+    """F1 per group (e.g. distance bin) for each method, from :func:`metrics.breakdown`:
+    the scene-level 95 % interval as error bars (when the table has one) and the number of
+    objects under each point; groups with fewer than ``min_n`` objects are drawn hollow and
+    grey, so an almost empty bin is not read as a failure."""
+    fig, ax = plt.subplots(figsize=(7.5, 3.6))
+    names = list(tables)
+    width = 0.12
+    for j, (name, t) in enumerate(tables.items()):
+        x = np.arange(len(t)) + (j - (len(names) - 1) / 2) * width
+        ok = t["n"].to_numpy() >= min_n
+        f1 = t["f1"].to_numpy()
+        if "ci_lo" in t:
+            err = np.stack([f1 - t["ci_lo"].to_numpy(), t["ci_hi"].to_numpy() - f1])
+            ax.errorbar(x[ok], f1[ok], yerr=err[:, ok], fmt="o", ms=4, capsize=2,
+                        color=f"C{j}", label=name)
+        else:
+            ax.plot(x[ok], f1[ok], "o", ms=4, color=f"C{j}", label=name)
+        ax.plot(x[~ok], f1[~ok], "o", ms=4, mfc="none", color="0.6")
+    first = next(iter(tables.values()))
+    ax.set_xticks(np.arange(len(first)), [
+        f"{k}\nn={n}" for k, n in zip(first[key].astype(str), first["n"], strict=True)])
+    ax.set(xlabel=xlabel, ylabel="F1", ylim=(-0.02, 1.05))
+    ax.legend(fontsize=7, title=f"hollow grey: fewer than {min_n} objects", title_fontsize=7)
+    ax.tick_params(axis="x", labelsize=7)
     fig.tight_layout()
     return fig
+
+
+def table(df: pd.DataFrame, precision: int = 1) -> Any:
+    """A table as the book shows it: no index column, numbers right-aligned and rounded to
+    ``precision`` decimals (units belong in the column names)."""
+    numeric = [c for c in df.columns if pd.api.types.is_numeric_dtype(df[c])
+               and not pd.api.types.is_bool_dtype(df[c])]
+    floats = [c for c in numeric if pd.api.types.is_float_dtype(df[c])]
+    return (df.style.hide(axis="index")
+            .format(precision=precision, subset=floats)
+            .set_properties(subset=numeric, **{"text-align": "right"}))
 
 
 def scene_clip(dataroot: str | Path, pairs: pd.DataFrame, preds: pd.DataFrame, load_flow,
@@ -357,3 +386,49 @@ def example_frames(sel: Any, dataroot: str | Path, n: int = 4, seed: int = 0,
         images.append(draw_boxes(img, boxes, label_colors(obj["label"]), texts))
         titles.append(f"{row.pair_id} ({len(obj)} targets)")
     return images, titles
+
+
+def color_wheel(size: int = 101) -> np.ndarray:
+    """(size, size, 3) uint8 RGB legend of the flow colour code: the colour of a flow
+    vector pointing from the centre to each pixel, full saturation at the rim."""
+    from flowmod.flow import flow_to_color
+
+    r = np.linspace(-1.0, 1.0, size, dtype=np.float32)
+    u, v = np.meshgrid(r, r)
+    inside = np.hypot(u, v) <= 1.0
+    wheel = flow_to_color(np.stack([u * inside, v * inside], axis=-1), max_flow=1.0)
+    wheel[~inside] = 255
+    return wheel
+
+
+def flow_figure(image: np.ndarray, flows: dict[str, np.ndarray], valid: np.ndarray | None = None,
+                percentile: float = 95.0) -> tuple[plt.Figure, float]:
+    """Figure 1: frame 1 (BGR) and each method's flow on one colour scale, with the colour
+    wheel as legend. The scale is the ``percentile`` of the flow magnitude over the pixels
+    where the flow is defined and visible (``valid``, from the exact flow, else all), pooled
+    over methods, so that one method's outliers do not wash out the others. Returns the
+    figure and the scale (px at full saturation)."""
+    from flowmod.flow import flow_to_color
+
+    sel = valid if valid is not None else np.ones(image.shape[:2], bool)
+    mags = np.concatenate([np.hypot(f[..., 0], f[..., 1])[sel] for f in flows.values()])
+    vmax = float(max(np.percentile(mags, percentile), 1e-3))
+    n = len(flows) + 1
+    ncols = 2
+    nrows = int(np.ceil(n / ncols))
+    h, w = image.shape[:2]
+    fig, axes = plt.subplots(nrows, ncols, figsize=(13, 13 / ncols * h / w * nrows + 0.5),
+                             squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    panels = [("frame 1", image[..., ::-1])] + [
+        (name, flow_to_color(f, max_flow=vmax)) for name, f in flows.items()]
+    for ax, (title, img) in zip(axes.ravel(), panels, strict=False):
+        ax.imshow(img)
+        ax.set_title(title, fontsize=9)
+    inset = axes.ravel()[1].inset_axes([0.84, 0.02, 0.15, 0.15 * w / h])
+    inset.imshow(color_wheel())
+    inset.set_title(f"{vmax:.0f} px", fontsize=7, pad=1)
+    inset.axis("off")
+    fig.tight_layout()
+    return fig, vmax
