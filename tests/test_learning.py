@@ -284,7 +284,7 @@ def test_seed_summary_and_paired_comparison() -> None:
     assert 0 < d["ci"][0] <= d["ci"][1] and d["p_not_better"] == 0.0
     t3 = ev.table3([{"method": "two seeds", **s}])
     assert t3.loc[0, "F1 (%)"] == round(100 * s["f1"], 1)
-    assert t3.loc[0, "F1 range over seeds (%)"] == f"{100 * f_half:.1f}-100.0"
+    assert t3.loc[0, "seed range (%)"] == f"{100 * f_half:.1f}-100.0"
     assert (t3.loc[0, "scenes"], t3.loc[0, "objects"], t3.loc[0, "vehicles"]) == (2, 8, 3)
     cmp = ev.comparison_table({"good - half": d})
     assert cmp.loc[0, "ΔF1 (points)"] == round(100 * (1 - f_half), 1)

@@ -131,6 +131,21 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
     assert g8["n_general"] == (evaluate.results(p, "dis", "general")[0]["distance"]
                                <= p.general_max_distance).sum()
     assert g2["split_unit"] == "scene", "a generated world is split by scene"
+    # chapter 09: the recorded signal and recalls, recomputed
+    from flowmod import extensions, select
+
+    g9 = glue_of(smoke_run, "09_blind_spots")
+    sel, _ = select.load(p)
+    pairs = sel.pairs[sel.pairs["set"] == "keyframe"]
+    f = float(np.median([k[0] for k in pairs["intrinsic"]]))
+    dt = float(np.median(pairs["timestamp_2"] - pairs["timestamp_1"])) / 1e6
+    radial = extensions.physical_signal(f, dt)["radial: width change (px)"].iloc[1]
+    assert g9["radial_px_50"] == round(float(radial), 2)
+    df = extensions.motion_geometry(evaluate.results(p, "dis")[0], sel.pairs)
+    blind = extensions.blind_spots(df, evaluate.seed_probs(df), df["scene"].to_numpy())
+    slow, _fast = extensions.recall_slow_and_fast(blind)
+    assert (g9["recall_slow_dis"] == "nan") if np.isnan(slow) else (
+        g9["recall_slow_dis"] == round(100 * slow, 1))
     media = smoke_run["base"] / "runs" / "figures" / "media"
     assert any(media.glob("*.mp4")) and any(media.glob("*-strip.png"))
 
@@ -260,3 +275,30 @@ def test_paper_profile_runs_on_a_devkit_dataset_by_parameters_only(smoke_world, 
     assert "true_agreement" not in book.read_glue(tmp_path / "executed" / "04_labeling.ipynb")
     g7 = book.read_glue(tmp_path / "executed" / "07_evaluation.ipynb")
     assert g7["headline_method"] == "dis" and "test_f1_gt" not in g7
+
+
+def test_try_it_commands_run(smoke_run, tmp_path):
+    """Every chapter's "Try it" command, as a reader would type it, on a copy of the smoke run
+    (``--profile demo`` becomes ``--profile smoke``), so that they never rot."""
+    import shlex
+    import shutil
+    import subprocess
+    import sys
+
+    from test_sources import try_it_commands
+
+    base = smoke_run["base"]
+    for name in ("runs", "data", "executed"):
+        shutil.copytree(base / name, tmp_path / name, symlinks=True)
+    for nb in runner.notebooks():
+        for cmd in try_it_commands(nb):
+            args = [sys.executable if a == ".venv/bin/python" else "smoke" if a == "demo" else a
+                    for a in shlex.split(cmd)]
+            args += ["--set", f"run_dir={tmp_path / 'runs'}", "--set",
+                     f"dataroot={tmp_path / 'data'}", "--out", str(tmp_path / "executed")]
+            proc = subprocess.run(args, capture_output=True, text=True, timeout=900)
+            assert proc.returncode == 0, f"{cmd}\n{proc.stdout[-1500:]}\n{proc.stderr[-1500:]}"
+            if "--status" in cmd:
+                assert "stale" in proc.stdout or "missing" in proc.stdout, proc.stdout
+            else:
+                assert " ok (" in proc.stdout, proc.stdout

@@ -97,12 +97,6 @@ def test_paths_resolve_against_repo_root():
     assert str(p.dataroot_path) == "/abs/data"
 
 
-def test_subset_hash_changes_only_with_named_keys():
-    a, b = validate({"epochs": 3}), validate({"epochs": 4})
-    assert params.subset_hash(a, ["crop_size"]) == params.subset_hash(b, ["crop_size"])
-    assert params.subset_hash(a, ["epochs"]) != params.subset_hash(b, ["epochs"])
-
-
 def test_cli_rejects_a_bad_profile_before_work(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text(yaml.safe_dump({"profile": "bad", "min_distance": 90.0}))

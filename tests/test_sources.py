@@ -111,3 +111,62 @@ def test_notebook_declares_every_parameter_its_stages_read(nb_path):
             assert "flow_methods" in declared, f"{nb_path.name} builds {node}: flow_methods"
         if node.stage in ("train", "evaluate", "generalise"):
             assert "seeds" in declared, f"{nb_path.name} builds {node}: declare seeds"
+
+
+#: Widest code line the book's page shows without cutting it (sphinx-book-theme at 1280 px).
+MAX_LINE = 76
+
+
+def _shown_code_cells(nb):
+    for i, cell in enumerate(nb.cells):
+        tags = cell.metadata.get("tags", [])
+        if cell.cell_type == "code" and not {"parameters", "remove-cell", "remove-input"} & set(
+                tags):
+            yield i, cell
+
+
+@pytest.mark.parametrize("nb_path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_code_on_the_page_fits_its_width(nb_path):
+    nb = nbformat.read(nb_path, as_version=4)
+    for i, cell in _shown_code_cells(nb):
+        for line in cell.source.splitlines():
+            assert len(line) <= MAX_LINE, f"{nb_path.name} cell {i}: {len(line)} chars: {line}"
+
+
+@pytest.mark.parametrize("nb_path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_figures_have_captions_and_bookkeeping_is_hidden(nb_path):
+    import ast
+
+    nb = nbformat.read(nb_path, as_version=4)
+    for i, cell in enumerate(nb.cells):
+        if cell.cell_type != "code" or "parameters" in cell.metadata.get("tags", []):
+            continue
+        if "viz.show(" in cell.source:
+            caption = cell.metadata.get("mystnb", {}).get("figure", {}).get("caption", "")
+            assert len(caption.split()) >= 8, f"{nb_path.name} cell {i}: a figure needs a caption"
+            assert cell.source.count("viz.show(") == 1, f"{nb_path.name} cell {i}: one figure"
+        body = ast.parse(cell.source).body
+        shows_nothing = (not body or not isinstance(body[-1], ast.Expr)) and (
+            "display(" not in cell.source)
+        if "glue(" in cell.source and shows_nothing and "viz.show(" not in cell.source:
+            assert "remove-cell" in cell.metadata.get("tags", []), (
+                f"{nb_path.name} cell {i} only records numbers: tag it remove-cell")
+
+
+def try_it_commands(nb_path) -> list[str]:
+    """The commands of a chapter's closing "Try it" section."""
+    nb = nbformat.read(nb_path, as_version=4)
+    last = nb.cells[-1]
+    assert last.cell_type == "markdown" and last.source.startswith("## Try it"), (
+        f"{nb_path.name} must end with a '## Try it' section")
+    return [ln.strip() for ln in last.source.splitlines()
+            if ln.strip().startswith(".venv/bin/python -m flowmod.runner")]
+
+
+@pytest.mark.parametrize("nb_path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_every_chapter_ends_with_try_it(nb_path):
+    cmds = try_it_commands(nb_path)
+    assert cmds, f"{nb_path.name}: 'Try it' gives no runner command"
+    for cmd in cmds:
+        assert "--profile demo" in cmd and ("--only" in cmd or "--status" in cmd), cmd
+        assert "--set" in cmd, f"{cmd}: a 'Try it' changes one parameter"

@@ -391,6 +391,28 @@ def run(params: Any, progress: bool = True) -> dict[str, dict[str, Path]]:
     return out
 
 
+def median_mover(sel: Any) -> tuple[pd.Series, pd.Series]:
+    """A moving keyframe vehicle of median box width and its pair's row (for the figure of
+    the preprocessing steps)."""
+    obj = sel.objects[(sel.objects["set"] == "keyframe") & (sel.objects["label"] == 1)]
+    width = (obj["xmax"] - obj["xmin"]).to_numpy()
+    row = obj.iloc[int(np.argsort(width)[len(obj) // 2])]
+    return row, sel.pairs.set_index("pair_id").loc[row.pair_id]
+
+
+def run_summary(params: Any, built: dict[str, dict[str, Path]]) -> pd.DataFrame:
+    """One row per method and split: objects, crop size and where they are published."""
+    rows = []
+    for m, parts in built.items():
+        for part, folder in parts.items():
+            for split in PART_SPLITS[part]:
+                n = int(np.load(crop_paths(folder, split)[0], mmap_mode="r").shape[0])
+                rows.append({"method": m, "split": split, "objects": n,
+                             "crop (px)": params.crop_size,
+                             "folder": str(folder.relative_to(params.run_path))})
+    return pd.DataFrame(rows)
+
+
 def storage_table(params: Any) -> pd.DataFrame:
     """Disk used per item: crops per object vs full-frame flow per pair, for each method."""
     from flowmod import dag

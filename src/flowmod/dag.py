@@ -69,7 +69,7 @@ class Stage:
 #: The stages in data order (the pipeline at a glance).
 STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("world", 1, "01", "", "the data: a generated world or nuScenes tables"),
-    Stage("difficulty", 1, "01", "difficulty", "the naive exact-flow rule on the world"),
+    Stage("difficulty", 2, "01", "difficulty", "the naive exact-flow rule on the world"),
     Stage("select", 3, "02", "select", "Table-1 keyframe pairs and objects, scene split"),
     Stage("general", 3, "02", "general", "generalisation pairs and objects (held-out scenes)"),
     Stage("flow", 2, "03", "flow/{method}/{part}", "optical flow of every pair"),

@@ -77,6 +77,11 @@ def device_info(device: str = "auto") -> dict[str, object]:
     return info
 
 
+def device_table(info: dict[str, object]) -> pd.DataFrame:
+    """:func:`device_info` as a two-column table (what, value)."""
+    return pd.DataFrame({"what": list(info), "value": [str(v) for v in info.values()]})
+
+
 def git_commit() -> str:
     """The commit of the checkout (``+dirty`` when there are uncommitted changes)."""
     try:

@@ -209,12 +209,12 @@ def table4(preds: Mapping[str, pd.DataFrame], max_distance: float) -> pd.DataFra
                 rows.append({"method": m, "vehicles": rng, "scored against": name,
                              "objects": s["n"], "scenes": s["n_scenes"],
                              "F1 (%)": round(100 * s["f1"], 1),
-                             "F1 range over seeds (%)": f"{100 * s['f1_min']:.1f}-"
-                                                         f"{100 * s['f1_max']:.1f}",
-                             "Precision (%)": round(100 * s["precision"], 1),
-                             "Recall (%)": round(100 * s["recall"], 1),
-                             "F1 95% CI over scenes (%)": f"{100 * s['ci'][0]:.1f}-"
-                                                           f"{100 * s['ci'][1]:.1f}"})
+                             "seed range (%)": f"{100 * s['f1_min']:.1f}-"
+                                               f"{100 * s['f1_max']:.1f}",
+                             "P (%)": round(100 * s["precision"], 1),
+                             "R (%)": round(100 * s["recall"], 1),
+                             "F1 95% CI, scenes (%)": f"{100 * s['ci'][0]:.1f}-"
+                                                      f"{100 * s['ci'][1]:.1f}"})
     return pd.DataFrame(rows)
 
 
@@ -326,15 +326,48 @@ def chapter08_numbers(params: Any, table: pd.DataFrame) -> dict[str, Any]:
     labels), the objects scored, and the headline method's F1."""
     out: dict[str, Any] = {}
     t4 = table[table["vehicles"].str.endswith("(Table 4)")]
-    for r in t4.itertuples(index=False):
-        key = "paper" if r[2].startswith("paper") else "true"
-        out[f"general_f1_{r.method}_{key}"] = r[5]
+    for r in t4.to_dict("records"):
+        key = "paper" if r["scored against"].startswith("paper") else "true"
+        out[f"general_f1_{r['method']}_{key}"] = r["F1 (%)"]
     paper = t4[t4["scored against"].str.startswith("paper")]
     out["n_general"] = int(paper["objects"].iloc[0]) if len(paper) else 0
     head = next((m for m in params.flow_methods if m != "gt"), params.flow_methods[0])
     out["headline_general_f1"] = out.get(f"general_f1_{head}_paper", float("nan"))
     beyond = table[~table["vehicles"].str.endswith("(Table 4)")
                    & table["scored against"].str.startswith("paper")]
-    for r in beyond.itertuples(index=False):
-        out[f"beyond_f1_{r.method}"] = r[5]
+    for r in beyond.to_dict("records"):
+        out[f"beyond_f1_{r['method']}"] = r["F1 (%)"]
     return out
+
+
+def breakdown(df: pd.DataFrame, by: str, bins: Any = None) -> pd.DataFrame:
+    """:func:`flowmod.metrics.breakdown` of a predictions table: every training seed (F1 the
+    mean over seeds), with the scene-level interval and the object count of each group."""
+    from flowmod.metrics import breakdown as _breakdown
+
+    return _breakdown(df, df["label"], seed_probs(df), by=by, bins=bins,
+                      groups=df["scene"].to_numpy())
+
+
+def failure_shares(tagged: pd.DataFrame) -> pd.DataFrame:
+    """Share (%) of all objects and of wrong predictions with each failure reason."""
+    cols = ["unclear_flow", "crowded"]
+    names = {"unclear_flow": "remote or slow", "crowded": "other objects in the crop"}
+    out = pd.DataFrame({
+        "reason": [names[c] for c in cols],
+        "all objects (%)": [100 * float(tagged[c].mean()) for c in cols],
+        "wrong predictions (%)": [100 * float(tagged.loc[tagged["wrong"], c].mean())
+                                  if tagged["wrong"].any() else 0.0 for c in cols],
+    })
+    return out.round(1)
+
+
+def failure_examples(tagged: pd.DataFrame, n: int = 3) -> pd.DataFrame:
+    """Up to ``n`` wrong predictions of each kind (remote or slow only, then crowded), with a
+    ``title`` for the figure."""
+    wrong = tagged[tagged["wrong"]]
+    out = pd.concat([wrong[wrong["unclear_flow"] & ~wrong["crowded"]].head(n),
+                     wrong[wrong["crowded"]].head(n)])
+    return out.assign(title=[("crowded" if c else "remote/slow") + f", {d:.0f} m, {s:.1f} m/s"
+                             for c, d, s in zip(out["crowded"], out["distance"], out["speed"],
+                                                strict=True)])

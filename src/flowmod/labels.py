@@ -76,6 +76,13 @@ def agreement_table(objects: pd.DataFrame) -> pd.DataFrame:
     return pd.concat([t1[cols1], t2[cols2]], axis=1).fillna(0).astype(int)
 
 
+def box_agreement(objects: pd.DataFrame) -> float:
+    """Share (%) of objects whose eq.-1 label equals the devkit box_velocity label, among
+    those the devkit can give one for."""
+    valid = objects["box_label"] >= 0
+    return 100.0 * float((objects.loc[valid, "label"] == objects.loc[valid, "box_label"]).mean())
+
+
 def true_agreement(objects: pd.DataFrame) -> pd.DataFrame:
     """Synthetic world only: eq.-1 label vs the true label at frame 1's time (counts)."""
     if "true_label" not in objects:

@@ -258,9 +258,9 @@ def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) 
     with f1, precision, recall and optionally f1_min/f1_max, seeds, ci, n, n_scenes,
     n_instances; a mapping method -> such a dict also works).
 
-    Columns: Method, F1 (%) (mean over training seeds), F1 range over seeds (%), seeds,
-    Precision (%), Recall (%), F1 95 % CI over scenes (%), scenes, objects, vehicles;
-    percentages to 0.1.
+    Columns: Method, F1 (%) (mean over training seeds), seed range (%) (of F1), seeds,
+    P (%) and R (%) (precision and recall, means over seeds), F1 95% CI, scenes (%) (whole
+    test scenes resampled), scenes, objects, vehicles; percentages to 0.1.
     """
     if isinstance(rows, Mapping):
         rows = [{"method": k, **v} for k, v in rows.items()]
@@ -271,12 +271,12 @@ def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) 
         out.append({
             "Method": r["method"],
             "F1 (%)": round(100 * float(r["f1"]), 1),
-            "F1 range over seeds (%)": (f"{100 * lo:.1f}-{100 * hi:.1f}"
-                                        if lo is not None and r.get("seeds", 1) > 1 else ""),
+            "seed range (%)": (f"{100 * lo:.1f}-{100 * hi:.1f}"
+                               if lo is not None and r.get("seeds", 1) > 1 else ""),
             "seeds": r.get("seeds", ""),
-            "Precision (%)": round(100 * float(r["precision"]), 1),
-            "Recall (%)": round(100 * float(r["recall"]), 1),
-            "F1 95% CI over scenes (%)": (
+            "P (%)": round(100 * float(r["precision"]), 1),
+            "R (%)": round(100 * float(r["recall"]), 1),
+            "F1 95% CI, scenes (%)": (
                 f"{100 * ci[0]:.1f}-{100 * ci[1]:.1f}" if ci is not None else ""),
             "scenes": r.get("n_scenes", ""),
             "objects": r.get("n", ""),

@@ -174,7 +174,7 @@ class Params(BaseModel):
     n_jobs: int = _field(2, ge=1, le=64, role="run", description="parallel CPU workers")
 
     # --- crops and learning (Table 2) --------------------------------------------------
-    crop_size: int = _field(48, ge=16, le=512, read_by=("crops",),
+    crop_size: int = _field(40, ge=16, le=512, read_by=("crops",),
                             description="px, side of the resized crop (224)")
     crop_scale: float = _field(3.0, ge=1.0, le=10.0, read_by=("crops",),
                                description="crop side / box side")
@@ -306,15 +306,6 @@ def from_notebook(namespace: dict[str, Any]) -> Params:
     return validate(values, source="notebook parameters")
 
 
-def subset_hash(p: Params, keys: list[str] | tuple[str, ...]) -> str:
-    """A short stable hash of the named parameters (for up-to-date checks of a stage)."""
-    import hashlib
-    import json
-
-    blob = json.dumps({k: getattr(p, k) for k in sorted(keys)}, sort_keys=True, default=str)
-    return hashlib.sha256(blob.encode()).hexdigest()[:16]
-
-
 def parse_overrides(items: list[str]) -> dict[str, Any]:
     """``["epochs=2", "flow_methods=[dis]"]`` -> ``{"epochs": 2, "flow_methods": ["dis"]}``."""
     out: dict[str, Any] = {}
@@ -324,6 +315,25 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
             raise ProfileError(f"override {item!r} must look like key=value")
         out[key.strip()] = yaml.safe_load(raw) if raw.strip() else None
     return out
+
+
+def readers_text(name: str) -> str:
+    """Who reads a parameter, in words: the stages of its ``read_by`` declaration, or its
+    role (run settings, the data's location, the plan of which nodes exist)."""
+    meta = Params.model_fields[name].json_schema_extra
+    roles = {"run": "none (how to run)", "location": "none (where the data is)",
+             "plan": "which chains exist"}
+    text = ", ".join(meta["read_by"]) or roles.get(meta["role"], "")
+    return text + (f" (methods {', '.join(meta['methods'])})" if meta["methods"] else "")
+
+
+def describe(p: Params) -> pd.DataFrame:
+    """The parameters as a table: name, value, description and the stages that read it."""
+    rows = []
+    for name, field in Params.model_fields.items():
+        rows.append({"parameter": name, "value": str(getattr(p, name)),
+                     "description": field.description or "", "read by": readers_text(name)})
+    return pd.DataFrame(rows)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -345,13 +355,3 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
-
-
-def describe(p: Params) -> pd.DataFrame:
-    """The parameters as a table: name, value, description (for the book)."""
-    rows = []
-    for name, field in Params.model_fields.items():
-        rows.append(
-            {"parameter": name, "value": getattr(p, name), "description": field.description or ""}
-        )
-    return pd.DataFrame(rows)

@@ -40,7 +40,9 @@ from flowmod.flow.stage import (
     check_images,
     compute_flow,
     flow_root,
+    readers,
     run,
+    run_summary,
 )
 from flowmod.flow.store import (
     load_flow_npy,
@@ -77,8 +79,10 @@ __all__ = [
     "read_flo",
     "read_image",
     "register_estimator",
+    "readers",
     "resize_flow",
     "run",
+    "run_summary",
     "save_flow_npy",
     "store_flow",
     "write_flo",

@@ -359,6 +359,20 @@ def run(params: Params, progress: bool = True) -> dict[str, dict[str, pd.DataFra
     return out
 
 
+def readers(params: Params) -> dict[str, dict[str, FlowReader]]:
+    """``{method: {part: FlowReader}}`` of every published flow node of the profile."""
+    return {m: {part: FlowReader(params, m, part) for part in dag.PARTS}
+            for m in params.flow_methods}
+
+
+def run_summary(indexes: Mapping[str, Mapping[str, pd.DataFrame]]) -> pd.DataFrame:
+    """One row per method and part: pairs, median estimation seconds per pair."""
+    return pd.DataFrame([
+        {"method": m, "part": part, "pairs": len(idx),
+         "median s / pair": float(idx["seconds"].median()) if len(idx) else float("nan")}
+        for m, parts in indexes.items() for part, idx in parts.items()])
+
+
 class FlowReader:
     """The published flow of one node: ``reader.load(pair_id)`` -> (H, W, 2) float32, pixels
     of the full image, frame 1 -> 2."""

@@ -19,8 +19,9 @@ PIPELINE = [
     ("04", "labels\n(eq. 1)", "label, speed"),
     ("05", "crops\n(x3, resize)", "crops/<method>"),
     ("06", "train\nResNet18", "models/"),
-    ("07", "evaluate\n(Table 3)", "metrics/"),
-    ("08", "generalise\n(Table 4)", "metrics/general"),
+    ("07", "evaluate\n(Table 3)", "metrics/.../test"),
+    ("08", "generalise\n(Table 4)", "metrics/.../general"),
+    ("09", "blind\nspots", "(analysis)"),
 ]
 
 
@@ -303,8 +304,8 @@ def confusion_and_pr(results: dict[str, pd.DataFrame], threshold: float = 0.5) -
     return fig
 
 
-def f1_by(tables: dict[str, pd.DataFrame], key: str, xlabel: str, min_n: int = 10
-          ) -> plt.Figure:
+def f1_by(tables: dict[str, pd.DataFrame], key: str, xlabel: str, min_n: int = 10,
+          metric: str = "f1") -> plt.Figure:
     """F1 per group (e.g. distance bin) for each method, from :func:`metrics.breakdown`:
     the scene-level 95 % interval as error bars (when the table has one) and the number of
     objects under each point; groups with fewer than ``min_n`` objects are drawn hollow and
@@ -315,8 +316,8 @@ def f1_by(tables: dict[str, pd.DataFrame], key: str, xlabel: str, min_n: int = 1
     for j, (name, t) in enumerate(tables.items()):
         x = np.arange(len(t)) + (j - (len(names) - 1) / 2) * width
         ok = t["n"].to_numpy() >= min_n
-        f1 = t["f1"].to_numpy()
-        if "ci_lo" in t:
+        f1 = t[metric].to_numpy()
+        if "ci_lo" in t and metric == "f1":
             err = np.stack([f1 - t["ci_lo"].to_numpy(), t["ci_hi"].to_numpy() - f1])
             ax.errorbar(x[ok], f1[ok], yerr=err[:, ok], fmt="o", ms=4, capsize=2,
                         color=f"C{j}", label=name)
@@ -326,7 +327,7 @@ def f1_by(tables: dict[str, pd.DataFrame], key: str, xlabel: str, min_n: int = 1
     first = next(iter(tables.values()))
     ax.set_xticks(np.arange(len(first)), [
         f"{k}\nn={n}" for k, n in zip(first[key].astype(str), first["n"], strict=True)])
-    ax.set(xlabel=xlabel, ylabel="F1", ylim=(-0.02, 1.05))
+    ax.set(xlabel=xlabel, ylabel=metric if metric != "f1" else "F1", ylim=(-0.02, 1.05))
     ax.legend(fontsize=7, title=f"hollow grey: fewer than {min_n} objects", title_fontsize=7)
     ax.tick_params(axis="x", labelsize=7)
     fig.tight_layout()
@@ -336,6 +337,7 @@ def f1_by(tables: dict[str, pd.DataFrame], key: str, xlabel: str, min_n: int = 1
 def table(df: pd.DataFrame, precision: int = 1) -> Any:
     """A table as the book shows it: no index column, numbers right-aligned and rounded to
     ``precision`` decimals (units belong in the column names)."""
+    df = df.reset_index(drop=True)
     numeric = [c for c in df.columns if pd.api.types.is_numeric_dtype(df[c])
                and not pd.api.types.is_bool_dtype(df[c])]
     floats = [c for c in numeric if pd.api.types.is_float_dtype(df[c])]

@@ -333,10 +333,16 @@ def gt_flow_figure(
     return fig
 
 
+#: Keyframe pairs (seeded sample) on which the difficulty node scores the naive rule: the
+#: exact flow of every pair would cost as much as the flow stage itself.
+DIFFICULTY_PAIRS = 240
+
+
 def difficulty_report(params: Any, nusc: Any = None, progress: bool = True) -> dict:
-    """:func:`naive_rule_report`'s numbers for a profile: the ``difficulty`` node of
-    :mod:`flowmod.dag` (``<run_dir>/difficulty/difficulty.json``), recomputed only when the
-    world or the speed threshold changed."""
+    """:func:`naive_rule_report`'s numbers for a profile, on :data:`DIFFICULTY_PAIRS` keyframe
+    pairs drawn with a fixed seed: the ``difficulty`` node of :mod:`flowmod.dag`
+    (``<run_dir>/difficulty/difficulty.json``), recomputed only when the world or the speed
+    threshold changed."""
     from flowmod import dag
     from flowmod.artefacts import write_json
 
@@ -345,8 +351,40 @@ def difficulty_report(params: Any, nusc: Any = None, progress: bool = True) -> d
         q = b.params
         report = naive_rule_report(nusc or q.dataroot_path, q.version,
                                    speed_threshold=q.speed_threshold,
-                                   n_jobs=q.n_jobs)
+                                   max_pairs=DIFFICULTY_PAIRS, n_jobs=q.n_jobs)
         write_json(b.start(fresh=True) / "difficulty.json",
                    {k: v for k, v in report.items() if k != "table"})
         b.publish()
     return json.loads((b.final / "difficulty.json").read_text())
+
+
+def devkit_counts(nusc: Any) -> dict[str, int]:
+    """How many scenes, samples, CAM_FRONT frames, annotations and instances the devkit
+    loaded."""
+    return {"scenes": len(nusc.scene), "samples": len(nusc.sample),
+            "CAM_FRONT frames": len(nusc.sample_data),
+            "annotations": len(nusc.sample_annotation), "instances": len(nusc.instance)}
+
+
+def as_table(mapping: dict[str, Any], key: str, value: str) -> pd.DataFrame:
+    """A flat mapping as a two-column table (floats rounded to 3 decimals)."""
+    return pd.DataFrame({key: list(mapping),
+                         value: [round(v, 3) if isinstance(v, float) else v
+                                 for v in mapping.values()]})
+
+
+def devkit_frames(nusc: Any, folder: str | os.PathLike[str]) -> tuple[dict, list[np.ndarray]]:
+    """The first two keyframes of the middle scene as the devkit's ``render_sample_data``
+    draws them (boxes in the devkit's colours), saved under ``folder``: (first sample,
+    [BGR images])."""
+    import matplotlib.pyplot as plt
+
+    scene = nusc.scene[len(nusc.scene) // 2]
+    first = nusc.get("sample", scene["first_sample_token"])
+    images = []
+    for i, sample in enumerate([first, nusc.get("sample", first["next"])]):
+        out = Path(folder) / f"devkit_{i}.png"
+        nusc.render_sample_data(sample["data"]["CAM_FRONT"], out_path=str(out), verbose=False)
+        plt.close("all")
+        images.append(plt.imread(out)[..., 2::-1])
+    return first, images
