@@ -159,7 +159,12 @@ def try_it_commands(nb_path) -> list[str]:
     last = nb.cells[-1]
     assert last.cell_type == "markdown" and last.source.startswith("## Try it"), (
         f"{nb_path.name} must end with a '## Try it' section")
-    return [ln.strip() for ln in last.source.splitlines()
+    fenced = False
+    for line in last.source.splitlines():
+        fenced ^= line.startswith("```")
+        assert not fenced or len(line) <= MAX_LINE, f"{nb_path.name}: too wide: {line}"
+    text = last.source.replace("\\\n", " ")  # shell line continuations
+    return [" ".join(ln.split()) for ln in text.splitlines()
             if ln.strip().startswith(".venv/bin/python -m flowmod.runner")]
 
 
