@@ -324,9 +324,10 @@ def status(p: Params) -> list[NodeStatus]:
         if rec.get("version") != STAGES[node.stage].version:
             reasons.append(f"code version {rec.get('version')} -> {STAGES[node.stage].version}")
         reasons += _diff(rec.get("params", {}), values(p, node))
-        for i in ins:
-            if rec.get("inputs", {}).get(str(i)) != exp[i]:
-                reasons.append(f"input {i} " + ("is stale" if i in waiting else "changed"))
+        changed = [f"input {i} " + ("is stale" if i in waiting else "changed")
+                   for i in ins if rec.get("inputs", {}).get(str(i)) != exp[i]]
+        reasons += changed[:1] + ([f"(+{len(changed) - 1} more inputs)"] if len(changed) > 1
+                                  else [])
         if fp is not None and (_variant(path, fp) / "manifest.json").is_file():
             reasons.append("a kept copy matches and will be restored, nothing recomputed")
         out[node] = NodeStatus(node, "stale", "; ".join(reasons) or "fingerprint differs", path,
