@@ -302,3 +302,17 @@ def test_try_it_commands_run(smoke_run, tmp_path):
                 assert "stale" in proc.stdout or "missing" in proc.stdout, proc.stdout
             else:
                 assert " ok (" in proc.stdout, proc.stdout
+
+
+def test_output_tables_have_no_index_column(smoke_run):
+    """Tables on the page come through viz.table: no pandas index column (0, 1, 2, ...)."""
+    import re
+
+    for nb_path in sorted(smoke_run["executed"].glob("*.ipynb")):
+        nb = nbformat.read(nb_path, as_version=4)
+        for i, cell in enumerate(nb.cells):
+            for out in cell.get("outputs", []):
+                html = out.get("data", {}).get("text/html", "")
+                if "<table" in html:
+                    assert "row_heading" not in html and not re.search(
+                        r"<tbody>\s*<tr>\s*<th", html), f"{nb_path.name} cell {i}: index column"
