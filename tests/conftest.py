@@ -32,3 +32,16 @@ def smoke_nusc(smoke_world):
 
     root, version = smoke_world
     return NuScenes(version=version, dataroot=str(root), verbose=False)
+
+
+@pytest.fixture(scope="session")
+def smoke_built(smoke_world, tmp_path_factory):
+    """Every stage of the smoke profile built in-process (no notebooks) in a fresh run
+    folder on the session's world; tests that change it work on a copy."""
+    from flowmod import pipeline
+
+    root, version = smoke_world
+    p = load_profile("smoke", dataroot=str(root), version=version,
+                     run_dir=str(tmp_path_factory.mktemp("built") / "runs"))
+    pipeline.build(p)
+    return p

@@ -653,3 +653,13 @@ def test_flow_stored_at_reduced_scale_loads_at_full_size(tmp_path):
     assert other["computed"].all(), "another scale is another cache"
     with pytest.raises(ValueError, match="store_scale"):
         fl.compute_flow(pairs, "farneback", pool, store_scale=0.0, **kw)
+
+
+@pytest.mark.parametrize("scale,dtype", [(1.0, "float16"), (0.5, "float16"), (0.5, "float32")])
+def test_roundtrip_equals_storing_and_loading(tmp_path, scale, dtype):
+    """The in-memory round trip (used on new frames) gives what the file would, bit for bit."""
+    rng = np.random.default_rng(1)
+    flow = rng.normal(0, 20, (60, 80, 2)).astype(np.float32)
+    fl.store_flow(tmp_path / "f.npy", flow, dtype, scale)
+    np.testing.assert_array_equal(fl.store.roundtrip(flow, dtype, scale),
+                                  fl.load_stored_flow(tmp_path / "f.npy", scale))

@@ -426,9 +426,24 @@ def run(params: Any, progress: bool = True) -> dict[str, list[pd.DataFrame]]:
                     desc=f"train {m} seed {q.seed + k}",
                 )
                 b.publish(best_epoch=int(h.attrs["best_epoch"]), best_f1=float(h.attrs["best_f1"]),
-                          seed=q.seed + k, amp=q.amp)
+                          seed=q.seed + k, amp=q.amp, recipe=recipe(params, m))
             out.setdefault(m, []).append(history(params, m, part))
     return out
+
+
+def recipe(params: Any, method: str) -> dict[str, Any]:
+    """How a model's inputs are made, from the published flow and crops it was trained on:
+    flow method, its parameters (as the flow node recorded them) and the crop geometry.
+    Stored in the model's manifest, so that a model can be applied to new frames
+    (``python -m flowmod.predict``) without the run that made it."""
+    from flowmod import dag
+
+    flow_rec = dag.recorded(params, dag.Node("flow", method, "keyframe")) or {}
+    crops_rec = dag.recorded(params, dag.Node("crops", method, "keyframe")) or {}
+    return {"method": method, "flow_params": flow_rec.get("params", {}),
+            "flow_dtype": flow_rec.get("dtype"), "store_scale": flow_rec.get("store_scale"),
+            "crop_size": crops_rec.get("params", {}).get("crop_size"),
+            "crop_scale": crops_rec.get("params", {}).get("crop_scale")}
 
 
 def model_path(params: Any, method: str, part: str = "s0") -> Path:

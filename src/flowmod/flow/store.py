@@ -52,13 +52,8 @@ def save_flow_npy(path: str | os.PathLike[str], flow: np.ndarray, dtype: str = "
     pass behind the camera) are clipped instead of becoming inf.
     """
     _check_flow(flow)
-    if dtype not in ("float16", "float32"):
-        raise ValueError(f"dtype={dtype!r}; allowed: float16, float32")
-    if dtype == "float16":
-        big = float(np.finfo(np.float16).max)
-        flow = np.clip(flow, -big, big)
     with atomic_path(path) as tmp:
-        np.save(tmp, np.ascontiguousarray(flow, dtype=dtype), allow_pickle=False)
+        np.save(tmp, as_stored(flow, dtype), allow_pickle=False)
 
 
 def load_flow_npy(path: str | os.PathLike[str]) -> np.ndarray:
@@ -117,36 +112,74 @@ def valid_path(path: str | os.PathLike[str]) -> Path:
     return p.with_name(p.stem + ".valid.npy")
 
 
+def reduce(flow: np.ndarray, store_scale: float, valid: np.ndarray | None = None,
+           check: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """Flow (H, W, 2) px at ``store_scale`` of its size, values kept in pixels of the full
+    image: areas averaged (cv2 INTER_AREA); with a ``valid`` mask (H, W) bool, valid pixels
+    only where a reduced pixel covers any (invalid values never leak into valid ones), and
+    the reduced mask (valid where at least half of the area is). Returns (flow, mask).
+    ``check``: refuse a scale from which the full size cannot be recovered (a stored file
+    records only the scale)."""
+    flow = np.asarray(flow, np.float32)
+    if store_scale == 1.0:
+        return flow, valid
+    h, w = flow.shape[:2]
+    size = (max(1, int(round(h * store_scale))), max(1, int(round(w * store_scale))))
+    if check and full_shape(size, store_scale) != (h, w):
+        raise ValueError(f"store_scale={store_scale} cannot store a {h}x{w} flow so that its "
+                         "size is recovered; use a scale like 0.5 or 0.25")
+    area = cv2.resize(flow, size[::-1], interpolation=cv2.INTER_AREA)
+    if valid is None:
+        return area, None
+    m = np.asarray(valid, np.float32)
+    cover = cv2.resize(m, size[::-1], interpolation=cv2.INTER_AREA)
+    num = cv2.resize(flow * m[..., None], size[::-1], interpolation=cv2.INTER_AREA)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        area = np.where(cover[..., None] > 0, num / cover[..., None], area)
+    return area.astype(np.float32), cover >= 0.5
+
+
+def restore(stored: np.ndarray, store_scale: float,
+            size: tuple[int, int] | None = None) -> np.ndarray:
+    """Stored flow back at full image size (bilinear; ``size`` (H, W), else recovered from
+    the scale), float32, pixels."""
+    stored = np.asarray(stored, np.float32)
+    if store_scale == 1.0 and size is None:
+        return stored
+    h, w = size or full_shape(stored.shape, store_scale)
+    return cv2.resize(stored, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+def as_stored(flow: np.ndarray, dtype: str) -> np.ndarray:
+    """Flow cast to the storage dtype; for float16, values beyond its range (+-65504 px) are
+    clipped instead of becoming inf."""
+    if dtype not in ("float16", "float32"):
+        raise ValueError(f"dtype={dtype!r}; allowed: float16, float32")
+    if dtype == "float16":
+        big = float(np.finfo(np.float16).max)
+        flow = np.clip(flow, -big, big)
+    return np.ascontiguousarray(flow, dtype=dtype)
+
+
+def roundtrip(flow: np.ndarray, dtype: str = "float16", store_scale: float = 1.0) -> np.ndarray:
+    """What :func:`load_stored_flow` returns for ``flow`` stored by :func:`store_flow`, without
+    the file: the same reduction, dtype and restoration, bit for bit (for any image size:
+    the restoration goes back to ``flow``'s own size)."""
+    small = as_stored(reduce(flow, store_scale, check=False)[0], dtype)
+    return restore(small, store_scale, size=flow.shape[:2])
+
+
 def store_flow(path: str | os.PathLike[str], flow: np.ndarray, dtype: str = "float16",
                store_scale: float = 1.0, valid: np.ndarray | None = None) -> None:
-    """Save flow (H, W, 2) px at ``store_scale`` of its size, values kept in pixels of the
-    full image, so :func:`load_stored_flow` can restore the full size.
-
-    The reduction averages areas (cv2 INTER_AREA); with a ``valid`` mask (H, W) bool it
-    averages valid pixels only where a stored pixel covers any (invalid values never leak
-    into valid ones), and the mask is stored too (a stored pixel is valid when at least half
-    of its area is), written before the flow so a complete flow file always has its mask.
-    """
-    flow = np.asarray(flow, np.float32)
-    h, w = flow.shape[:2]
-    if store_scale != 1.0:
-        size = (int(round(h * store_scale)), int(round(w * store_scale)))
-        if min(size) < 1 or full_shape(size, store_scale) != (h, w):
-            raise ValueError(f"store_scale={store_scale} cannot store a {h}x{w} flow so that its "
-                             "size is recovered; use a scale like 0.5 or 0.25")
-        area = cv2.resize(flow, size[::-1], interpolation=cv2.INTER_AREA)
-        if valid is not None:
-            m = np.asarray(valid, np.float32)
-            cover = cv2.resize(m, size[::-1], interpolation=cv2.INTER_AREA)
-            num = cv2.resize(flow * m[..., None], size[::-1], interpolation=cv2.INTER_AREA)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                area = np.where(cover[..., None] > 0, num / cover[..., None], area)
-            valid = cover >= 0.5
-        flow = area
-    if valid is not None:
+    """Save flow (H, W, 2) px at ``store_scale`` of its size (:func:`reduce`), values kept in
+    pixels of the full image, so :func:`load_stored_flow` can restore the full size; with a
+    ``valid`` mask the mask is stored too, before the flow, so a complete flow file always
+    has its mask."""
+    small, mask = reduce(flow, store_scale, valid)
+    if mask is not None:
         with atomic_path(valid_path(path)) as tmp:
-            np.save(tmp, np.asarray(valid, dtype=bool), allow_pickle=False)
-    save_flow_npy(path, flow, dtype)
+            np.save(tmp, np.asarray(mask, dtype=bool), allow_pickle=False)
+    save_flow_npy(path, small, dtype)
 
 
 def load_stored_valid(path: str | os.PathLike[str], store_scale: float = 1.0
@@ -166,8 +199,4 @@ def load_stored_valid(path: str | os.PathLike[str], store_scale: float = 1.0
 def load_stored_flow(path: str | os.PathLike[str], store_scale: float = 1.0) -> np.ndarray:
     """A flow file written by :func:`store_flow`: (H, W, 2) float32, pixels of the full image,
     frame 1 -> 2 (bilinearly restored to full size when stored at a reduced scale)."""
-    flow = load_flow_npy(path)
-    if store_scale == 1.0:
-        return flow
-    h, w = full_shape(flow.shape, store_scale)
-    return cv2.resize(flow, (w, h), interpolation=cv2.INTER_LINEAR)
+    return restore(load_flow_npy(path), store_scale)

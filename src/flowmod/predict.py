@@ -1,0 +1,150 @@
+"""Apply a trained classifier to your own frames.
+
+    python -m flowmod.predict FRAME1 FRAME2 --boxes BOXES.csv \\
+        --model runs/demo/models/dis/s0/best.pt [--out annotated.png] [--device auto]
+
+The flow method and its options, how flow was stored, and the crop geometry are taken from
+the model's recorded recipe (the ``manifest.json`` beside ``best.pt``), so the frames are
+processed exactly as the training crops were: flow between the two frames, the storage round
+trip (dtype, scale), the paper's crop around each box. BOXES.csv has columns xmin, ymin,
+xmax, ymax (pixels of FRAME1; an ``id`` column is kept if present). Prints moving/still and
+the probability per box, and writes FRAME1 with red (moving) and blue (still) boxes.
+Frames of any size work (both the same size); boxes must lie inside the image.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from flowmod.artefacts import CheckpointError
+
+
+class PredictError(ValueError):
+    """The inputs cannot be used; the message names the file or value and the fix."""
+
+
+def read_recipe(model: Path) -> dict[str, Any]:
+    """The recipe recorded beside a model (flow method and options, storage, crops); for a
+    model published before recipes were recorded, rebuilt from its run folder's manifests."""
+    man = model.parent / "manifest.json"
+    if not man.is_file():
+        raise PredictError(f"{man} not found: --model must be a best.pt published by the "
+                           "training stage (runs/<profile>/models/<method>/s<k>/best.pt)")
+    rec = json.loads(man.read_text())
+    if rec.get("recipe"):
+        return rec["recipe"]
+    method = rec["node"].split("[", 1)[1].split("/", 1)[0]
+    run = model.parent.parents[2]
+    flow = json.loads((run / "flow" / method / "keyframe" / "manifest.json").read_text())
+    crops = json.loads((run / "crops" / method / "keyframe" / "manifest.json").read_text())
+    return {"method": method, "flow_params": flow["params"], "flow_dtype": flow.get("dtype"),
+            "store_scale": flow.get("store_scale"), "crop_size": crops["params"]["crop_size"],
+            "crop_scale": crops["params"]["crop_scale"]}
+
+
+def read_boxes(path: Path, width: int, height: int) -> pd.DataFrame:
+    """Boxes (xmin, ymin, xmax, ymax px) from a CSV; :class:`PredictError` naming the rows that
+    are malformed or outside a ``width`` x ``height`` image."""
+    try:
+        df = pd.read_csv(path)
+    except (OSError, ValueError) as e:
+        raise PredictError(f"{path}: cannot read the boxes CSV ({e})") from None
+    cols = ["xmin", "ymin", "xmax", "ymax"]
+    missing = [c for c in cols if c not in df.columns]
+    if missing or df.empty:
+        raise PredictError(f"{path}: needs rows with columns {cols} (missing {missing})")
+    b = df[cols].to_numpy(dtype=float)
+    bad = ~np.isfinite(b).all(axis=1) | (b[:, 2] <= b[:, 0]) | (b[:, 3] <= b[:, 1])
+    outside = (b[:, 0] < 0) | (b[:, 1] < 0) | (b[:, 2] > width - 1) | (b[:, 3] > height - 1)
+    if bad.any():
+        raise PredictError(f"{path}: rows {np.flatnonzero(bad).tolist()} are not boxes "
+                           "(need xmin < xmax and ymin < ymax, finite)")
+    if outside.any():
+        raise PredictError(f"{path}: rows {np.flatnonzero(outside).tolist()} leave the "
+                           f"{width}x{height} image (pixel coordinates of FRAME1)")
+    return df
+
+
+def predict_boxes(frame1: np.ndarray, frame2: np.ndarray, boxes: pd.DataFrame,
+                  model_path: Path, recipe: dict[str, Any], device: str = "auto"
+                  ) -> pd.DataFrame:
+    """Probability of moving for each box, processed as the model's training crops were."""
+    from flowmod.crops import crop_boxes
+    from flowmod.flow import get_estimator
+    from flowmod.flow.networks import estimator_options
+    from flowmod.flow.store import roundtrip
+    from flowmod.model import load_model, predict
+    from flowmod.params import validate
+
+    method = recipe["method"]
+    if method == "gt":
+        raise PredictError("this model was trained on the synthetic world's exact flow (gt), "
+                           "which exists only for generated frames: use a model of a method "
+                           "that works from images (dis, farneback, raft, fastflownet)")
+    # a weights file enters a fingerprint by its digest: for networks, the file is looked up
+    # in $TORCH_HOME (MissingWeightsError says where) rather than by the recorded path
+    flow_params = {k: v for k, v in recipe["flow_params"].items() if not isinstance(v, dict)}
+    p = validate({**flow_params, "device": device})
+    flow = get_estimator(method, **estimator_options(p, method)).estimate(frame1, frame2)
+    flow = roundtrip(flow, recipe.get("flow_dtype") or "float32",
+                     float(recipe.get("store_scale") or 1.0))
+    x = crop_boxes(flow, boxes[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float),
+                   int(recipe["crop_size"]), float(recipe["crop_scale"]))
+    model = load_model(model_path, device)
+    prob = predict(model, x.astype(np.float16), device=device)
+    return boxes.assign(prob=prob, moving=prob > 0.5)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m flowmod.predict",
+                                 description=__doc__.split("\n\n")[0])
+    ap.add_argument("frame1", type=Path)
+    ap.add_argument("frame2", type=Path)
+    ap.add_argument("--boxes", type=Path, required=True, help="CSV: xmin, ymin, xmax, ymax")
+    ap.add_argument("--model", type=Path, required=True, help="a published best.pt")
+    ap.add_argument("--method", default=None,
+                    help="flow method expected (checked against the model's recipe)")
+    ap.add_argument("--out", type=Path, default=None, help="annotated FRAME1 (PNG/JPEG)")
+    ap.add_argument("--device", default="auto")
+    args = ap.parse_args(argv)
+    from flowmod.flow import ImageError, MissingWeightsError, read_image
+    from flowmod.report.viz import draw_boxes, label_colors
+
+    try:
+        if not args.model.is_file():
+            raise PredictError(f"model not found: {args.model}")
+        recipe = read_recipe(args.model)
+        if args.method and args.method != recipe["method"]:
+            raise PredictError(f"--method {args.method} but {args.model} was trained on "
+                               f"{recipe['method']} flow: its crops would not mean the same")
+        f1, f2 = read_image(args.frame1), read_image(args.frame2)
+        if f1.shape != f2.shape:
+            raise PredictError(f"frames differ in size: {f1.shape[1]}x{f1.shape[0]} "
+                               f"({args.frame1}) vs {f2.shape[1]}x{f2.shape[0]} ({args.frame2})")
+        boxes = read_boxes(args.boxes, f1.shape[1], f1.shape[0])
+        out = predict_boxes(f1, f2, boxes, args.model, recipe, args.device)
+    except (PredictError, ImageError, CheckpointError, MissingWeightsError) as e:
+        print(f"{type(e).__name__}: {e}", file=sys.stderr)
+        return 2
+    print(out.assign(prob=out["prob"].round(3)).to_string(index=False))
+    if args.out:
+        img = draw_boxes(f1, out[["xmin", "ymin", "xmax", "ymax"]].to_numpy(),
+                         label_colors(out["moving"].astype(int)),
+                         [f"{p:.2f}" for p in out["prob"]])
+        if not cv2.imwrite(str(args.out), img):
+            print(f"PredictError: cannot write {args.out}", file=sys.stderr)
+            return 2
+        print(f"written: {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,87 @@
+"""python -m flowmod.predict: a trained model on new frames, as its training crops were made."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+
+from flowmod import dag, evaluate, predict, select
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def case(smoke_built, tmp_path_factory):
+    """A test pair of the smoke run, its objects as a boxes CSV, the dis model of seed 0."""
+    p = smoke_built
+    sel, _ = select.load(p)
+    preds = evaluate.results(p, "dis", "test")[0]
+    pid = preds["pair_id"].value_counts().index[0]
+    objs = preds[preds["pair_id"] == pid]
+    pair = sel.pairs.set_index("pair_id").loc[pid]
+    tmp = tmp_path_factory.mktemp("predict")
+    boxes = tmp / "boxes.csv"
+    objs[["xmin", "ymin", "xmax", "ymax"]].to_csv(boxes, index=False)
+    model = dag.node_dir(p, dag.Node("train", "dis", "s0")) / "best.pt"
+    return {"f1": p.dataroot_path / pair.path_1, "f2": p.dataroot_path / pair.path_2,
+            "boxes": boxes, "model": model, "objs": objs, "tmp": tmp, "params": p}
+
+
+def run(*args):
+    return subprocess.run([sys.executable, "-m", "flowmod.predict", *map(str, args)],
+                          capture_output=True, text=True)
+
+
+def test_predictions_equal_the_evaluation_of_the_same_model(case):
+    recipe = predict.read_recipe(case["model"])
+    assert recipe["method"] == "dis" and recipe["crop_size"] == case["params"].crop_size
+    f1, f2 = cv2.imread(str(case["f1"])), cv2.imread(str(case["f2"]))
+    out = predict.predict_boxes(f1, f2, pd.read_csv(case["boxes"]), case["model"], recipe,
+                                device="cpu")
+    np.testing.assert_allclose(out["prob"], case["objs"]["prob_s0"], atol=1e-6)
+
+
+def test_cli_writes_the_annotated_frame_and_works_at_another_size(case):
+    out = case["tmp"] / "annotated.png"
+    proc = run(case["f1"], case["f2"], "--boxes", case["boxes"], "--model", case["model"],
+               "--out", out, "--device", "cpu")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.count("True") + proc.stdout.count("False") == len(case["objs"])
+    assert cv2.imread(str(out)).shape == (900, 1600, 3)
+    # the same scene at 800 x 450 (another camera), boxes scaled with it
+    small = []
+    for name in ("f1", "f2"):
+        path = case["tmp"] / f"small_{name}.png"
+        cv2.imwrite(str(path), cv2.resize(cv2.imread(str(case[name])), (800, 450),
+                                          interpolation=cv2.INTER_AREA))
+        small.append(path)
+    boxes = pd.read_csv(case["boxes"]) / 2
+    boxes.to_csv(case["tmp"] / "small.csv", index=False)
+    out2 = case["tmp"] / "small_annotated.png"
+    proc = run(*small, "--boxes", case["tmp"] / "small.csv", "--model", case["model"],
+               "--out", out2, "--device", "cpu")
+    assert proc.returncode == 0, proc.stderr
+    assert cv2.imread(str(out2)).shape == (450, 800, 3)
+
+
+def test_cli_errors_name_the_problem(case):
+    bad = case["tmp"] / "outside.csv"
+    pd.DataFrame({"xmin": [10], "ymin": [10], "xmax": [1700], "ymax": [50]}).to_csv(bad,
+                                                                                     index=False)
+    proc = run(case["f1"], case["f2"], "--boxes", bad, "--model", case["model"])
+    assert proc.returncode == 2 and "rows [0] leave the 1600x900 image" in proc.stderr
+    proc = run(case["f1"], case["f2"], "--boxes", case["boxes"], "--model", case["model"],
+               "--method", "farneback")
+    assert proc.returncode == 2 and "trained on dis flow" in proc.stderr
+    broken = case["tmp"] / "broken.jpg"
+    broken.write_bytes(b"not an image")
+    proc = run(broken, case["f2"], "--boxes", case["boxes"], "--model", case["model"])
+    assert proc.returncode == 2 and "broken.jpg" in proc.stderr
+    gt_model = dag.node_dir(case["params"], dag.Node("train", "gt", "s0")) / "best.pt"
+    proc = run(case["f1"], case["f2"], "--boxes", case["boxes"], "--model", gt_model)
+    assert proc.returncode == 2 and "exact flow (gt)" in proc.stderr
