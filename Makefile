@@ -20,7 +20,7 @@ PYTEST_ARGS ?=
 
 RUN_SET    := $(if $(DATAROOT),--set dataroot=$(DATAROOT)) $(foreach s,$(SET),--set $(s))
 
-.PHONY: help env data run status book test bench lint clean browser
+.PHONY: help env data run status book test bench lint clean browser weights
 
 help:  ## list the targets
 	@echo "flowmod: optical-flow motion detection, reproduced"
@@ -77,6 +77,9 @@ browser:  ## install headless Chromium for the browser check of the book (apt-ge
 	  echo "  until then tests/test_browser.py is skipped (under CI=true it fails)"; \
 	  if [ -n "$(filter-out 0 false no,$(CI))" ]; then exit 1; fi; \
 	fi
+
+weights: env  ## download RAFT's checkpoints (needs internet; never run by other targets)
+	$(PY) -m flowmod.weights
 
 bench: env  ## throughput and memory figures into benchmarks/results/ (never asserted)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b; done

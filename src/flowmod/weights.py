@@ -1,0 +1,97 @@
+"""Trained flow-network weights for users who have internet (``make weights``).
+
+    python -m flowmod.weights            # download RAFT's KITTI checkpoints, list what is there
+    python -m flowmod.weights --status   # only list what is there
+
+RAFT (large and small) comes through torchvision's own weight API: its URLs, and the hash
+that torchvision checks on download, into ``$TORCH_HOME/hub/checkpoints/``, where the flow
+stage finds it without any parameter. FastFlowNet has no package: the official checkpoint
+(``checkpoints/fastflownet_ft_kitti.pth`` of https://github.com/ltkong218/FastFlowNet, MIT
+licence) is copied there by hand; it is verified when loaded (its 104 tensors must match the
+architecture's names and shapes, or the error names the file and the keys). Nothing else in
+the study ever downloads: without these files the networks refuse to run and say where to
+put them. Offline, the download fails with one line saying so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+#: The checkpoints downloaded for RAFT: the KITTI fine-tuned large model (the paper's choice of
+#: KITTI weights) and the small model's only published weights.
+RAFT_WEIGHTS = (("raft_large", "C_T_SKHT_K_V1"), ("raft_small", "C_T_V2"))
+
+
+def status() -> list[tuple[str, str, bool]]:
+    """(method, file, present) for every weight file the flow stage looks for."""
+    from flowmod.flow import nets
+
+    folder = nets.hub_checkpoint_dir()
+    out = []
+    for method, arch in (("raft", "raft_large"), ("raft_small", "raft_small")):
+        for _enum, name in nets.torchvision_weight_files(arch):
+            out.append((method, str(folder / name), (folder / name).is_file()))
+    for name in nets.FFN_CHECKPOINT_NAMES:
+        out.append(("fastflownet", str(folder / name), (folder / name).is_file()))
+    return out
+
+
+def available_networks() -> list[str]:
+    """The network methods with a weight file in place."""
+    return sorted({m for m, _, present in status() if present})
+
+
+def download() -> list[Path]:
+    """Download the RAFT checkpoints of :data:`RAFT_WEIGHTS` with torchvision's hash check;
+    :class:`ConnectionError` with one line when there is no network."""
+    import urllib.error
+
+    from torchvision.models import optical_flow as of
+
+    from flowmod.flow import nets
+
+    enums = {"raft_large": of.Raft_Large_Weights, "raft_small": of.Raft_Small_Weights}
+    done = []
+    for arch, member in RAFT_WEIGHTS:
+        w = enums[arch][member]
+        target = nets.hub_checkpoint_dir() / Path(w.url).name
+        if not target.is_file():
+            try:
+                w.get_state_dict(progress=True, check_hash=True)
+            except (urllib.error.URLError, OSError) as e:
+                raise ConnectionError(
+                    f"cannot download {w.url} ({getattr(e, 'reason', e)}): make weights needs "
+                    f"internet; elsewhere, copy the file to {target}") from None
+        done.append(target)
+    return done
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m flowmod.weights",
+                                 description=__doc__.split("\n\n")[0])
+    ap.add_argument("--status", action="store_true", help="list the weight files; download nothing")
+    args = ap.parse_args(argv)
+    if not args.status:
+        try:
+            for path in download():
+                print(f"raft weights: {path}")
+        except ConnectionError as e:
+            print(f"make weights: {e}", file=sys.stderr)
+            return 1
+    from flowmod.flow import nets
+
+    print(f"FastFlowNet: put fastflownet_ft_kitti.pth (checkpoints/ of "
+          f"https://github.com/ltkong218/FastFlowNet) into {nets.hub_checkpoint_dir()}/")
+    for method, path, present in status():
+        print(f"{'present' if present else 'missing':8s} {method:12s} {path}")
+    nets_here = available_networks()
+    print("network methods usable now: " + (", ".join(nets_here) or "none") +
+          " (add them to flow_methods, e.g. SET=\"flow_methods=[dis,farneback,"
+          + ",".join(nets_here or ["raft"]) + "]\")")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
