@@ -43,9 +43,35 @@ def test_box_residual_zero_for_static_and_recovers_own_motion():
     ys, xs = np.mgrid[0:h, 0:w]
     xy = np.stack([xs.ravel(), ys.ravel()], 1).astype(float)
     flow = geometry.static_flow(xy, np.full(len(xy), 40.0), K, T1, T2).reshape(h, w, 2)
-    res_px, _ = geometry.box_residual(flow, box, center, K, T1, T2, dt_s=0.5)
+    samples = geometry.box_samples(flow, box[None])[0]
+    res_px, _ = geometry.box_residual(samples, box, center, K, T1, T2, dt_s=0.5)
     assert res_px == pytest.approx(0.0, abs=0.02)
-    moved = flow + np.array([4.0, 0.0])  # the vehicle's own motion: 4 px to the right
+    moved = geometry.box_samples(flow + np.array([4.0, 0.0]), box[None])[0]  # own motion
     res_px, res_speed = geometry.box_residual(moved, box, center, K, T1, T2, dt_s=0.5)
     assert res_px == pytest.approx(4.0, abs=0.05)
     assert res_speed == pytest.approx(4.0 * 40.0 / 1266.0 / 0.5, rel=0.02)
+
+
+def test_depth_where_the_ray_meets_the_3d_box_removes_the_parallax_of_a_near_oblique_car():
+    """A still car 12 m ahead, seen obliquely (its 4.5 m length at 60 degrees to the view):
+    its pixels' depths differ by metres, so one depth (the centre's) leaves a residual that a
+    still car should not have; the depth where each ray meets the annotated box leaves none."""
+    from pyquaternion import Quaternion
+
+    T1, T2 = np.eye(4), translation([0.0, 0.0, 1.5])  # the camera drives 1.5 m forward
+    c, s_ = np.cos(np.radians(60)), np.sin(np.radians(60))
+    R = np.array([[c, -s_, 0.0], [0.0, 0.0, -1.0], [s_, c, 0.0]])  # box x (length) oblique
+    center, wlh = np.array([2.5, 0.7, 12.0]), np.array([1.9, 4.5, 1.5])
+    q = Quaternion(matrix=R).elements
+    corners = center + (R @ (np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
+                             * [wlh[1] / 2, wlh[0] / 2, wlh[2] / 2]).T).T
+    uv = (K @ corners.T)[:2] / corners[:, 2]
+    box = np.array([uv[0].min(), uv[1].min(), uv[0].max(), uv[1].max()])
+    xy = geometry.box_lattice(box)
+    depth = geometry.ray_box_depth(xy, K, center, wlh, R)
+    assert np.nanmax(depth) - np.nanmin(depth) > 2.0, "the car's surface spans metres in depth"
+    samples = geometry.static_flow(xy, np.where(np.isfinite(depth), depth, 60.0), K, T1, T2)
+    with_box, _ = geometry.box_residual(samples, box, center, K, T1, T2, 0.5, wlh, q)
+    centre_only, _ = geometry.box_residual(samples, box, center, K, T1, T2, 0.5)
+    assert with_box == pytest.approx(0.0, abs=1e-6)
+    assert centre_only > 3.0, centre_only

@@ -35,6 +35,7 @@ import numpy as np
 import pandas as pd
 
 from flowmod.artefacts import atomic_path, write_json
+from flowmod.geometry import GRID, box_samples
 from flowmod.progress import bar
 
 #: The nuScenes CAM_FRONT image size (width, height) in which object boxes are given.
@@ -155,6 +156,20 @@ def hflip(x: T) -> T:
 # --- I/O: building and opening the crop artefacts -------------------------------------------
 
 
+def samples_path(out_dir: str | os.PathLike[str], split: str) -> Path:
+    """``<out_dir>/<split>.samples.npy``: (N, G * G, 2) float32, the flow at each object's box
+    lattice (:func:`flowmod.geometry.box_samples`), rows as in the crops."""
+    return Path(out_dir) / f"{split}.samples.npy"
+
+
+def read_samples(folder: str | os.PathLike[str], split: str) -> np.ndarray:
+    """The flow samples of a split's objects (see :func:`samples_path`)."""
+    path = samples_path(folder, split)
+    if not path.is_file():
+        raise CropsError(f"flow samples missing: {path}; rebuild the crops (chapter 05)")
+    return np.load(path, allow_pickle=False)
+
+
 def crop_paths(out_dir: str | os.PathLike[str], split: str) -> tuple[Path, Path]:
     """``(<out_dir>/<split>.npy, <out_dir>/<split>.parquet)``."""
     d = Path(out_dir)
@@ -227,12 +242,14 @@ def _build_split(
     npy, index = crop_paths(out_dir, split)
     phash = _split_hash(df, size, scale, image_size)
     done_file = npy.with_name(f".{split}.done.json")
-    if npy.is_file() and index.is_file() and done_file.is_file():
+    samples_file = samples_path(out_dir, split)
+    if npy.is_file() and index.is_file() and done_file.is_file() and samples_file.is_file():
         info = json.loads(done_file.read_text())
         if info.get("hash") == phash:
             return info
     out_dir.mkdir(parents=True, exist_ok=True)
     partial = npy.with_name(f".{split}.partial.npy")
+    partial_samples = npy.with_name(f".{split}.samples.partial.npy")
     state_file = npy.with_name(f".{split}.progress.json")
     shape = (len(df), 2, size, size)
 
@@ -247,7 +264,8 @@ def _build_split(
             state = json.loads(state_file.read_text())
             if state.get("params_hash") == phash:
                 arr = np.lib.format.open_memmap(partial, mode="r+")
-                if arr.shape != shape or arr.dtype != np.float16:
+                smp = np.lib.format.open_memmap(partial_samples, mode="r+")
+                if arr.shape != shape or arr.dtype != np.float16 or len(smp) != len(df):
                     arr = None
                 else:
                     done = int(state["pairs_done"])
@@ -256,6 +274,8 @@ def _build_split(
             arr = None
     if arr is None:
         arr = np.lib.format.open_memmap(partial, mode="w+", dtype=np.float16, shape=shape)
+        smp = np.lib.format.open_memmap(partial_samples, mode="w+", dtype=np.float32,
+                                        shape=(len(df), GRID * GRID, 2))
         done, n_nonfinite = 0, 0
         state_file.unlink(missing_ok=True)
 
@@ -286,18 +306,22 @@ def _build_split(
                 boxes[:, [0, 2]] = (boxes[:, [0, 2]] + 0.5) * sx - 0.5
                 boxes[:, [1, 3]] = (boxes[:, [1, 3]] + 0.5) * sy - 0.5
             arr[a:b] = crop_boxes(flow, boxes, size, scale)
+            smp[a:b] = box_samples(flow, boxes)
             pbar.update(1)
             due = bool(checkpoint_every) and (k + 1 - done) % checkpoint_every == 0
             if due or time.monotonic() - last_ckpt > 60:
                 arr.flush()
+                smp.flush()
                 _write_state(state_file, phash, k + 1, n_nonfinite)
                 last_ckpt = time.monotonic()
     finally:
         pbar.close()
     arr.flush()
-    del arr
+    smp.flush()
+    del arr, smp
     with atomic_path(index) as tmp:
         df.to_parquet(tmp, index=False)
+    os.replace(partial_samples, samples_file)
     os.replace(partial, npy)
     state_file.unlink(missing_ok=True)
     info: dict[str, Any] = {

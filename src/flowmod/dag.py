@@ -73,9 +73,9 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("select", 3, "02", "select", "Table-1 keyframe pairs and objects, scene split"),
     Stage("general", 3, "02", "general", "generalisation pairs and objects (held-out scenes)"),
     Stage("flow", 2, "03", "flow/{method}/{part}", "optical flow of every pair"),
-    Stage("crops", 3, "05", "crops/{method}/{part}", "flow crops around every object"),
+    Stage("crops", 4, "05", "crops/{method}/{part}", "flow crops around every object"),
     Stage("train", 3, "06", "models/{method}/{part}", "the classifier of one training seed"),
-    Stage("evaluate", 3, "07", "metrics/{method}/test", "test predictions, baseline, scores"),
+    Stage("evaluate", 4, "07", "metrics/{method}/test", "test predictions, baseline, scores"),
     Stage("generalise", 3, "08", "metrics/{method}/general", "generalisation predictions"),
 )}
 
@@ -122,7 +122,7 @@ def inputs(node: Node, p: Params) -> tuple[Node, ...]:
         "flow": (world, objects),
         "crops": (Node("flow", m, part), objects),
         "train": (Node("crops", m, "keyframe"),),
-        "evaluate": (*models, Node("crops", m, "keyframe"), Node("flow", m, "keyframe"), select),
+        "evaluate": (*models, Node("crops", m, "keyframe"), select),
         "generalise": (*models, Node("crops", m, "general"), Node("general")),
     }
     return table[s]

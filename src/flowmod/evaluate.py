@@ -88,21 +88,26 @@ def original_protocol(df: pd.DataFrame, epoch_probs: list[np.ndarray], batch_siz
             "per_seed_clean": clean, "per_seed_original": original}
 
 
-def geometric_baseline(pairs: pd.DataFrame, objects: pd.DataFrame, load_flow: Any,
-                       seed: int = 0) -> tuple[pd.DataFrame, dict[str, Any]]:
-    """The residual baseline on one method's flow (``load_flow(pair_id)``): threshold on the
+def geometric_baseline(pairs: pd.DataFrame, crops_folder: Any, seed: int = 0
+                       ) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """The residual baseline on one method's flow, from the flow samples stored with its
+    crops (``crops_folder``: a published crops node of the keyframe part): threshold on the
     static-world residual (m/s, :mod:`flowmod.geometry`) fitted on train, scored on test."""
     from flowmod import geometry
+    from flowmod.crops import read_crops, read_samples
 
-    key = objects[objects["set"] == "keyframe"]
-    sub = key[key["split"].isin(["train", "test"])].reset_index(drop=True)
-    res = geometry.residual_scores(sub, pairs, load_flow)
+    frames, samples = [], []
+    for split in ("train", "test"):
+        frames.append(read_crops(crops_folder, split)[1])
+        samples.append(read_samples(crops_folder, split))
+    sub = pd.concat(frames, ignore_index=True)
+    res = geometry.residual_scores(sub, pairs, np.concatenate(samples))
     sub = pd.concat([sub, res], axis=1)
     train = sub[sub["split"] == "train"]
     t = fit_threshold(train["residual_speed"], train["label"])
     test = sub[sub["split"] == "test"].assign(
         prob=lambda d: apply_threshold(d["residual_speed"], t).astype(float))
-    return test, {**score(test, seed=seed), "threshold_m_s": t}
+    return test.reset_index(drop=True), {**score(test, seed=seed), "threshold_m_s": t}
 
 
 def _write(folder: Any, frames: Mapping[str, pd.DataFrame], scores: Mapping[str, Any]) -> None:
@@ -122,7 +127,6 @@ def run(params: Any) -> dict[str, tuple[pd.DataFrame, dict[str, Any]]]:
     training. Files: ``test.parquet`` + ``scores.json`` (the models), ``baseline.parquet``
     + ``baseline.json``, ``original.json``. Returns ``{method: (predictions, scores)}``."""
     from flowmod import dag
-    from flowmod.flow import FlowReader
     from flowmod.train import EPOCH_PROBS
 
     out = {}
@@ -133,10 +137,9 @@ def run(params: Any) -> dict[str, tuple[pd.DataFrame, dict[str, Any]]]:
             models = _models(b, m)
             preds = predict_seeds(models, b.input_dir(dag.Node("crops", m, "keyframe")),
                                   "test", q.device)
-            sel = b.input_dir(dag.Node("select"))
             base, base_s = geometric_baseline(
-                pd.read_parquet(sel / "pairs.parquet"), pd.read_parquet(sel / "objects.parquet"),
-                FlowReader(params, m, "keyframe").load, seed=q.seed)
+                pd.read_parquet(b.input_dir(dag.Node("select")) / "pairs.parquet"),
+                b.input_dir(dag.Node("crops", m, "keyframe")), seed=q.seed)
             epochs = [np.load(path.parent / EPOCH_PROBS) for _, path, _ in models]
             batch = int(b.inputs[f"train[{m}/{models[0][0]}]"]["params"]["batch_size"])
             _write(b.start(fresh=True), {"test": preds, "baseline": base},

@@ -78,32 +78,53 @@ def box_in_camera(cam2global: np.ndarray, center_global: np.ndarray, q_global: n
     return c, g2c[:3, :3] @ quaternion_matrix(q_global)
 
 
-def _sample(flow: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Nearest-pixel flow values (N, 2) at ``xy`` (N, 2), clipped to the image."""
+#: Side of the lattice of points sampled over each 2D box (the flow samples stored with the
+#: crops, read by the baseline).
+GRID = 9
+
+
+def box_lattice(box: np.ndarray, grid: int = GRID) -> np.ndarray:
+    """(grid * grid, 2) pixel coordinates of a regular lattice over a box xmin, ymin, xmax,
+    ymax (corners included), row by row."""
+    x0, y0, x1, y1 = np.asarray(box, dtype=np.float64)
+    gx, gy = np.meshgrid(np.linspace(x0, x1, grid), np.linspace(y0, y1, grid))
+    return np.stack([gx.ravel(), gy.ravel()], axis=1)
+
+
+def box_samples(flow: np.ndarray, boxes: np.ndarray, grid: int = GRID) -> np.ndarray:
+    """Flow (N, grid * grid, 2) float32 px at the lattice of each box (nearest pixel,
+    clipped to the image): what the baseline needs of a flow field, per object."""
+    flow = np.asarray(flow)
     h, w = flow.shape[:2]
-    x = np.clip(np.rint(xy[:, 0]).astype(int), 0, w - 1)
-    y = np.clip(np.rint(xy[:, 1]).astype(int), 0, h - 1)
-    return flow[y, x].astype(np.float64)
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    out = np.empty((len(b), grid * grid, 2), np.float32)
+    for i, box in enumerate(b):
+        xy = box_lattice(box, grid)
+        x = np.clip(np.rint(xy[:, 0]).astype(int), 0, w - 1)
+        y = np.clip(np.rint(xy[:, 1]).astype(int), 0, h - 1)
+        out[i] = flow[y, x]
+    return out
 
 
 def box_residual(
-    flow: np.ndarray, box: np.ndarray, center_global: np.ndarray, K: np.ndarray,
-    cam2global_1: np.ndarray, cam2global_2: np.ndarray, dt_s: float, grid: int = 9,
+    samples: np.ndarray, box: np.ndarray, center_global: np.ndarray, K: np.ndarray,
+    cam2global_1: np.ndarray, cam2global_2: np.ndarray, dt_s: float,
     size_wlh: np.ndarray | None = None, q_global: np.ndarray | None = None,
 ) -> tuple[float, float]:
     """Residual of the measured flow on a vehicle against the flow it would have if still.
 
-    flow: (H, W, 2) px; box: (4,) xmin, ymin, xmax, ymax px; the annotated 3D box at frame 1:
-    global centre (3,) m, size (w, l, h) m and global rotation (w, x, y, z). Samples a
-    ``grid`` x ``grid`` lattice over the 2D box and keeps the points whose ray meets the 3D
-    box, each at the depth where it does (:func:`ray_box_depth`), so every sample lies on the
-    vehicle at its true depth. Without size/rotation (or if no ray hits) it falls back to the
-    box centre's depth at the central point. Returns (median residual in px, the residual
-    converted to m/s across the line of sight at the vehicle's median depth).
+    samples: (G * G, 2) px, the measured flow at :func:`box_lattice` of the 2D box (xmin,
+    ymin, xmax, ymax px); the annotated 3D box at frame 1: global centre (3,) m, size (w, l,
+    h) m and global rotation (w, x, y, z). Keeps the lattice points whose ray meets the 3D
+    box, each at the depth where it does (:func:`ray_box_depth`), so every sample lies on
+    the vehicle at its true depth. Without size/rotation (or if no ray hits) it falls back
+    to the box centre's depth at the lattice point nearest the centre. Returns (median
+    residual in px, the residual converted to m/s across the line of sight at the vehicle's
+    median depth).
     """
-    x0, y0, x1, y1 = np.asarray(box, dtype=np.float64)
-    gx, gy = np.meshgrid(np.linspace(x0, x1, grid), np.linspace(y0, y1, grid))
-    xy = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    samples = np.asarray(samples, dtype=np.float64)
+    grid = int(round(np.sqrt(len(samples))))
+    xy = box_lattice(box, grid)
     c_cam, r_cam = (box_in_camera(cam2global_1, center_global, q_global)
                     if q_global is not None else (None, None))
     depth = (ray_box_depth(xy, K, c_cam, np.asarray(size_wlh, dtype=np.float64), r_cam)
@@ -111,27 +132,28 @@ def box_residual(
     hit = np.isfinite(depth)
     if not hit.any():
         c = np.linalg.solve(cam2global_1, np.append(np.asarray(center_global, dtype=float), 1.0))
-        xy, depth = np.array([[(x0 + x1) / 2, (y0 + y1) / 2]]), np.array([float(c[2])])
+        mid = len(xy) // 2
+        xy, depth, samples = xy[mid:mid + 1], np.array([float(c[2])]), samples[mid:mid + 1]
     else:
-        xy, depth = xy[hit], depth[hit]
-    pred = static_flow(xy, depth, K, cam2global_1, cam2global_2)
-    res = _sample(flow, xy) - pred
+        xy, depth, samples = xy[hit], depth[hit], samples[hit]
+    res = samples - static_flow(xy, depth, K, cam2global_1, cam2global_2)
     res_px = float(np.linalg.norm(np.median(res, axis=0)))
     return res_px, res_px * float(np.median(depth)) / float(K[0, 0]) / dt_s
 
 
-def residual_scores(
-    objects: pd.DataFrame, pairs: pd.DataFrame, load_flow, grid: int = 9
-) -> pd.DataFrame:
+def residual_scores(objects: pd.DataFrame, pairs: pd.DataFrame, samples: np.ndarray
+                    ) -> pd.DataFrame:
     """Residuals for every object: columns residual_px and residual_speed (m/s).
 
-    ``load_flow(pair_id) -> (H, W, 2)`` reads a pair's flow; each flow is read once.
+    samples: (N, G * G, 2) flow at each object's box lattice (:func:`box_samples`, stored
+    with the crops), in ``objects``' row order.
     """
+    if len(samples) != len(objects):
+        raise ValueError(f"{len(samples)} flow samples for {len(objects)} objects")
     p = pairs.set_index("pair_id")
     out = np.zeros((len(objects), 2))
     for pair_id, idx in objects.groupby("pair_id", sort=False).indices.items():
         row = p.loc[pair_id]
-        flow = load_flow(pair_id)
         K = np.asarray(row["intrinsic"], dtype=float).reshape(3, 3)
         T1 = np.asarray(row["cam2global_1"], dtype=float).reshape(4, 4)
         T2 = np.asarray(row["cam2global_2"], dtype=float).reshape(4, 4)
@@ -140,8 +162,8 @@ def residual_scores(
             o = objects.iloc[i]
             has_box = "size_w" in o.index and np.isfinite(o.get("size_w", np.nan))
             out[i] = box_residual(
-                flow, o[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float),
-                o[["center_x", "center_y", "center_z"]].to_numpy(float), K, T1, T2, dt, grid,
+                samples[i], o[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float),
+                o[["center_x", "center_y", "center_z"]].to_numpy(float), K, T1, T2, dt,
                 o[["size_w", "size_l", "size_h"]].to_numpy(float) if has_box else None,
                 o[["qw", "qx", "qy", "qz"]].to_numpy(float) if has_box else None,
             )
