@@ -97,6 +97,7 @@ def test_crops_and_training_recorded(smoke_run):
     g5, g6 = glue_of(smoke_run, "05_preprocessing"), glue_of(smoke_run, "06_training")
     assert g5["crop_size"] == 32
     assert 4.0 <= g5["crop_kb_per_object"] <= 5.0, "2 x 32 x 32 float16 = 4.1 kB per object"
+    assert g5["samples_kb_per_object"] == 0.65, "81 x 2 float32 = 0.648 kB of flow samples per object"
     assert g6["n_model_parameters"] == 11_689_512 - 64 * 7 * 7 - (512 * 999 + 999)
     assert g6["epochs"] == 1
     for m in ("gt", "dis"):

@@ -55,6 +55,8 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "raft_small_weights": ("weights/raft_small.pth", {"flow"}, ("raft_small",)),
     "fastflownet_weights": ("weights/ffn.pth", {"flow"}, ("fastflownet",)),
     "n_jobs": (2, set(), ()),
+    "executor": ("ray", set(), ()),
+    "ray_address": ("auto", set(), ()),
     "crop_size": (48, {"crops"}, ()),
     "crop_scale": (2.5, {"crops"}, ()),
     "epochs": (2, {"train"}, ()),
@@ -69,6 +71,7 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "general_beyond_distance": (80.0, {"general"}, ()),
     "raft_iters": (12, {"flow"}, ("raft", "raft_small")),
     "num_workers": (1, set(), ()),
+    "flow_networks": (["raft"], set(), ()),  # read by the runner only (before any stage)
 }
 #: Parameters whose change is not "some stages read another value" (checked on their own).
 SPECIAL = {"run_dir", "dataroot", "version", "flow_methods", "seeds"}

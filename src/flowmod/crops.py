@@ -444,16 +444,21 @@ def storage_table(params: Any) -> pd.DataFrame:
 
     rows = []
     for m in params.flow_methods:
-        npys = [f for part in PART_SPLITS
-                for f in dag.published(params, dag.Node("crops", m, part)).glob("*.npy")]
+        folders = {part: dag.published(params, dag.Node("crops", m, part)) for part in PART_SPLITS}
+        npys = [crop_paths(folders[part], split)[0]
+                for part, splits in PART_SPLITS.items() for split in splits]
         n_obj = sum(int(np.load(p, mmap_mode="r").shape[0]) for p in npys)
         crop_bytes = sum(p.stat().st_size for p in npys)
+        sample_bytes = sum(samples_path(folders[part], split).stat().st_size
+                           for part, splits in PART_SPLITS.items() for split in splits)
         flows = [r.path(pid) for part in PART_SPLITS
                  for r in [FlowReader(params, m, part)] for pid in r.index["pair_id"]]
         flow_bytes = sum(p.stat().st_size for p in flows)
         rows.append({
             "method": m, "objects": n_obj, "crops total (MB)": crop_bytes / 1e6,
-            "per object (kB)": crop_bytes / max(n_obj, 1) / 1e3, "flow pairs": len(flows),
+            "per object (kB)": crop_bytes / max(n_obj, 1) / 1e3,
+            "flow samples per object (kB)": sample_bytes / max(n_obj, 1) / 1e3,
+            "flow pairs": len(flows),
             "flow total (MB)": flow_bytes / 1e6,
             "flow per pair (MB)": flow_bytes / max(len(flows), 1) / 1e6,
             "original: float32 flow per pair (MB)": IMAGE_SIZE[0] * IMAGE_SIZE[1] * 2 * 4 / 1e6,

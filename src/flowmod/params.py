@@ -155,6 +155,9 @@ class Params(BaseModel):
         lambda: ["gt", "dis", "farneback"], role="plan",
         description="flow methods; one chain of flow, crops, model and scores each",
     )
+    flow_networks: list[Literal["raft", "raft_small", "fastflownet"]] = _field(
+        list, role="plan",
+        description="networks the runner adds to flow_methods when their weights are present")
     flow_scale: float = _field(0.5, gt=0.0, le=1.0, read_by=_FLOW,
                                description="image scale at which flow is computed and stored")
     dis_preset: Literal["ultrafast", "fast", "medium"] = _field(
@@ -172,6 +175,13 @@ class Params(BaseModel):
                                              file=True,
                                              description="path to FastFlowNet weights")
     n_jobs: int = _field(2, ge=1, le=64, role="run", description="parallel CPU workers")
+    executor: Literal["local", "ray"] = _field(
+        "local", role="run",
+        description="where flow is computed: local processes, or a Ray cluster")
+    ray_address: str = _field(
+        "local", role="run", min_length=1,
+        description="executor ray: local (a cluster on this machine), auto (this node's "
+                    "cluster) or a head address host:port")
 
     # --- crops and learning (Table 2) --------------------------------------------------
     crop_size: int = _field(40, ge=16, le=512, read_by=("crops",),

@@ -199,7 +199,7 @@ def run(
     """
     import papermill
 
-    p = load_profile(profile, **(overrides or {}))
+    p = resolve_profile(profile, overrides)
     out_dir = Path(out_dir or repo_root() / "build" / "executed").resolve()
     selected = notebooks(notebooks_dir)
     if only:
@@ -285,6 +285,21 @@ def run(
     return record
 
 
+def resolve_profile(profile: str | Path, overrides: dict[str, Any] | None = None,
+                    say: Any = print) -> Params:
+    """The validated profile with its ``flow_networks`` whose weights are present added to
+    ``flow_methods`` (one line each said, added or not)."""
+    from flowmod.flow.networks import planned_methods
+
+    p = load_profile(profile, **(overrides or {}))
+    methods, notes = planned_methods(p)
+    for line in notes:
+        say(line)
+    if methods != p.flow_methods:
+        p = load_profile(profile, **{**(overrides or {}), "flow_methods": methods})
+    return p
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="python -m flowmod.runner", description=__doc__.split("\n\n")[0]
@@ -303,8 +318,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.status:
             from flowmod import pipeline
 
-            print(pipeline.format_status(load_profile(args.profile,
-                                                      **parse_overrides(args.overrides))))
+            print(pipeline.format_status(resolve_profile(args.profile,
+                                                         parse_overrides(args.overrides))))
             return 0
         run(args.profile, parse_overrides(args.overrides), out_dir=args.out, only=args.only)
     except ProfileError as e:

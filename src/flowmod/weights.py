@@ -26,16 +26,9 @@ RAFT_WEIGHTS = (("raft_large", "C_T_SKHT_K_V1"), ("raft_small", "C_T_V2"))
 
 def status() -> list[tuple[str, str, bool]]:
     """(method, file, present) for every weight file the flow stage looks for."""
-    from flowmod.flow import nets
+    from flowmod.flow.networks import WEIGHTS_PARAM, cache_files
 
-    folder = nets.hub_checkpoint_dir()
-    out = []
-    for method, arch in (("raft", "raft_large"), ("raft_small", "raft_small")):
-        for _enum, name in nets.torchvision_weight_files(arch):
-            out.append((method, str(folder / name), (folder / name).is_file()))
-    for name in nets.FFN_CHECKPOINT_NAMES:
-        out.append(("fastflownet", str(folder / name), (folder / name).is_file()))
-    return out
+    return [(m, str(f), f.is_file()) for m in WEIGHTS_PARAM for f in cache_files(m)]
 
 
 def available_networks() -> list[str]:

@@ -275,3 +275,52 @@ def estimator_options(params: Params, method: str) -> dict[str, Any]:
     return opts
 
 
+
+
+#: The parameter that names each network's weight file.
+WEIGHTS_PARAM = {"raft": "raft_weights", "raft_small": "raft_small_weights",
+                 "fastflownet": "fastflownet_weights"}
+
+
+def cache_files(method: str) -> list[Path]:
+    """The files ``method`` looks for in ``$TORCH_HOME/hub/checkpoints/``, preferred first."""
+    from flowmod.flow import nets as fn
+
+    if method == "fastflownet":
+        names = list(fn.FFN_CHECKPOINT_NAMES)
+    else:
+        names = [f for _, f in fn.torchvision_weight_files(
+            "raft_large" if method == "raft" else "raft_small")]
+    return [fn.hub_checkpoint_dir() / n for n in names]
+
+
+def weights_file(params: Params, method: str) -> Path | None:
+    """The weight file a network ``method`` would load under ``params``: its ``*_weights``
+    parameter when that file exists, else the first cache file present; None if neither."""
+    value = getattr(params, WEIGHTS_PARAM[method])
+    if value:
+        given = params.path(value)
+        return given if given.is_file() else None
+    return next((f for f in cache_files(method) if f.is_file()), None)
+
+
+def planned_methods(params: Params) -> tuple[list[str], list[str]]:
+    """``flow_methods`` plus each of ``flow_networks`` whose weights are present, and one line
+    per network saying whether it was added (the file) or not (where to put one)."""
+    methods, notes = list(params.flow_methods), []
+    for m in params.flow_networks:
+        if m in methods:
+            continue
+        found = weights_file(params, m)
+        if found:
+            methods.append(m)
+            notes.append(f"flow_networks: {m} added to flow_methods (weights {found})")
+        elif getattr(params, WEIGHTS_PARAM[m]):
+            notes.append(f"flow_networks: {m} left out: {WEIGHTS_PARAM[m]}="
+                         f"{getattr(params, WEIGHTS_PARAM[m])} is not a file")
+        else:
+            where = cache_files(m)[0]
+            notes.append(f"flow_networks: {m} left out: no weights (set "
+                         f"{WEIGHTS_PARAM[m]}, or put {where.name} into {where.parent}/; "
+                         "`make weights` fetches RAFT's)")
+    return methods, notes

@@ -237,6 +237,8 @@ def compute_flow(
     force: bool = False,
     store_scale: float = 1.0,
     label: str = "",
+    executor: str = "local",
+    ray_address: str = "local",
     **options: Any,
 ) -> pd.DataFrame:
     """Flow of every pair of ``pairs`` (rows of pairs.parquet) with ``method``, in the pool.
@@ -246,8 +248,10 @@ def compute_flow(
     the disk at 0.5; :func:`flowmod.flow.store.load_stored_flow` restores the size). ``world``
     is the data's fingerprint (it enters every pair key). Pairs whose file is complete are
     not recomputed (``force`` recomputes them, each file replaced only when its new flow is
-    written). Images of the pairs to compute are checked before any work. CPU methods run in
-    ``n_jobs`` processes; networks in sequential batches.
+    written). Images of the pairs to compute are checked before any work. ``executor``
+    ``local``: CPU methods run in ``n_jobs`` processes, networks in sequential batches;
+    ``ray``: on the Ray cluster at ``ray_address`` (:mod:`flowmod.flow.distributed`), with
+    the same files.
 
     Returns one row per pair in ``pairs``' order: pair_id, key, file (path relative to
     ``pool_root``), seconds (estimation time; NaN if unknown), shape (full (H, W, 2)),
@@ -279,10 +283,15 @@ def compute_flow(
     if len(rows) and cls.inputs == "images":
         check_images([root / p for p in (*rows["path_1"], *rows["path_2"])], n_jobs=n_jobs)
 
+    if executor not in ("local", "ray"):
+        raise ValueError(f"executor={executor!r}; allowed: local, ray")
     computed: set[str] = set()
     if len(rows):
-        est = (cls(dataroot=dataroot, version=version, **options)  # type: ignore[call-arg]
-               if cls.inputs == "tokens" else cls(**options))
+        # built here also to fail early (weights, data); Ray's network actors build their own
+        local_opts = ({**options, "device": "cpu"} if executor == "ray" and not cls.cpu_bound
+                      else options)
+        est = (cls(dataroot=dataroot, version=version, **local_opts)  # type: ignore[call-arg]
+               if cls.inputs == "tokens" else cls(**local_opts))
         storage = (dtype, float(store_scale))
         parallel = est.cpu_bound and n_jobs > 1 and len(rows) > 1
         threads = 1 if parallel else 0
@@ -294,7 +303,14 @@ def compute_flow(
             for i, r in zip(todo, rows.itertuples(index=False), strict=True)
         ]
         results: Iterator[Result] | Any
-        if parallel:
+        if executor == "ray":
+            from flowmod.flow.distributed import ray_results
+
+            results = ray_results(
+                fn, calls, cls=cls, options=options, cpu_bound=est.cpu_bound,
+                storage=storage, batched=_batched, batch_size=getattr(est, "batch_size", 1),
+                address=ray_address, n_jobs=n_jobs)
+        elif parallel:
             from joblib import Parallel, delayed
 
             results = Parallel(n_jobs=n_jobs, return_as="generator_unordered")(
@@ -350,6 +366,7 @@ def run(params: Params, progress: bool = True) -> dict[str, dict[str, pd.DataFra
                     version=q.version, world=b.inputs["world"]["fingerprint"],
                     dtype=q.flow_dtype, n_jobs=q.n_jobs, progress=progress, force=q.force,
                     store_scale=q.flow_scale, label=f"flow {method}/{part}",
+                    executor=q.executor, ray_address=q.ray_address,
                     **estimator_options(q, method))
                 with atomic_path(b.start(fresh=True) / "index.parquet") as tmp:
                     idx.drop(columns="computed").to_parquet(tmp, index=False)
