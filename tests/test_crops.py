@@ -279,3 +279,60 @@ def test_nonfinite_flow_is_zeroed_and_recorded(tmp_path) -> None:
     x, _ = read_crops(tmp_path / "c", "val")
     assert np.isfinite(x).all()
     assert info["val"]["nonfinite_flow_values_zeroed"] > 0
+
+
+@pytest.mark.slow
+def test_crops_mode_gives_the_stored_flow_crops_and_keeps_few_pairs(smoke_built, tmp_path):
+    """flow_store: crops on the smoke world: every crop, flow sample and index bit-identical
+    to the crops cut from stored flow (gt with its valid mask included), every metric
+    equal; the flow nodes keep only the figures' and the seeded pairs; a rerun computes
+    nothing; and the disk it takes is that of crops, not of flow."""
+    from flowmod import dag, flow, pipeline
+
+    local = smoke_built
+    p = local.model_copy(update={"flow_store": "crops", "flow_keep_pairs": 2,
+                                 "run_dir": str(tmp_path / "runs")})
+    pipeline.build(p)
+    for m in p.flow_methods:
+        for part, splits in crops.PART_SPLITS.items():
+            for split in splits:
+                xa, ia = crops.open_crops(local, m, split)
+                xb, ib = crops.open_crops(p, m, split)
+                np.testing.assert_array_equal(xa, xb)
+                pd.testing.assert_frame_equal(ia, ib)
+                node = dag.Node("crops", m, part)
+                np.testing.assert_array_equal(
+                    crops.read_samples(dag.published(local, node), split),
+                    crops.read_samples(dag.published(p, node), split))
+            kept = flow.FlowReader(p, m, part).pair_ids
+            every = flow.FlowReader(local, m, part).pair_ids
+            assert set(kept) <= set(every)  # general: the whole clip may be all of it
+            for pid in kept:  # kept flow is the same flow
+                np.testing.assert_array_equal(flow.FlowReader(p, m, part).load(pid),
+                                              flow.FlowReader(local, m, part).load(pid))
+        key = flow.FlowReader(p, m, "keyframe").pair_ids
+        assert len(key) == 3 < len(flow.FlowReader(local, m, "keyframe").pair_ids), (
+            "Figure 1's pair and 2 drawn")
+    for node in dag.nodes(p):
+        if node.stage in ("evaluate", "generalise"):
+            for f in dag.published(local, node).glob("*.parquet"):
+                pd.testing.assert_frame_equal(pd.read_parquet(f),
+                                              pd.read_parquet(dag.published(p, node) / f.name))
+
+    def size(folder: Path) -> int:
+        return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
+
+    def flow_bytes(q, m: str) -> int:
+        r = flow.FlowReader(q, m, "keyframe")
+        return sum(r.path(pid).stat().st_size for pid in r.pair_ids)
+
+    for m in p.flow_methods:
+        n_all = len(flow.FlowReader(local, m, "keyframe").pair_ids)
+        assert flow_bytes(p, m) * n_all == flow_bytes(local, m) * 3, "3 pairs' flow kept"
+        kept_crops = size(Path(p.run_dir) / "crops" / m / "pool")
+        assert kept_crops < 0.2 * size(Path(local.run_dir) / "flow" / m / "pool")
+    assert pipeline.status_frame(p)["state"].eq("up to date").all()
+    pool = Path(p.run_dir) / "crops" / "gt" / "pool"
+    before = {f: f.stat().st_mtime_ns for f in pool.rglob("*.npy")}
+    pipeline.build(p.model_copy(update={"force": False}))
+    assert {f: f.stat().st_mtime_ns for f in pool.rglob("*.npy")} == before

@@ -663,3 +663,10 @@ def test_roundtrip_equals_storing_and_loading(tmp_path, scale, dtype):
     fl.store_flow(tmp_path / "f.npy", flow, dtype, scale)
     np.testing.assert_array_equal(fl.store.roundtrip(flow, dtype, scale),
                                   fl.load_stored_flow(tmp_path / "f.npy", scale))
+    valid = rng.random((60, 80)) > 0.3  # with a mask (gt): invalid values never leak in
+    fl.store_flow(tmp_path / "g.npy", flow, dtype, scale, valid=valid)
+    np.testing.assert_array_equal(fl.store.roundtrip(flow, dtype, scale, valid),
+                                  fl.load_stored_flow(tmp_path / "g.npy", scale))
+    if scale != 1.0:
+        assert not np.array_equal(fl.store.roundtrip(flow, dtype, scale, valid),
+                                  fl.store.roundtrip(flow, dtype, scale))

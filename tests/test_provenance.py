@@ -27,7 +27,7 @@ pytestmark = pytest.mark.slow
 #: the test below fails if the two disagree or if the status does not follow them.
 SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "profile": ("other", set(), ()),
-    "seed": (1, {"world", "select", "train", "evaluate"}, ()),
+    "seed": (1, {"world", "select", "flow", "train", "evaluate"}, ()),
     "device": ("cpu", set(), ()),
     "force": (True, set(), ()),
     "synthetic": (False, set(), ()),
@@ -48,12 +48,12 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "general_min_distance": (1.0, {"general"}, ()),
     "general_max_distance": (90.0, {"general"}, ()),
     "general_max_scenes": (2, {"general"}, ()),
-    "flow_scale": (0.5, {"flow"}, ()),
-    "dis_preset": ("fast", {"flow"}, ("dis",)),
-    "flow_dtype": ("float32", {"flow"}, ()),
-    "raft_weights": ("weights/raft.pth", {"flow"}, ("raft",)),
-    "raft_small_weights": ("weights/raft_small.pth", {"flow"}, ("raft_small",)),
-    "fastflownet_weights": ("weights/ffn.pth", {"flow"}, ("fastflownet",)),
+    "flow_scale": (0.5, {"flow", "crops"}, ()),
+    "dis_preset": ("fast", {"flow", "crops"}, ("dis",)),
+    "flow_dtype": ("float32", {"flow", "crops"}, ()),
+    "raft_weights": ("weights/raft.pth", {"flow", "crops"}, ("raft",)),
+    "raft_small_weights": ("weights/raft_small.pth", {"flow", "crops"}, ("raft_small",)),
+    "fastflownet_weights": ("weights/ffn.pth", {"flow", "crops"}, ("fastflownet",)),
     "n_jobs": (2, set(), ()),
     "executor": ("ray", set(), ()),
     "ray_address": ("auto", set(), ()),
@@ -69,9 +69,11 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "hflip_p": (0.3, {"train"}, ()),
     "amp": ("bf16", {"train"}, ()),
     "general_beyond_distance": (80.0, {"general"}, ()),
-    "raft_iters": (12, {"flow"}, ("raft", "raft_small")),
+    "raft_iters": (12, {"flow", "crops"}, ("raft", "raft_small")),
     "num_workers": (1, set(), ()),
     "flow_networks": (["raft"], set(), ()),  # read by the runner only (before any stage)
+    "flow_store": ("crops", {"flow", "crops"}, ()),
+    "flow_keep_pairs": (5, {"flow"}, ()),
 }
 #: Parameters whose change is not "some stages read another value" (checked on their own).
 SPECIAL = {"run_dir", "dataroot", "version", "flow_methods", "seeds"}

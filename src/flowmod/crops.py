@@ -35,6 +35,8 @@ import numpy as np
 import pandas as pd
 
 from flowmod.artefacts import atomic_path, write_json
+from flowmod.flow.stage import FlowFiles
+from flowmod.flow.store import _npy_header, roundtrip
 from flowmod.geometry import GRID, box_samples
 from flowmod.progress import bar
 
@@ -194,9 +196,10 @@ def _check_objects(objects: pd.DataFrame) -> None:
 
 def build_crops(
     objects: pd.DataFrame,
-    load_flow: Callable[[str], np.ndarray],
+    load_flow: Callable[[str], np.ndarray] | None,
     out_dir: str | os.PathLike[str],
     *,
+    pair_items: PairItems | None = None,
     size: int,
     scale: float = 3.0,
     splits: Sequence[str] | None = None,
@@ -211,6 +214,8 @@ def build_crops(
     ymax in pixels of ``image_size`` = (width, height)); ``load_flow(pair_id)`` -> (H, W, 2)
     flow in pixels (if it has another resolution, boxes are scaled to its grid and the flow
     values are used as they are). Non-finite flow values become 0 (and are counted).
+    ``pair_items`` instead gives each pair's crops already made (:data:`PairItems`, e.g.
+    from the per-pair files of crops mode, :class:`PairCrops`).
 
     Writes ``<out_dir>/<split>.npy`` (N, 2, S, S) float16 (filled through a memmap under a
     temporary name, renamed when complete) and ``<split>.parquet`` (the objects' rows, sorted
@@ -220,6 +225,14 @@ def build_crops(
     (every ``checkpoint_every`` pairs). Returns ``{split: build info}``.
     """
     _check_objects(objects)
+    if pair_items is None:
+        if load_flow is None:
+            raise ValueError("build_crops needs load_flow or pair_items")
+        get = load_flow
+
+        def pair_items(pid: str, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray, int,
+                                                              list[int]]:
+            return pair_crops(get(pid), boxes, size, scale, image_size, pid)
     out: dict[str, dict[str, Any]] = {}
     names = list(splits) if splits is not None else sorted(objects["split"].astype(str).unique())
     for split in names:
@@ -227,15 +240,49 @@ def build_crops(
         # Stable sort by pair: each pair's rows are contiguous, its flow is read once.
         df = sel.sort_values("pair_id", kind="mergesort").reset_index(drop=True)
         out[split] = _build_split(
-            df, load_flow, Path(out_dir), split, size=size, scale=scale,
+            df, pair_items, Path(out_dir), split, size=size, scale=scale,
             image_size=image_size, progress=progress, checkpoint_every=checkpoint_every,
             label=label,
         )
     return out
 
 
+#: ``pair_items(pair_id, boxes (n, 4)) -> (crops (n, 2, S, S), samples (n, G*G, 2),
+#: non-finite flow values zeroed, flow (H, W))``: one pair's share of a split.
+PairItems = Callable[[str, np.ndarray], tuple[np.ndarray, np.ndarray, int, list[int]]]
+
+
+def pair_crops(flow: np.ndarray, boxes: np.ndarray, size: int, scale: float,
+               image_size: tuple[int, int] = IMAGE_SIZE, pair_id: str = "?"
+               ) -> tuple[np.ndarray, np.ndarray, int, list[int]]:
+    """One pair's crops and flow samples (pure): flow (H, W, 2) px (non-finite values set
+    to 0 and counted; another resolution than ``image_size`` maps the boxes onto its grid),
+    boxes (n, 4) in pixels of ``image_size`` = (width, height). Returns (crops (n, 2, S, S)
+    float16, samples (n, G * G, 2) float32, non-finite count, [H, W])."""
+    flow = np.asarray(flow, dtype=np.float32)
+    bad = ~np.isfinite(flow)
+    n_bad = int(bad.sum())
+    if n_bad:
+        flow = np.where(bad, np.float32(0), flow)
+    boxes = np.array(boxes, dtype=np.float64)
+    fh, fw = flow.shape[:2]
+    if (fw, fh) != tuple(image_size):
+        sx, sy = fw / image_size[0], fh / image_size[1]
+        if abs(fh - sx * image_size[1]) > 1.5:  # more than rounding of a rescale
+            raise CropsError(
+                f"flow of pair {pair_id} is {fw}x{fh} (WxH), not the "
+                f"{image_size[0]}x{image_size[1]} image (or a rescaled copy): padded "
+                "flow not unpadded? (RAFT pads 900 rows to 904)"
+            )
+        boxes[:, [0, 2]] = (boxes[:, [0, 2]] + 0.5) * sx - 0.5
+        boxes[:, [1, 3]] = (boxes[:, [1, 3]] + 0.5) * sy - 0.5
+    crops = crop_boxes(flow, boxes, size, scale).astype(np.float16)
+    samples = box_samples(flow, boxes).astype(np.float32)
+    return crops, samples, n_bad, [fh, fw]
+
+
 def _build_split(
-    df: pd.DataFrame, load_flow: Callable[[str], np.ndarray], out_dir: Path, split: str, *,
+    df: pd.DataFrame, pair_items: PairItems, out_dir: Path, split: str, *,
     size: int, scale: float, image_size: tuple[int, int], progress: bool, checkpoint_every: int,
     label: str = "crops",
 ) -> dict[str, Any]:
@@ -287,26 +334,10 @@ def _build_split(
     try:
         for k in range(done, len(bounds)):
             a, b = bounds[k]
-            flow = np.asarray(load_flow(pair_ids[a]), dtype=np.float32)
-            bad = ~np.isfinite(flow)
-            if bad.any():
-                n_nonfinite += int(bad.sum())
-                flow = np.where(bad, np.float32(0), flow)
-            boxes = boxes_all[a:b].copy()
-            fh, fw = flow.shape[:2]
-            flow_shape = [fh, fw]
-            if (fw, fh) != tuple(image_size):
-                sx, sy = fw / image_size[0], fh / image_size[1]
-                if abs(fh - sx * image_size[1]) > 1.5:  # more than rounding of a rescale
-                    raise CropsError(
-                        f"flow of pair {pair_ids[a]} is {fw}x{fh} (WxH), not the "
-                        f"{image_size[0]}x{image_size[1]} image (or a rescaled copy): padded "
-                        "flow not unpadded? (RAFT pads 900 rows to 904)"
-                    )
-                boxes[:, [0, 2]] = (boxes[:, [0, 2]] + 0.5) * sx - 0.5
-                boxes[:, [1, 3]] = (boxes[:, [1, 3]] + 0.5) * sy - 0.5
-            arr[a:b] = crop_boxes(flow, boxes, size, scale)
-            smp[a:b] = box_samples(flow, boxes)
+            crops_ab, samples_ab, bad, flow_shape = pair_items(pair_ids[a], boxes_all[a:b])
+            n_nonfinite += bad
+            arr[a:b] = crops_ab
+            smp[a:b] = samples_ab
             pbar.update(1)
             due = bool(checkpoint_every) and (k + 1 - done) % checkpoint_every == 0
             if due or time.monotonic() - last_ckpt > 60:
@@ -331,6 +362,101 @@ def _build_split(
     }
     write_json(done_file, info)
     return info
+
+
+class PairCrops(FlowFiles):
+    """Crops mode (``flow_store: crops``): of each pair's flow keep only its objects' crops and
+    flow samples, made from the flow exactly as it would be stored and read back
+    (:func:`flowmod.flow.store.roundtrip` at ``dtype`` and ``store_scale``), so that they are
+    bit-identical to crops cut from stored flow files. A :func:`flowmod.flow.compute_flow`
+    writer: per pair ``<key>.npy`` (n, 2, S, S) float16 (written last: complete means done),
+    ``<key>.samples.npy`` (n, G * G, 2) float32 and ``<key>.json`` (non-finite flow values
+    zeroed, flow shape); the pair's extra input is its boxes (n x 4 list, ``image_size``
+    pixels)."""
+
+    #: 1: crops and samples of :func:`pair_crops` from the stored-flow round trip.
+    version = 1
+
+    def __init__(self, dtype: str, store_scale: float, size: int, scale: float,
+                 image_size: tuple[int, int] = IMAGE_SIZE) -> None:
+        super().__init__(dtype, store_scale)
+        self.size, self.scale, self.image_size = int(size), float(scale), tuple(image_size)
+
+    def config(self) -> dict[str, Any]:
+        return {"kept": "crops", "version": self.version, "size": self.size,
+                "scale": self.scale, "image_size": list(self.image_size)}
+
+    @staticmethod
+    def _side(out: Path, what: str) -> Path:
+        return out.with_name(f"{out.stem}.{what}")
+
+    def write(self, out: Path, flow: np.ndarray, valid: np.ndarray | None, extra: Any) -> None:
+        boxes = np.asarray(extra, dtype=np.float64).reshape(-1, 4)
+        stored = roundtrip(flow, self.dtype, self.store_scale, valid)
+        crops, samples, bad, shape = pair_crops(stored, boxes, self.size, self.scale,
+                                                self.image_size, out.stem)
+        with atomic_path(self._side(out, "samples.npy")) as tmp:
+            np.save(tmp, samples, allow_pickle=False)
+        write_json(self._side(out, "json"), {"nonfinite": bad, "flow_shape": shape})
+        with atomic_path(out) as tmp:
+            np.save(tmp, crops, allow_pickle=False)
+
+    def complete(self, out: Path) -> bool:
+        try:
+            shape, fortran, dt, offset = _npy_header(out)
+            ok = (dt == np.float16 and len(shape) == 4 and tuple(shape[1:]) ==
+                  (2, self.size, self.size) and not fortran
+                  and out.stat().st_size == offset + int(np.prod(shape)) * 2)
+        except Exception:  # noqa: BLE001 - anything unreadable is simply not done
+            return False
+        return ok and self._side(out, "samples.npy").is_file() and self._side(out, "json").is_file()
+
+    def shape(self, out: Path) -> list[int]:
+        return [*json.loads(self._side(out, "json").read_text())["flow_shape"], 2]
+
+    def items(self, out: Path, n: int) -> tuple[np.ndarray, np.ndarray, int, list[int]]:
+        """A pair's share (:data:`PairItems`) read back from its files; ``n`` boxes expected."""
+        crops = np.load(out, allow_pickle=False)
+        samples = np.load(self._side(out, "samples.npy"), allow_pickle=False)
+        meta = json.loads(self._side(out, "json").read_text())
+        if len(crops) != n or len(samples) != n:
+            raise CropsError(f"{out}: {len(crops)} crops for {n} objects; rebuild with force")
+        return crops, samples, int(meta["nonfinite"]), list(meta["flow_shape"])
+
+
+def pair_boxes(objects: pd.DataFrame) -> dict[str, list[list[float]]]:
+    """``{pair_id: boxes}`` in the objects' order within each pair (the order
+    :func:`build_crops` keeps); a pair's objects must all be in one split."""
+    spread = objects.groupby("pair_id")["split"].nunique()
+    if (spread > 1).any():
+        raise CropsError(f"pairs with objects in several splits: {list(spread[spread > 1].index[:5])}")
+    return {str(pid): g[list(BOX_COLUMNS)].to_numpy(np.float64).tolist()
+            for pid, g in objects.groupby("pair_id", sort=False)}
+
+
+def _crops_from_flow(q: Any, method: str, part: str, pairs: pd.DataFrame,
+                     objects: pd.DataFrame, world: str, progress: bool) -> PairItems:
+    """Crops mode: compute each pair's flow (local or Ray executor, as the flow stage) and
+    keep its crops (:class:`PairCrops`) in ``<run>/crops/<method>/pool``; returns the
+    :data:`PairItems` that read them back."""
+    from flowmod.flow import compute_flow, estimator_options
+
+    boxes = pair_boxes(objects)
+    pairs = pairs[pairs["pair_id"].astype(str).isin(boxes)]
+    writer = PairCrops(q.flow_dtype, q.flow_scale, q.crop_size, q.crop_scale)
+    pool = q.run_path / "crops" / method / "pool"
+    idx = compute_flow(pairs, method, pool, dataroot=q.dataroot_path, version=q.version,
+                       world=world, dtype=q.flow_dtype, n_jobs=q.n_jobs, progress=progress,
+                       force=q.force, store_scale=q.flow_scale, label=f"flow+crops {method}/{part}",
+                       executor=q.executor, ray_address=q.ray_address, writer=writer,
+                       extras={pid: boxes[str(pid)] for pid in pairs["pair_id"]},
+                       **estimator_options(q, method))
+    files = dict(zip(idx["pair_id"].astype(str), idx["file"], strict=True))
+
+    def items(pid: str, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, list[int]]:
+        return writer.items(pool / files[pid], len(b))
+
+    return items
 
 
 def _write_state(path: Path, phash: str, pairs_done: int, nonfinite: int) -> None:
@@ -405,20 +531,31 @@ def run(params: Any, progress: bool = True) -> dict[str, dict[str, Path]]:
                 objects = pd.read_parquet(b.input_dir(objects_node) / "objects.parquet")
                 if part == "general":
                     objects = objects.assign(split="general")
-                reader = FlowReader(params, m, part)
-                info = build_crops(objects if len(objects) else pd.DataFrame(
-                    columns=["pair_id", "split", *BOX_COLUMNS]), reader.load,
-                    b.start(fresh=q.force), size=q.crop_size, scale=q.crop_scale,
-                    splits=splits, progress=progress, label=f"crops {m}")
+                if not len(objects):
+                    objects = pd.DataFrame(columns=["pair_id", "split", *BOX_COLUMNS])
+                load, items = None, None
+                if q.flow_store == "crops":
+                    pairs = pd.read_parquet(b.input_dir(objects_node) / "pairs.parquet")
+                    world = (dag.recorded(params, dag.Node("world")) or {})["fingerprint"]
+                    items = _crops_from_flow(q, m, part, pairs, objects, world, progress)
+                else:
+                    load = FlowReader(params, m, part).load
+                info = build_crops(objects, load, b.start(fresh=q.force), pair_items=items,
+                                   size=q.crop_size, scale=q.crop_scale, splits=splits,
+                                   progress=progress, label=f"crops {m}")
                 b.publish(splits=info, rows=sum(i["rows"] for i in info.values()))
             out.setdefault(m, {})[part] = b.final
     return out
 
 
-def median_mover(sel: Any) -> tuple[pd.Series, pd.Series]:
+def median_mover(sel: Any, among: Sequence[str] | None = None) -> tuple[pd.Series, pd.Series]:
     """A moving keyframe vehicle of median box width and its pair's row (for the figure of
-    the preprocessing steps)."""
+    the preprocessing steps); only in the pairs ``among`` if given (those with stored flow)."""
     obj = sel.objects[(sel.objects["set"] == "keyframe") & (sel.objects["label"] == 1)]
+    if among is not None:
+        obj = obj[obj["pair_id"].isin(list(among))]
+    if not len(obj):
+        raise CropsError("no moving keyframe vehicle among the pairs with stored flow")
     width = (obj["xmax"] - obj["xmin"]).to_numpy()
     row = obj.iloc[int(np.argsort(width)[len(obj) // 2])]
     return row, sel.pairs.set_index("pair_id").loc[row.pair_id]

@@ -61,7 +61,7 @@ def _field(default: Any = ..., *, read_by: tuple[str, ...] = (), role: str = "in
 #: Roles of a parameter (see :func:`_field`).
 ROLES = ("input", "run", "location", "plan")
 
-_FLOW = ("flow",)
+_FLOW = ("flow", "crops")  # crops too: in crops mode it computes the flow itself
 _TRAIN = ("train",)
 
 
@@ -79,7 +79,7 @@ class Params(BaseModel):
     # --- run ---------------------------------------------------------------------------
     profile: str = _field("demo", role="run",
                           description="profile name; artefacts go to runs/<profile>/")
-    seed: int = _field(0, ge=0, read_by=("world", "select", "train", "evaluate"),
+    seed: int = _field(0, ge=0, read_by=("world", "select", "flow", "train", "evaluate"),
                        description="master seed for every random choice")
     run_dir: str = _field("runs/demo", role="run",
                           description="stage artefacts (relative to the repo root)")
@@ -174,6 +174,13 @@ class Params(BaseModel):
     fastflownet_weights: str | None = _field(None, read_by=_FLOW, methods=("fastflownet",),
                                              file=True,
                                              description="path to FastFlowNet weights")
+    flow_store: Literal["pairs", "crops"] = _field(
+        "crops", read_by=_FLOW,
+        description="pairs: keep every pair's flow; crops: keep only the objects' crops (the "
+                    "crops stage computes the flow) and the flow of a few pairs for figures")
+    flow_keep_pairs: int = _field(
+        12, ge=1, le=1000, read_by=("flow",),
+        description="crops mode: random pairs per part whose flow is kept besides the figures'")
     n_jobs: int = _field(2, ge=1, le=64, role="run", description="parallel CPU workers")
     executor: Literal["local", "ray"] = _field(
         "local", role="run",

@@ -416,8 +416,9 @@ def run(params: Any, progress: bool = True) -> dict[str, list[pd.DataFrame]]:
                 folder = b.input_dir(dag.Node("crops", m, "keyframe"))
                 tx, tdf = crops.read_crops(folder, "train")
                 vx, vdf = crops.read_crops(folder, "val")
+                work = b.start(fresh=q.force)
                 h = train_model(
-                    tx, tdf, vx, vdf, b.start(fresh=q.force), epochs=q.epochs,
+                    tx, tdf, vx, vdf, work, epochs=q.epochs,
                     record=crops.read_crops(folder, "test")[0], batch_size=q.batch_size,
                     lr=q.lr, momentum=q.momentum, weight_decay=q.weight_decay,
                     step_size=q.step_size, gamma=q.gamma, hflip_p=q.hflip_p,
@@ -425,6 +426,9 @@ def run(params: Any, progress: bool = True) -> dict[str, list[pd.DataFrame]]:
                     amp=None if q.amp == "off" else q.amp, resume=True, progress=progress,
                     desc=f"train {m} seed {q.seed + k}",
                 )
+                # the resumable checkpoint (weights + optimiser, twice best.pt) is only
+                # needed while building: a published model is finished
+                (work / "last.pt").unlink(missing_ok=True)
                 b.publish(best_epoch=int(h.attrs["best_epoch"]), best_f1=float(h.attrs["best_f1"]),
                           seed=q.seed + k, amp=q.amp, recipe=recipe(params, m))
             out.setdefault(m, []).append(history(params, m, part))

@@ -34,12 +34,16 @@ from flowmod.flow.registry import (
     resize_flow,
 )
 from flowmod.flow.stage import (
+    FlowFiles,
     FlowReader,
     accuracy_table,
     box_flow_magnitude,
     check_images,
+    clip_pairs,
     compute_flow,
+    figure_pair,
     flow_root,
+    kept_pairs,
     readers,
     run,
     run_summary,
@@ -55,7 +59,11 @@ from flowmod.flow.store import (
 
 __all__ = [
     "FlowEstimator",
+    "FlowFiles",
     "FlowReader",
+    "clip_pairs",
+    "figure_pair",
+    "kept_pairs",
     "FlowFileError",
     "ImageError",
     "MissingWeightsError",

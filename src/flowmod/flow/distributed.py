@@ -96,25 +96,27 @@ def _task_results(ray: Any, fn: Callable[..., Result], calls: Sequence[tuple],
         yield _unwrap(ray, lambda d=done: ray.get(d[0]))
 
 
-#: ``batched(est, jobs, storage) -> Iterator[Result]``: the local executor's network loop.
-Batched = Callable[[Any, list[tuple[str, str, str, Path]], tuple[str, float]], Iterator[Result]]
+#: One pair's job for networks: (key, image 1, image 2, output file, extra).
+Job = tuple[str, str, str, Path, Any]
+#: ``batched(est, jobs, writer) -> Iterator[Result]``: the local executor's network loop.
+Batched = Callable[[Any, list[Job], Any], Iterator[Result]]
 
 
 class FlowWorker:
     """A Ray actor's body: one estimator (``cls(**options)``), built once, flowing chunks of
     pairs with the local executor's own loop ``batched``."""
 
-    def __init__(self, cls: type, options: Mapping[str, Any], storage: tuple[str, float],
+    def __init__(self, cls: type, options: Mapping[str, Any], writer: Any,
                  batched: Batched) -> None:
         self.est = cls(**options)
-        self.storage, self.batched = storage, batched
+        self.writer, self.batched = writer, batched
 
-    def run(self, jobs: list[tuple[str, str, str, Path]]) -> list[Result]:
-        return list(self.batched(self.est, jobs, self.storage))
+    def run(self, jobs: list[Job]) -> list[Result]:
+        return list(self.batched(self.est, jobs, self.writer))
 
 
 def _actor_results(ray: Any, cls: type, options: Mapping[str, Any],
-                   jobs: Sequence[tuple[str, str, str, Path]], storage: tuple[str, float],
+                   jobs: Sequence[Job], writer: Any,
                    batched: Batched, batch_size: int, resources: Mapping[str, float],
                    n_cpu_actors: int) -> Iterator[Result]:
     """Networks: an actor per GPU (else ``n_cpu_actors`` one-CPU actors), chunks of
@@ -131,7 +133,7 @@ def _actor_results(ray: Any, cls: type, options: Mapping[str, Any],
     step = 4 * max(1, batch_size)
     chunks = [list(jobs[i : i + step]) for i in range(0, len(jobs), step)]
     n = min(n, len(chunks))
-    actors = [actor_cls.remote(cls, dict(options), storage, batched) for _ in range(n)]
+    actors = [actor_cls.remote(cls, dict(options), writer, batched) for _ in range(n)]
     log.info("flow %s: %d Ray actor(s) (%s)", getattr(cls, "name", cls), n,
              "GPU" if gpus else "CPU")
     pool = ActorPool(actors)
@@ -149,12 +151,12 @@ def _actor_results(ray: Any, cls: type, options: Mapping[str, Any],
 
 
 def ray_results(fn: Callable[..., Result], calls: Sequence[tuple], *, cls: type,
-                options: Mapping[str, Any], cpu_bound: bool, storage: tuple[str, float],
+                options: Mapping[str, Any], cpu_bound: bool, writer: Any,
                 batched: Batched, batch_size: int, address: str,
                 n_jobs: int) -> Iterator[Result]:
     """The results of the flow stage's per-pair ``calls`` computed on a Ray cluster, in the
     order they finish (see the module docstring). ``calls`` are the local executor's
-    argument tuples ``(est, key, a, b, out, storage, threads)`` for ``fn``; networks
+    argument tuples ``(est, key, a, b, out, writer, extra, threads)`` for ``fn``; networks
     (``cpu_bound`` False) instead build ``cls(**options)`` in each actor and run ``batched``."""
     ray = _ray()
     resources = connect(address, num_cpus=n_jobs)
@@ -162,8 +164,8 @@ def ray_results(fn: Callable[..., Result], calls: Sequence[tuple], *, cls: type,
         calls = [(*c[:-1], 1) for c in calls]  # one OpenCV thread per task
         yield from _task_results(ray, fn, calls, resources.get("CPU", 1))
     else:
-        jobs = [(c[1], c[2], c[3], c[4]) for c in calls]
-        yield from _actor_results(ray, cls, options, jobs, storage, batched, batch_size,
+        jobs = [(c[1], c[2], c[3], c[4], c[6]) for c in calls]
+        yield from _actor_results(ray, cls, options, jobs, writer, batched, batch_size,
                                   resources, n_jobs)
 
 

@@ -170,44 +170,75 @@ def read_timings(pool: Path) -> dict[str, float]:
     return out
 
 
+# --- what is kept of a pair -----------------------------------------------------------------
+
+class FlowFiles:
+    """What the stage keeps of a pair's flow: the flow file itself (:func:`store_flow` at
+    ``dtype`` and ``store_scale``). The default writer of :func:`compute_flow`; another
+    writer (the crops of :class:`flowmod.crops.PairCrops`) keeps something else per pair.
+
+    A writer has ``config()`` (what its files depend on besides the flow and the pair; {} for
+    flow files), ``write(out, flow, valid, extra)`` (``extra``: the pair's own input, e.g.
+    its boxes), ``complete(out)`` (a finished file is there) and ``shape(out)`` (the full
+    flow shape it was made from).
+    """
+
+    def __init__(self, dtype: str = "float16", store_scale: float = 1.0) -> None:
+        self.dtype, self.store_scale = dtype, float(store_scale)
+
+    def config(self) -> dict[str, Any]:
+        return {}
+
+    def write(self, out: Path, flow: np.ndarray, valid: np.ndarray | None, extra: Any) -> None:
+        store_flow(out, flow, self.dtype, self.store_scale, valid=valid)
+
+    def complete(self, out: Path) -> bool:
+        return _npy_ok(out, self.dtype)
+
+    def shape(self, out: Path) -> list[int]:
+        stored = _npy_header(out)[0]
+        return [*full_shape(stored, self.store_scale), *stored[2:]]
+
+
 # --- computing ------------------------------------------------------------------------------
 
 Result = tuple[str, float, tuple[int, ...]]
+#: One pair's job for networks: (key, image 1, image 2, output file, extra).
+Job = tuple[str, str, str, Path, Any]
 
 
 def _one_image_pair(est: FlowEstimator, key: str, path1: str, path2: str, out: Path,
-                    storage: tuple[str, float], threads: int) -> Result:
-    """Worker: read, estimate, save one pair; returns (key, seconds, shape)."""
+                    writer: FlowFiles, extra: Any, threads: int) -> Result:
+    """Worker: read, estimate, write one pair; returns (key, seconds, shape)."""
     if threads:
         cv2.setNumThreads(threads)
     img1, img2 = read_image(path1), read_image(path2)
     t0 = time.perf_counter()
     flow = est.estimate(img1, img2)
     seconds = time.perf_counter() - t0
-    store_flow(out, flow, *storage)
+    writer.write(out, flow, None, extra)
     return key, seconds, flow.shape
 
 
 def _one_token_pair(est: FlowEstimator, key: str, tok1: str, tok2: str, out: Path,
-                    storage: tuple[str, float], threads: int) -> Result:
+                    writer: FlowFiles, extra: Any, threads: int) -> Result:
     """Worker for token methods (``gt``)."""
     if threads:
         cv2.setNumThreads(threads)
     t0 = time.perf_counter()
     flow, valid = est.estimate_tokens(tok1, tok2)  # type: ignore[attr-defined]
     seconds = time.perf_counter() - t0
-    store_flow(out, flow, *storage, valid=valid)
+    writer.write(out, flow, valid, extra)
     return key, seconds, flow.shape
 
 
-def _batched(est: FlowEstimator, jobs: list[tuple[str, str, str, Path]],
-             storage: tuple[str, float]) -> Iterator[Result]:
+def _batched(est: FlowEstimator, jobs: list[Job], writer: FlowFiles) -> Iterator[Result]:
     """Sequential batches for networks; the next batch's images load in a thread meanwhile."""
     bs = max(1, getattr(est, "batch_size", 1))
     chunks = [jobs[i : i + bs] for i in range(0, len(jobs), bs)]
 
-    def load(chunk: list[tuple[str, str, str, Path]]) -> list[tuple[np.ndarray, np.ndarray]]:
-        return [(read_image(a), read_image(b)) for _, a, b, _ in chunk]
+    def load(chunk: list[Job]) -> list[tuple[np.ndarray, np.ndarray]]:
+        return [(read_image(a), read_image(b)) for _, a, b, _, _ in chunk]
 
     with concurrent.futures.ThreadPoolExecutor(1) as pool:
         nxt = pool.submit(load, chunks[0]) if chunks else None
@@ -218,8 +249,8 @@ def _batched(est: FlowEstimator, jobs: list[tuple[str, str, str, Path]],
             t0 = time.perf_counter()
             flows = est.estimate_batch([a for a, _ in imgs], [b for _, b in imgs])
             seconds = (time.perf_counter() - t0) / len(chunk)
-            for (key, _, _, out), flow in zip(chunk, flows, strict=True):
-                store_flow(out, flow, *storage)
+            for (key, _, _, out, extra), flow in zip(chunk, flows, strict=True):
+                writer.write(out, flow, None, extra)
                 yield key, seconds, flow.shape
 
 
@@ -239,6 +270,8 @@ def compute_flow(
     label: str = "",
     executor: str = "local",
     ray_address: str = "local",
+    writer: FlowFiles | None = None,
+    extras: Mapping[str, Any] | None = None,
     **options: Any,
 ) -> pd.DataFrame:
     """Flow of every pair of ``pairs`` (rows of pairs.parquet) with ``method``, in the pool.
@@ -251,13 +284,18 @@ def compute_flow(
     written). Images of the pairs to compute are checked before any work. ``executor``
     ``local``: CPU methods run in ``n_jobs`` processes, networks in sequential batches;
     ``ray``: on the Ray cluster at ``ray_address`` (:mod:`flowmod.flow.distributed`), with
-    the same files.
+    the same files. ``writer`` (default :class:`FlowFiles`) decides what is kept of each
+    pair; ``extras`` (``{pair_id: JSON-able value}``) is each pair's own input for it and
+    enters the pair's key.
 
     Returns one row per pair in ``pairs``' order: pair_id, key, file (path relative to
     ``pool_root``), seconds (estimation time; NaN if unknown), shape (full (H, W, 2)),
     computed (bool, this call).
     """
     config = options_config(method, dtype, store_scale, options)
+    writer = writer or FlowFiles(dtype, store_scale)
+    if writer.config():  # flow files keep the key they always had
+        config["writer"] = writer.config()
     cls = _REGISTRY[method]
     need = ["pair_id", "sd_token_1", "sd_token_2", "path_1", "path_2"]
     missing_cols = [c for c in need if c not in pairs.columns]
@@ -278,7 +316,14 @@ def compute_flow(
         tmp.unlink(missing_ok=True)
     root = Path(dataroot)
     keys = pair_keys(pairs, root, world)
-    todo = [i for i, k in enumerate(keys) if force or not _npy_ok(pool / f"{k}.npy", dtype)]
+    extra = [None] * len(ids)
+    if extras is not None:
+        missing = [i for i in ids if i not in extras]
+        if missing:
+            raise ValueError(f"extras lacks pair(s) {missing[:5]}")
+        extra = [extras[i] for i in ids]
+        keys = [fingerprint({"pair": k, "extra": e}) for k, e in zip(keys, extra, strict=True)]
+    todo = [i for i, k in enumerate(keys) if force or not writer.complete(pool / f"{k}.npy")]
     rows = pairs.iloc[todo]
     if len(rows) and cls.inputs == "images":
         check_images([root / p for p in (*rows["path_1"], *rows["path_2"])], n_jobs=n_jobs)
@@ -292,14 +337,13 @@ def compute_flow(
                       else options)
         est = (cls(dataroot=dataroot, version=version, **local_opts)  # type: ignore[call-arg]
                if cls.inputs == "tokens" else cls(**local_opts))
-        storage = (dtype, float(store_scale))
         parallel = est.cpu_bound and n_jobs > 1 and len(rows) > 1
         threads = 1 if parallel else 0
         fn = _one_token_pair if cls.inputs == "tokens" else _one_image_pair
         calls = [
             (est, keys[i], *((r.sd_token_1, r.sd_token_2) if cls.inputs == "tokens" else
                              (str(root / r.path_1), str(root / r.path_2))),
-             pool / f"{keys[i]}.npy", storage, threads)
+             pool / f"{keys[i]}.npy", writer, extra[i], threads)
             for i, r in zip(todo, rows.itertuples(index=False), strict=True)
         ]
         results: Iterator[Result] | Any
@@ -308,7 +352,7 @@ def compute_flow(
 
             results = ray_results(
                 fn, calls, cls=cls, options=options, cpu_bound=est.cpu_bound,
-                storage=storage, batched=_batched, batch_size=getattr(est, "batch_size", 1),
+                writer=writer, batched=_batched, batch_size=getattr(est, "batch_size", 1),
                 address=ray_address, n_jobs=n_jobs)
         elif parallel:
             from joblib import Parallel, delayed
@@ -318,7 +362,7 @@ def compute_flow(
         elif est.cpu_bound:
             results = (fn(*args) for args in calls)
         else:
-            results = _batched(est, [(a[1], a[2], a[3], a[4]) for a in calls], storage)
+            results = _batched(est, [(a[1], a[2], a[3], a[4], a[6]) for a in calls], writer)
         with (bar(total=len(rows), desc=label or f"flow {method}", unit="pair",
                   disable=not progress) as pbar, open(pool / TIMINGS, "a") as log_f):
             for key, seconds, _shape in results:
@@ -327,10 +371,7 @@ def compute_flow(
                 computed.add(key)
                 pbar.update(1)
     timings = read_timings(pool)
-    shapes = []
-    for k in keys:
-        stored = _npy_header(pool / f"{k}.npy")[0]
-        shapes.append([*full_shape(stored, store_scale), *stored[2:]])
+    shapes = [writer.shape(pool / f"{k}.npy") for k in keys]
     return pd.DataFrame({
         "pair_id": ids, "key": keys, "file": [f"{opts_fp}/{k}.npy" for k in keys],
         "seconds": [timings.get(k, float("nan")) for k in keys], "shape": shapes,
@@ -343,6 +384,37 @@ def compute_flow(
 def flow_root(params: Params) -> Path:
     """``<run_dir>/flow``."""
     return params.run_path / "flow"
+
+
+#: Pairs of chapter 08's clip (6 s at 6 frames per second).
+CLIP_PAIRS = 36
+
+
+def figure_pair(pairs: pd.DataFrame, objects: pd.DataFrame) -> str:
+    """The pair of ``pairs`` with the most objects (Figure 1; the first one on a tie)."""
+    n_obj = pairs["pair_id"].map(objects.groupby("pair_id").size()).fillna(0)
+    return str(pairs["pair_id"].iloc[int(np.argmax(n_obj.to_numpy()))])
+
+
+def clip_pairs(pairs: pd.DataFrame, n: int = CLIP_PAIRS) -> pd.DataFrame:
+    """Chapter 08's clip: the first ``n`` pairs (in time) of the scene with the most pairs."""
+    scene = pairs["scene"].value_counts().index[0]
+    return pairs[pairs["scene"] == scene].sort_values("timestamp_1").head(n)
+
+
+def kept_pairs(pairs: pd.DataFrame, objects: pd.DataFrame, part: str, n: int,
+               seed: int) -> pd.DataFrame:
+    """Crops mode (``flow_store: crops``): the pairs of a part whose flow is kept for the
+    book's figures and EPE tables: Figure 1's pair (keyframe) or the clip's pairs
+    (general), and ``n`` more drawn with ``seed``; in ``pairs``' order."""
+    if not len(pairs):
+        return pairs
+    shown = ({figure_pair(pairs, objects)} if part == "keyframe"
+             else set(clip_pairs(pairs)["pair_id"]))
+    rest = pairs.loc[~pairs["pair_id"].isin(shown), "pair_id"].to_numpy()
+    rng = np.random.default_rng([seed, 0 if part == "keyframe" else 1])
+    drawn = rng.choice(rest, size=min(n, len(rest)), replace=False) if len(rest) else []
+    return pairs[pairs["pair_id"].isin(shown | set(drawn))]
 
 
 def _objects_node(part: str) -> dag.Node:
@@ -361,6 +433,9 @@ def run(params: Params, progress: bool = True) -> dict[str, dict[str, pd.DataFra
                 q = b.params
                 pairs_file = b.input_dir(_objects_node(part)) / "pairs.parquet"
                 pairs = pd.read_parquet(pairs_file)
+                if q.flow_store == "crops":  # the crops stage computes the rest itself
+                    objects = pd.read_parquet(pairs_file.with_name("objects.parquet"))
+                    pairs = kept_pairs(pairs, objects, part, q.flow_keep_pairs, q.seed)
                 idx = compute_flow(
                     pairs, method, flow_root(q) / method / "pool", dataroot=q.dataroot_path,
                     version=q.version, world=b.inputs["world"]["fingerprint"],
@@ -371,7 +446,7 @@ def run(params: Params, progress: bool = True) -> dict[str, dict[str, pd.DataFra
                 with atomic_path(b.start(fresh=True) / "index.parquet") as tmp:
                     idx.drop(columns="computed").to_parquet(tmp, index=False)
                 b.publish(pairs=len(idx), computed=int(idx["computed"].sum()),
-                          store_scale=q.flow_scale, dtype=q.flow_dtype)
+                          store_scale=q.flow_scale, dtype=q.flow_dtype, kept=q.flow_store)
             out.setdefault(method, {})[part] = FlowReader(params, method, part).index
     return out
 
@@ -407,6 +482,11 @@ class FlowReader:
     def __contains__(self, pair_id: str) -> bool:
         return pair_id in self._files
 
+    @property
+    def pair_ids(self) -> list[str]:
+        """The pairs whose flow is stored (all of the part's, or those kept in crops mode)."""
+        return list(self._files)
+
     def path(self, pair_id: str) -> Path:
         if pair_id not in self._files:
             raise KeyError(f"pair {pair_id!r} is not in flow[{self.method}/{self.part}]")
@@ -427,7 +507,8 @@ def accuracy_table(params: Params, pairs: pd.DataFrame, objects: pd.DataFrame,
                    seed: int = 0) -> pd.DataFrame:
     """EPE / Fl-all against the world's exact flow, overall and inside far (keyframe set,
     min-max distance) and near (generalisation set, < min_distance) vehicle boxes, with the
-    median seconds per pair; on ``n_pairs`` random pairs of each set (synthetic world only).
+    median seconds per pair; on ``n_pairs`` random pairs of each set whose flow every reader
+    stores (synthetic world only).
     ``readers``: ``{method: {part: FlowReader}}``."""
     from flowmod import world
 
@@ -436,6 +517,7 @@ def accuracy_table(params: Params, pairs: pd.DataFrame, objects: pd.DataFrame,
     for kind, dmin, dmax in (("keyframe", params.min_distance, params.max_distance),
                              ("general", 0.0, params.min_distance)):
         ids = pairs.loc[pairs["set"] == kind, "pair_id"].to_numpy()
+        ids = np.array([i for i in ids if all(i in parts[kind] for parts in readers.values())])
         if len(ids) == 0:
             continue
         pick = rng.choice(ids, size=min(n_pairs, len(ids)), replace=False)

@@ -161,11 +161,13 @@ def as_stored(flow: np.ndarray, dtype: str) -> np.ndarray:
     return np.ascontiguousarray(flow, dtype=dtype)
 
 
-def roundtrip(flow: np.ndarray, dtype: str = "float16", store_scale: float = 1.0) -> np.ndarray:
-    """What :func:`load_stored_flow` returns for ``flow`` stored by :func:`store_flow`, without
-    the file: the same reduction, dtype and restoration, bit for bit (for any image size:
-    the restoration goes back to ``flow``'s own size)."""
-    small = as_stored(reduce(flow, store_scale, check=False)[0], dtype)
+def roundtrip(flow: np.ndarray, dtype: str = "float16", store_scale: float = 1.0,
+              valid: np.ndarray | None = None) -> np.ndarray:
+    """What :func:`load_stored_flow` returns for ``flow`` stored by :func:`store_flow` (with
+    its ``valid`` mask, if any), without the file: the same reduction, dtype and
+    restoration, bit for bit (for any image size: the restoration goes back to ``flow``'s
+    own size)."""
+    small = as_stored(reduce(flow, store_scale, valid, check=False)[0], dtype)
     return restore(small, store_scale, size=flow.shape[:2])
 
 
