@@ -12,8 +12,6 @@ from test_flow import KW, _hand_set_fastflownet, make_dataroot
 import flowmod.flow as fl
 from flowmod.flow import distributed
 
-pytest.importorskip("ray")
-
 
 @pytest.fixture(scope="module")
 def ray_cluster():
