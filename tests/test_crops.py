@@ -336,3 +336,41 @@ def test_crops_mode_gives_the_stored_flow_crops_and_keeps_few_pairs(smoke_built,
     before = {f: f.stat().st_mtime_ns for f in pool.rglob("*.npy")}
     pipeline.build(p.model_copy(update={"force": False}))
     assert {f: f.stat().st_mtime_ns for f in pool.rglob("*.npy")} == before
+
+
+def test_pair_crops_writer_resumes_and_refuses_mixed_splits(tmp_path) -> None:
+    """Crops mode's per-pair files through compute_flow: a crops file cut short (a kill while
+    writing) is the only pair computed again; its crops equal pair_crops on the round-tripped
+    flow; objects of one pair in two splits are refused, naming the pair."""
+    from test_flow import KW, make_dataroot
+
+    import flowmod.flow as fl
+
+    root = tmp_path / "data"
+    pairs = make_dataroot(root, n=3, size=(60, 80))
+    boxes = {p: [[10.0 + i, 12.0, 30.0 + i, 40.0], [40.0, 5.0, 70.0, 25.0]]
+             for i, p in enumerate(pairs["pair_id"])}
+    writer = crops.PairCrops("float16", 0.5, size=8, scale=2.0, image_size=(80, 60))
+    kw = {**KW, "dataroot": root, "store_scale": 0.5, "writer": writer, "extras": boxes}
+    first = fl.compute_flow(pairs, "dis", tmp_path / "pool", **kw)
+    assert first["computed"].all() and list(first["shape"].iloc[0]) == [60, 80, 2]
+    f1 = tmp_path / "pool" / first["file"].iloc[1]
+    got = writer.items(f1, 2)
+    img = [fl.read_image(root / pairs[c].iloc[1]) for c in ("path_1", "path_2")]
+    flow = fl.store.roundtrip(fl.get_estimator("dis").estimate(*img), "float16", 0.5)
+    want = crops.pair_crops(flow, np.array(boxes["p1"]), 8, 2.0, (80, 60))
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    assert got[0].shape == (2, 2, 8, 8) and got[0].dtype == np.float16
+
+    f1.write_bytes(f1.read_bytes()[:-10])  # cut short
+    again = fl.compute_flow(pairs, "dis", tmp_path / "pool", **kw)
+    assert list(again["computed"]) == [False, True, False]
+    other = fl.compute_flow(pairs, "dis", tmp_path / "pool",
+                            **{**kw, "extras": {**boxes, "p0": boxes["p0"][:1]}})
+    assert list(other["computed"]) == [True, False, False], "other boxes: another key"
+
+    objects = pd.DataFrame({"pair_id": ["a", "a", "b"], "split": ["train", "val", "val"],
+                            "xmin": 1.0, "ymin": 1.0, "xmax": 5.0, "ymax": 5.0})
+    with pytest.raises(CropsError, match=r"several splits: \['a'\]"):
+        crops.pair_boxes(objects)
