@@ -20,7 +20,7 @@ PYTEST_ARGS ?=
 
 RUN_SET    := $(if $(DATAROOT),--set dataroot=$(DATAROOT)) $(foreach s,$(SET),--set $(s))
 
-.PHONY: help env data run status book test bench lint clean browser weights
+.PHONY: help env data run status gc book test bench lint clean browser weights
 
 help:  ## list the targets
 	@echo "flowmod: optical-flow motion detection, reproduced"
@@ -52,6 +52,9 @@ run: env  ## execute notebooks/NN_*.ipynb in order with params/$(PROFILE).yaml i
 
 status: env  ## per stage of PROFILE (+SET): up to date or stale, and why; runs nothing
 	$(PY) -m flowmod.runner --profile $(PROFILE) --status $(RUN_SET)
+
+gc: env  ## remove per-pair cache files no node of PROFILE (+SET) reads (other worlds, options, crop geometries)
+	$(PY) -m flowmod.runner --profile $(PROFILE) --gc $(RUN_SET)
 
 book: run browser  ## run, then render the book into build/html (and check it in Chromium)
 	$(PY) -m flowmod.report.book --executed $(EXECUTED) --out $(HTML)

@@ -302,3 +302,44 @@ def test_killed_flow_build_resumes_without_recomputing_finished_pairs(finished, 
     assert np.isfinite(idx["seconds"]).all(), "timings of the killed run survive"
     assert json.loads((dag.node_dir(p, dag.Node("flow", "dis", "keyframe"))
                        / "manifest.json").read_text())["pairs"] == len(idx)
+
+
+def test_gc_removes_only_what_no_node_reads(finished, tmp_path):
+    """runner --gc: a fresh run has nothing to collect; after a flow option changed, the old
+    option's files stay while a kept variant lists them and go with --variants; stray files
+    and crops pools of other options go; every node stays up to date and readable."""
+    from flowmod import flow, runner
+
+    run = tmp_path / "runs"
+    shutil.copytree(finished.run_path, run, symlinks=True)
+    p = finished.model_copy(update={"run_dir": str(run)})
+    assert pipeline.unreferenced(p) == []
+    fast = p.model_copy(update={"dis_preset": "fast"})
+    pipeline.build(fast, chapters=["03"])
+    pool = run / "flow" / "dis" / "pool"
+    assert len([d for d in pool.iterdir() if d.is_dir()]) == 2
+    assert pipeline.unreferenced(fast) == [], "the medium flow is a kept variant's"
+    stray = next(pool.iterdir()) / "0123456789abcdef.npy"
+    stray.write_bytes(b"left by hand")
+    other_crops = run / "crops" / "dis" / "pool" / "deadbeefdeadbeef"
+    other_crops.mkdir(parents=True)
+    (other_crops / "x.npy").write_bytes(b"crops of another geometry")
+    assert set(pipeline.unreferenced(fast)) == {stray, other_crops}
+    n_medium = len(flow.FlowReader(p, "dis", "keyframe").pair_ids) + len(
+        flow.FlowReader(p, "dis", "general").pair_ids)
+    assert runner.main(["--profile", "smoke", "--set", f"run_dir={run}", "--set",
+                        f"dataroot={p.dataroot}", "--set", "dis_preset=fast", "--gc",
+                        "--variants", "--dry-run"]) == 0
+    assert stray.exists() and other_crops.exists(), "dry run removes nothing"
+    stale = not_up_to_date(fast)  # crops and below: dis_preset changed, only 03 was rebuilt
+    assert {n.stage for n in stale} == {"crops", "train", "evaluate", "generalise"}
+    n, _ = pipeline.collect_garbage(fast, variants=True)
+    variants = 2  # the dis flow nodes' medium results
+    assert n == 2 + variants + n_medium
+    assert not stray.exists() and not other_crops.exists()
+    assert len([d for d in pool.iterdir() if d.is_dir()]) == 1, "emptied option folder removed"
+    assert not_up_to_date(fast) == stale, "nothing a node reads was removed"
+    for part in dag.PARTS:
+        r = flow.FlowReader(fast, "dis", part)
+        assert all(r.load(pid).shape[2] == 2 for pid in r.pair_ids)
+    assert pipeline.collect_garbage(fast) == (0, 0)

@@ -434,6 +434,18 @@ def pair_boxes(objects: pd.DataFrame) -> dict[str, list[list[float]]]:
             for pid, g in objects.groupby("pair_id", sort=False)}
 
 
+def crops_pool(q: Any, method: str) -> Path:
+    """The folder of crops mode's per-pair files for ``method`` under the options of ``q``
+    (``<run>/crops/<method>/pool/<options fingerprint>``)."""
+    from flowmod.artefacts import fingerprint
+    from flowmod.flow import estimator_options
+    from flowmod.flow.stage import pool_config
+
+    writer = PairCrops(q.flow_dtype, q.flow_scale, q.crop_size, q.crop_scale)
+    config = pool_config(method, q.flow_dtype, q.flow_scale, estimator_options(q, method), writer)
+    return q.run_path / "crops" / method / "pool" / fingerprint(config)
+
+
 def _crops_from_flow(q: Any, method: str, part: str, pairs: pd.DataFrame,
                      objects: pd.DataFrame, world: str, progress: bool) -> PairItems:
     """Crops mode: compute each pair's flow (local or Ray executor, as the flow stage) and

@@ -5,11 +5,13 @@ notebooks call, for tests, benchmarks and scripts that need the artefacts but no
     p = params.load_profile("smoke", run_dir="/tmp/runs")
     pipeline.build(p)                     # every stale node, nothing else
     print(pipeline.format_status(p))      # what runner --status prints
+    pipeline.collect_garbage(p)           # what runner --gc does
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
+from pathlib import Path
 from typing import Any
 
 import pandas as pd
@@ -62,3 +64,54 @@ def format_status(p: Params) -> str:
     lines.append(f"{len(df) - n_stale} of {len(df)} up to date" + (
         f"; {n_stale} to build (make run, or python -m flowmod.runner)" if n_stale else ""))
     return "\n".join(lines)
+
+
+def unreferenced(p: Params, variants: bool = False) -> list[Path]:
+    """Files of the run folder's per-pair caches that no node of ``p`` can read any more:
+    flow pool files listed by no flow index (published or kept variant) and crops pool
+    folders of other options than ``p``'s (another geometry, flow option or dtype; the
+    crops nodes themselves keep their arrays; in ``flow_store: pairs`` no crops pool is
+    read). ``variants``: also every kept variant
+    (``.variant-`` folder: an earlier result that switching back would restore), and the
+    flow files only they listed. A method with a build in progress (a ``.building-``
+    folder) keeps its flow files: its unlisted files are its resume point."""
+    from flowmod.flow.store import valid_path
+
+    out: list[Path] = sorted(p.run_path.rglob(".*.variant-*")) if variants else []
+    for method_dir in sorted((p.run_path / "flow").glob("*")):
+        pool = method_dir / "pool"
+        if not pool.is_dir() or any(method_dir.glob(".*.building-*")):
+            continue
+        keep: set[Path] = set()
+        for index in method_dir.glob("*/index.parquet"):  # published and .variant- folders
+            if variants and ".variant-" in index.parent.name:
+                continue
+            for f in pd.read_parquet(index, columns=["file"])["file"]:
+                keep |= {pool / f, valid_path(pool / f)}
+        out += [f for f in sorted(pool.rglob("*.npy")) if f not in keep]
+    for pool_root in sorted((p.run_path / "crops").glob("*/pool")):
+        m = pool_root.parent.name
+        if any(pool_root.parent.glob(".*.building-*")):
+            continue
+        current = (crops.crops_pool(p, m) if p.flow_store == "crops" and m in p.flow_methods
+                   else None)
+        out += [d for d in sorted(pool_root.iterdir()) if d.is_dir() and d != current]
+    return out
+
+
+def collect_garbage(p: Params, dry_run: bool = False,
+                    variants: bool = False) -> tuple[int, int]:
+    """Remove :func:`unreferenced` files and folders (``dry_run``: only count them); then
+    option folders left without flow files. Returns (items, bytes)."""
+    import shutil
+
+    items = unreferenced(p, variants)
+    size = sum(f.stat().st_size for i in items
+               for f in ([i] if i.is_file() else list(i.rglob("*"))) if f.is_file())
+    if not dry_run:
+        for i in items:
+            shutil.rmtree(i) if i.is_dir() else i.unlink()
+        for folder in (p.run_path / "flow").glob("*/pool/*"):
+            if folder.is_dir() and not any(folder.glob("*.npy")):
+                shutil.rmtree(folder)
+    return len(items), size

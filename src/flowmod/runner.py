@@ -313,8 +313,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--status", action="store_true",
                     help="print, per stage, whether its artefacts are up to date and why not; "
                          "run nothing")
+    ap.add_argument("--gc", action="store_true",
+                    help="remove per-pair cache files no node of the profile can read (other "
+                         "worlds, options, crop geometries); run nothing")
+    ap.add_argument("--dry-run", action="store_true", help="with --gc: only say what it frees")
+    ap.add_argument("--variants", action="store_true",
+                    help="with --gc: also drop kept earlier results (switching back to their "
+                         "parameters then recomputes) and the cache files only they read")
     args = ap.parse_args(argv)
     try:
+        if args.gc:
+            from flowmod import pipeline
+
+            p = resolve_profile(args.profile, parse_overrides(args.overrides))
+            n, size = pipeline.collect_garbage(p, dry_run=args.dry_run, variants=args.variants)
+            verb = "would free" if args.dry_run else "freed"
+            print(f"{p.run_path}: {n} cache files/folders no node reads; {verb} "
+                  f"{size / 1e6:.1f} MB")
+            return 0
         if args.status:
             from flowmod import pipeline
 

@@ -138,6 +138,16 @@ def options_config(method: str, dtype: str, store_scale: float,
             "store_scale": float(store_scale), "options": opts}
 
 
+def pool_config(method: str, dtype: str, store_scale: float, options: Mapping[str, Any],
+                writer: FlowFiles | None = None) -> dict[str, Any]:
+    """What a pool folder's files depend on besides the pair (its name is the fingerprint):
+    :func:`options_config` and, for a writer other than flow files, its ``config()``."""
+    config = options_config(method, dtype, store_scale, options)
+    if writer is not None and writer.config():  # flow files keep the key they always had
+        config["writer"] = writer.config()
+    return config
+
+
 def pair_keys(pairs: pd.DataFrame, dataroot: str | os.PathLike[str], world: str) -> list[str]:
     """Per-pair cache keys: fingerprint of (world, sample_data tokens, image names and sizes).
 
@@ -292,10 +302,8 @@ def compute_flow(
     ``pool_root``), seconds (estimation time; NaN if unknown), shape (full (H, W, 2)),
     computed (bool, this call).
     """
-    config = options_config(method, dtype, store_scale, options)
     writer = writer or FlowFiles(dtype, store_scale)
-    if writer.config():  # flow files keep the key they always had
-        config["writer"] = writer.config()
+    config = pool_config(method, dtype, store_scale, options, writer)
     cls = _REGISTRY[method]
     need = ["pair_id", "sd_token_1", "sd_token_2", "path_1", "path_2"]
     missing_cols = [c for c in need if c not in pairs.columns]
