@@ -29,6 +29,8 @@ def test_paper_profile_keeps_paper_settings_and_requires_dataroot():
     assert (p.min_distance, p.max_distance, p.visibility_tokens) == (30.0, 70.0, ["4"])
     assert p.categories == params.TABLE1_CATEGORIES and len(p.categories) == 7
     assert p.version == "v1.0-trainval"
+    # at scale: crops straight from flow, mixed precision and loader workers (a GPU run)
+    assert (p.flow_store, p.amp, p.num_workers) == ("crops", "bf16", 4)
 
 
 def test_defaults_are_the_demo_profile():
