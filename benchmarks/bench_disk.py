@@ -13,10 +13,9 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
-from flowmod import crops, dag, flow
+from flowmod import crops, dag
 from flowmod.artefacts import write_json
 from flowmod.params import load_profile
 from flowmod.paths import repo_root
@@ -29,27 +28,20 @@ def folder_bytes(folder: Path) -> int:
     return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
 
 
-def method_row(p, m: str) -> dict[str, float]:
-    n_obj, crop_b, sample_b = 0, 0, 0
-    for part, splits in crops.PART_SPLITS.items():
-        folder = dag.published(p, dag.Node("crops", m, part))
-        for split in splits:
-            npy = crops.crop_paths(folder, split)[0]
-            n_obj += int(np.load(npy, mmap_mode="r").shape[0])
-            crop_b += npy.stat().st_size
-            sample_b += crops.samples_path(folder, split).stat().st_size
-    readers = [flow.FlowReader(p, m, part) for part in dag.PARTS]
-    kept = [r.path(pid) for r in readers for pid in r.pair_ids]
-    flow_b = sum(f.stat().st_size for f in kept)
+def method_row(p, storage: dict[str, float]) -> dict[str, float]:
+    """One method's row of :func:`flowmod.crops.storage_table` (crops and samples per object,
+    the flow kept) with the crops-mode pool and the pairs selected."""
+    m = storage["method"]
     pool = p.run_path / "crops" / m / "pool"
     pool_files = list(pool.rglob("*.npy")) if pool.is_dir() else []
     n_pool_pairs = sum(1 for f in pool_files if not f.name.endswith(".samples.npy"))
     pairs = sum(len(pd.read_parquet(dag.published(p, dag.Node(n)) / "pairs.parquet"))
                 for n in ("select", "general"))
     return {
-        "objects": n_obj, "crop kB / object": crop_b / max(n_obj, 1) / 1e3,
-        "samples kB / object": sample_b / max(n_obj, 1) / 1e3,
-        "flow pairs kept": len(kept), "flow MB / pair kept": flow_b / max(len(kept), 1) / 1e6,
+        "objects": storage["objects"], "crop kB / object": storage["per object (kB)"],
+        "samples kB / object": storage["flow samples per object (kB)"],
+        "flow pairs kept": storage["flow pairs"],
+        "flow MB / pair kept": storage["flow per pair (MB)"],
         "crops pool pairs": n_pool_pairs,
         "crops pool kB / pair": folder_bytes(pool) / max(n_pool_pairs, 1) / 1e3,
         "pairs selected": pairs,
@@ -69,7 +61,8 @@ def main(argv: list[str] | None = None) -> int:
               f"(PROFILE={args.profile}) first")
         return 2
     folders = {d.name: folder_bytes(d) / 1e6 for d in sorted(p.run_path.iterdir()) if d.is_dir()}
-    methods = {m: method_row(p, m) for m in p.flow_methods}
+    storage = crops.storage_table(p)  # rounded to 0.01: the per-object figures of chapter 05
+    methods = {r["method"]: method_row(p, r) for r in storage.to_dict("records")}
     for row in methods.values():
         obj_per_pair = row["objects"] / max(row["pairs selected"], 1)
         row["objects / pair"] = obj_per_pair

@@ -36,7 +36,7 @@ import pandas as pd
 
 from flowmod.artefacts import atomic_path, write_json
 from flowmod.flow.stage import FlowFiles
-from flowmod.flow.store import _npy_header, roundtrip
+from flowmod.flow.store import _npy_ok, roundtrip
 from flowmod.geometry import GRID, box_samples
 from flowmod.progress import bar
 
@@ -402,14 +402,9 @@ class PairCrops(FlowFiles):
             np.save(tmp, crops, allow_pickle=False)
 
     def complete(self, out: Path) -> bool:
-        try:
-            shape, fortran, dt, offset = _npy_header(out)
-            ok = (dt == np.float16 and len(shape) == 4 and tuple(shape[1:]) ==
-                  (2, self.size, self.size) and not fortran
-                  and out.stat().st_size == offset + int(np.prod(shape)) * 2)
-        except Exception:  # noqa: BLE001 - anything unreadable is simply not done
-            return False
-        return ok and self._side(out, "samples.npy").is_file() and self._side(out, "json").is_file()
+        return (_npy_ok(out, "float16", (None, 2, self.size, self.size))
+                and self._side(out, "samples.npy").is_file()
+                and self._side(out, "json").is_file())
 
     def shape(self, out: Path) -> list[int]:
         return [*json.loads(self._side(out, "json").read_text())["flow_shape"], 2]
@@ -434,6 +429,15 @@ def pair_boxes(objects: pd.DataFrame) -> dict[str, list[list[float]]]:
             for pid, g in objects.groupby("pair_id", sort=False)}
 
 
+def _writer(q: Any) -> PairCrops:
+    """Crops mode's writer under the parameters of ``q``."""
+    return PairCrops(q.flow_dtype, q.flow_scale, q.crop_size, q.crop_scale)
+
+
+def _pool_root(q: Any, method: str) -> Path:
+    return q.run_path / "crops" / method / "pool"
+
+
 def crops_pool(q: Any, method: str) -> Path:
     """The folder of crops mode's per-pair files for ``method`` under the options of ``q``
     (``<run>/crops/<method>/pool/<options fingerprint>``)."""
@@ -441,9 +445,9 @@ def crops_pool(q: Any, method: str) -> Path:
     from flowmod.flow import estimator_options
     from flowmod.flow.stage import pool_config
 
-    writer = PairCrops(q.flow_dtype, q.flow_scale, q.crop_size, q.crop_scale)
-    config = pool_config(method, q.flow_dtype, q.flow_scale, estimator_options(q, method), writer)
-    return q.run_path / "crops" / method / "pool" / fingerprint(config)
+    config = pool_config(method, q.flow_dtype, q.flow_scale, estimator_options(q, method),
+                         _writer(q))
+    return _pool_root(q, method) / fingerprint(config)
 
 
 def _crops_from_flow(q: Any, method: str, part: str, pairs: pd.DataFrame,
@@ -455,8 +459,7 @@ def _crops_from_flow(q: Any, method: str, part: str, pairs: pd.DataFrame,
 
     boxes = pair_boxes(objects)
     pairs = pairs[pairs["pair_id"].astype(str).isin(boxes)]
-    writer = PairCrops(q.flow_dtype, q.flow_scale, q.crop_size, q.crop_scale)
-    pool = q.run_path / "crops" / method / "pool"
+    writer, pool = _writer(q), _pool_root(q, method)
     idx = compute_flow(pairs, method, pool, dataroot=q.dataroot_path, version=q.version,
                        world=world, dtype=q.flow_dtype, n_jobs=q.n_jobs, progress=progress,
                        force=q.force, store_scale=q.flow_scale, label=f"flow+crops {method}/{part}",

@@ -41,13 +41,13 @@ def read_recipe(model: Path) -> dict[str, Any]:
     rec = json.loads(man.read_text())
     if rec.get("recipe"):
         return rec["recipe"]
+    from flowmod.train import recipe_from
+
     method = rec["node"].split("[", 1)[1].split("/", 1)[0]
     run = model.parent.parents[2]
     flow = json.loads((run / "flow" / method / "keyframe" / "manifest.json").read_text())
     crops = json.loads((run / "crops" / method / "keyframe" / "manifest.json").read_text())
-    return {"method": method, "flow_params": flow["params"], "flow_dtype": flow.get("dtype"),
-            "store_scale": flow.get("store_scale"), "crop_size": crops["params"]["crop_size"],
-            "crop_scale": crops["params"]["crop_scale"]}
+    return recipe_from(method, flow, crops)
 
 
 def read_boxes(path: Path, width: int, height: int) -> pd.DataFrame:
@@ -77,7 +77,7 @@ def predict_boxes(frame1: np.ndarray, frame2: np.ndarray, boxes: pd.DataFrame,
                   model_path: Path, recipe: dict[str, Any], device: str = "auto"
                   ) -> pd.DataFrame:
     """Probability of moving for each box, processed as the model's training crops were."""
-    from flowmod.crops import crop_boxes
+    from flowmod.crops import pair_crops
     from flowmod.flow import get_estimator
     from flowmod.flow.networks import estimator_options
     from flowmod.flow.store import roundtrip
@@ -96,10 +96,11 @@ def predict_boxes(frame1: np.ndarray, frame2: np.ndarray, boxes: pd.DataFrame,
     flow = get_estimator(method, **estimator_options(p, method)).estimate(frame1, frame2)
     flow = roundtrip(flow, recipe.get("flow_dtype") or "float32",
                      float(recipe.get("store_scale") or 1.0))
-    x = crop_boxes(flow, boxes[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float),
-                   int(recipe["crop_size"]), float(recipe["crop_scale"]))
+    h, w = frame1.shape[:2]
+    x = pair_crops(flow, boxes[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float),
+                   int(recipe["crop_size"]), float(recipe["crop_scale"]), (w, h))[0]
     model = load_model(model_path, device)
-    prob = predict(model, x.astype(np.float16), device=device)
+    prob = predict(model, x, device=device)
     return boxes.assign(prob=prob, moving=prob > 0.5)
 
 

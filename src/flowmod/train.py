@@ -442,8 +442,13 @@ def recipe(params: Any, method: str) -> dict[str, Any]:
     (``python -m flowmod.predict``) without the run that made it."""
     from flowmod import dag
 
-    flow_rec = dag.recorded(params, dag.Node("flow", method, "keyframe")) or {}
-    crops_rec = dag.recorded(params, dag.Node("crops", method, "keyframe")) or {}
+    return recipe_from(method, dag.recorded(params, dag.Node("flow", method, "keyframe")) or {},
+                       dag.recorded(params, dag.Node("crops", method, "keyframe")) or {})
+
+
+def recipe_from(method: str, flow_rec: dict[str, Any], crops_rec: dict[str, Any]
+                ) -> dict[str, Any]:
+    """:func:`recipe` from the manifests of the flow and crops nodes a model was trained on."""
     return {"method": method, "flow_params": flow_rec.get("params", {}),
             "flow_dtype": flow_rec.get("dtype"), "store_scale": flow_rec.get("store_scale"),
             "crop_size": crops_rec.get("params", {}).get("crop_size"),

@@ -149,12 +149,8 @@ class RAFTFlow(_NetworkEstimator):
         model = fn.build_raft(self.arch)
         files = fn.torchvision_weight_files(self.arch)
         if weights is None:
-            for _enum, fname in files:
-                p = fn.hub_checkpoint_dir() / fname
-                if p.is_file():
-                    weights = p
-                    break
-            else:
+            weights = next((f for f in cache_files(self.name) if f.is_file()), None)
+            if weights is None:
                 what = (
                     f"a .pth file (a torchvision state_dict such as {files[0][1]} of "
                     f"{files[0][0]}, or an original princeton-vl RAFT checkpoint"
@@ -223,11 +219,8 @@ class FastFlowNetFlow(_NetworkEstimator):
 
         model = fn.FastFlowNet()
         if weights is None:
-            for fname in fn.FFN_CHECKPOINT_NAMES:
-                if (fn.hub_checkpoint_dir() / fname).is_file():
-                    weights = fn.hub_checkpoint_dir() / fname
-                    break
-            else:
+            weights = next((f for f in cache_files(self.name) if f.is_file()), None)
+            if weights is None:
                 what = (
                     "an official FastFlowNet checkpoint (checkpoints/fastflownet_ft_kitti.pth of "
                     "the FastFlowNet repository, KITTI fine-tuned as in the paper)"
@@ -264,17 +257,12 @@ def estimator_options(params: Params, method: str) -> dict[str, Any]:
     if method == "dis":
         opts["preset"] = params.dis_preset
     elif method in ("raft", "raft_small", "fastflownet"):
-        param = {"raft": "raft_weights", "raft_small": "raft_small_weights"}.get(
-            method, "fastflownet_weights"
-        )
-        value = getattr(params, param, None)
+        value = getattr(params, WEIGHTS_PARAM[method], None)
         opts["weights"] = params.path(value) if value else None
         opts["device"] = params.device
         if method != "fastflownet":
             opts["num_flow_updates"] = params.raft_iters
     return opts
-
-
 
 
 #: The parameter that names each network's weight file.

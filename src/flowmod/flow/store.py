@@ -85,8 +85,9 @@ def _npy_header(path: Path) -> tuple[tuple[int, ...], bool, np.dtype, int]:
         return tuple(shape), bool(fortran), np.dtype(dt), f.tell()
 
 
-def _npy_ok(path: Path, dtype: str) -> bool:
-    """True if ``path`` is a complete .npy of an (H, W, 2) ``dtype`` array (header + size)."""
+def _npy_ok(path: Path, dtype: str, like: tuple[int | None, ...] = (None, None, 2)) -> bool:
+    """True if ``path`` is a complete .npy of a ``dtype`` array shaped ``like`` (None: any
+    length; default an (H, W, 2) flow), checked from its header and file size."""
     try:
         shape, fortran, dt, offset = _npy_header(path)
         size = path.stat().st_size
@@ -94,8 +95,8 @@ def _npy_ok(path: Path, dtype: str) -> bool:
         return False
     return (
         dt == np.dtype(dtype)
-        and len(shape) == 3
-        and shape[2] == 2
+        and len(shape) == len(like)
+        and all(n is None or n == k for n, k in zip(like, shape, strict=True))
         and not fortran
         and size == offset + math.prod(shape) * dt.itemsize
     )
