@@ -11,7 +11,9 @@ import pandas as pd
 import pytest
 
 from flowmod import crops
+from flowmod.artefacts import read_manifest
 from flowmod.crops import CropsError, build_crops, crop_boxes, crop_windows, hflip, read_crops
+from flowmod.params import Params
 
 # --- a slow, explicit reference of the paper's preprocessing ---------------------------------
 
@@ -329,13 +331,39 @@ def test_crops_mode_gives_the_stored_flow_crops_and_keeps_few_pairs(smoke_built,
     for m in p.flow_methods:
         n_all = len(flow.FlowReader(local, m, "keyframe").pair_ids)
         assert flow_bytes(p, m) * n_all == flow_bytes(local, m) * 3, "3 pairs' flow kept"
-        kept_crops = size(Path(p.run_dir) / "crops" / m / "pool")
-        assert kept_crops < 0.2 * size(Path(local.run_dir) / "flow" / m / "pool")
+        # published: the node's arrays hold the crops, the per-pair files are gone
+        assert not list((Path(p.run_dir) / "crops" / m / "pool").rglob("*.npy"))
+        node_dirs = [dag.published(p, dag.Node("crops", m, part)) for part in dag.PARTS]
+        assert sum(size(d) for d in node_dirs) < 0.2 * size(Path(local.run_dir) / "flow" / m / "pool")
+        for d in node_dirs:
+            assert read_manifest(d / "manifest.json")["flow_computed"] == len(
+                pd.read_parquet(d / crops.POOL_KEYS)) > 0
     assert pipeline.status_frame(p)["state"].eq("up to date").all()
-    pool = Path(p.run_dir) / "crops" / "gt" / "pool"
-    before = {f: f.stat().st_mtime_ns for f in pool.rglob("*.npy")}
+    before = {f: f.stat().st_mtime_ns for f in Path(p.run_dir).rglob("*") if f.is_file()}
     pipeline.build(p.model_copy(update={"force": False}))
-    assert {f: f.stat().st_mtime_ns for f in pool.rglob("*.npy")} == before
+    assert {f: f.stat().st_mtime_ns for f in Path(p.run_dir).rglob("*") if f.is_file()} == before
+
+    # other splits, the same boxes: the crops nodes are rebuilt from the published rows,
+    # no flow computed, every pair's crops as before
+    q = Params.model_validate({**p.model_dump(), "split_fractions": [0.6, 0.2, 0.2]})
+    old = {m: dag.recorded(p, dag.Node("crops", m, "keyframe"))["fingerprint"]
+           for m in p.flow_methods}
+    pipeline.build(q, chapters=["02", "05"])
+    for m in q.flow_methods:
+        node = dag.Node("crops", m, "keyframe")
+        rebuilt = read_manifest(dag.published(q, node) / "manifest.json")
+        assert rebuilt["flow_computed"] == 0
+        assert rebuilt["fingerprint"] != old[m]
+
+        def every_split(r, m=m):
+            parts = [crops.open_crops(r, m, s) for s in crops.PART_SPLITS["keyframe"]]
+            idx = pd.concat([i for _, i in parts], ignore_index=True)
+            order = np.argsort(idx["pair_id"].to_numpy(), kind="stable")
+            return np.concatenate([np.asarray(x) for x, _ in parts])[order], idx.iloc[order]
+
+        (xa, ia), (xb, ib) = every_split(p), every_split(q)
+        np.testing.assert_array_equal(xa, xb)
+        assert not list((Path(q.run_dir) / "crops" / m / "pool").rglob("*.npy"))
 
 
 def test_pair_crops_writer_resumes_and_refuses_mixed_splits(tmp_path) -> None:

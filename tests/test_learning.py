@@ -379,3 +379,29 @@ def test_dataset_reopens_memmaps_in_workers(tmp_path) -> None:
     xb, yb = pickle.loads(blob)[[4, 1]]
     assert xb.dtype == torch.float32 and xb[:, 0, 0, 0].tolist() == [4.0, 1.0]
     assert yb.tolist() == [1.0, 1.0]
+
+
+def test_published_weights_in_float16_predict_as_the_float32_ones(data, run_a, tmp_path) -> None:
+    """The stage keeps best.pt in float16: floating tensors halve, integer buffers stay, and
+    the model loads back into float32 with the same decisions on the validation crops."""
+    import shutil
+
+    from flowmod.train import half_weights
+
+    vx = data[2]
+    half = tmp_path / "best.pt"
+    shutil.copy(run_a[0] / "best.pt", half)
+    half_weights(half)
+    full, small = _state(run_a[0] / "best.pt"), _state(half)
+    assert set(full) == set(small)
+    for k, v in full.items():
+        want = torch.float16 if v.is_floating_point() else v.dtype
+        assert small[k].dtype == want, k
+    assert half.stat().st_size < 0.55 * (run_a[0] / "best.pt").stat().st_size
+    model = load_model(half)
+    assert all(p.dtype == torch.float32 for p in model.parameters())
+    p32 = predict(load_model(run_a[0] / "best.pt"), vx, device="cpu")
+    p16 = predict(model, vx, device="cpu")
+    assert np.abs(p32 - p16).max() < 5e-3
+    assert ((p32 > 0.5) == (p16 > 0.5)).all()
+    assert not np.array_equal(p32, p16)  # really rounded

@@ -74,6 +74,7 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "flow_networks": (["raft"], set(), ()),  # read by the runner only (before any stage)
     "flow_store": ("crops", {"flow", "crops"}, ()),
     "flow_keep_pairs": (5, {"flow"}, ()),
+    "clip_method": ("gt", {"flow"}, ()),
 }
 #: Parameters whose change is not "some stages read another value" (checked on their own).
 SPECIAL = {"run_dir", "dataroot", "version", "flow_methods", "seeds"}

@@ -26,7 +26,7 @@ import hashlib
 import json
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -393,13 +393,23 @@ class PairCrops(FlowFiles):
     def write(self, out: Path, flow: np.ndarray, valid: np.ndarray | None, extra: Any) -> None:
         boxes = np.asarray(extra, dtype=np.float64).reshape(-1, 4)
         stored = roundtrip(flow, self.dtype, self.store_scale, valid)
-        crops, samples, bad, shape = pair_crops(stored, boxes, self.size, self.scale,
-                                                self.image_size, out.stem)
+        self.put(out, *pair_crops(stored, boxes, self.size, self.scale, self.image_size,
+                                  out.stem))
+
+    def put(self, out: Path, crops: np.ndarray, samples: np.ndarray, nonfinite: int,
+            shape: Sequence[int]) -> None:
+        """Write a pair's share (:data:`PairItems`) as its files (the crops last)."""
         with atomic_path(self._side(out, "samples.npy")) as tmp:
-            np.save(tmp, samples, allow_pickle=False)
-        write_json(self._side(out, "json"), {"nonfinite": bad, "flow_shape": shape})
+            np.save(tmp, np.asarray(samples, np.float32), allow_pickle=False)
+        write_json(self._side(out, "json"), {"nonfinite": int(nonfinite),
+                                             "flow_shape": [int(v) for v in shape]})
         with atomic_path(out) as tmp:
-            np.save(tmp, crops, allow_pickle=False)
+            np.save(tmp, np.asarray(crops, np.float16), allow_pickle=False)
+
+    def remove(self, out: Path) -> None:
+        """Delete a pair's files (the crops first: an incomplete pair is not complete)."""
+        for f in (out, self._side(out, "samples.npy"), self._side(out, "json")):
+            f.unlink(missing_ok=True)
 
     def complete(self, out: Path) -> bool:
         return (_npy_ok(out, "float16", (None, 2, self.size, self.size))
@@ -450,28 +460,91 @@ def crops_pool(q: Any, method: str) -> Path:
     return _pool_root(q, method) / fingerprint(config)
 
 
+#: A crops-mode node's record of where each pair's rows are (:func:`pool_table`).
+POOL_KEYS = "pool_keys.parquet"
+
+
+def pool_table(folder: Path, files: Mapping[str, str], writer: PairCrops,
+               pool: Path) -> pd.DataFrame:
+    """Per pair of a crops node built in crops mode: its per-pair file (relative to the
+    pool), split, first row and number of rows in the split's arrays, non-finite count and
+    flow shape; written as ``<folder>/pool_keys.parquet`` so that the per-pair files can go
+    once the node is published and be restored from it (:func:`restore_pool`)."""
+    rows = []
+    for npy in sorted(folder.glob("*.parquet")):
+        if npy.name == POOL_KEYS:
+            continue
+        split = npy.stem
+        ids = pd.read_parquet(npy, columns=["pair_id"])["pair_id"].astype(str).to_numpy()
+        # a split's rows are sorted by pair: each pair's rows are one contiguous block
+        uniq, first, count = np.unique(ids, return_index=True, return_counts=True)
+        for pid, start, n in zip(uniq, first, count, strict=True):
+            meta = json.loads(writer._side(pool / files[pid], "json").read_text())
+            rows.append({"pair_id": str(pid), "file": files[pid], "split": split,
+                         "start": int(start), "n": int(n),
+                         "nonfinite": int(meta["nonfinite"]),
+                         "flow_h": int(meta["flow_shape"][0]), "flow_w": int(meta["flow_shape"][1])})
+    table = pd.DataFrame(rows, columns=["pair_id", "file", "split", "start", "n", "nonfinite",
+                                        "flow_h", "flow_w"])
+    with atomic_path(folder / POOL_KEYS) as tmp:
+        table.to_parquet(tmp, index=False)
+    return table
+
+
+def restore_pool(pool: Path, files: Iterable[str], writer: PairCrops,
+                 sources: Iterable[Path]) -> int:
+    """Write back the per-pair files of ``files`` (relative to ``pool``) that are not
+    complete but whose rows a crops node in ``sources`` (published or kept variant, with a
+    :func:`pool_table`) holds: a rebuild reuses them instead of computing their flow.
+    Returns the number of pairs restored."""
+    want = {f for f in files if not writer.complete(pool / f)}
+    done = 0
+    for src in sources:
+        if not want or not (src / POOL_KEYS).is_file():
+            continue
+        table = pd.read_parquet(src / POOL_KEYS)
+        table = table[table["file"].isin(want)]
+        for split, rows in table.groupby("split"):
+            x, _ = read_crops(src, str(split))
+            samples = read_samples(src, str(split))
+            for r in rows.itertuples():
+                sl = slice(r.start, r.start + r.n)
+                writer.put(pool / r.file, x[sl], samples[sl], r.nonfinite, [r.flow_h, r.flow_w])
+                want.discard(r.file)
+                done += 1
+    return done
+
+
 def _crops_from_flow(q: Any, method: str, part: str, pairs: pd.DataFrame,
-                     objects: pd.DataFrame, world: str, progress: bool) -> PairItems:
+                     objects: pd.DataFrame, world: str, progress: bool,
+                     sources: Sequence[Path] = ()) -> tuple[PairItems, dict[str, str], int]:
     """Crops mode: compute each pair's flow (local or Ray executor, as the flow stage) and
-    keep its crops (:class:`PairCrops`) in ``<run>/crops/<method>/pool``; returns the
-    :data:`PairItems` that read them back."""
+    keep its crops (:class:`PairCrops`) in ``<run>/crops/<method>/pool``, after restoring
+    the pairs that a node of ``sources`` holds (:func:`restore_pool`). Returns the
+    :data:`PairItems` that read them back, ``{pair_id: file}`` and the number of pairs whose
+    flow was computed."""
     from flowmod.flow import compute_flow, estimator_options
+    from flowmod.flow.stage import pair_files
 
     boxes = pair_boxes(objects)
     pairs = pairs[pairs["pair_id"].astype(str).isin(boxes)]
     writer, pool = _writer(q), _pool_root(q, method)
+    extras = {str(pid): boxes[str(pid)] for pid in pairs["pair_id"]}
+    planned = pair_files(pairs, method, q.dataroot_path, world, q.flow_dtype, q.flow_scale,
+                         writer, extras, **estimator_options(q, method))
+    if not q.force:
+        restore_pool(pool, planned.values(), writer, sources)
     idx = compute_flow(pairs, method, pool, dataroot=q.dataroot_path, version=q.version,
                        world=world, dtype=q.flow_dtype, n_jobs=q.n_jobs, progress=progress,
                        force=q.force, store_scale=q.flow_scale, label=f"flow+crops {method}/{part}",
                        executor=q.executor, ray_address=q.ray_address, writer=writer,
-                       extras={pid: boxes[str(pid)] for pid in pairs["pair_id"]},
-                       **estimator_options(q, method))
+                       extras=extras, **estimator_options(q, method))
     files = dict(zip(idx["pair_id"].astype(str), idx["file"], strict=True))
 
     def items(pid: str, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, list[int]]:
         return writer.items(pool / files[pid], len(b))
 
-    return items
+    return items, files, int(idx["computed"].sum())
 
 
 def _write_state(path: Path, phash: str, pairs_done: int, nonfinite: int) -> None:
@@ -548,17 +621,25 @@ def run(params: Any, progress: bool = True) -> dict[str, dict[str, Path]]:
                     objects = objects.assign(split="general")
                 if not len(objects):
                     objects = pd.DataFrame(columns=["pair_id", "split", *BOX_COLUMNS])
-                load, items = None, None
+                load, items, files, computed = None, None, {}, None
+                work = b.start(fresh=q.force)
                 if q.flow_store == "crops":
                     pairs = pd.read_parquet(b.input_dir(objects_node) / "pairs.parquet")
-                    world = (dag.recorded(params, dag.Node("world")) or {})["fingerprint"]
-                    items = _crops_from_flow(q, m, part, pairs, objects, world, progress)
+                    world = b.inputs["world"]["fingerprint"]
+                    items, files, computed = _crops_from_flow(
+                        q, m, part, pairs, objects, world, progress, dag.results(b.final))
                 else:
                     load = FlowReader(params, m, part).load
-                info = build_crops(objects, load, b.start(fresh=q.force), pair_items=items,
+                info = build_crops(objects, load, work, pair_items=items,
                                    size=q.crop_size, scale=q.crop_scale, splits=splits,
                                    progress=progress, label=f"crops {m}")
-                b.publish(splits=info, rows=sum(i["rows"] for i in info.values()))
+                if files:
+                    pool_table(work, files, _writer(q), _pool_root(q, m))
+                b.publish(splits=info, rows=sum(i["rows"] for i in info.values()),
+                          flow_computed=computed)
+                # the published arrays hold every pair's rows: the per-pair files go
+                for f in files.values():
+                    _writer(q).remove(_pool_root(q, m) / f)
             out.setdefault(m, {})[part] = b.final
     return out
 

@@ -74,7 +74,7 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("general", 3, "02", "general", "generalisation pairs and objects (held-out scenes)"),
     Stage("flow", 2, "03", "flow/{method}/{part}", "optical flow of every pair"),
     Stage("crops", 4, "05", "crops/{method}/{part}", "flow crops around every object"),
-    Stage("train", 3, "06", "models/{method}/{part}", "the classifier of one training seed"),
+    Stage("train", 4, "06", "models/{method}/{part}", "the classifier of one training seed"),
     Stage("evaluate", 4, "07", "metrics/{method}/test", "test predictions, baseline, scores"),
     Stage("generalise", 3, "08", "metrics/{method}/general", "generalisation predictions"),
 )}
@@ -120,7 +120,9 @@ def inputs(node: Node, p: Params) -> tuple[Node, ...]:
         "select": (world,),
         "general": (world, select),
         "flow": (world, objects),
-        "crops": (Node("flow", m, part), objects),
+        # crops mode computes the flow itself: the kept flow (figures) is not its input
+        "crops": ((Node("flow", m, part), objects) if p.flow_store == "pairs"
+                  else (world, objects)),
         "train": (Node("crops", m, "keyframe"),),
         "evaluate": (*models, Node("crops", m, "keyframe"), select),
         "generalise": (*models, Node("crops", m, "general"), Node("general")),
@@ -446,6 +448,14 @@ def begin(p: Params, node: Node) -> Build:
         _swap_in(_variant(final, fp), final)
         b.up_to_date = b.restored = True
     return b
+
+
+def results(final: Path) -> list[Path]:
+    """A node's published folder and its kept variants (those that exist), newest first."""
+    kept = sorted(final.parent.glob(f".{final.name}.variant-*"),
+                  key=lambda d: -(d / "manifest.json").stat().st_mtime
+                  if (d / "manifest.json").is_file() else 0.0)
+    return [d for d in (final, *kept) if (d / "manifest.json").is_file()]
 
 
 def published(p: Params, node: Node) -> Path:

@@ -179,8 +179,12 @@ class Params(BaseModel):
         description="pairs: keep every pair's flow; crops: keep only the objects' crops (the "
                     "crops stage computes the flow) and the flow of a few pairs for figures")
     flow_keep_pairs: int = _field(
-        12, ge=1, le=1000, read_by=("flow",),
+        8, ge=1, le=1000, read_by=("flow",),
         description="crops mode: random pairs per part whose flow is kept besides the figures'")
+    clip_method: str | None = _field(
+        None, read_by=("flow",),
+        description="the flow method of chapter 08's clip (crops mode keeps the clip's flow "
+                    "for it only); default: the first of flow_methods that is not gt")
     n_jobs: int = _field(2, ge=1, le=64, role="run", description="parallel CPU workers")
     executor: Literal["local", "ray"] = _field(
         "local", role="run",
@@ -240,6 +244,15 @@ class Params(BaseModel):
             raise ValueError(
                 f"general_beyond_distance={self.general_beyond_distance} must be 0 or >= "
                 f"general_max_distance={self.general_max_distance}"
+            )
+        if self.clip_method is None:
+            self.clip_method = next((m for m in self.flow_methods if m != "gt"),
+                                    self.flow_methods[0] if self.flow_methods else None)
+        elif self.clip_method not in self.flow_methods:
+            raise ValueError(
+                f"clip_method={self.clip_method!r} is not one of flow_methods="
+                f"{self.flow_methods}: name one of them, or leave clip_method unset (the first "
+                "method that is not gt)"
             )
         if self.world_sweep_scenes > self.world_scenes:
             raise ValueError(

@@ -17,7 +17,8 @@ results are close but not guaranteed bit-identical.
 
 Outputs in ``out_dir``: ``best.pt`` (state_dict of the best epoch), ``last.pt`` (checkpoint:
 model, optimizer, scheduler, scaler, epoch, history, best, config, rng states; loads with
-``weights_only=True``), ``history.csv``; all written atomically every epoch.
+``weights_only=True``), ``history.csv``; all written atomically every epoch. The training
+stage publishes ``best.pt`` with float16 weights (:func:`half_weights`) and no ``last.pt``.
 """
 
 from __future__ import annotations
@@ -188,6 +189,13 @@ def _bce_with_logits(z: np.ndarray, y: np.ndarray) -> float:
 def _save(obj: Any, path: Path) -> None:
     with atomic_path(path) as tmp:
         torch.save(obj, tmp)
+
+
+def half_weights(path: Path) -> None:
+    """Rewrite the state_dict at ``path`` with its floating-point tensors in float16 (integer
+    buffers as they are); :func:`flowmod.model.load_model` loads it back into float32."""
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    _save({k: v.half() if v.is_floating_point() else v for k, v in state.items()}, path)
 
 
 def _append_probs(path: Path, epoch: int, probs: np.ndarray) -> None:
@@ -426,8 +434,10 @@ def run(params: Any, progress: bool = True) -> dict[str, list[pd.DataFrame]]:
                     amp=None if q.amp == "off" else q.amp, resume=True, progress=progress,
                     desc=f"train {m} seed {q.seed + k}",
                 )
-                # the resumable checkpoint (weights + optimiser, twice best.pt) is only
-                # needed while building: a published model is finished
+                # a published model is finished: its weights are kept in float16 (half the
+                # disk; no test decision changes, see the differences page) and the resumable
+                # checkpoint (weights + optimiser, twice best.pt) is only needed while building
+                half_weights(work / "best.pt")
                 (work / "last.pt").unlink(missing_ok=True)
                 b.publish(best_epoch=int(h.attrs["best_epoch"]), best_f1=float(h.attrs["best_f1"]),
                           seed=q.seed + k, amp=q.amp, recipe=recipe(params, m))
@@ -457,7 +467,7 @@ def recipe_from(method: str, flow_rec: dict[str, Any], crops_rec: dict[str, Any]
 
 def model_path(params: Any, method: str, part: str = "s0") -> Path:
     """The published ``best.pt`` of one training seed of ``method`` (state_dict of the best
-    validation epoch)."""
+    validation epoch, float16 weights)."""
     from flowmod import dag
 
     return dag.published(params, dag.Node("train", method, part)) / "best.pt"

@@ -148,6 +148,30 @@ def pool_config(method: str, dtype: str, store_scale: float, options: Mapping[st
     return config
 
 
+def _keys(pairs: pd.DataFrame, dataroot: str | os.PathLike[str], world: str,
+          extras: Mapping[str, Any] | None) -> list[str]:
+    """:func:`pair_keys`, with each pair's ``extras`` entry in its key when given."""
+    keys = pair_keys(pairs, dataroot, world)
+    if extras is None:
+        return keys
+    ids = [str(p) for p in pairs["pair_id"]]
+    missing = [i for i in ids if i not in extras]
+    if missing:
+        raise ValueError(f"extras lacks pair(s) {missing[:5]}")
+    return [fingerprint({"pair": k, "extra": extras[i]}) for k, i in zip(keys, ids, strict=True)]
+
+
+def pair_files(pairs: pd.DataFrame, method: str, dataroot: str | os.PathLike[str], world: str,
+               dtype: str, store_scale: float, writer: FlowFiles | None = None,
+               extras: Mapping[str, Any] | None = None, **options: Any) -> dict[str, str]:
+    """``{pair_id: file}``: where :func:`compute_flow` with the same arguments keeps each
+    pair (relative to the pool root), computing nothing."""
+    writer = writer or FlowFiles(dtype, store_scale)
+    opts_fp = fingerprint(pool_config(method, dtype, store_scale, options, writer))
+    keys = _keys(pairs, dataroot, world, extras)
+    return {str(p): f"{opts_fp}/{k}.npy" for p, k in zip(pairs["pair_id"], keys, strict=True)}
+
+
 def pair_keys(pairs: pd.DataFrame, dataroot: str | os.PathLike[str], world: str) -> list[str]:
     """Per-pair cache keys: fingerprint of (world, sample_data tokens, image names and sizes).
 
@@ -323,14 +347,8 @@ def compute_flow(
     for tmp in pool.glob(".*.tmp*"):  # left by a killed run
         tmp.unlink(missing_ok=True)
     root = Path(dataroot)
-    keys = pair_keys(pairs, root, world)
-    extra = [None] * len(ids)
-    if extras is not None:
-        missing = [i for i in ids if i not in extras]
-        if missing:
-            raise ValueError(f"extras lacks pair(s) {missing[:5]}")
-        extra = [extras[i] for i in ids]
-        keys = [fingerprint({"pair": k, "extra": e}) for k, e in zip(keys, extra, strict=True)]
+    keys = _keys(pairs, root, world, extras)
+    extra = [None] * len(ids) if extras is None else [extras[i] for i in ids]
     todo = [i for i, k in enumerate(keys) if force or not writer.complete(pool / f"{k}.npy")]
     rows = pairs.iloc[todo]
     if len(rows) and cls.inputs == "images":
@@ -411,14 +429,14 @@ def clip_pairs(pairs: pd.DataFrame, n: int = CLIP_PAIRS) -> pd.DataFrame:
 
 
 def kept_pairs(pairs: pd.DataFrame, objects: pd.DataFrame, part: str, n: int,
-               seed: int) -> pd.DataFrame:
+               seed: int, clip: bool = True) -> pd.DataFrame:
     """Crops mode (``flow_store: crops``): the pairs of a part whose flow is kept for the
-    book's figures and EPE tables: Figure 1's pair (keyframe) or the clip's pairs
-    (general), and ``n`` more drawn with ``seed``; in ``pairs``' order."""
+    book's figures and EPE tables: Figure 1's pair (keyframe) or, with ``clip``, the clip's
+    pairs (general), and ``n`` more drawn with ``seed``; in ``pairs``' order."""
     if not len(pairs):
         return pairs
     shown = ({figure_pair(pairs, objects)} if part == "keyframe"
-             else set(clip_pairs(pairs)["pair_id"]))
+             else set(clip_pairs(pairs)["pair_id"]) if clip else set())
     rest = pairs.loc[~pairs["pair_id"].isin(shown), "pair_id"].to_numpy()
     rng = np.random.default_rng([seed, 0 if part == "keyframe" else 1])
     drawn = rng.choice(rest, size=min(n, len(rest)), replace=False) if len(rest) else []
@@ -443,7 +461,8 @@ def run(params: Params, progress: bool = True) -> dict[str, dict[str, pd.DataFra
                 pairs = pd.read_parquet(pairs_file)
                 if q.flow_store == "crops":  # the crops stage computes the rest itself
                     objects = pd.read_parquet(pairs_file.with_name("objects.parquet"))
-                    pairs = kept_pairs(pairs, objects, part, q.flow_keep_pairs, q.seed)
+                    pairs = kept_pairs(pairs, objects, part, q.flow_keep_pairs, q.seed,
+                                       clip=method == q.clip_method)
                 idx = compute_flow(
                     pairs, method, flow_root(q) / method / "pool", dataroot=q.dataroot_path,
                     version=q.version, world=b.inputs["world"]["fingerprint"],
