@@ -626,8 +626,11 @@ def run(params: Any, progress: bool = True) -> dict[str, dict[str, Path]]:
                 if q.flow_store == "crops":
                     pairs = pd.read_parquet(b.input_dir(objects_node) / "pairs.parquet")
                     world = b.inputs["world"]["fingerprint"]
+                    # a pair of the same boxes may be in the other part's node too
+                    sources = [d for other in PART_SPLITS for d in dag.results(
+                        dag.node_dir(params, dag.Node("crops", m, other)))]
                     items, files, computed = _crops_from_flow(
-                        q, m, part, pairs, objects, world, progress, dag.results(b.final))
+                        q, m, part, pairs, objects, world, progress, sources)
                 else:
                     load = FlowReader(params, m, part).load
                 info = build_crops(objects, load, work, pair_items=items,
