@@ -636,13 +636,14 @@ def run(params: Any, progress: bool = True) -> dict[str, dict[str, Path]]:
                 info = build_crops(objects, load, work, pair_items=items,
                                    size=q.crop_size, scale=q.crop_scale, splits=splits,
                                    progress=progress, label=f"crops {m}")
+                writer, pool = _writer(q), _pool_root(q, m)
                 if files:
-                    pool_table(work, files, _writer(q), _pool_root(q, m))
+                    pool_table(work, files, writer, pool)
                 b.publish(splits=info, rows=sum(i["rows"] for i in info.values()),
                           flow_computed=computed)
                 # the published arrays hold every pair's rows: the per-pair files go
                 for f in files.values():
-                    _writer(q).remove(_pool_root(q, m) / f)
+                    writer.remove(pool / f)
             out.setdefault(m, {})[part] = b.final
     return out
 
