@@ -75,3 +75,68 @@ def test_depth_where_the_ray_meets_the_3d_box_removes_the_parallax_of_a_near_obl
     centre_only, _ = geometry.box_residual(samples, box, center, K, T1, T2, 0.5)
     assert with_box == pytest.approx(0.0, abs=1e-6)
     assert centre_only > 3.0, centre_only
+
+
+#: A camera 1.5 m above the ground (global z = 0), looking along global +x: camera x (right)
+#: is global -y, camera y (down) is global -z, camera z (forward) is global +x.
+FORWARD = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 1.5],
+                    [0.0, 0.0, 0.0, 1.0]])
+
+
+def test_ground_depth_below_the_horizon_and_none_above():
+    xy = np.array([[816.0, 491.0 + 95.0], [300.0, 491.0 + 38.0], [816.0, 400.0],
+                   [816.0, 491.0]])
+    d = geometry.plane_depth(xy, K, FORWARD, 0.0)
+    np.testing.assert_allclose(d[:2], [1.5 * 1266.0 / 95.0, 1.5 * 1266.0 / 38.0])
+    assert np.isnan(d[2:]).all(), "above the horizon and on it the ray never meets the ground"
+
+
+def test_scene_depth_takes_the_nearest_surface():
+    """A 2 m tall box 20 m ahead hides the ground behind it; beside it the ground, above the
+    horizon the far plane."""
+    centre = np.array([0.0, 0.5, 20.0])  # camera frame: its middle 1 m above the ground
+    rot = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])  # length along z
+    xy = np.array([[816.0, 491.0 + 40.0], [1500.0, 491.0 + 40.0], [816.0, 300.0]])
+    depth, source = geometry.scene_depth(xy, K, FORWARD, [(centre, np.array([1.8, 4.0, 2.0]),
+                                                           rot)], 0.0, far=500.0)
+    assert list(source) == [geometry.BOX, geometry.GROUND, geometry.FAR]
+    np.testing.assert_allclose(depth, [18.0, 1.5 * 1266.0 / 40.0, 500.0])
+
+
+def test_window_lattice_is_where_the_crop_samples_the_frame():
+    """Crop a frame whose two channels are its own x and y coordinates: each crop pixel holds
+    the point of the frame it was resampled from, which the lattice must name."""
+    from flowmod.crops import crop_image, crop_windows
+
+    h, w = 300, 400
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    coords = np.dstack([xs, ys])
+    boxes = np.array([[100.0, 80.0, 140.0, 110.0], [250.5, 150.2, 270.1, 171.0]])
+    got = crop_image(coords, boxes, size=24, scale=3.0)
+    for win, crop in zip(crop_windows(boxes, 3.0), got, strict=True):
+        np.testing.assert_allclose(geometry.window_lattice(win, 24), crop.reshape(-1, 2),
+                                   atol=2e-3)
+
+
+def test_static_flow_crop_equals_the_crop_of_the_static_flow_field():
+    """Driving 1 m forward and turning 1 degree over a flat ground: the static flow at the
+    crop's pixels is the crop of the whole frame's static flow (up to the bilinear resize)."""
+    from flowmod.crops import crop_boxes, crop_windows
+
+    a = np.radians(1.0)
+    turn = np.eye(4)
+    turn[:3, :3] = [[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]]
+    T2 = turn @ FORWARD
+    T2[0, 3] += 1.0
+    h, w = 900, 1600
+    ys, xs = np.mgrid[0:h, 0:w]
+    xy = np.stack([xs.ravel(), ys.ravel()], 1).astype(float)
+    depth, _ = geometry.scene_depth(xy, K, FORWARD, [], 0.0)
+    field = geometry.static_flow(xy, depth, K, FORWARD, T2).reshape(h, w, 2)
+    boxes = np.array([[1100.0, 560.0, 1160.0, 600.0], [400.0, 600.0, 470.0, 650.0]])
+    want = crop_boxes(field.astype(np.float32), boxes, 32)
+    for win, crop in zip(crop_windows(boxes, 3.0), want, strict=True):
+        got = geometry.static_flow_crop(win, 32, K, FORWARD, T2, [], 0.0)
+        assert got.shape == (2, 32, 32) and got.dtype == np.float32
+        np.testing.assert_allclose(got, crop, atol=0.05)
+        assert np.abs(crop).max() > 5.0, "the test needs flow worth the name"

@@ -7,6 +7,10 @@ is the vehicle's own image motion; scaled by depth / focal length / time it appr
 vehicle's speed across the line of sight (m/s). A threshold on it, tuned on the training
 split, is the baseline's classifier.
 
+The same prediction over a whole crop window (:func:`static_flow_crop`, depth from the
+annotated boxes, the ground plane or a far plane: :func:`scene_depth`) is the static-world
+flow that an ego-motion-compensated classifier input subtracts.
+
 Inputs come from ``pairs.parquet`` (``intrinsic`` 3x3, ``cam2global_1/2`` 4x4, row-major
 lists) and ``objects.parquet`` (2D box; the annotated 3D box: global centre, size (w, l, h),
 rotation (w, x, y, z)), so no devkit table is read here (pyquaternion, a devkit
@@ -168,3 +172,71 @@ def residual_scores(objects: pd.DataFrame, pairs: pd.DataFrame, samples: np.ndar
                 o[["qw", "qx", "qy", "qz"]].to_numpy(float) if has_box else None,
             )
     return pd.DataFrame(out, columns=["residual_px", "residual_speed"], index=objects.index)
+
+
+# --- the static world over a crop window (ego-motion-compensated input) --------------------
+
+#: Depth (m) given to rays that meet neither an annotated box nor the ground (the sky,
+#: the horizon): far enough that only the camera's rotation moves them.
+FAR_DEPTH = 1000.0
+
+#: :func:`scene_depth`'s sources: where each ray's depth came from.
+BOX, GROUND, FAR = 0, 1, 2
+
+
+def plane_depth(xy: np.ndarray, K: np.ndarray, cam2global: np.ndarray, z_plane: float
+                ) -> np.ndarray:
+    """Camera-z depth (m) where the ray through each pixel meets the horizontal global plane
+    ``z = z_plane`` (the ground), NaN where it does not (parallel, or behind the camera).
+
+    xy: (N, 2) px; K: (3, 3); cam2global: (4, 4)."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    rays = np.linalg.solve(K, np.stack([xy[:, 0], xy[:, 1], np.ones(len(xy))]))  # z = 1
+    dz = (cam2global[:3, :3] @ rays)[2]  # global height change per metre of depth
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (z_plane - cam2global[2, 3]) / dz
+    return np.where(np.isfinite(s) & (s > 0), s, np.nan)
+
+
+def scene_depth(
+    xy: np.ndarray, K: np.ndarray, cam2global: np.ndarray,
+    boxes: list[tuple[np.ndarray, np.ndarray, np.ndarray]], ground_z: float,
+    far: float = FAR_DEPTH,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Depth (N,) m of the nearest surface the ray through each pixel meets: an annotated 3D
+    box (``boxes``: (centre (3,), size (w, l, h), rotation (3, 3)) in camera coordinates,
+    :func:`box_in_camera`), else the ground plane ``z = ground_z`` (global), else ``far``;
+    and (N,) int8 of :data:`BOX`, :data:`GROUND`, :data:`FAR` saying which."""
+    depth = plane_depth(xy, K, cam2global, ground_z)
+    source = np.where(np.isfinite(depth), GROUND, FAR).astype(np.int8)
+    depth = np.where(np.isfinite(depth), depth, np.inf)
+    for centre, size_wlh, rot in boxes:
+        d = ray_box_depth(xy, K, centre, np.asarray(size_wlh, dtype=np.float64), rot)
+        nearer = np.isfinite(d) & (d < depth)
+        depth[nearer], source[nearer] = d[nearer], BOX
+    return np.where(np.isfinite(depth), depth, far), source
+
+
+def window_lattice(window: np.ndarray, size: int) -> np.ndarray:
+    """(S * S, 2) image px of the pixels of an S x S crop of the square window ``x0, y0, n``
+    (:func:`flowmod.crops.crop_windows`), row by row: where the bilinear resize of the
+    n x n window samples it (pixel centres aligned, as cv2 ``INTER_LINEAR``)."""
+    x0, y0, n = (float(v) for v in window)
+    t = (np.arange(size) + 0.5) * n / size - 0.5
+    gx, gy = np.meshgrid(x0 + t, y0 + t)
+    return np.stack([gx.ravel(), gy.ravel()], axis=1)
+
+
+def static_flow_crop(
+    window: np.ndarray, size: int, K: np.ndarray, cam2global_1: np.ndarray,
+    cam2global_2: np.ndarray, boxes: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    ground_z: float, far: float = FAR_DEPTH,
+) -> np.ndarray:
+    """(2, S, S) float32 px: the flow a static world would have at the pixels of a crop of
+    ``window``, from the two camera poses and the depth of :func:`scene_depth` (annotated
+    boxes of frame 1, the ground, the far plane; all of which real nuScenes has too). The
+    classifier's crop minus this is the ego-motion-compensated (residual) input."""
+    xy = window_lattice(window, size)
+    depth, _ = scene_depth(xy, K, cam2global_1, boxes, ground_z, far)
+    flow = static_flow(xy, depth, K, cam2global_1, cam2global_2)
+    return flow.reshape(size, size, 2).transpose(2, 0, 1).astype(np.float32)
