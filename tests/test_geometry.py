@@ -154,7 +154,7 @@ def test_static_crops_explain_the_exact_flow_of_still_vehicles(smoke_built):
     x, idx = crops.open_crops(p, "gt", "train")
     still = idx["true_speed"].to_numpy() < 0.01
     assert still.sum() >= 5 and (~still).sum() >= 5
-    static = geometry.static_crops(idx, pairs, p.crop_size, p.crop_scale)
+    static = crops.static_crops(idx, pairs, p.crop_size, p.crop_scale)
     wins = crops.crop_windows(idx[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float),
                               p.crop_scale)
     on_box, rest, raw = [], [], []

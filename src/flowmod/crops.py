@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
+from flowmod import geometry
 from flowmod.artefacts import atomic_path, write_json
 from flowmod.flow.stage import FlowFiles
 from flowmod.flow.store import _npy_ok, roundtrip
@@ -250,6 +251,28 @@ def build_crops(
 #: ``pair_items(pair_id, boxes (n, 4)) -> (crops (n, 2, S, S), samples (n, G*G, 2),
 #: non-finite flow values zeroed, flow (H, W))``: one pair's share of a split.
 PairItems = Callable[[str, np.ndarray], tuple[np.ndarray, np.ndarray, int, list[int]]]
+
+
+def static_crops(objects: pd.DataFrame, pairs: pd.DataFrame, size: int, scale: float,
+                 ground_z: float = 0.0) -> np.ndarray:
+    """(N, 2, S, S) float32 px: :func:`flowmod.geometry.static_flow_crop` for every object
+    of ``objects`` (rows of objects.parquet, in their order) in its pair's crop window
+    (``scale`` x the box), with the object's own annotated box and the ground
+    ``z = ground_z`` (global; 0 on the generated world and in nuScenes, whose ego poses lie
+    on the ground): the crop the ego-motion-compensated input subtracts."""
+    p = pairs.set_index("pair_id")
+    wins = crop_windows(objects[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float), scale)
+    out = np.empty((len(objects), 2, size, size), np.float32)
+    for i, (o, win) in enumerate(zip(objects.itertuples(index=False), wins, strict=True)):
+        row = p.loc[o.pair_id]
+        K = np.asarray(row["intrinsic"], dtype=float).reshape(3, 3)
+        T1 = np.asarray(row["cam2global_1"], dtype=float).reshape(4, 4)
+        T2 = np.asarray(row["cam2global_2"], dtype=float).reshape(4, 4)
+        c, rot = geometry.box_in_camera(T1, np.array([o.center_x, o.center_y, o.center_z]),
+                                        np.array([o.qw, o.qx, o.qy, o.qz]))
+        box = (c, np.array([o.size_w, o.size_l, o.size_h]), rot)
+        out[i] = geometry.static_flow_crop(win, size, K, T1, T2, [box], ground_z)
+    return out
 
 
 def pair_crops(flow: np.ndarray, boxes: np.ndarray, size: int, scale: float,

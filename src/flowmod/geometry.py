@@ -9,7 +9,8 @@ split, is the baseline's classifier.
 
 The same prediction over a whole crop window (:func:`static_flow_crop`, depth from the
 annotated boxes, the ground plane or a far plane: :func:`scene_depth`) is the static-world
-flow that an ego-motion-compensated classifier input subtracts.
+flow that an ego-motion-compensated classifier input subtracts (per object:
+:func:`flowmod.crops.static_crops`).
 
 Inputs come from ``pairs.parquet`` (``intrinsic`` 3x3, ``cam2global_1/2`` 4x4, row-major
 lists) and ``objects.parquet`` (2D box; the annotated 3D box: global centre, size (w, l, h),
@@ -241,25 +242,3 @@ def static_flow_crop(
     flow = static_flow(xy, depth, K, cam2global_1, cam2global_2)
     return flow.reshape(size, size, 2).transpose(2, 0, 1).astype(np.float32)
 
-
-def static_crops(objects: pd.DataFrame, pairs: pd.DataFrame, size: int, scale: float,
-                 ground_z: float = 0.0) -> np.ndarray:
-    """(N, 2, S, S) float32 px: :func:`static_flow_crop` for every object of ``objects``
-    (rows of objects.parquet, in their order) in its pair's crop window (``scale`` x the
-    box), with the object's own annotated box and the ground ``z = ground_z`` (global; 0 on
-    the generated world and in nuScenes, whose ego poses lie on the ground)."""
-    from flowmod.crops import crop_windows
-
-    p = pairs.set_index("pair_id")
-    wins = crop_windows(objects[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float), scale)
-    out = np.empty((len(objects), 2, size, size), np.float32)
-    for i, (o, win) in enumerate(zip(objects.itertuples(index=False), wins, strict=True)):
-        row = p.loc[o.pair_id]
-        K = np.asarray(row["intrinsic"], dtype=float).reshape(3, 3)
-        T1 = np.asarray(row["cam2global_1"], dtype=float).reshape(4, 4)
-        T2 = np.asarray(row["cam2global_2"], dtype=float).reshape(4, 4)
-        c, rot = box_in_camera(T1, np.array([o.center_x, o.center_y, o.center_z]),
-                               np.array([o.qw, o.qx, o.qy, o.qz]))
-        box = (c, np.array([o.size_w, o.size_l, o.size_h]), rot)
-        out[i] = static_flow_crop(win, size, K, T1, T2, [box], ground_z)
-    return out
