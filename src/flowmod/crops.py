@@ -265,9 +265,7 @@ def static_crops(objects: pd.DataFrame, pairs: pd.DataFrame, size: int, scale: f
     out = np.empty((len(objects), 2, size, size), np.float32)
     for i, (o, win) in enumerate(zip(objects.itertuples(index=False), wins, strict=True)):
         row = p.loc[o.pair_id]
-        K = np.asarray(row["intrinsic"], dtype=float).reshape(3, 3)
-        T1 = np.asarray(row["cam2global_1"], dtype=float).reshape(4, 4)
-        T2 = np.asarray(row["cam2global_2"], dtype=float).reshape(4, 4)
+        K, T1, T2 = geometry.pair_cameras(row)
         c, rot = geometry.box_in_camera(T1, np.array([o.center_x, o.center_y, o.center_z]),
                                         np.array([o.qw, o.qx, o.qy, o.qz]))
         box = (c, np.array([o.size_w, o.size_l, o.size_h]), rot)

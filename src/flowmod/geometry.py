@@ -20,6 +20,8 @@ dependency, turns the rotation into a matrix).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pandas as pd
 
@@ -42,6 +44,13 @@ def static_flow(
     proj = K @ p_cam2[:3]
     xy2 = (proj[:2] / proj[2]).T
     return xy2 - xy
+
+
+def pair_cameras(row: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(K (3, 3), cam2global_1 (4, 4), cam2global_2 (4, 4)) of a pairs.parquet row."""
+    return (np.asarray(row["intrinsic"], dtype=float).reshape(3, 3),
+            np.asarray(row["cam2global_1"], dtype=float).reshape(4, 4),
+            np.asarray(row["cam2global_2"], dtype=float).reshape(4, 4))
 
 
 def quaternion_matrix(q: np.ndarray) -> np.ndarray:
@@ -159,9 +168,7 @@ def residual_scores(objects: pd.DataFrame, pairs: pd.DataFrame, samples: np.ndar
     out = np.zeros((len(objects), 2))
     for pair_id, idx in objects.groupby("pair_id", sort=False).indices.items():
         row = p.loc[pair_id]
-        K = np.asarray(row["intrinsic"], dtype=float).reshape(3, 3)
-        T1 = np.asarray(row["cam2global_1"], dtype=float).reshape(4, 4)
-        T2 = np.asarray(row["cam2global_2"], dtype=float).reshape(4, 4)
+        K, T1, T2 = pair_cameras(row)
         dt = (row["timestamp_2"] - row["timestamp_1"]) / 1e6
         for i in idx:
             o = objects.iloc[i]
