@@ -26,6 +26,13 @@ import numpy as np
 import pandas as pd
 
 
+def camera_rays(xy: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(3, N) camera-frame rays with z = 1 through the pixels xy (N, 2) px: a ray times a
+    depth (m) is the point at that depth."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    return np.linalg.solve(K, np.stack([xy[:, 0], xy[:, 1], np.ones(len(xy))]))
+
+
 def static_flow(
     xy: np.ndarray, depth: np.ndarray, K: np.ndarray, cam2global_1: np.ndarray,
     cam2global_2: np.ndarray,
@@ -35,11 +42,10 @@ def static_flow(
     xy: (N, 2) pixel coordinates in frame 1; depth: (N,) camera-z depth in m; K: (3, 3);
     cam2global_*: (4, 4) camera-to-global transforms of the two frames.
     """
-    xy = np.asarray(xy, dtype=np.float64)
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     depth = np.asarray(depth, dtype=np.float64)
-    ones = np.ones(len(xy))
-    rays = np.linalg.solve(K, np.stack([xy[:, 0], xy[:, 1], ones]))  # (3, N), z = 1
-    p_cam1 = np.vstack([rays * depth, ones])  # (4, N)
+    rays = camera_rays(xy, K)
+    p_cam1 = np.vstack([rays * depth, np.ones(len(depth))])  # (4, N)
     p_cam2 = np.linalg.solve(cam2global_2, cam2global_1 @ p_cam1)
     proj = K @ p_cam2[:3]
     xy2 = (proj[:2] / proj[2]).T
@@ -68,8 +74,7 @@ def ray_box_depth(xy: np.ndarray, K: np.ndarray, center_cam: np.ndarray, size_wl
     xy: (N, 2) px; K: (3, 3); the box in camera coordinates: centre (3,) m, size (w, l, h) m
     (nuScenes: x along the length, y across, z up in the box frame) and rotation (3, 3).
     """
-    xy = np.asarray(xy, dtype=np.float64)
-    rays = np.linalg.solve(K, np.stack([xy[:, 0], xy[:, 1], np.ones(len(xy))]))  # z = 1
+    rays = camera_rays(xy, K)
     half = np.array([size_wlh[1], size_wlh[0], size_wlh[2]], dtype=np.float64) / 2
     o = rot_cam.T @ (-np.asarray(center_cam, dtype=np.float64))  # camera origin, box frame
     d = rot_cam.T @ rays  # (3, N)
@@ -198,8 +203,7 @@ def plane_depth(xy: np.ndarray, K: np.ndarray, cam2global: np.ndarray, z_plane: 
     ``z = z_plane`` (the ground), NaN where it does not (parallel, or behind the camera).
 
     xy: (N, 2) px; K: (3, 3); cam2global: (4, 4)."""
-    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    rays = np.linalg.solve(K, np.stack([xy[:, 0], xy[:, 1], np.ones(len(xy))]))  # z = 1
+    rays = camera_rays(xy, K)
     dz = (cam2global[:3, :3] @ rays)[2]  # global height change per metre of depth
     with np.errstate(divide="ignore", invalid="ignore"):
         s = (z_plane - cam2global[2, 3]) / dz
