@@ -20,12 +20,12 @@ PYTEST_ARGS ?=
 
 RUN_SET    := $(if $(DATAROOT),--set dataroot=$(DATAROOT)) $(foreach s,$(SET),--set $(s))
 
-.PHONY: help env data run status gc book test bench lint clean browser weights
+.PHONY: help env data run status gc book extensions test bench lint clean browser weights
 
 help:  ## list the targets
 	@echo "flowmod: optical-flow motion detection, reproduced"
 	@echo
-	@grep -E '^[a-z]+:.*## ' $(MAKEFILE_LIST) | sed -E 's/:.*## /\t/' | expand -t 10
+	@grep -E '^[a-z]+:.*## ' $(MAKEFILE_LIST) | sed -E 's/:.*## /\t/' | expand -t 12
 	@echo
 	@echo "variables: PROFILE=$(PROFILE) (smoke|demo|paper or a YAML path), DATAROOT=, SET='key=value ...', VENV=$(VENV)"
 
@@ -59,6 +59,9 @@ gc: env  ## remove per-pair cache files no node of PROFILE (+SET) reads (other w
 book: run browser  ## run, then render the book into build/html (and check it in Chromium)
 	$(PY) -m flowmod.report.book --executed $(EXECUTED) --out $(HTML)
 	$(PY) -m flowmod.report.browser $(HTML) --screenshot build/book-screenshot.png --screenshots build/screenshots
+
+extensions: RUN_SET += --set extension_build=true
+extensions: book  ## make book, training chapter 10's models first (demo: 21 models, ~30 min more)
 
 test: env browser lint  ## lint, unit tests, notebooks on the smoke profile, the book build
 	$(PY) -m pytest $(PYTEST_ARGS)

@@ -331,8 +331,8 @@ def test_training_batches_are_flipped_with_u_negated(data, tmp_path, monkeypatch
     tx, tdf, vx, vdf = data
     seen: list[torch.Tensor] = []
 
-    def recording_model():
-        model = motion_resnet18()
+    def recording_model(in_channels=2):
+        model = motion_resnet18(in_channels)
         model.register_forward_pre_hook(
             lambda mod, args: seen.append(args[0].detach().clone()) if mod.training else None)
         return model

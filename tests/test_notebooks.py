@@ -149,6 +149,19 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
         g9["recall_slow_dis"] == round(100 * slow, 1))
     media = smoke_run["base"] / "runs" / "figures" / "media"
     assert any(media.glob("*.mp4")) and any(media.glob("*-strip.png"))
+    # chapter 10: every chain built (smoke: extension_build), its F1 that of its predictions
+    from flowmod import variants
+
+    g10 = glue_of(smoke_run, "10_extensions")
+    assert g10["ext_n_built"] == g10["ext_n_planned"] == 7
+    for m, v in variants.chains(p):
+        for split, key in (("test", "test"), ("general", "general")):
+            d = variants.scored(variants.predictions(p, m, v, split), split, p.general_max_distance)
+            f1 = np.mean([metrics(d["label"], d[c])["f1"] for c in evaluate.seed_columns(d)])
+            assert g10[f"ext_{key}_f1_{variants.glue_key(m, v)}"] == round(100 * f1, 1)
+    assert g10["ext_headline"].startswith("on dis flow, the best other input")
+    assert 0 <= g10["still_residual_share"] < 50
+    assert (smoke_run["base"] / "runs" / "figures" / "extension_inputs.png").stat().st_size > 5000
 
 
 def test_missing_real_dataroot_is_rejected_before_work(tmp_path):

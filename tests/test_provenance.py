@@ -27,7 +27,7 @@ pytestmark = pytest.mark.slow
 #: the test below fails if the two disagree or if the status does not follow them.
 SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "profile": ("other", set(), ()),
-    "seed": (1, {"world", "select", "flow", "train", "evaluate"}, ()),
+    "seed": (1, {"world", "select", "flow", "train", "evaluate", "xtrain"}, ()),
     "device": ("cpu", set(), ()),
     "force": (True, set(), ()),
     "synthetic": (False, set(), ()),
@@ -57,17 +57,17 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "n_jobs": (2, set(), ()),
     "executor": ("ray", set(), ()),
     "ray_address": ("auto", set(), ()),
-    "crop_size": (48, {"crops"}, ()),
-    "crop_scale": (2.5, {"crops"}, ()),
-    "epochs": (2, {"train"}, ()),
-    "batch_size": (8, {"train"}, ()),
-    "lr": (0.02, {"train"}, ()),
-    "momentum": (0.8, {"train"}, ()),
-    "weight_decay": (0.02, {"train"}, ()),
-    "step_size": (5, {"train"}, ()),
-    "gamma": (0.4, {"train"}, ()),
-    "hflip_p": (0.3, {"train"}, ()),
-    "amp": ("bf16", {"train"}, ()),
+    "crop_size": (48, {"crops", "context"}, ()),
+    "crop_scale": (2.5, {"crops", "context"}, ()),
+    "epochs": (2, {"train", "xtrain"}, ()),
+    "batch_size": (8, {"train", "xtrain"}, ()),
+    "lr": (0.02, {"train", "xtrain"}, ()),
+    "momentum": (0.8, {"train", "xtrain"}, ()),
+    "weight_decay": (0.02, {"train", "xtrain"}, ()),
+    "step_size": (5, {"train", "xtrain"}, ()),
+    "gamma": (0.4, {"train", "xtrain"}, ()),
+    "hflip_p": (0.3, {"train", "xtrain"}, ()),
+    "amp": ("bf16", {"train", "xtrain"}, ()),
     "general_beyond_distance": (80.0, {"general"}, ()),
     "raft_iters": (12, {"flow", "crops"}, ("raft", "raft_small")),
     "num_workers": (1, set(), ()),
@@ -75,9 +75,11 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "flow_store": ("crops", {"flow", "crops"}, ()),
     "flow_keep_pairs": (5, {"flow"}, ()),
     "clip_method": ("gt", {"flow"}, ()),
+    "extension_build": (False, set(), ()),
 }
 #: Parameters whose change is not "some stages read another value" (checked on their own).
-SPECIAL = {"run_dir", "dataroot", "version", "flow_methods", "seeds"}
+SPECIAL = {"run_dir", "dataroot", "version", "flow_methods", "seeds", "extension_inputs",
+           "extension_methods"}
 
 
 def downstream(p: Params, start: set[dag.Node]) -> set[dag.Node]:
@@ -134,8 +136,15 @@ def test_special_parameters(finished, tmp_path):
     # one more training seed: its models are missing, and the scores that average over seeds
     # are stale; the first seed's models are untouched
     two = finished.model_copy(update={"seeds": 2})
-    assert not_up_to_date(two) == {n for n in dag.nodes(two) if n.part == "s1"} | {
-        n for n in dag.nodes(two) if n.stage in ("evaluate", "generalise")}
+    assert not_up_to_date(two) == {n for n in dag.nodes(two) if (n.part or "").endswith(
+        "s1")} | {n for n in dag.nodes(two) if n.stage in ("evaluate", "generalise", "xevaluate")}
+    # chapter 10's plan: one input fewer drops its nodes and changes nothing else; one method
+    # fewer drops its chains
+    fewer = finished.model_copy(update={"extension_inputs": finished.extension_inputs[1:]})
+    assert not_up_to_date(fewer) == set() and set(dag.nodes(fewer)) < nodes
+    gt_only = finished.model_copy(update={"extension_methods": ["gt"]})
+    assert not_up_to_date(gt_only) == set()
+    assert {n.method for n in dag.nodes(gt_only) if n.stage == "xtrain"} == {"gt", None}
 
 
 def test_status_explains_in_one_line(finished):

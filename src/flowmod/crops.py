@@ -136,22 +136,25 @@ def _resize(patch: np.ndarray, size: int) -> np.ndarray:
         size, size, patch.shape[2])
 
 
-def hflip(x: T) -> T:
-    """Horizontal flip of flow crops, on a copy: mirror the width axis and negate u.
+def hflip(x: T, negate: Sequence[int] = (0,)) -> T:
+    """Horizontal flip of crops, on a copy: mirror the width axis and negate the channels
+    ``negate`` (the horizontal flow components: u of the flow crops, channel 0).
 
-    x: (..., 2, S, S) numpy array or torch tensor (channel 0 = u). The input is never
-    modified (the original code flipped a view in place and corrupted its cached crops).
-    Applying it twice gives the input back exactly.
+    x: (..., C, S, S) numpy array or torch tensor. The input is never modified (the original
+    code flipped a view in place and corrupted its cached crops). Applying it twice gives
+    the input back exactly.
     """
     if isinstance(x, np.ndarray):
         out = x[..., ::-1].copy()
-        np.negative(out[..., 0, :, :], out=out[..., 0, :, :])
+        for c in negate:
+            np.negative(out[..., c, :, :], out=out[..., c, :, :])
         return out  # type: ignore[return-value]
     import torch
 
     if isinstance(x, torch.Tensor):
         out_t = torch.flip(x, dims=(-1,))  # torch.flip always copies
-        out_t[..., 0, :, :].neg_()
+        for c in negate:
+            out_t[..., c, :, :].neg_()
         return out_t  # type: ignore[return-value]
     raise TypeError(f"hflip expects a numpy array or a torch tensor, got {type(x).__name__}")
 
@@ -237,9 +240,7 @@ def build_crops(
     out: dict[str, dict[str, Any]] = {}
     names = list(splits) if splits is not None else sorted(objects["split"].astype(str).unique())
     for split in names:
-        sel = objects[objects["split"].astype(str) == split]
-        # Stable sort by pair: each pair's rows are contiguous, its flow is read once.
-        df = sel.sort_values("pair_id", kind="mergesort").reset_index(drop=True)
+        df = split_objects(objects, split)
         out[split] = _build_split(
             df, pair_items, Path(out_dir), split, size=size, scale=scale,
             image_size=image_size, progress=progress, checkpoint_every=checkpoint_every,
@@ -253,24 +254,49 @@ def build_crops(
 PairItems = Callable[[str, np.ndarray], tuple[np.ndarray, np.ndarray, int, list[int]]]
 
 
+#: An annotated 3D box in the global frame: (centre (3,) m, size (w, l, h) m, rotation
+#: quaternion (w, x, y, z)).
+GlobalBox = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
 def static_crops(objects: pd.DataFrame, pairs: pd.DataFrame, size: int, scale: float,
-                 ground_z: float = 0.0) -> np.ndarray:
+                 ground_z: float = 0.0,
+                 frame_boxes: Mapping[str, Sequence[GlobalBox]] | None = None,
+                 progress: bool = False) -> np.ndarray:
     """(N, 2, S, S) float32 px: :func:`flowmod.geometry.static_flow_crop` for every object
     of ``objects`` (rows of objects.parquet, in their order) in its pair's crop window
-    (``scale`` x the box), with the object's own annotated box and the ground
+    (``scale`` x the box), with depth from the annotated 3D boxes and the ground
     ``z = ground_z`` (global; 0 on the generated world and in nuScenes, whose ego poses lie
-    on the ground): the crop the ego-motion-compensated input subtracts."""
+    on the ground): the crop the ego-motion-compensated input subtracts. The boxes are
+    ``frame_boxes[pair_id]`` (every annotated box of the pair's first frame, global:
+    :func:`flowmod.select.frame_boxes_3d`) where given, else the object's own box only."""
     p = pairs.set_index("pair_id")
     wins = crop_windows(objects[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float), scale)
     out = np.empty((len(objects), 2, size, size), np.float32)
-    for i, (o, win) in enumerate(zip(objects.itertuples(index=False), wins, strict=True)):
-        row = p.loc[o.pair_id]
-        K, T1, T2 = geometry.pair_cameras(row)
-        c, rot = geometry.box_in_camera(T1, np.array([o.center_x, o.center_y, o.center_z]),
-                                        np.array([o.qw, o.qx, o.qy, o.qz]))
-        box = (c, np.array([o.size_w, o.size_l, o.size_h]), rot)
-        out[i] = geometry.static_flow_crop(win, size, K, T1, T2, [box], ground_z)
+    cams: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, list[Any]]] = {}
+    rows = zip(objects.itertuples(index=False), wins, strict=True)
+    for i, (o, win) in enumerate(bar(rows, total=len(objects), desc="static-world crops",
+                                     unit="object", disable=not progress)):
+        pid = str(o.pair_id)
+        if pid not in cams:
+            K, T1, T2 = geometry.pair_cameras(p.loc[pid])
+            boxes = [geometry.box_in_camera(T1, c, q) + (np.asarray(wlh, float),)
+                     for c, wlh, q in (frame_boxes or {}).get(pid, ())]
+            cams[pid] = (K, T1, T2, [(c, wlh, rot) for c, rot, wlh in boxes if c[2] > 0])
+        K, T1, T2, boxes = cams[pid]
+        if frame_boxes is None or pid not in frame_boxes:
+            c, rot = geometry.box_in_camera(T1, np.array([o.center_x, o.center_y, o.center_z]),
+                                            np.array([o.qw, o.qx, o.qy, o.qz]))
+            boxes = [(c, np.array([o.size_w, o.size_l, o.size_h]), rot)]
+        out[i] = geometry.static_flow_crop(win, size, K, T1, T2, boxes, ground_z)
     return out
+
+
+def split_objects(objects: pd.DataFrame, split: str) -> pd.DataFrame:
+    """The objects of one split in the order of its crop arrays: sorted by pair_id (stable),
+    so each pair's rows are contiguous and its flow is read once."""
+    sel = objects[objects["split"].astype(str) == split]
+    return sel.sort_values("pair_id", kind="mergesort").reset_index(drop=True)
 
 
 def pair_crops(flow: np.ndarray, boxes: np.ndarray, size: int, scale: float,
@@ -617,6 +643,17 @@ def part_of(split: str) -> str:
     return "general" if split == "general" else "keyframe"
 
 
+def part_objects(folder: Path, part: str) -> pd.DataFrame:
+    """The objects of a selection node's folder (``select`` for the keyframe part,
+    ``general``), each with its split (``general`` for the generalisation set)."""
+    objects = pd.read_parquet(Path(folder) / "objects.parquet")
+    if part == "general":
+        objects = objects.assign(split="general")
+    if not len(objects):
+        objects = pd.DataFrame(columns=["pair_id", "split", *BOX_COLUMNS])
+    return objects
+
+
 def open_crops(params: Any, method: str, split: str) -> tuple[np.memmap, pd.DataFrame]:
     """The published crops of one split of ``method``: ``(x (N, 2, S, S) float16, index)``."""
     from flowmod import dag
@@ -637,11 +674,7 @@ def run(params: Any, progress: bool = True) -> dict[str, dict[str, Path]]:
             if not b.up_to_date:
                 q = b.params
                 objects_node = dag.Node("select") if part == "keyframe" else dag.Node("general")
-                objects = pd.read_parquet(b.input_dir(objects_node) / "objects.parquet")
-                if part == "general":
-                    objects = objects.assign(split="general")
-                if not len(objects):
-                    objects = pd.DataFrame(columns=["pair_id", "split", *BOX_COLUMNS])
+                objects = part_objects(b.input_dir(objects_node), part)
                 load, items, files, computed = None, None, {}, None
                 work = b.start(fresh=q.force)
                 if q.flow_store == "crops":

@@ -77,6 +77,12 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("train", 4, "06", "models/{method}/{part}", "the classifier of one training seed"),
     Stage("evaluate", 4, "07", "metrics/{method}/test", "test predictions, baseline, scores"),
     Stage("generalise", 3, "08", "metrics/{method}/general", "generalisation predictions"),
+    # beyond the paper (chapter 10): other classifier inputs, when extension_inputs is set
+    Stage("context", 1, "10", "extensions/context/{part}",
+          "static-world flow and image crops of every object"),
+    Stage("xtrain", 1, "10", "extensions/models/{key}", "a classifier on another input"),
+    Stage("xevaluate", 1, "10", "extensions/metrics/{key}",
+          "its test and generalisation predictions"),
 )}
 
 
@@ -127,7 +133,18 @@ def inputs(node: Node, p: Params) -> tuple[Node, ...]:
         "evaluate": (*models, Node("crops", m, "keyframe"), select),
         "generalise": (*models, Node("crops", m, "general"), Node("general")),
     }
-    return table[s]
+    if s in table:
+        return table[s]
+    ctx = {pp: Node("context", None, pp) for pp in PARTS}
+    if s == "context":
+        return (world, select if part == "keyframe" else Node("general"))
+    if s == "xtrain":
+        return ((Node("crops", m, "keyframe"),) if m else ()) + (ctx["keyframe"],)
+    if s == "xevaluate":
+        xmodels = tuple(Node("xtrain", m, f"{part}/{k}") for k in seed_parts(p))
+        flow = tuple(Node("crops", m, pp) for pp in PARTS) if m else ()
+        return (*xmodels, *flow, *ctx.values())
+    raise KeyError(f"unknown stage {s!r}")
 
 
 def is_generated_world(p: Params) -> bool:
@@ -149,7 +166,19 @@ def nodes(p: Params) -> list[Node]:
     out += [Node("train", m, k) for m in p.flow_methods for k in seed_parts(p)]
     for stage in ("evaluate", "generalise"):
         out += [Node(stage, m) for m in p.flow_methods]
+    if p.extension_inputs:  # chapter 10: see flowmod.variants
+        out += [Node("context", None, part) for part in PARTS]
+        chains = extension_chains(p)
+        out += [Node("xtrain", m, f"{v}/{k}") for m, v in chains for k in seed_parts(p)]
+        out += [Node("xevaluate", m, v) for m, v in chains]
     return out
+
+
+def extension_chains(p: Params) -> list[tuple[str | None, str]]:
+    """The (flow method, input) chains of chapter 10: every extension method with every
+    input that holds flow, and the input without flow (``images``) once, method None."""
+    return [(m, v) for v in p.extension_inputs
+            for m in (p.extension_methods if v != "images" else [None])]
 
 
 def nodes_of_chapter(p: Params, chapter: str) -> list[Node]:
@@ -204,7 +233,8 @@ def node_dir(p: Params, node: Node) -> Path:
     """The published folder of ``node`` (the world's: ``<dataroot>/<version>``)."""
     if node.stage == "world":
         return p.dataroot_path / p.version
-    rel = STAGES[node.stage].folder.format(method=node.method, part=node.part)
+    key = "/".join(x for x in (node.method, node.part) if x)
+    rel = STAGES[node.stage].folder.format(method=node.method, part=node.part, key=key)
     return p.run_path / rel
 
 
@@ -456,6 +486,23 @@ def results(final: Path) -> list[Path]:
                   key=lambda d: -(d / "manifest.json").stat().st_mtime
                   if (d / "manifest.json").is_file() else 0.0)
     return [d for d in (final, *kept) if (d / "manifest.json").is_file()]
+
+
+def current(p: Params, node: Node) -> bool:
+    """True iff ``node``'s published artefacts carry the fingerprint that its inputs'
+    published artefacts and ``p``'s values of its parameters give now: nothing it read was
+    rebuilt and none of its parameters changed since. Unlike :func:`status` it looks one
+    step up only, so a notebook that declares just its chapter's parameters can ask."""
+    rec = recorded(p, node)
+    if rec is None:
+        return False
+    fps = {}
+    for i in inputs(node, p):
+        r = recorded(p, i)
+        if r is None:
+            return False
+        fps[str(i)] = r["fingerprint"]
+    return rec.get("fingerprint") == fingerprint(payload(p, node, fps))
 
 
 def published(p: Params, node: Node) -> Path:

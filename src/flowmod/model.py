@@ -3,6 +3,9 @@
 torchvision ``resnet18(weights=None)`` (trained from scratch) with ``conv1`` taking the two
 flow channels (u, v) and ``fc`` giving one logit; ``sigmoid(logit) > 0.5`` means moving.
 The new ``conv1`` and ``fc`` keep PyTorch's default initialisation, as in the original code.
+The extensions of chapter 10 use the same network with other input channels
+(``in_channels``: flow + static-world flow, image crops, ...); :func:`load_model` reads the
+channel count from the checkpoint.
 """
 
 from __future__ import annotations
@@ -24,12 +27,14 @@ from flowmod.metrics import sigmoid
 RESNET18_PARAMS = 11_689_512
 
 
-def motion_resnet18() -> nn.Module:
-    """ResNet18 for (B, 2, S, S) flow crops -> (B, 1) logits (any S >= 32)."""
+def motion_resnet18(in_channels: int = 2) -> nn.Module:
+    """ResNet18 for (B, C, S, S) crops -> (B, 1) logits (any S >= 32; C = 2: flow u, v)."""
     from torchvision.models import resnet18
 
+    if in_channels < 1:
+        raise ValueError(f"in_channels must be >= 1, got {in_channels}")
     m = resnet18(weights=None)
-    m.conv1 = nn.Conv2d(2, 64, kernel_size=7, stride=2, padding=3, bias=False)
+    m.conv1 = nn.Conv2d(in_channels, 64, kernel_size=7, stride=2, padding=3, bias=False)
     m.fc = nn.Linear(m.fc.in_features, 1)
     return m
 
@@ -59,23 +64,29 @@ def check_state_dict(state: dict[str, torch.Tensor], model: nn.Module, source: s
     problems = state_dict_mismatch(state, model.state_dict())
     if problems:
         raise CheckpointError(
-            f"{source}: not a checkpoint of motion_resnet18 (2-channel ResNet18, 1 logit); "
+            f"{source}: not a checkpoint of motion_resnet18 (ResNet18, 1 logit); "
             + problems
         )
 
 
-def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> nn.Module:
+def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu",
+               in_channels: int | None = 2) -> nn.Module:
     """motion_resnet18 with the weights of ``path`` (state_dict or last.pt), in eval mode.
 
-    Raises :class:`CheckpointError` naming the file and the mismatching keys/shapes when the
-    checkpoint belongs to another architecture.
+    ``in_channels``: the input channels the caller will feed (2: flow crops); None takes
+    them from the checkpoint (chapter 10's models of other inputs). Raises
+    :class:`CheckpointError` naming the file and the mismatching keys/shapes when the
+    checkpoint belongs to another architecture or input.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"model checkpoint not found: {path}")
     obj = torch.load(path, map_location="cpu", weights_only=True)
     state = _state_dict_of(obj, path)
-    model = motion_resnet18()
+    if in_channels is None:
+        conv1 = state.get("conv1.weight")
+        in_channels = int(conv1.shape[1]) if conv1 is not None and conv1.ndim == 4 else 2
+    model = motion_resnet18(in_channels)
     check_state_dict(state, model, str(path))
     model.load_state_dict(state)
     return model.to(resolve_device(device)).eval()
@@ -93,7 +104,7 @@ def predict_logits(
     model: nn.Module, x: Any, batch_size: int = 256, device: str | torch.device = "auto",
     amp: str | None = None,
 ) -> np.ndarray:
-    """Logits (N,) float64 for crops x: (N, 2, S, S) (float16 memmap or any array), pixels.
+    """Logits (N,) float64 for crops x: (N, C, S, S) (float16 memmap or any array), pixels.
 
     Runs in eval mode under ``torch.inference_mode`` (no flips, no augmentation); the model's
     train/eval mode is restored afterwards. ``amp``: None, 'bf16' or 'fp16' autocast.
@@ -120,7 +131,7 @@ def predict(
     model: nn.Module, x: Any, batch_size: int = 256, device: str | torch.device = "auto",
     amp: str | None = None,
 ) -> np.ndarray:
-    """Probabilities of 'moving' (N,) float64 for crops x: (N, 2, S, S), pixels."""
+    """Probabilities of 'moving' (N,) float64 for crops x: (N, C, S, S), pixels."""
     z = predict_logits(model, x, batch_size=batch_size, device=device, amp=amp)
     return sigmoid(z)
 

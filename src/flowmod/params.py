@@ -62,7 +62,7 @@ def _field(default: Any = ..., *, read_by: tuple[str, ...] = (), role: str = "in
 ROLES = ("input", "run", "location", "plan")
 
 _FLOW = ("flow", "crops")  # crops too: in crops mode it computes the flow itself
-_TRAIN = ("train",)
+_TRAIN = ("train", "xtrain")  # xtrain: chapter 10 trains its inputs with Table 2 too
 
 
 class Params(BaseModel):
@@ -79,7 +79,7 @@ class Params(BaseModel):
     # --- run ---------------------------------------------------------------------------
     profile: str = _field("demo", role="run",
                           description="profile name; artefacts go to runs/<profile>/")
-    seed: int = _field(0, ge=0, read_by=("world", "select", "flow", "train", "evaluate"),
+    seed: int = _field(0, ge=0, read_by=("world", "select", "flow", "train", "evaluate", "xtrain"),
                        description="master seed for every random choice")
     run_dir: str = _field("runs/demo", role="run",
                           description="stage artefacts (relative to the repo root)")
@@ -195,9 +195,9 @@ class Params(BaseModel):
                     "cluster) or a head address host:port")
 
     # --- crops and learning (Table 2) --------------------------------------------------
-    crop_size: int = _field(40, ge=16, le=512, read_by=("crops",),
+    crop_size: int = _field(40, ge=16, le=512, read_by=("crops", "context"),
                             description="px, side of the resized crop (224)")
-    crop_scale: float = _field(3.0, ge=1.0, le=10.0, read_by=("crops",),
+    crop_scale: float = _field(3.0, ge=1.0, le=10.0, read_by=("crops", "context"),
                                description="crop side / box side")
     epochs: int = _field(8, ge=1, le=500, read_by=_TRAIN, description="training epochs")
     batch_size: int = _field(128, ge=1, le=4096, read_by=_TRAIN, description="Table 2")
@@ -214,6 +214,20 @@ class Params(BaseModel):
         "off", read_by=_TRAIN,
         description="mixed precision for training and every prediction of its models")
     num_workers: int = _field(0, ge=0, le=64, role="run", description="DataLoader workers")
+
+    # --- beyond the paper (chapter 10) ---------------------------------------------------
+    extension_inputs: list[Literal["residual", "flow+static", "images", "images+flow"]] = (
+        _field(lambda: ["residual", "flow+static", "images", "images+flow"], role="plan",
+               description="chapter 10: classifier inputs besides the raw flow, each trained "
+                           "with seeds x Table 2 (residual = flow - static-world flow; "
+                           "flow+static; images = the two image crops; images+flow)"))
+    extension_methods: list[str] = _field(
+        lambda: ["gt", "dis"], role="plan",
+        description="chapter 10: the flow methods its flow inputs are built on")
+    extension_build: bool = _field(
+        False, role="run",
+        description="chapter 10 trains its stale models (make extensions); off: it shows "
+                    "the ones built")
 
     @model_validator(mode="after")
     def _cross_checks(self) -> Params:
@@ -254,6 +268,13 @@ class Params(BaseModel):
                 f"{self.flow_methods}: name one of them, or leave clip_method unset (the first "
                 "method that is not gt)"
             )
+        if len(set(self.extension_inputs)) != len(self.extension_inputs):
+            raise ValueError(f"extension_inputs={self.extension_inputs} lists an input twice")
+        stray = [m for m in self.extension_methods if m not in self.flow_methods]
+        if self.extension_inputs and (stray or not self.extension_methods):
+            raise ValueError(
+                f"extension_methods={self.extension_methods} must be a non-empty subset of "
+                f"flow_methods={self.flow_methods} (chapter 10 builds on their crops)")
         if self.world_sweep_scenes > self.world_scenes:
             raise ValueError(
                 f"world_sweep_scenes={self.world_sweep_scenes} must be <= "

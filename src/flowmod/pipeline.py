@@ -16,7 +16,7 @@ from typing import Any
 
 import pandas as pd
 
-from flowmod import crops, dag, evaluate, flow, select, train, world
+from flowmod import crops, dag, evaluate, flow, select, train, variants, world
 from flowmod.params import Params
 from flowmod.report import world_report
 
@@ -31,6 +31,7 @@ BUILDERS: dict[str, Callable[[Params, bool], Any]] = {
     "06": lambda p, progress: train.run(p, progress=progress),
     "07": lambda p, progress: evaluate.run(p),
     "08": lambda p, progress: evaluate.run_general(p),
+    "10": lambda p, progress: variants.run(p, progress=progress),
 }
 
 

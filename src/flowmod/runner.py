@@ -131,15 +131,19 @@ def code_digest() -> str:
 def notebook_fingerprint(nb: Path, values: dict[str, Any], p: Params,
                          device: dict[str, Any]) -> str | None:
     """What an executed chapter depends on: its source cells, the parameters it received,
-    the fingerprints of every node of its and earlier chapters (:mod:`flowmod.dag`), the
-    library's code and the device; None while one of those nodes cannot be known yet."""
+    the fingerprints of every node of its and earlier chapters (:mod:`flowmod.dag`) and
+    whether each is built, the library's code and the device; None while one of those
+    nodes cannot be known yet."""
     import nbformat
 
     chapter = nb.stem[:2]
-    nodes = {str(n): fp for n, fp in dag.expected(p).items()
-             if dag.STAGES[n.stage].chapter <= chapter}
-    if any(fp is None for fp in nodes.values()):
+    exp = {n: fp for n, fp in dag.expected(p).items() if dag.STAGES[n.stage].chapter <= chapter}
+    if any(fp is None for fp in exp.values()):
         return None
+    # and whether each is built: a chapter that shows what is built (chapter 10 without
+    # extension_build) is stale once someone builds more
+    nodes = {str(n): [fp, (dag.recorded(p, n) or {}).get("fingerprint") == fp]
+             for n, fp in exp.items()}
     cells = [(c.cell_type, c.source, sorted(c.metadata.get("tags", [])))
              for c in nbformat.read(str(nb), as_version=4).cells]
     return fingerprint({"cells": cells, "parameters": values, "nodes": nodes,

@@ -264,6 +264,15 @@ def frame_boxes(nusc, sd: dict) -> list[dict]:
     return out
 
 
+def frame_boxes_3d(nusc, sd_token: str) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Every annotated box of a camera frame (any category) in the global frame, at the
+    frame's time (the devkit interpolates sweeps between keyframes): (centre (3,) m, size
+    (w, l, h) m, rotation quaternion (w, x, y, z)). The occluders of the static-world flow
+    (:func:`flowmod.crops.static_crops`)."""
+    return [(np.asarray(b.center, float), np.asarray(b.wlh, float),
+             np.asarray(b.orientation.elements, float)) for b in nusc.get_boxes(sd_token)]
+
+
 def _attribute(nusc, ann: dict) -> str:
     names = [nusc.get("attribute", t)["name"] for t in ann["attribute_tokens"]]
     return names[0] if names else ""

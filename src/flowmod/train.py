@@ -65,17 +65,19 @@ def _describe(x: Any, name: str) -> str:
 
 
 def check_split(
-    x: Any, df: pd.DataFrame, name: str, label_col: str = "label", need_both: bool = False
+    x: Any, df: pd.DataFrame, name: str, label_col: str = "label", need_both: bool = False,
+    channels: int = 2,
 ) -> np.ndarray:
     """Validate one split; return its labels (N,) float32 0/1.
 
-    x: (N, 2, S, S) crops; df: the index with ``label_col``. Raises :class:`TrainingError`
-    for a wrong shape, an index/array row mismatch, an empty split, labels other than 0/1, or
+    x: (N, C, S, S) crops (C = 2 for flow crops); df: the index with ``label_col``. Raises
+    :class:`TrainingError` for a wrong shape, an index/array row mismatch, an empty split, labels other than 0/1, or
     (``need_both``) a split with only one class.
     """
     shape = tuple(getattr(x, "shape", ()))
-    if len(shape) != 4 or shape[1] != 2 or shape[2] != shape[3]:
-        raise TrainingError(f"{_describe(x, name)}: expected (N, 2, S, S), got shape {shape}")
+    if len(shape) != 4 or shape[1] != channels or shape[2] != shape[3]:
+        raise TrainingError(
+            f"{_describe(x, name)}: expected (N, {channels}, S, S), got shape {shape}")
     if shape[0] != len(df):
         raise TrainingError(
             f"{name} split: index has {len(df)} rows but {_describe(x, name)} has {shape[0]} "
@@ -98,7 +100,7 @@ def check_split(
 
 
 class CropDataset(Dataset):
-    """Batches of crops: ``ds[indices] -> (x (B, 2, S, S) float32, y (B,) float32)``.
+    """Batches of crops: ``ds[indices] -> (x (B, C, S, S) float32, y (B,) float32)``.
 
     x is read from a float16 memmap (or any array) and converted per batch; a memmap is
     re-opened by file name in DataLoader workers instead of being pickled whole.
@@ -251,11 +253,16 @@ def train_model(
     progress: bool = True,
     record: Any | None = None,
     desc: str = "train",
+    in_channels: int = 2,
+    flip_negate: Sequence[int] = (0,),
 ) -> pd.DataFrame:
     """Train motion_resnet18 on crops; select the epoch with the best validation F1.
 
-    train_x, val_x: (N, 2, S, S) crops (float16 memmaps from :func:`flowmod.crops.open_crops`
-    or arrays), pixels; train_df, val_df: their indices with ``label_col`` (1 moving, 0
+    train_x, val_x: (N, C, S, S) crops (float16 memmaps from :func:`flowmod.crops.open_crops`
+    or any array-like with ``shape`` and ``x[indices]``), pixels; C = ``in_channels``: 2 (u,
+    v) for the paper's input, others for chapter 10's inputs, whose horizontal flip negates
+    the channels ``flip_negate`` (the horizontal flow components); train_df, val_df:
+    their indices with ``label_col`` (1 moving, 0
     still). ``amp``: 'auto' (bf16/fp16 autocast on CUDA, off on CPU), None, 'bf16', 'fp16'.
     With ``resume`` and an ``out_dir/last.pt`` of the same settings, training continues
     after its last epoch (``epochs`` may be raised to train longer).
@@ -268,8 +275,9 @@ def train_model(
     Returns the history (columns :data:`HISTORY_COLUMNS`; ``attrs`` best_epoch, best_f1),
     also written to ``out_dir/history.csv``. Weights: ``best.pt``, ``last.pt``.
     """
-    y_tr = check_split(train_x, train_df, "train", label_col, need_both=True)
-    y_va = check_split(val_x, val_df, "val", label_col)
+    channels = int(in_channels)
+    y_tr = check_split(train_x, train_df, "train", label_col, need_both=True, channels=channels)
+    y_va = check_split(val_x, val_df, "val", label_col, channels=channels)
     if train_x.shape[2] != val_x.shape[2]:
         raise TrainingError(
             f"crop sizes differ: train S={train_x.shape[2]}, val S={val_x.shape[2]}"
@@ -292,10 +300,12 @@ def train_model(
         "n_train": len(y_tr), "n_train_moving": int(y_tr.sum()),
         "n_val": len(y_va), "n_val_moving": int(y_va.sum()),
     }
+    if channels != 2 or tuple(flip_negate) != (0,):  # the paper's input keeps its old config
+        config.update(channels=channels, flip_negate=[int(c) for c in flip_negate])
 
     with _deterministic(dev):
         torch.manual_seed(seed)
-        model = motion_resnet18().to(dev, memory_format=torch.channels_last)
+        model = motion_resnet18(channels).to(dev, memory_format=torch.channels_last)
         opt = torch.optim.SGD(model.parameters(), lr=lr, momentum=momentum,
                               weight_decay=weight_decay)
         sched = torch.optim.lr_scheduler.StepLR(opt, step_size=step_size, gamma=gamma)
@@ -347,7 +357,7 @@ def train_model(
                 fb = torch.from_numpy(flips[pos : pos + b]).to(dev)
                 pos += b
                 if bool(fb.any()):
-                    xb[fb] = hflip(xb[fb])
+                    xb[fb] = hflip(xb[fb], flip_negate)
                 xb = xb.contiguous(memory_format=torch.channels_last)
                 opt.zero_grad(set_to_none=True)
                 with torch.autocast(dev.type, dtype=amp_dtype, enabled=amp_dtype is not None):

@@ -1,0 +1,200 @@
+"""Chapter 10: the classifier on other inputs (residual flow, flow + static-world flow,
+images, images + flow): composing them, flipping them, the context crops on the smoke world,
+the nodes of the graph and the scores built from them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from flowmod import context, crops, dag, variants
+from flowmod.artefacts import CheckpointError
+from flowmod.crops import hflip
+from flowmod.model import load_model, motion_resnet18, predict
+from flowmod.params import ProfileError, load_profile
+from flowmod.train import TrainingError, train_model
+
+
+def _parts(n: int = 5, s: int = 8, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    flow = rng.normal(0, 5, (n, 2, s, s)).astype(np.float16)
+    static = rng.normal(0, 5, (n, 2, s, s)).astype(np.float16)
+    images = rng.integers(0, 256, (n, 6, s, s), dtype=np.uint8)
+    return flow, static, images
+
+
+def test_compose_stacks_each_input_as_documented():
+    flow, static, images = _parts()
+    f, st = flow.astype(np.float32), static.astype(np.float32)
+    img = (images.astype(np.float32) / 255 - 0.5) / 0.25
+    np.testing.assert_array_equal(variants.compose("flow", flow), f)
+    np.testing.assert_array_equal(variants.compose("residual", flow, static), f - st)
+    np.testing.assert_array_equal(variants.compose("flow+static", flow, static),
+                                  np.concatenate([f, st], 1))
+    np.testing.assert_allclose(variants.compose("images", images=images), img, rtol=1e-6)
+    both = variants.compose("images+flow", flow, images=images)
+    assert both.shape == (5, 8, 8, 8) and both.dtype == np.float32
+    np.testing.assert_array_equal(both[:, :2], f)
+    assert -2.0 <= both[:, 2:].min() and both[:, 2:].max() <= 2.0
+    for name, v in variants.VARIANTS.items():
+        x = variants.compose(name, flow, static, images)
+        assert x.shape[1] == v.channels, name
+    with pytest.raises(ValueError, match="needs \\['static'\\]"):
+        variants.compose("residual", flow)
+
+
+def test_inputs_compose_per_batch_and_check_lengths():
+    flow, static, images = _parts(n=7)
+    x = variants.Inputs("flow+static", flow, static)
+    assert x.shape == (7, 4, 8, 8) and len(x) == 7
+    idx = np.array([1, 4, 6])
+    np.testing.assert_array_equal(x[idx], variants.compose("flow+static", flow[idx], static[idx]))
+    np.testing.assert_array_equal(x[2:4], variants.compose("flow+static", flow[2:4],
+                                                           static[2:4]))
+    with pytest.raises(ValueError, match="different lengths"):
+        variants.Inputs("residual", flow, static[:6])
+
+
+def test_flip_negates_the_horizontal_flow_components_of_each_input():
+    flow, static, images = _parts(n=2)
+    for name, v in variants.VARIANTS.items():
+        x = variants.compose(name, flow, static, images)
+        y = hflip(x, v.negate)
+        np.testing.assert_array_equal(hflip(y, v.negate), x)
+        for c in range(v.channels):
+            sign = -1 if c in v.negate else 1
+            np.testing.assert_array_equal(y[:, c], sign * x[:, c, :, ::-1])
+    # the flip of flow+static is the input of the flipped flow and flipped static flow
+    np.testing.assert_array_equal(
+        hflip(variants.compose("flow+static", flow, static), (0, 2)),
+        variants.compose("flow+static", hflip(flow.astype(np.float32)),
+                         hflip(static.astype(np.float32))))
+    t = torch.from_numpy(variants.compose("images+flow", flow, images=images))
+    assert torch.equal(hflip(t, (0,)), torch.from_numpy(hflip(t.numpy(), (0,))))
+
+
+def test_models_of_other_channel_counts_train_save_and_load(tmp_path):
+    rng = np.random.default_rng(0)
+    n, s = 48, 32
+    flow = rng.normal(0, 1, (n, 2, s, s)).astype(np.float16)
+    static = rng.normal(0, 1, (n, 2, s, s)).astype(np.float16)
+    y = (np.arange(n) % 2).astype(int)
+    flow[y == 1, 0] += 3  # the movers' flow differs from the static world's
+    x = variants.Inputs("flow+static", flow, static)
+    df = pd.DataFrame({"label": y})
+    h = train_model(x, df, x, df, tmp_path, epochs=2, batch_size=16, progress=False,
+                    device="cpu", amp=None, in_channels=4, flip_negate=(0, 2))
+    assert len(h) == 2
+    model = load_model(tmp_path / "best.pt", in_channels=None)
+    assert model.conv1.in_channels == 4
+    with pytest.raises(CheckpointError, match=r"\(64, 4, 7, 7\).*\(64, 2, 7, 7\)"):
+        load_model(tmp_path / "best.pt")  # the paper's 2-channel input: refused, named
+    assert predict(model, x, device="cpu").shape == (n,)
+    ck = torch.load(tmp_path / "last.pt", weights_only=True)
+    assert ck["config"]["channels"] == 4 and ck["config"]["flip_negate"] == [0, 2]
+    # a 2-channel split where 4 channels are trained is refused, naming the shape
+    with pytest.raises(TrainingError, match=r"\(N, 4, S, S\)"):
+        train_model(x, df, flow, df, tmp_path / "b", epochs=1, progress=False, device="cpu",
+                    in_channels=4)
+    assert motion_resnet18(6)(torch.zeros(2, 6, 32, 32)).shape == (2, 1)
+
+
+def test_extension_parameters_are_checked():
+    with pytest.raises(ProfileError, match="extension_methods"):
+        load_profile("smoke", extension_methods=["farneback"])
+    with pytest.raises(ProfileError, match="twice"):
+        load_profile("smoke", extension_inputs=["residual", "residual"])
+    with pytest.raises(ProfileError, match="extension_inputs"):
+        load_profile("smoke", extension_inputs=["optical"])
+    p = load_profile("smoke", extension_inputs=[])
+    assert not [n for n in dag.nodes(p) if dag.STAGES[n.stage].chapter == "10"]
+    # without inputs, any methods are fine: nothing of chapter 10 exists
+    load_profile("smoke", extension_inputs=[], extension_methods=["farneback"])
+
+
+def test_chapter10_nodes_and_their_inputs():
+    p = load_profile("smoke", extension_inputs=["residual", "images"],
+                     extension_methods=["dis"], seeds=2)
+    ten = [str(n) for n in dag.nodes(p) if dag.STAGES[n.stage].chapter == "10"]
+    assert ten == ["context[keyframe]", "context[general]", "xtrain[dis/residual/s0]",
+                   "xtrain[dis/residual/s1]", "xtrain[images/s0]", "xtrain[images/s1]",
+                   "xevaluate[dis/residual]", "xevaluate[images]"]
+    assert dag.inputs(dag.Node("xtrain", None, "images/s0"), p) == (
+        dag.Node("context", None, "keyframe"),)
+    assert dag.Node("crops", "dis", "general") in dag.inputs(
+        dag.Node("xevaluate", "dis", "residual"), p)
+    assert str(dag.node_dir(p, dag.Node("xtrain", None, "images/s1"))).endswith(
+        "extensions/models/images/s1")
+
+
+# --- on the smoke world (chapter 10 built by the smoke_built fixture) -------------------------
+
+
+def test_context_crops_match_the_flow_crops_objects_images_and_geometry(smoke_built):
+    p = smoke_built
+    static, images, idx = variants.context_split(p, "train")
+    x, cidx = crops.open_crops(p, "gt", "train")
+    assert idx["ann_token"].equals(cidx["ann_token"])
+    assert static.shape == x.shape and images.shape == (len(x), 6, *x.shape[2:])
+    # the image channels are the crops of the two frames' JPEGs in the flow crop's window
+    pairs = pd.read_parquet(dag.published(p, dag.Node("select")) / "pairs.parquet")
+    row = pairs.set_index("pair_id").loc[idx["pair_id"].iloc[0]]
+    box = idx[list(crops.BOX_COLUMNS)].to_numpy(float)[:1]
+    for k, col in enumerate(("path_1", "path_2")):
+        want = crops.crop_image(context.read_image(p.dataroot_path / row[col]), box,
+                                p.crop_size, p.crop_scale)[0].transpose(2, 0, 1)
+        np.testing.assert_array_equal(images[0, 3 * k:3 * k + 3], want)
+    # the static world explains the exact flow of still vehicles, not that of movers
+    t = variants.static_explains(x, static, idx["label"].to_numpy()).set_index("vehicles")
+    moved = np.median(np.abs(np.asarray(x, np.float32)), axis=(1, 2, 3)) > 0.5
+    assert moved.sum() >= 5
+    still = variants.static_explains(x[moved], static[moved], idx["label"].to_numpy()[moved])
+    assert still.set_index("vehicles").loc["still", "residual / flow"] < 0.1
+    assert t.loc["moving", "residual (px)"] > 3 * t.loc["still", "residual (px)"]
+
+
+def test_context_refuses_a_corrupt_image(smoke_built, tmp_path):
+    p = smoke_built
+    pairs = pd.read_parquet(dag.published(p, dag.Node("select")) / "pairs.parquet")
+    objects = crops.part_objects(dag.published(p, dag.Node("select")), "keyframe")
+    root = tmp_path / "root"
+    bad = root / pairs["path_1"].iloc[0]
+    bad.parent.mkdir(parents=True)
+    bad.write_bytes(b"not a jpeg")
+    one = objects[objects["pair_id"] == pairs["pair_id"].iloc[0]]
+    with pytest.raises(crops.CropsError, match=str(bad.name)):
+        context.image_crops(one, pairs, root, 32, 3.0)
+
+
+def test_chapter10_scores_are_those_of_its_predictions(smoke_built):
+    p = smoke_built
+    assert variants.built(p) == variants.plan(p) and len(variants.plan(p)) == 7
+    rows = variants.chains(p)
+    assert rows[0] == ("gt", "flow") and rows[-1] == (None, "images")
+    table = variants.table(p, rows)
+    assert len(table) == len(rows) == 9
+    for (m, v), r in zip(rows, table.to_dict("records"), strict=True):
+        d = variants.predictions(p, m, v, "test")
+        f1 = np.mean([variants.seed_summary(d["label"].to_numpy(), pr[None],
+                                            d["scene"].to_numpy())["f1"]
+                      for pr in variants.seed_probs(d)])
+        assert r["test F1 (%)"] == round(100 * f1, 1)
+        assert r["channels"] == variants.VARIANTS[v].channels
+    comp = variants.comparisons(p, "general", rows)
+    assert len(comp) == 7 and comp["comparison"].iloc[-1] == "images - gt: flow"
+    # the test split's objects are those of Table 3
+    xd = variants.predictions(p, "dis", "residual", "test")
+    assert xd["ann_token"].equals(variants.predictions(p, "dis", "flow", "test")["ann_token"])
+
+
+def test_chapter10_shows_only_what_was_built_with_these_parameters(smoke_built):
+    p = smoke_built
+    # other training settings: the built models are not the ones asked for
+    other = p.model_copy(update={"epochs": p.epochs + 1, "extension_build": False})
+    assert variants.built(other) == []
+    assert variants.run(other) == {c: None for c in variants.plan(other)}
+    assert "make extensions" in variants.headline(other, variants.table(other))
+    # the same settings: everything is current
+    assert variants.built(p.model_copy(update={"extension_build": False})) == variants.plan(p)
