@@ -154,7 +154,12 @@ def test_status_explains_in_one_line(finished):
     assert "stale" in line and "dis_preset: 'medium' -> 'fast'" in line
     assert "input flow[dis/keyframe] is stale" in next(
         ln for ln in text.splitlines() if "crops[dis/keyframe]" in ln)
-    assert text.splitlines()[-1].startswith("11 of 18 up to date; 7 to build")
+    # the dis chain of chapters 03-08 (7 nodes) and chapter 10's three dis inputs (6 nodes)
+    assert text.splitlines()[-1] == ("21 of 34 up to date; 13 to build (make run, or python "
+                                     "-m flowmod.runner)")
+    quiet = pipeline.format_status(p.model_copy(update={"extension_build": False}))
+    assert quiet.splitlines()[-1].endswith(
+        "chapter 10's 6 (models, predictions) only with extension_build: make extensions")
 
 
 def test_stage_reading_an_undeclared_parameter_fails(finished):
@@ -232,7 +237,8 @@ def test_reruns_recompute_exactly_what_changed_and_match_a_fresh_run(finished, t
     stale = [s for s in dag.status(back) if s.state != "up to date"]
     assert stale and all("will be restored" in s.why for s in stale)
     rebuilt = rerun(back)
-    assert {n.stage for n in rebuilt} == {"train", "evaluate", "generalise"}
+    assert {n.stage for n in rebuilt} == {"train", "evaluate", "generalise", "xtrain",
+                                          "xevaluate"}
     for n in rebuilt:
         assert dag.recorded(back, n)["written"] == at_step_4[n], f"{n} restored, not retrained"
     # the flow of an earlier option comes back from the pool, no pair computed again
@@ -342,7 +348,8 @@ def test_gc_removes_only_what_no_node_reads(finished, tmp_path):
                         "--variants", "--dry-run"]) == 0
     assert stray.exists() and other_crops.exists(), "dry run removes nothing"
     stale = not_up_to_date(fast)  # crops and below: dis_preset changed, only 03 was rebuilt
-    assert {n.stage for n in stale} == {"crops", "train", "evaluate", "generalise"}
+    assert {n.stage for n in stale} == {"crops", "train", "evaluate", "generalise", "xtrain",
+                                        "xevaluate"}
     n, _ = pipeline.collect_garbage(fast, variants=True)
     variants = 2  # the dis flow nodes' medium results
     assert n == 2 + variants + n_medium

@@ -198,3 +198,19 @@ def test_chapter10_shows_only_what_was_built_with_these_parameters(smoke_built):
     assert "make extensions" in variants.headline(other, variants.table(other))
     # the same settings: everything is current
     assert variants.built(p.model_copy(update={"extension_build": False})) == variants.plan(p)
+
+
+def test_a_chapter_that_shows_what_is_built_reruns_when_more_is_built(smoke_built, tmp_path):
+    """Chapter 10 without extension_build shows the chains built: its executed copy must not
+    be reused once more (or fewer) of them exist, though no parameter changed."""
+    from flowmod import environment, runner
+
+    nb = next(n for n in runner.notebooks() if n.stem.startswith("10"))
+    p = smoke_built.model_copy(update={"extension_build": False})
+    values = runner.notebook_parameters(nb, p)
+    device = environment.device_info("cpu")
+    built = runner.notebook_fingerprint(nb, values, p, device)
+    elsewhere = p.model_copy(update={"run_dir": str(tmp_path / "runs")})  # nothing built there
+    assert [n for n in dag.expected(elsewhere) if dag.expected(elsewhere)[n] is None] == []
+    assert runner.notebook_fingerprint(nb, values, elsewhere, device) != built
+    assert runner.notebook_fingerprint(nb, values, p, device) == built

@@ -221,9 +221,10 @@ class Params(BaseModel):
                description="chapter 10: classifier inputs besides the raw flow, each trained "
                            "with seeds x Table 2 (residual = flow - static-world flow; "
                            "flow+static; images = the two image crops; images+flow)"))
-    extension_methods: list[str] = _field(
-        lambda: ["gt", "dis"], role="plan",
-        description="chapter 10: the flow methods its flow inputs are built on")
+    extension_methods: list[str] | None = _field(
+        None, role="plan",
+        description="chapter 10: the flow methods its flow inputs are built on; default: the "
+                    "exact flow (if in flow_methods) and the first other method")
     extension_build: bool = _field(
         False, role="run",
         description="chapter 10 trains its stale models (make extensions); off: it shows "
@@ -270,6 +271,9 @@ class Params(BaseModel):
             )
         if len(set(self.extension_inputs)) != len(self.extension_inputs):
             raise ValueError(f"extension_inputs={self.extension_inputs} lists an input twice")
+        if self.extension_methods is None:
+            self.extension_methods = [m for m in self.flow_methods if m == "gt"][:1] + [
+                m for m in self.flow_methods if m != "gt"][:1]
         stray = [m for m in self.extension_methods if m not in self.flow_methods]
         if self.extension_inputs and (stray or not self.extension_methods):
             raise ValueError(

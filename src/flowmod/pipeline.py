@@ -61,9 +61,13 @@ def format_status(p: Params) -> str:
     for r in df.itertuples(index=False):
         why = f"  {r.why}" if r.why else ""
         lines.append(f"{r.chapter}  {r.node:<{width}}  {r.state:<10}{why}")
-    n_stale = int((df["state"] != "up to date").sum())
+    stale = df[df["state"] != "up to date"]
+    n_stale = len(stale)
+    models = int(stale["node"].str.startswith(("xtrain[", "xevaluate[")).sum())
     lines.append(f"{len(df) - n_stale} of {len(df)} up to date" + (
-        f"; {n_stale} to build (make run, or python -m flowmod.runner)" if n_stale else ""))
+        f"; {n_stale} to build (make run, or python -m flowmod.runner)" if n_stale else "")
+        + (f"; chapter 10's {models} (models, predictions) only with extension_build: "
+           "make extensions" if models and not p.extension_build else ""))
     return "\n".join(lines)
 
 
