@@ -160,7 +160,8 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
             f1 = np.mean([metrics(d["label"], d[c])["f1"] for c in evaluate.seed_columns(d)])
             assert g10[f"ext_{key}_f1_{variants.glue_key(m, v)}"] == round(100 * f1, 1)
     assert g10["ext_headline"].startswith("on dis flow, the best other input")
-    assert 0 <= g10["still_residual_share"] < 50
+    assert g10["still_residual_px"] < 0.1 * g10["still_flow_px"]
+    assert g10["moving_residual_px"] > g10["still_residual_px"]
     assert (smoke_run["base"] / "runs" / "figures" / "extension_inputs.png").stat().st_size > 5000
 
 

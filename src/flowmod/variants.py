@@ -317,21 +317,25 @@ def context_split(params: Any, split: str) -> tuple[np.ndarray, np.ndarray, pd.D
 
 
 def static_explains(flow: np.ndarray, static: np.ndarray, labels: np.ndarray) -> pd.DataFrame:
-    """How much of the flow crops the static world explains: per class (still, moving), the
-    median over objects of the median flow magnitude in the crop, of the residual's, and
-    their ratio. flow, static: (N, 2, S, S) px; labels (N,) 0/1."""
-    f = np.asarray(flow, np.float32)
-    r = f - np.asarray(static, np.float32)
+    """How much of the flow at the vehicles the static world explains: per class (still,
+    moving), the median over objects of the median flow magnitude in the box's square (the
+    middle third of the crop, which is three times the box), of the residual's (flow minus
+    static-world flow) there, and their ratio. flow, static: (N, 2, S, S) px; labels (N,)
+    0/1."""
+    s = np.asarray(flow).shape[-1]
+    a, b = s // 3, s - s // 3
+    f = np.asarray(flow[..., a:b, a:b], np.float32)
+    r = f - np.asarray(static[..., a:b, a:b], np.float32)
     mag = np.median(np.linalg.norm(f, axis=1).reshape(len(f), -1), axis=1)
     res = np.median(np.linalg.norm(r, axis=1).reshape(len(r), -1), axis=1)
     rows = []
     for lab, name in ((0, "still"), (1, "moving")):
         k = np.asarray(labels) == lab
         rows.append({"vehicles": name, "objects": int(k.sum()),
-                     "flow (px)": float(np.median(mag[k])) if k.any() else float("nan"),
-                     "residual (px)": float(np.median(res[k])) if k.any() else float("nan"),
+                     "flow at the box (px)": float(np.median(mag[k])) if k.any() else np.nan,
+                     "residual (px)": float(np.median(res[k])) if k.any() else np.nan,
                      "residual / flow": float(np.median(res[k] / np.maximum(mag[k], 1e-6)))
-                     if k.any() else float("nan")})
+                     if k.any() else np.nan})
     return pd.DataFrame(rows)
 
 
