@@ -294,7 +294,7 @@ def comparison_table(rows: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
             "ΔF1 (points)": round(100 * r["delta_f1"], 1),
             "95% CI over scenes (points)": f"{100 * r['ci'][0]:.1f} to {100 * r['ci'][1]:.1f}",
             "per seed (points)": ", ".join(f"{100 * d:+.1f}" for d in r["per_seed"]),
-            "share of replicates A <= B": round(r["p_not_better"], 3),
+            "replicates with A <= B (%)": round(100 * r["p_not_better"], 1),
             "scenes": r["n_scenes"], "objects": r["n"],
         })
     return pd.DataFrame(out)

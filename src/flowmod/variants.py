@@ -262,22 +262,23 @@ def _xnode(method: str | None, variant: str) -> Any:
     return dag.Node("xevaluate", method, variant)
 
 
-def table(params: Any, rows_of: list[tuple[str | None, str]] | None = None) -> pd.DataFrame:
-    """Method x input x F1 on the keyframe test split and on the generalisation set (Table
-    4's range and label): mean over training seeds, their range, the scene-level 95 %
-    interval of the mean. ``rows_of``: the chains (default :func:`chains`)."""
+def table(params: Any, rows_of: list[tuple[str | None, str]] | None = None,
+          split: str = "test") -> pd.DataFrame:
+    """Method x input x F1 on the keyframe test split (``split="test"``) or on the
+    generalisation set within Table 4's range (``"general"``): mean over training seeds,
+    their range, the scene-level 95 % interval of the mean, precision and recall.
+    ``rows_of``: the chains (default :func:`chains`)."""
     rows = []
     for m, v in (chains(params) if rows_of is None else rows_of):
-        row: dict[str, Any] = {"flow method": m or "-", "input": v,
-                               "channels": VARIANTS[v].channels}
-        for split, name in (("test", "test"), ("general", "generalisation")):
-            d = scored(predictions(params, m, v, split), split, params.general_max_distance)
-            s = seed_summary(d["label"].to_numpy(), seed_probs(d), d["scene"].to_numpy(),
-                             seed=params.seed)
-            row.update({f"{name} F1 (%)": round(100 * s["f1"], 1),
-                        f"{name} seeds (%)": f"{100 * s['f1_min']:.1f}-{100 * s['f1_max']:.1f}",
-                        f"{name} 95% CI (%)": f"{100 * s['ci'][0]:.1f}-{100 * s['ci'][1]:.1f}"})
-        rows.append(row)
+        d = scored(predictions(params, m, v, split), split, params.general_max_distance)
+        s = seed_summary(d["label"].to_numpy(), seed_probs(d), d["scene"].to_numpy(),
+                         seed=params.seed)
+        rows.append({"flow method": m or "-", "input": v, "channels": VARIANTS[v].channels,
+                     "F1 (%)": round(100 * s["f1"], 1),
+                     "seeds (%)": f"{100 * s['f1_min']:.1f}-{100 * s['f1_max']:.1f}",
+                     "95% CI, scenes (%)": f"{100 * s['ci'][0]:.1f}-{100 * s['ci'][1]:.1f}",
+                     "P (%)": round(100 * s["precision"], 1),
+                     "R (%)": round(100 * s["recall"], 1)})
     return pd.DataFrame(rows)
 
 
@@ -350,23 +351,30 @@ def built_note(params: Any, done: list[tuple[str | None, str]]) -> str:
     return out
 
 
-def headline(params: Any, table_: pd.DataFrame) -> str:
+def headline(params: Any, test: pd.DataFrame, general: pd.DataFrame) -> str:
     """One sentence for the landing page: the best input of the main method against its
-    raw flow on the test split, or how to build the chapter when nothing is built."""
+    raw flow on the test split (:func:`table`), or how to build the chapter."""
     main = next((m for m in params.extension_methods if m != "gt"), None) or (
         params.extension_methods[0] if params.extension_methods else None)
-    rows = table_[(table_["flow method"] == main) & (table_["input"] != "flow")] \
-        if len(table_) else table_
+
+    def of(t: pd.DataFrame, v: str | None = None) -> pd.DataFrame:
+        if not len(t):
+            return t
+        k = t["flow method"] == main
+        return t[k & (t["input"] != "flow")] if v is None else t[k & (t["input"] == v)]
+
+    rows = of(test)
     if not len(rows):
         return ("not built in this run (make extensions trains them: "
                 f"{len(plan(params)) * params.seeds} models)" if params.extension_inputs else
                 "not part of this profile (extension_inputs is empty)")
-    raw = table_[(table_["flow method"] == main) & (table_["input"] == "flow")].iloc[0]
-    best = rows.loc[rows["test F1 (%)"].idxmax()]
+    best = rows.loc[rows["F1 (%)"].idxmax()]
+    raw, raw_g = of(test, "flow").iloc[0], of(general, "flow").iloc[0]
+    best_g = of(general, best["input"]).iloc[0]
     return (f"on {main} flow, the best other input ({best['input']}) reaches test F1 "
-            f"{best['test F1 (%)']:.1f} % against {raw['test F1 (%)']:.1f} % on raw flow, "
-            f"and {best['generalisation F1 (%)']:.1f} % against "
-            f"{raw['generalisation F1 (%)']:.1f} % on the generalisation set")
+            f"{best['F1 (%)']:.1f} % against {raw['F1 (%)']:.1f} % on raw flow, "
+            f"and {best_g['F1 (%)']:.1f} % against {raw_g['F1 (%)']:.1f} % on the "
+            "generalisation set")
 
 
 def glue_key(method: str | None, variant: str) -> str:

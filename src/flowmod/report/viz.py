@@ -219,35 +219,47 @@ def crop_gallery(x: np.ndarray, labels: np.ndarray, n: int = 8, seed: int = 0,
 
 
 def input_gallery(images: np.ndarray, flow: np.ndarray, static: np.ndarray,
-                  labels: np.ndarray, n: int = 3, seed: int = 0) -> plt.Figure:
-    """For ``n`` still and ``n`` moving objects (rows): the frame-1 image crop, the flow crop,
-    the static-world flow of the same window and their difference (the residual input),
-    the three flows on one colour scale per row (the flow crop's largest magnitude).
+                  labels: np.ndarray, instances: np.ndarray | None = None, n: int = 3,
+                  seed: int = 0) -> plt.Figure:
+    """For ``n`` still and ``n`` moving objects (rows; one per vehicle ``instances`` if
+    given): the frame-1 image crop, the flow crop, the static-world flow of the same window
+    and their difference (the residual input). The three flows share one colour scale per
+    row: the 95th percentile of the flow's magnitude in the box's square (the middle third)
+    or of the residual's, whichever is larger (larger vectors saturate).
 
     images: (N, 6, S, S) uint8 (frame 1 = channels 0-2); flow, static: (N, 2, S, S) px."""
     from flowmod.flow import flow_to_color
 
     rng = np.random.default_rng(seed)
     labels = np.asarray(labels)
-    pick = [(lab, i) for lab in (0, 1) for i in sorted(rng.choice(
-        np.flatnonzero(labels == lab), size=min(n, int((labels == lab).sum())), replace=False))]
+    keys = np.arange(len(labels)) if instances is None else np.asarray(instances)
+    pick = []
+    for lab in (0, 1):
+        idx = np.flatnonzero(labels == lab)
+        _, first = np.unique(keys[idx], return_index=True)  # one object per vehicle
+        cand = idx[np.sort(first)]
+        pick += [(lab, i) for i in sorted(rng.choice(cand, size=min(n, len(cand)),
+                                                     replace=False))]
     fig, axes = plt.subplots(max(1, len(pick)), 4, figsize=(7.2, 1.8 * max(1, len(pick))),
                              squeeze=False)
     cols = ("image (frame 1)", "flow", "static-world flow", "residual")
+    s = flow.shape[-1]
+    a, b = s // 3, s - s // 3
     for r, (lab, i) in enumerate(pick):
         f = np.asarray(flow[i], np.float32).transpose(1, 2, 0)
-        s = np.asarray(static[i], np.float32).transpose(1, 2, 0)
-        top = float(np.linalg.norm(f, axis=2).max()) or 1.0
+        st = np.asarray(static[i], np.float32).transpose(1, 2, 0)
+        top = max(float(np.percentile(np.linalg.norm(f[a:b, a:b], axis=2), 95)),
+                  float(np.percentile(np.linalg.norm(f - st, axis=2), 95)), 1e-3)
         panes = [np.asarray(images[i][:3]).transpose(1, 2, 0)] + [
-            flow_to_color(x, max_flow=top) for x in (f, s, f - s)]
+            flow_to_color(x, max_flow=top) for x in (f, st, f - st)]
         for c, (ax, im) in enumerate(zip(axes[r], panes, strict=True)):
             ax.imshow(im)
             ax.set_xticks([])
             ax.set_yticks([])
             if r == 0:
                 ax.set_title(cols[c], fontsize=8)
-        axes[r][0].set_ylabel(f"{'moving' if lab else 'still'}\nmax {top:.1f} px", fontsize=7,
-                              color="tab:red" if lab else "tab:blue")
+        axes[r][0].set_ylabel(f"{'moving' if lab else 'still'}\nscale {top:.1f} px",
+                              fontsize=7, color="tab:red" if lab else "tab:blue")
     fig.tight_layout()
     return fig
 
