@@ -290,6 +290,9 @@ def test_paper_profile_runs_on_a_devkit_dataset_by_parameters_only(smoke_world, 
     assert "true_agreement" not in book.read_glue(tmp_path / "executed" / "04_labeling.ipynb")
     g7 = book.read_glue(tmp_path / "executed" / "07_evaluation.ipynb")
     assert g7["headline_method"] == "dis" and "test_f1_gt" not in g7
+    g10 = book.read_glue(tmp_path / "executed" / "10_extensions.ipynb")
+    assert g10["ext_n_planned"] == 0, "chapter 10 is off in the paper profile (~90 GB)"
+    assert g10["ext_headline"].startswith("not part of this profile")
 
 
 def test_try_it_commands_run(smoke_run, tmp_path):

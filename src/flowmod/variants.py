@@ -342,6 +342,10 @@ def static_explains(flow: np.ndarray, static: np.ndarray, labels: np.ndarray) ->
 
 def built_note(params: Any, done: list[tuple[str | None, str]]) -> str:
     """A line for the chapter: which chains are built, and how to build the others."""
+    if not params.extension_inputs:
+        return ("This profile trains no other input (`extension_inputs` is empty): the "
+                "tables below hold the paper's raw-flow models only. Set it (e.g. "
+                "`extension_inputs=[residual]`) and run `make extensions`.")
     todo = [c for c in plan(params) if c not in done]
     names = ", ".join(f"{m or 'no flow'}/{v}" for m, v in done) or "none"
     out = f"Chains built with these parameters: **{len(done)} of {len(plan(params))}** ({names})."
