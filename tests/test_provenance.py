@@ -154,12 +154,12 @@ def test_status_explains_in_one_line(finished):
     assert "stale" in line and "dis_preset: 'medium' -> 'fast'" in line
     assert "input flow[dis/keyframe] is stale" in next(
         ln for ln in text.splitlines() if "crops[dis/keyframe]" in ln)
-    # the dis chain of chapters 03-08 (7 nodes) and chapter 10's three dis inputs (6 nodes)
-    assert text.splitlines()[-1] == ("21 of 34 up to date; 13 to build (make run, or python "
+    # the dis chain of chapters 03-08 (7 nodes) and chapter 10's dis residual (2 nodes)
+    assert text.splitlines()[-1] == ("17 of 26 up to date; 9 to build (make run, or python "
                                      "-m flowmod.runner)")
     quiet = pipeline.format_status(p.model_copy(update={"extension_build": False}))
     assert quiet.splitlines()[-1].endswith(
-        "chapter 10's 6 (models, predictions) only with extension_build: make extensions")
+        "chapter 10's 2 (models, predictions) only with extension_build: make extensions")
 
 
 def test_stage_reading_an_undeclared_parameter_fails(finished):
