@@ -44,12 +44,21 @@ def predict_seeds(models: list[tuple[str, Any, str | None]], crops_folder: Any, 
     precision it was trained and selected in) and ``prob`` = the first seed's (the single
     model the figures show)."""
     from flowmod.crops import read_crops
-    from flowmod.model import load_model
 
     x, df = read_crops(crops_folder, split)
+    return predict_models(models, x, df, device)
+
+
+def predict_models(models: list[tuple[str, Any, str | None]], x: Any, df: pd.DataFrame,
+                   device: Any = "auto", in_channels: int | None = 2) -> pd.DataFrame:
+    """``df`` (the rows of ``x``: (N, C, S, S)) with ``prob_<part>`` of every model (part,
+    best.pt, amp) and ``prob`` = the first's; ``in_channels`` as
+    :func:`flowmod.model.load_model` (None: the checkpoint's)."""
+    from flowmod.model import load_model
+
     probs = {}
     for part, path, amp in models:
-        model = load_model(path, resolve_device(device))
+        model = load_model(path, resolve_device(device), in_channels)
         probs[f"prob_{part}"] = predict(model, x, device=device, amp=amp)
     return df.assign(**probs, prob=probs[f"prob_{models[0][0]}"])
 

@@ -430,29 +430,39 @@ def run(params: Any, progress: bool = True) -> dict[str, list[pd.DataFrame]]:
         for k, part in enumerate(dag.seed_parts(params)):
             b = dag.begin(params, dag.Node("train", m, part))
             if not b.up_to_date:
-                q = b.params
                 folder = b.input_dir(dag.Node("crops", m, "keyframe"))
                 tx, tdf = crops.read_crops(folder, "train")
                 vx, vdf = crops.read_crops(folder, "val")
-                work = b.start(fresh=q.force)
-                h = train_model(
-                    tx, tdf, vx, vdf, work, epochs=q.epochs,
-                    record=crops.read_crops(folder, "test")[0], batch_size=q.batch_size,
-                    lr=q.lr, momentum=q.momentum, weight_decay=q.weight_decay,
-                    step_size=q.step_size, gamma=q.gamma, hflip_p=q.hflip_p,
-                    num_workers=q.num_workers, seed=q.seed + k, device=q.device,
-                    amp=None if q.amp == "off" else q.amp, resume=True, progress=progress,
-                    desc=f"train {m} seed {q.seed + k}",
-                )
-                # a published model is finished: its weights are kept in float16 (half the
-                # disk; no test decision changes, see the differences page) and the resumable
-                # checkpoint (weights + optimiser, twice best.pt) is only needed while building
-                half_weights(work / "best.pt")
-                (work / "last.pt").unlink(missing_ok=True)
+                h = train_node(b, tx, tdf, vx, vdf, k, f"train {m} seed {b.params.seed + k}",
+                               progress, record=crops.read_crops(folder, "test")[0])
+                q = b.params
                 b.publish(best_epoch=int(h.attrs["best_epoch"]), best_f1=float(h.attrs["best_f1"]),
                           seed=q.seed + k, amp=q.amp, recipe=recipe(params, m))
             out.setdefault(m, []).append(history(params, m, part))
     return out
+
+
+def train_node(b: Any, train_x: Any, train_df: pd.DataFrame, val_x: Any, val_df: pd.DataFrame,
+               k: int, desc: str, progress: bool = True, record: Any | None = None,
+               in_channels: int = 2, flip_negate: Sequence[int] = (0,)) -> pd.DataFrame:
+    """Train the model of a training node (``b``: :class:`flowmod.dag.Build` of ``train`` or
+    chapter 10's ``xtrain``) in its building folder, seed ``seed + k``, with the profile's
+    Table 2 settings (resumable); then keep what a published model needs: ``best.pt`` in
+    float16 (no test decision changes, see the differences page), no ``last.pt`` (the
+    resumable checkpoint, twice best.pt, is only needed while building). Returns the
+    history; the caller publishes."""
+    q = b.params
+    work = b.start(fresh=q.force)
+    h = train_model(
+        train_x, train_df, val_x, val_df, work, epochs=q.epochs, record=record,
+        batch_size=q.batch_size, lr=q.lr, momentum=q.momentum, weight_decay=q.weight_decay,
+        step_size=q.step_size, gamma=q.gamma, hflip_p=q.hflip_p, num_workers=q.num_workers,
+        seed=q.seed + k, device=q.device, amp=None if q.amp == "off" else q.amp, resume=True,
+        progress=progress, desc=desc,
+        in_channels=in_channels, flip_negate=flip_negate)
+    half_weights(work / "best.pt")
+    (work / "last.pt").unlink(missing_ok=True)
+    return h
 
 
 def recipe(params: Any, method: str) -> dict[str, Any]:

@@ -158,22 +158,14 @@ def run(params: Any, progress: bool = True) -> dict[tuple[str | None, str], Any]
                 b = dag.begin(params, dag.Node("xtrain", m, f"{v}/{part}"))
                 if b.up_to_date:
                     continue
-                q = b.params
                 ctx = b.input_dir(dag.Node("context", None, "keyframe"))
                 crops_dir = b.input_dir(dag.Node("crops", m, "keyframe")) if m else None
                 (tx, tdf), (vx, vdf) = (split_inputs(v, ctx, crops_dir, s) for s in
                                         ("train", "val"))
-                work = b.start(fresh=q.force)
-                h = train.train_model(
-                    tx, tdf, vx, vdf, work, epochs=q.epochs, batch_size=q.batch_size,
-                    lr=q.lr, momentum=q.momentum, weight_decay=q.weight_decay,
-                    step_size=q.step_size, gamma=q.gamma, hflip_p=q.hflip_p,
-                    num_workers=q.num_workers, seed=q.seed + k, device=q.device,
-                    amp=None if q.amp == "off" else q.amp, resume=True, progress=progress,
-                    desc=f"train {m + ' ' if m else ''}{v} seed {q.seed + k}",
-                    in_channels=VARIANTS[v].channels, flip_negate=VARIANTS[v].negate)
-                train.half_weights(work / "best.pt")
-                (work / "last.pt").unlink(missing_ok=True)
+                q = b.params
+                h = train.train_node(
+                    b, tx, tdf, vx, vdf, k, f"train {m + ' ' if m else ''}{v} seed {q.seed + k}",
+                    progress, in_channels=VARIANTS[v].channels, flip_negate=VARIANTS[v].negate)
                 b.publish(best_epoch=int(h.attrs["best_epoch"]),
                           best_f1=float(h.attrs["best_f1"]), seed=q.seed + k, amp=q.amp,
                           input=v, channels=VARIANTS[v].channels)
@@ -198,32 +190,27 @@ def _evaluate(params: Any, method: str | None, variant: str) -> None:
     """Build ``xevaluate[<method>/<input>]``: every seed on the test split and the
     generalisation set (``test.parquet``, ``general.parquet`` with ``prob_s<k>``)."""
     from flowmod import dag
-    from flowmod.model import load_model, predict, resolve_device
+    from flowmod.evaluate import _write, predict_models
 
     b = dag.begin(params, dag.Node("xevaluate", method, variant))
     if b.up_to_date:
         return
-    q = b.params
-    models = sorted((name, rec) for name, rec in b.inputs.items() if name.startswith("xtrain["))
-    work = b.start(fresh=True)
+    models = []  # (seed part, best.pt, amp) of every seed, as chapter 07 reads them
+    for name, rec in sorted(b.inputs.items()):
+        if name.startswith("xtrain["):
+            seed_part = name[:-1].rsplit("/", 1)[1]
+            amp = rec.get("amp", "off")
+            models.append((seed_part, b.input_dir(dag.Node("xtrain", method, f"{variant}/"
+                                                           f"{seed_part}")) / "best.pt",
+                           None if amp in (None, "off") else amp))
+    frames = {}
     for split in ("test", "general"):
         part = "general" if split == "general" else "keyframe"
         x, df = split_inputs(variant, b.input_dir(dag.Node("context", None, part)),
                              b.input_dir(dag.Node("crops", method, part)) if method else None,
                              split)
-        probs = {}
-        for name, rec in models:
-            seed_part = name[:-1].rsplit("/", 1)[1]
-            path = b.input_dir(dag.Node("xtrain", method, f"{variant}/{seed_part}")) / "best.pt"
-            amp = rec.get("amp", "off")
-            probs[f"prob_{seed_part}"] = predict(
-                load_model(path, resolve_device(q.device), None), x, device=q.device,
-                amp=None if amp in (None, "off") else amp)
-        first = sorted(probs)[0]
-        from flowmod.artefacts import atomic_path
-
-        with atomic_path(work / f"{split}.parquet") as tmp:
-            df.assign(**probs, prob=probs[first]).to_parquet(tmp, index=False)
+        frames[split] = predict_models(models, x, df, b.params.device, in_channels=None)
+    _write(b.start(fresh=True), frames, {})
     b.publish(seeds=len(models), input=variant)
 
 
