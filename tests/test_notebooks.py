@@ -163,6 +163,13 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
     assert g10["still_residual_px"] < 0.1 * g10["still_flow_px"]
     assert g10["moving_residual_px"] > g10["still_residual_px"]
     assert (smoke_run["base"] / "runs" / "figures" / "extension_inputs.png").stat().st_size > 5000
+    # chapter 11: the dis classifier trained on all distances, its headline from Table 4
+    from flowmod import wide
+
+    g11 = glue_of(smoke_run, "11_all_distances")
+    assert g11["wide_n_built"] == 1
+    assert g11["wide_headline"] == wide.headline(p, wide.table4(p, ["dis"]), ["dis"])
+    assert (smoke_run["base"] / "runs" / "figures" / "wide_f1_distance.png").stat().st_size > 5000
 
 
 def test_missing_real_dataroot_is_rejected_before_work(tmp_path):
@@ -293,6 +300,8 @@ def test_paper_profile_runs_on_a_devkit_dataset_by_parameters_only(smoke_world, 
     g10 = book.read_glue(tmp_path / "executed" / "10_extensions.ipynb")
     assert g10["ext_n_planned"] == 0, "chapter 10 is off in the paper profile (~90 GB)"
     assert g10["ext_headline"].startswith("not part of this profile")
+    g11 = book.read_glue(tmp_path / "executed" / "11_all_distances.ipynb")
+    assert g11["wide_n_built"] == 0 and g11["wide_headline"].startswith("not part of this")
 
 
 def test_try_it_commands_run(smoke_run, tmp_path):

@@ -27,7 +27,7 @@ pytestmark = pytest.mark.slow
 #: the test below fails if the two disagree or if the status does not follow them.
 SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "profile": ("other", set(), ()),
-    "seed": (1, {"world", "select", "flow", "train", "evaluate", "xtrain"}, ()),
+    "seed": (1, {"world", "select", "flow", "train", "evaluate", "xtrain", "wtrain"}, ()),
     "device": ("cpu", set(), ()),
     "force": (True, set(), ()),
     "synthetic": (False, set(), ()),
@@ -35,18 +35,18 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "world_keyframes": (5, {"world"}, ()),
     "world_sweep_scenes": (2, {"world"}, ()),
     "world_vehicles": (17, {"world"}, ()),
-    "categories": (["vehicle.car", "vehicle.truck"], {"select", "general"}, ()),
+    "categories": (["vehicle.car", "vehicle.truck"], {"select", "general", "wide"}, ()),
     "min_distance": (25.0, {"select"}, ()),
     "max_distance": (65.0, {"select"}, ()),
-    "distance_mode": ("camera", {"select", "general"}, ()),
-    "visibility_tokens": (["3", "4"], {"select", "general"}, ()),
+    "distance_mode": ("camera", {"select", "general", "wide"}, ()),
+    "visibility_tokens": (["3", "4"], {"select", "general", "wide"}, ()),
     "exclude_descriptions": (["night"], {"select"}, ()),
     "split_fractions": ([0.6, 0.2, 0.2], {"select"}, ()),
-    "missing_images": ("skip", {"select", "general"}, ()),
-    "speed_threshold": (2.5, {"select", "general", "difficulty"}, ()),
-    "general_interval": (3, {"general"}, ()),
-    "general_min_distance": (1.0, {"general"}, ()),
-    "general_max_distance": (90.0, {"general"}, ()),
+    "missing_images": ("skip", {"select", "general", "wide"}, ()),
+    "speed_threshold": (2.5, {"select", "general", "difficulty", "wide"}, ()),
+    "general_interval": (3, {"general", "wide"}, ()),
+    "general_min_distance": (1.0, {"general", "wide"}, ()),
+    "general_max_distance": (90.0, {"general", "wide"}, ()),
     "general_max_scenes": (2, {"general"}, ()),
     "flow_scale": (0.5, {"flow", "crops"}, ()),
     "dis_preset": ("fast", {"flow", "crops"}, ("dis",)),
@@ -76,10 +76,11 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "flow_keep_pairs": (5, {"flow"}, ()),
     "clip_method": ("gt", {"flow"}, ()),
     "extension_build": (False, set(), ()),
+    "wide_sweep_stride": (2, {"wide"}, ()),
 }
 #: Parameters whose change is not "some stages read another value" (checked on their own).
 SPECIAL = {"run_dir", "dataroot", "version", "flow_methods", "seeds", "extension_inputs",
-           "extension_methods"}
+           "extension_methods", "wide_methods"}
 
 
 def downstream(p: Params, start: set[dag.Node]) -> set[dag.Node]:
@@ -137,7 +138,8 @@ def test_special_parameters(finished, tmp_path):
     # are stale; the first seed's models are untouched
     two = finished.model_copy(update={"seeds": 2})
     assert not_up_to_date(two) == {n for n in dag.nodes(two) if (n.part or "").endswith(
-        "s1")} | {n for n in dag.nodes(two) if n.stage in ("evaluate", "generalise", "xevaluate")}
+        "s1")} | {n for n in dag.nodes(two) if n.stage in ("evaluate", "generalise", "xevaluate",
+                                                            "wgeneralise")}
     # chapter 10's plan: one input fewer drops its nodes and changes nothing else; one method
     # fewer drops its chains
     fewer = finished.model_copy(update={"extension_inputs": finished.extension_inputs[1:]})
@@ -145,6 +147,10 @@ def test_special_parameters(finished, tmp_path):
     gt_only = finished.model_copy(update={"extension_methods": ["gt"]})
     assert not_up_to_date(gt_only) == set()
     assert {n.method for n in dag.nodes(gt_only) if n.stage == "xtrain"} == {"gt", None}
+    # chapter 11's plan: no method drops all its nodes (and its selection), nothing else
+    off = finished.model_copy(update={"wide_methods": []})
+    assert not_up_to_date(off) == set()
+    assert set(nodes) - set(dag.nodes(off)) == {n for n in nodes if dag.chapter(n) == "11"}
 
 
 def test_status_explains_in_one_line(finished):
@@ -154,12 +160,15 @@ def test_status_explains_in_one_line(finished):
     assert "stale" in line and "dis_preset: 'medium' -> 'fast'" in line
     assert "input flow[dis/keyframe] is stale" in next(
         ln for ln in text.splitlines() if "crops[dis/keyframe]" in ln)
-    # the dis chain of chapters 03-08 (7 nodes) and chapter 10's dis residual (2 nodes)
-    assert text.splitlines()[-1] == ("17 of 26 up to date; 9 to build (make run, or python "
+    # the dis chain of chapters 03-08 (7 nodes), chapter 10's dis residual (2 nodes) and
+    # chapter 11's dis chain (flow, crops, model, predictions)
+    assert text.splitlines()[-1] == ("18 of 31 up to date; 13 to build (make run, or python "
                                      "-m flowmod.runner)")
     quiet = pipeline.format_status(p.model_copy(update={"extension_build": False}))
     assert quiet.splitlines()[-1].endswith(
-        "chapter 10's 2 (models, predictions) only with extension_build: make extensions")
+        "chapters 10 and 11's 6 (models, predictions, flow, crops) only with extension_build: "
+        "make extensions")
+    assert "11  crops[dis/wide]" in quiet
 
 
 def test_stage_reading_an_undeclared_parameter_fails(finished):

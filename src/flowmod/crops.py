@@ -636,6 +636,8 @@ def check_crops(
 
 #: Splits of each part of the crops stage.
 PART_SPLITS = {"keyframe": ("train", "val", "test"), "general": ("general",)}
+#: Splits of chapter 11's part (``wide``: the training set at every distance).
+WIDE_SPLITS = {"wide": ("train", "val")}
 
 
 def part_of(split: str) -> str:
@@ -661,19 +663,22 @@ def open_crops(params: Any, method: str, split: str) -> tuple[np.memmap, pd.Data
     return read_crops(dag.published(params, dag.Node("crops", method, part_of(split))), split)
 
 
-def run(params: Any, progress: bool = True) -> dict[str, dict[str, Path]]:
-    """Build every ``crops[<method>/<part>]`` node (:mod:`flowmod.dag`) that is stale, from the
-    published flow of the same part. Returns ``{method: {part: published folder}}``."""
+def run(params: Any, progress: bool = True, parts: Mapping[str, Sequence[str]] = PART_SPLITS,
+        methods: Sequence[str] | None = None) -> dict[str, dict[str, Path]]:
+    """Build every ``crops[<method>/<part>]`` node (:mod:`flowmod.dag`) of ``parts`` (``{part:
+    its splits}``, default the paper's two) and ``methods`` (default flow_methods) that is
+    stale, from the published flow of the same part. Returns ``{method: {part: published
+    folder}}``."""
     from flowmod import dag
     from flowmod.flow import FlowReader
 
     out: dict[str, dict[str, Path]] = {}
-    for m in params.flow_methods:
-        for part, splits in PART_SPLITS.items():
+    for m in (params.flow_methods if methods is None else methods):
+        for part, splits in parts.items():
             b = dag.begin(params, dag.Node("crops", m, part))
             if not b.up_to_date:
                 q = b.params
-                objects_node = dag.Node("select") if part == "keyframe" else dag.Node("general")
+                objects_node = dag.inputs(b.node, params)[-1]  # select, general or wide
                 objects = part_objects(b.input_dir(objects_node), part)
                 load, items, files, computed = None, None, {}, None
                 work = b.start(fresh=q.force)
@@ -681,7 +686,7 @@ def run(params: Any, progress: bool = True) -> dict[str, dict[str, Path]]:
                     pairs = pd.read_parquet(b.input_dir(objects_node) / "pairs.parquet")
                     world = b.inputs["world"]["fingerprint"]
                     # a pair of the same boxes may be in the other part's node too
-                    sources = [d for other in PART_SPLITS for d in dag.results(
+                    sources = [d for other in (*PART_SPLITS, *WIDE_SPLITS) for d in dag.results(
                         dag.node_dir(params, dag.Node("crops", m, other)))]
                     items, files, computed = _crops_from_flow(
                         q, m, part, pairs, objects, world, progress, sources)

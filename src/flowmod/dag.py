@@ -51,6 +51,11 @@ KEEP_VARIANTS = 2
 #: The two parts of the flow and crops stages: the paper's keyframe pairs and the
 #: generalisation pairs.
 PARTS = ("keyframe", "general")
+#: Chapter 11's part of the flow and crops stages: the training set at every distance.
+WIDE = "wide"
+#: Stages of the nodes that only ``extension_build`` builds (models and their predictions of
+#: chapters 10 and 11; chapter 11's flow and crops, see :func:`gated`).
+GATED_STAGES = ("xtrain", "xevaluate", "wtrain", "wgeneralise")
 
 
 @dataclass(frozen=True)
@@ -83,6 +88,14 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("xtrain", 1, "10", "extensions/models/{key}", "a classifier on another input"),
     Stage("xevaluate", 1, "10", "extensions/metrics/{key}",
           "its test and generalisation predictions"),
+    # beyond the paper (chapter 11): trained on all distances, when wide_methods is set;
+    # its flow and crops are nodes of the flow and crops stages, part "wide"
+    Stage("wide", 1, "11", "extensions/wide/select",
+          "training pairs and objects at every distance, sweeps too"),
+    Stage("wtrain", 1, "11", "extensions/wide/models/{method}/{part}",
+          "a classifier trained on all distances"),
+    Stage("wgeneralise", 1, "11", "extensions/wide/metrics/{method}",
+          "its generalisation and test predictions"),
 )}
 
 
@@ -119,7 +132,7 @@ def inputs(node: Node, p: Params) -> tuple[Node, ...]:
     s, m, part = node.stage, node.method, node.part
     models = tuple(Node("train", m, k) for k in seed_parts(p))
     world, select = Node("world"), Node("select")
-    objects = select if part in (None, "keyframe") else Node("general")
+    objects = {None: select, "keyframe": select, WIDE: Node("wide")}.get(part, Node("general"))
     table: dict[str, tuple[Node, ...]] = {
         "world": (),
         "difficulty": (world,),
@@ -132,6 +145,10 @@ def inputs(node: Node, p: Params) -> tuple[Node, ...]:
         "train": (Node("crops", m, "keyframe"),),
         "evaluate": (*models, Node("crops", m, "keyframe"), select),
         "generalise": (*models, Node("crops", m, "general"), Node("general")),
+        "wide": (world, select),
+        "wtrain": (Node("crops", m, WIDE),),
+        "wgeneralise": (*(Node("wtrain", m, k) for k in seed_parts(p)),
+                        *(Node("crops", m, pp) for pp in PARTS), Node("general")),
     }
     if s in table:
         return table[s]
@@ -171,7 +188,25 @@ def nodes(p: Params) -> list[Node]:
         chains = extension_chains(p)
         out += [Node("xtrain", m, f"{v}/{k}") for m, v in chains for k in seed_parts(p)]
         out += [Node("xevaluate", m, v) for m, v in chains]
+    if p.wide_methods:  # chapter 11: see flowmod.wide
+        out.append(Node("wide"))
+        for m in p.wide_methods:
+            out += [Node("flow", m, WIDE)] if p.flow_store == "pairs" else []
+            out += [Node("crops", m, WIDE)] + [Node("wtrain", m, k) for k in seed_parts(p)]
+        out += [Node("wgeneralise", m) for m in p.wide_methods]
     return out
+
+
+def chapter(node: Node) -> str:
+    """The chapter (``"05"``) whose notebook builds ``node``: its stage's, except the flow
+    and crops of chapter 11's part."""
+    return "11" if node.part == WIDE else STAGES[node.stage].chapter
+
+
+def gated(node: Node) -> bool:
+    """True for the nodes only ``extension_build`` (``make extensions``) builds: the models
+    and predictions of chapters 10 and 11, and chapter 11's flow and crops."""
+    return node.stage in GATED_STAGES or node.part == WIDE
 
 
 def extension_chains(p: Params) -> list[tuple[str | None, str]]:
@@ -181,9 +216,9 @@ def extension_chains(p: Params) -> list[tuple[str | None, str]]:
             for m in (p.extension_methods if v != "images" else [None])]
 
 
-def nodes_of_chapter(p: Params, chapter: str) -> list[Node]:
+def nodes_of_chapter(p: Params, number: str) -> list[Node]:
     """The nodes a chapter (``"05"``) builds."""
-    return [n for n in nodes(p) if STAGES[n.stage].chapter == chapter]
+    return [n for n in nodes(p) if chapter(n) == number]
 
 
 def _meta(name: str) -> dict[str, Any]:
@@ -462,11 +497,7 @@ def begin(p: Params, node: Node) -> Build:
     for i in inputs(node, p):
         rec = recorded(p, i)
         if rec is None:
-            ch = STAGES[i.stage].chapter
-            raise MissingInput(
-                f"{node} reads {i}, which has not been built: run chapter {ch} first "
-                f"(python -m flowmod.runner --only {ch})"
-            )
+            raise MissingInput(f"{node} reads {i}, which has not been built: {_how(i)}")
         recs[str(i)] = rec
     pl = payload(p, node, {k: r["fingerprint"] for k, r in recs.items()})
     fp = fingerprint(pl)
@@ -508,10 +539,17 @@ def current(p: Params, node: Node) -> bool:
 def published(p: Params, node: Node) -> Path:
     """The published folder of ``node`` for reading; :class:`MissingInput` if never built."""
     if recorded(p, node) is None:
-        ch = STAGES[node.stage].chapter
-        raise MissingInput(f"{node} has not been built: run chapter {ch} first "
-                           f"(python -m flowmod.runner --only {ch})")
+        raise MissingInput(f"{node} has not been built: {_how(node)}")
     return node_dir(p, node)
+
+
+def _how(node: Node) -> str:
+    """How to build ``node``: the chapter to run (and ``extension_build`` where gated)."""
+    ch = chapter(node)
+    if gated(node):
+        return (f"run chapter {ch} with extension_build=true first (make extensions, or "
+                f"python -m flowmod.runner --only {ch} --set extension_build=true)")
+    return f"run chapter {ch} first (python -m flowmod.runner --only {ch})"
 
 
 @contextlib.contextmanager

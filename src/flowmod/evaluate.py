@@ -24,16 +24,17 @@ from flowmod.model import predict, resolve_device
 # --- the stages (chapters 07 and 08) -------------------------------------------------------
 
 
-def _models(b: Any, method: str) -> list[tuple[str, Any, str | None]]:
-    """(part, best.pt, amp) of every training seed among a node's inputs."""
+def models_of(b: Any, stage: str, method: str) -> list[tuple[str, Any, str | None]]:
+    """(part, best.pt, amp) of every training seed among a node's inputs of ``stage``
+    (``train``, or chapter 11's ``wtrain``) for ``method``."""
     from flowmod import dag
 
     out = []
     for name, rec in b.inputs.items():
-        if name.startswith(f"train[{method}/"):
-            part = name[len(f"train[{method}/"):-1]
+        if name.startswith(f"{stage}[{method}/"):
+            part = name[len(f"{stage}[{method}/"):-1]
             amp = rec.get("amp", "off")
-            out.append((part, b.input_dir(dag.Node("train", method, part)) / "best.pt",
+            out.append((part, b.input_dir(dag.Node(stage, method, part)) / "best.pt",
                         None if amp in (None, "off") else amp))
     return sorted(out)
 
@@ -143,7 +144,7 @@ def run(params: Any) -> dict[str, tuple[pd.DataFrame, dict[str, Any]]]:
         b = dag.begin(params, dag.Node("evaluate", m))
         if not b.up_to_date:
             q = b.params
-            models = _models(b, m)
+            models = models_of(b, "train", m)
             preds = predict_seeds(models, b.input_dir(dag.Node("crops", m, "keyframe")),
                                   "test", q.device)
             base, base_s = geometric_baseline(
@@ -169,8 +170,9 @@ def run_general(params: Any) -> dict[str, pd.DataFrame]:
     for m in params.flow_methods:
         b = dag.begin(params, dag.Node("generalise", m))
         if not b.up_to_date:
-            preds = predict_seeds(_models(b, m), b.input_dir(dag.Node("crops", m, "general")),
-                                  "general", b.params.device)
+            preds = predict_seeds(models_of(b, "train", m),
+                                  b.input_dir(dag.Node("crops", m, "general")), "general",
+                                  b.params.device)
             _write(b.start(fresh=True), {"general": preds}, {})
             b.publish(n=len(preds))
         out[m] = results(params, m, "general")[0]

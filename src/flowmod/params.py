@@ -62,7 +62,7 @@ def _field(default: Any = ..., *, read_by: tuple[str, ...] = (), role: str = "in
 ROLES = ("input", "run", "location", "plan")
 
 _FLOW = ("flow", "crops")  # crops too: in crops mode it computes the flow itself
-_TRAIN = ("train", "xtrain")  # xtrain: chapter 10 trains its inputs with Table 2 too
+_TRAIN = ("train", "xtrain", "wtrain")  # chapters 10 and 11 train with Table 2 too
 
 
 class Params(BaseModel):
@@ -79,7 +79,8 @@ class Params(BaseModel):
     # --- run ---------------------------------------------------------------------------
     profile: str = _field("demo", role="run",
                           description="profile name; artefacts go to runs/<profile>/")
-    seed: int = _field(0, ge=0, read_by=("world", "select", "flow", "train", "evaluate", "xtrain"),
+    seed: int = _field(0, ge=0, read_by=("world", "select", "flow", "train", "evaluate", "xtrain",
+                                "wtrain"),
                        description="master seed for every random choice")
     run_dir: str = _field("runs/demo", role="run",
                           description="stage artefacts (relative to the repo root)")
@@ -106,18 +107,18 @@ class Params(BaseModel):
 
     # --- selection (Table 1) -----------------------------------------------------------
     categories: list[str] = _field(lambda: list(TABLE1_CATEGORIES),
-                                   read_by=("select", "general"),
+                                   read_by=("select", "general", "wide"),
                                    description="target categories (Table 1)")
     min_distance: float = _field(30.0, ge=0.0, read_by=("select",),
                                  description="m, nearest target vehicle")
     max_distance: float = _field(70.0, gt=0.0, read_by=("select",),
                                  description="m, farthest target vehicle")
     distance_mode: Literal["ego", "camera"] = _field(
-        "ego", read_by=("select", "general"),
+        "ego", read_by=("select", "general", "wide"),
         description="distance from the ego-pose origin (paper code) or the camera",
     )
     visibility_tokens: list[Literal["1", "2", "3", "4"]] = _field(
-        lambda: ["4"], read_by=("select", "general"),
+        lambda: ["4"], read_by=("select", "general", "wide"),
         description="nuScenes visibility bins ('4' = 80-100 %)",
     )
     exclude_descriptions: list[str] = _field(
@@ -129,18 +130,20 @@ class Params(BaseModel):
         description="train, val, test (by scene)",
     )
     missing_images: Literal["error", "skip"] = _field(
-        "error", read_by=("select", "general"), description="on missing JPEGs")
+        "error", read_by=("select", "general", "wide"),
+        description="on missing JPEGs")
 
     # --- labels ------------------------------------------------------------------------
-    speed_threshold: float = _field(2.0, gt=0.0, read_by=("select", "general", "difficulty"),
+    speed_threshold: float = _field(2.0, gt=0.0,
+                                    read_by=("select", "general", "difficulty", "wide"),
                                     description="m/s; moving if speed >= this")
 
     # --- generalisation ----------------------------------------------------------------
-    general_interval: int = _field(4, ge=1, le=12, read_by=("general",),
+    general_interval: int = _field(4, ge=1, le=12, read_by=("general", "wide"),
                                    description="camera frames between the pair")
-    general_min_distance: float = _field(0.0, ge=0.0, read_by=("general",),
+    general_min_distance: float = _field(0.0, ge=0.0, read_by=("general", "wide"),
                                          description="m, near vehicles included")
-    general_max_distance: float = _field(70.0, gt=0.0, read_by=("general",),
+    general_max_distance: float = _field(70.0, gt=0.0, read_by=("general", "wide"),
                                          description="m, farthest vehicle of Table 4 (the "
                                                      "paper's range)")
     general_beyond_distance: float = _field(
@@ -227,8 +230,20 @@ class Params(BaseModel):
                     "exact flow (if in flow_methods) and the first other method")
     extension_build: bool = _field(
         False, role="run",
-        description="chapter 10 trains its stale models (make extensions); off: it shows "
-                    "the ones built")
+        description="chapters 10 and 11 train their stale models (make extensions); off: "
+                    "they show the ones built")
+
+    # --- beyond the paper (chapter 11): trained on all distances --------------------------
+    wide_methods: list[str] | None = _field(
+        None, role="plan",
+        description="chapter 11: flow methods whose classifier is also trained on every "
+                    "distance from general_min_distance to general_max_distance and on "
+                    "non-keyframe pairs of the training scenes; default: extension_methods; "
+                    "[] = off")
+    wide_sweep_stride: int = _field(
+        1, ge=0, le=100, read_by=("wide",),
+        description="chapter 11: every k-th camera frame of a training scene with sweeps "
+                    "starts a non-keyframe pair (general_interval frames apart); 0 = none")
 
     @model_validator(mode="after")
     def _cross_checks(self) -> Params:
@@ -279,6 +294,14 @@ class Params(BaseModel):
             raise ValueError(
                 f"extension_methods={self.extension_methods} must be a non-empty subset of "
                 f"flow_methods={self.flow_methods} (chapter 10 builds on their crops)")
+        if self.wide_methods is None:
+            self.wide_methods = list(self.extension_methods)
+        stray = [m for m in self.wide_methods if m not in self.flow_methods]
+        if stray:
+            raise ValueError(
+                f"wide_methods={self.wide_methods}: {stray} not in flow_methods="
+                f"{self.flow_methods} (chapter 11 trains on their flow); name some of them "
+                "or [] for none")
         if self.world_sweep_scenes > self.world_scenes:
             raise ValueError(
                 f"world_sweep_scenes={self.world_sweep_scenes} must be <= "

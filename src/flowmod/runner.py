@@ -137,7 +137,7 @@ def notebook_fingerprint(nb: Path, values: dict[str, Any], p: Params,
     import nbformat
 
     chapter = nb.stem[:2]
-    exp = {n: fp for n, fp in dag.expected(p).items() if dag.STAGES[n.stage].chapter <= chapter}
+    exp = {n: fp for n, fp in dag.expected(p).items() if dag.chapter(n) <= chapter}
     if any(fp is None for fp in exp.values()):
         return None
     # and whether each is built: a chapter that shows what is built (chapter 10 without

@@ -310,19 +310,22 @@ def _pair_row(nusc, pair_id: str, scene: str, split: str, kind: str, sd1: dict,
 
 
 def keyframe_set(
-    nusc, scenes: pd.DataFrame, p: Params, progress: bool = True
+    nusc, scenes: pd.DataFrame, p: Params, progress: bool = True,
+    distances: tuple[float, float] | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Pairs of consecutive keyframes and their target vehicles (labels by equation 1).
 
-    ``scenes`` has columns scene, scene_token, split. Returns (pairs, objects).
+    ``scenes`` has columns scene, scene_token, split; ``distances`` (m, default
+    ``(min_distance, max_distance)``). Returns (pairs, objects).
     """
     cats, vis = set(p.categories), set(p.visibility_tokens)
+    near, far = distances or (p.min_distance, p.max_distance)
     pair_rows, obj_rows = [], []
     for sc in bar(scenes.itertuples(), total=len(scenes), desc="keyframe pairs",
                    disable=not progress):
         frames = camera_frames(nusc, sc.scene_token, keyframes_only=True)
-        quals = [qualifying_boxes(nusc, sd, cats, p.min_distance, p.max_distance,
-                                  p.distance_mode, vis) for sd in frames]
+        quals = [qualifying_boxes(nusc, sd, cats, near, far, p.distance_mode, vis)
+                 for sd in frames]
         for i in range(len(frames) - 1):
             sd1, sd2 = frames[i], frames[i + 1]
             common = [inst for inst in quals[i] if inst in quals[i + 1]]
@@ -362,7 +365,9 @@ def _object_row(nusc, pair_id, sc, kind, inst, c: Candidate, ann: dict, v, p: Pa
 
 
 def general_set(
-    nusc, scenes: pd.DataFrame, p: Params, progress: bool = True
+    nusc, scenes: pd.DataFrame, p: Params, progress: bool = True, *,
+    far: float | None = None, stride: int = 1, sweeps_only: bool = False,
+    kind: str = "general",
 ) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
     """The generalisation manifest: frame pairs ``general_interval`` apart in held-out scenes.
 
@@ -373,15 +378,23 @@ def general_set(
     eq.-1 label of the previous keyframe pair); ``speed`` and ``label`` are those of that
     keyframe pair. Boxes: every annotated object of each pair's frame 1
     (:func:`frame_boxes`), for the failure analysis. Returns (pairs, objects, boxes).
+
+    Chapter 11 reuses it for the non-keyframe pairs of training scenes: ``far`` (m, default
+    the farther of general_max_distance and general_beyond_distance), every ``stride``-th
+    camera frame starting a pair, ``sweeps_only`` (frame 1 a sweep), ``kind`` (the ``set``
+    column and pair-id letter).
     """
     cats, vis = set(p.categories), set(p.visibility_tokens)
-    far = max(p.general_max_distance, p.general_beyond_distance)
+    if far is None:
+        far = max(p.general_max_distance, p.general_beyond_distance)
     pair_rows, obj_rows, box_rows = [], [], []
-    for sc in bar(scenes.itertuples(), total=len(scenes), desc="generalisation pairs",
+    for sc in bar(scenes.itertuples(), total=len(scenes), desc=f"{kind} pairs",
                    disable=not progress):
         frames = camera_frames(nusc, sc.scene_token, keyframes_only=False)
-        for i in range(len(frames) - p.general_interval):
+        for i in range(0, len(frames) - p.general_interval, stride):
             sd1, sd2 = frames[i], frames[i + p.general_interval]
+            if sweeps_only and sd1["is_key_frame"]:
+                continue
             nxt = nusc.get("sample", sd1["sample_token"])  # a sweep points to the NEXT sample
             prev = nxt if sd1["is_key_frame"] else (
                 nusc.get("sample", nxt["prev"]) if nxt["prev"] else None)
@@ -394,7 +407,7 @@ def general_set(
                          for t in prev["anns"]}
             after_anns = {nusc.get("sample_annotation", t)["instance_token"]: t
                           for t in after["anns"]}
-            pair_id = f"{sc.scene}-g{i:04d}"
+            pair_id = f"{sc.scene}-{kind[0]}{i:04d}"
             rows = []
             for inst, c in quals.items():
                 if inst not in prev_anns or inst not in after_anns:
@@ -405,9 +418,9 @@ def general_set(
                 a_after = nusc.get("sample_annotation", after_anns[inst])
                 v = labels.velocity(a_prev["translation"], a_after["translation"],
                                     prev["timestamp"], after["timestamp"])
-                rows.append(_object_row(nusc, pair_id, sc, "general", inst, c, a_prev, v, p))
+                rows.append(_object_row(nusc, pair_id, sc, kind, inst, c, a_prev, v, p))
             if rows:
-                pair_rows.append(_pair_row(nusc, pair_id, sc.scene, sc.split, "general", sd1, sd2))
+                pair_rows.append(_pair_row(nusc, pair_id, sc.scene, sc.split, kind, sd1, sd2))
                 obj_rows.extend(rows)
                 box_rows.extend({"pair_id": pair_id, **b} for b in frame_boxes(nusc, sd1))
     return pd.DataFrame(pair_rows), pd.DataFrame(obj_rows), pd.DataFrame(box_rows)
@@ -519,6 +532,39 @@ def select_general(p: Params, scenes: pd.DataFrame, nusc=None, progress: bool = 
     return pairs, objects, boxes[boxes["pair_id"].isin(pairs["pair_id"])].reset_index(drop=True)
 
 
+def select_wide(p: Params, scenes: pd.DataFrame, nusc=None, progress: bool = True
+                ) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Chapter 11's training set (the paper's strict filtering removed): in the train and
+    val scenes of ``scenes`` (the keyframe stage's scene table), the consecutive keyframe
+    pairs with Table-1 vehicles at every distance of the generalisation range
+    (general_min_distance to general_max_distance, eq.-1 labels), and, in scenes with
+    sweeps, the pairs ``general_interval`` camera frames apart whose first frame is a sweep,
+    every ``wide_sweep_stride``-th frame (0: none), labelled like the generalisation set.
+    Columns as the keyframe set; ``set`` is ``keyframe`` or ``sweep``. Returns (pairs,
+    objects)."""
+    train = scenes[scenes["split"].isin(["train", "val"])]
+    if train.empty:
+        raise SelectionError("no train or val scene in the scene table: run chapter 02")
+    nusc = nusc or open_nuscenes(p.dataroot_path, p.version)
+    kp, ko = keyframe_set(nusc, train, p, progress,
+                          distances=(p.general_min_distance, p.general_max_distance))
+    frames_p, frames_o = [kp], [ko]
+    swept = train[train["has_sweeps"]]
+    if p.wide_sweep_stride and len(swept):
+        sp, so, _ = general_set(nusc, swept, p, progress, far=p.general_max_distance,
+                                stride=p.wide_sweep_stride, sweeps_only=True, kind="sweep")
+        frames_p.append(sp)
+        frames_o.append(so)
+    objects = pd.concat([f for f in frames_o if len(f)] or [pd.DataFrame()], ignore_index=True)
+    if objects.empty or not {"train", "val"} <= set(objects["split"]):
+        raise SelectionError(
+            f"the all-distances training set has no vehicle in the train or val split "
+            f"(distance {p.general_min_distance:g}-{p.general_max_distance:g} m): check "
+            "general_min_distance / general_max_distance")
+    pairs = pd.concat([f for f in frames_p if len(f)], ignore_index=True)
+    return _finish(p, pairs, objects)
+
+
 def select(p: Params, progress: bool = True) -> Selection:
     """Both sets at once, uncached: keyframe pairs and objects, then the generalisation set
     appended (``set`` column); the scene table."""
@@ -529,7 +575,8 @@ def select(p: Params, progress: bool = True) -> Selection:
                      pd.concat([sel.objects, go], ignore_index=True), sel.scenes)
 
 
-def _write(d: Path, frames: dict[str, pd.DataFrame]) -> None:
+def write_tables(d: Path, frames: dict[str, pd.DataFrame]) -> None:
+    """Write ``{name: table}`` as ``<d>/<name>.parquet`` (each atomically)."""
     for key, df in frames.items():
         with atomic_path(d / f"{key}.parquet") as tmp:
             df.to_parquet(tmp, index=False)
@@ -544,7 +591,7 @@ def run(p: Params, progress: bool = True) -> Selection:
     if not b.up_to_date:
         nusc = open_nuscenes(b.params.dataroot_path, b.params.version)
         sel = select_keyframes(b.params, nusc, progress)
-        _write(b.start(fresh=True), {"pairs": sel.pairs, "objects": sel.objects,
+        write_tables(b.start(fresh=True), {"pairs": sel.pairs, "objects": sel.objects,
                                      "scenes": sel.scenes})
         b.publish(rows=len(sel.objects), pairs=len(sel.pairs))
     g = dag.begin(p, dag.Node("general"))
@@ -553,7 +600,7 @@ def run(p: Params, progress: bool = True) -> Selection:
         if nusc is None:
             nusc = open_nuscenes(g.params.dataroot_path, g.params.version)
         gp, go, gb = select_general(g.params, scenes, nusc, progress)
-        _write(g.start(fresh=True), {"pairs": gp, "objects": go, "boxes": gb})
+        write_tables(g.start(fresh=True), {"pairs": gp, "objects": go, "boxes": gb})
         g.publish(rows=len(go), pairs=len(gp))
     return load(p)[0]
 

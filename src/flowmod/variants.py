@@ -190,19 +190,13 @@ def _evaluate(params: Any, method: str | None, variant: str) -> None:
     """Build ``xevaluate[<method>/<input>]``: every seed on the test split and the
     generalisation set (``test.parquet``, ``general.parquet`` with ``prob_s<k>``)."""
     from flowmod import dag
-    from flowmod.evaluate import _write, predict_models
+    from flowmod.evaluate import _write, models_of, predict_models
 
     b = dag.begin(params, dag.Node("xevaluate", method, variant))
     if b.up_to_date:
         return
-    models = []  # (seed part, best.pt, amp) of every seed, as chapter 07 reads them
-    for name, rec in sorted(b.inputs.items()):
-        if name.startswith("xtrain["):
-            seed_part = name[:-1].rsplit("/", 1)[1]
-            amp = rec.get("amp", "off")
-            models.append((seed_part, b.input_dir(dag.Node("xtrain", method, f"{variant}/"
-                                                           f"{seed_part}")) / "best.pt",
-                           None if amp in (None, "off") else amp))
+    # (seed part, best.pt, amp) of every seed, as chapter 07 reads them
+    models = models_of(b, "xtrain", "/".join(x for x in (method, variant) if x))
     frames = {}
     for split in ("test", "general"):
         part = "general" if split == "general" else "keyframe"

@@ -444,16 +444,18 @@ def kept_pairs(pairs: pd.DataFrame, objects: pd.DataFrame, part: str, n: int,
 
 
 def _objects_node(part: str) -> dag.Node:
-    return dag.Node("select") if part == "keyframe" else dag.Node("general")
+    return {"keyframe": dag.Node("select"), dag.WIDE: dag.Node("wide")}.get(
+        part, dag.Node("general"))
 
 
-def run(params: Params, progress: bool = True) -> dict[str, dict[str, pd.DataFrame]]:
-    """Build every ``flow[<method>/<part>]`` node of the profile (:mod:`flowmod.dag`):
-    recomputed only when stale, from the pool where possible. Returns
-    ``{method: {part: index}}`` of the published nodes."""
+def run(params: Params, progress: bool = True, parts: Sequence[str] = dag.PARTS,
+        methods: Sequence[str] | None = None) -> dict[str, dict[str, pd.DataFrame]]:
+    """Build every ``flow[<method>/<part>]`` node of the profile (:mod:`flowmod.dag`) of
+    ``parts`` and ``methods`` (default: flow_methods): recomputed only when stale, from the
+    pool where possible. Returns ``{method: {part: index}}`` of the published nodes."""
     out: dict[str, dict[str, pd.DataFrame]] = {}
-    for method in params.flow_methods:
-        for part in dag.PARTS:
+    for method in (params.flow_methods if methods is None else methods):
+        for part in parts:
             b = dag.begin(params, dag.Node("flow", method, part))
             if not b.up_to_date:
                 q = b.params

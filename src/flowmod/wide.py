@@ -1,0 +1,261 @@
+"""Beyond the paper (chapter 11): the classifier trained without the paper's strict filtering.
+
+The paper trains on keyframe pairs with vehicles 30-70 m away and then meets near vehicles
+and non-keyframe pairs only at test time (Table 4); its section V expects that "the
+performance might dramatically enhance if the model is trained with" them. Here the same
+ResNet18, with the same Table 2 settings, is trained on every vehicle of the training scenes
+from ``general_min_distance`` to ``general_max_distance`` (the generalisation range) and on
+the non-keyframe pairs of those scenes where they have sweeps, then applied to the same
+held-out generalisation set as Table 4 and to the paper's keyframe test split.
+
+Stages (:mod:`flowmod.dag`, chapter 11):
+
+- ``wide``: the training set (:func:`flowmod.select.select_wide`) of the train and val
+  scenes: ``pairs.parquet``, ``objects.parquet`` (``set`` keyframe or sweep);
+- ``flow[<method>/wide]`` (``flow_store: pairs`` only) and ``crops[<method>/wide]``: the
+  flow and crops stages on it (splits train and val);
+- ``wtrain[<method>/s<k>]``: one training seed, epoch chosen on the wide validation split;
+- ``wgeneralise[<method>]``: every seed on the generalisation set (``general.parquet``) and
+  the keyframe test split (``test.parquet``), ``prob_s<k>`` per seed.
+
+The selection is always built (seconds); flow, crops, models and predictions only with
+``extension_build`` (``make extensions``): they do not fit the cold book's time budget.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from flowmod.evaluate import breakdown, predict_seeds, seed_probs
+from flowmod.evaluate import results as paper_results
+from flowmod.evaluate import table4 as paper_table4
+from flowmod.metrics import comparison_table, paired_comparison
+
+#: Distance bins of the chapter's breakdowns (m): Table 4's range and beyond it.
+EDGES = (0, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100.01)
+
+
+# --- the stages -------------------------------------------------------------------------------
+
+def run(params: Any, progress: bool = True) -> list[str]:
+    """Build chapter 11's stale training selection, and with ``extension_build`` its flow,
+    crops, every seed of every method of ``wide_methods`` and their predictions. Returns the
+    methods whose predictions are current (:func:`built`)."""
+    from flowmod import crops, dag, flow, select, train
+
+    if not params.wide_methods:
+        return []
+    b = dag.begin(params, dag.Node("wide"))
+    if not b.up_to_date:
+        scenes = pd.read_parquet(b.input_dir(dag.Node("select")) / "scenes.parquet")
+        pairs, objects = select.select_wide(b.params, scenes, progress=progress)
+        select.write_tables(b.start(fresh=True), {"pairs": pairs, "objects": objects})
+        b.publish(rows=len(objects), pairs=len(pairs),
+                  sweep_pairs=int((pairs["set"] == "sweep").sum()))
+    if not params.extension_build:
+        return built(params)
+    methods = list(params.wide_methods)
+    if params.flow_store == "pairs":
+        flow.run(params, progress=progress, parts=(dag.WIDE,), methods=methods)
+    crops.run(params, progress=progress, parts=crops.WIDE_SPLITS, methods=methods)
+    for m in methods:
+        for k, part in enumerate(dag.seed_parts(params)):
+            b = dag.begin(params, dag.Node("wtrain", m, part))
+            if b.up_to_date:
+                continue
+            folder = b.input_dir(dag.Node("crops", m, dag.WIDE))
+            (tx, tdf), (vx, vdf) = (crops.read_crops(folder, s) for s in ("train", "val"))
+            q = b.params
+            h = train.train_node(b, tx, tdf, vx, vdf, k,
+                                 f"train {m} all distances seed {q.seed + k}", progress)
+            b.publish(best_epoch=int(h.attrs["best_epoch"]), best_f1=float(h.attrs["best_f1"]),
+                      seed=q.seed + k, amp=q.amp, recipe=train.recipe(params, m))
+        _generalise(params, m)
+    return built(params)
+
+
+def _generalise(params: Any, method: str) -> None:
+    """Build ``wgeneralise[<method>]``: every seed on the generalisation crops and on the
+    keyframe test split."""
+    from flowmod import dag
+    from flowmod.evaluate import _write, models_of
+
+    b = dag.begin(params, dag.Node("wgeneralise", method))
+    if b.up_to_date:
+        return
+    models = models_of(b, "wtrain", method)
+    frames = {split: predict_seeds(models, b.input_dir(dag.Node("crops", method, part)), split,
+                                   b.params.device)
+              for split, part in (("general", "general"), ("test", "keyframe"))}
+    _write(b.start(fresh=True), frames, {})
+    b.publish(seeds=len(models), general=len(frames["general"]), test=len(frames["test"]))
+
+
+def built(params: Any) -> list[str]:
+    """The methods of ``wide_methods`` whose predictions, models and crops are current
+    (:func:`flowmod.dag.current`: made from what is published now, with ``params``)."""
+    from flowmod import dag
+
+    def ok(node: Any) -> bool:
+        return dag.current(params, node) and all(
+            ok(i) for i in dag.inputs(node, params)
+            if i.stage in ("wtrain", "wide") or i.part == dag.WIDE)
+
+    return [m for m in params.wide_methods if ok(dag.Node("wgeneralise", m))]
+
+
+# --- the chapter's tables and figures ---------------------------------------------------------
+
+def training_sets(params: Any) -> pd.DataFrame:
+    """Objects of the paper's training set (keyframes, ``min_distance``-``max_distance``)
+    and of chapter 11's (every distance, sweeps), per split and distance bin, with the share
+    of moving ones: what the strict filtering leaves out."""
+    from flowmod import dag
+
+    paper = pd.read_parquet(dag.published(params, dag.Node("select")) / "objects.parquet")
+    wide = pd.read_parquet(dag.published(params, dag.Node("wide")) / "objects.parquet")
+    rows = []
+    for name, df in (("paper: 30-70 m keyframes", paper), ("all distances", wide)):
+        df = df[df["split"].isin(["train", "val"])]
+        bins = pd.cut(df["distance"], list(EDGES), right=False)
+        for (split, b), g in df.groupby([df["split"], bins], observed=True, sort=True):
+            rows.append({"training set": name, "split": split, "distance (m)": str(b),
+                         "objects": len(g), "sweep pairs' objects": int((g["set"] == "sweep")
+                                                                        .sum()),
+                         "moving (%)": round(100 * g["label"].mean(), 1)})
+    return pd.DataFrame(rows)
+
+
+def training_summary(params: Any) -> pd.DataFrame:
+    """One row per training set and split: pairs, objects, moving share, distance range."""
+    from flowmod import dag
+
+    rows = []
+    for name, node in (("paper: 30-70 m keyframes", "select"), ("all distances", "wide")):
+        d = dag.published(params, dag.Node(node))
+        pairs, obj = (pd.read_parquet(d / f"{k}.parquet") for k in ("pairs", "objects"))
+        for split in ("train", "val"):
+            o, pp = obj[obj["split"] == split], pairs[pairs["split"] == split]
+            rows.append({"training set": name, "split": split, "pairs": len(pp),
+                         "of them sweep pairs": int((pp["set"] == "sweep").sum()),
+                         "objects": len(o), "moving (%)": round(100 * o["label"].mean(), 1),
+                         "distance (m)": f"{o['distance'].min():.0f}-"
+                                         f"{o['distance'].max():.0f}"})
+    return pd.DataFrame(rows)
+
+
+def predictions(params: Any, method: str, split: str, wide: bool) -> pd.DataFrame:
+    """Published predictions (``prob_s<k>`` per seed) of ``method``'s classifiers on
+    ``split`` (``general`` or ``test``): trained on all distances (``wide``) or the paper's
+    (chapters 07 and 08)."""
+    from flowmod import dag
+
+    if not wide:
+        return paper_results(params, method, split)[0]
+    folder = dag.published(params, dag.Node("wgeneralise", method))
+    return pd.read_parquet(folder / f"{split}.parquet")
+
+
+def label(method: str, wide: bool) -> str:
+    """A row's name: ``dis, trained on 30-70 m keyframes`` or ``dis, trained on all
+    distances``."""
+    return f"{method}, trained on {'all distances' if wide else '30-70 m keyframes'}"
+
+
+def table4(params: Any, done: list[str]) -> pd.DataFrame:
+    """Table 4 of every method of ``wide_methods``, with a row per method of ``done``
+    trained on all distances beside the paper's (:func:`flowmod.evaluate.table4`: the
+    paper's range scored against the paper's label and the true one, and the vehicles beyond
+    it apart)."""
+    preds = {label(m, w): predictions(params, m, "general", w)
+             for m in params.wide_methods for w in (False, True) if not w or m in done}
+    return paper_table4(preds, params.general_max_distance)
+
+
+def _scored(df: pd.DataFrame, split: str, max_distance: float) -> pd.DataFrame:
+    return df if split == "test" else df[df["distance"] <= max_distance]
+
+
+def comparisons(params: Any, methods: list[str], split: str = "general") -> pd.DataFrame:
+    """Trained on all distances minus the paper's training, per method, paired on the same
+    objects (``general``: Table 4's range; ``test``: the keyframe test split), with the
+    per-seed differences and the interval over scenes
+    (:func:`flowmod.metrics.paired_comparison`)."""
+    rows = {}
+    for m in methods:
+        a, b = (_scored(predictions(params, m, split, w), split, params.general_max_distance)
+                for w in (True, False))
+        if not a["ann_token"].reset_index(drop=True).equals(
+                b["ann_token"].reset_index(drop=True)):
+            raise ValueError(f"{m}: the two classifiers were scored on different objects")
+        rows[f"{m}: all distances - 30-70 m"] = paired_comparison(
+            a["label"].to_numpy(), seed_probs(a), seed_probs(b), a["scene"].to_numpy(),
+            seed=params.seed)
+    return comparison_table(rows)
+
+
+def by_distance(params: Any, methods: list[str]) -> dict[str, pd.DataFrame]:
+    """F1 per distance bin (:data:`EDGES`) on the generalisation set of both classifiers of
+    every method (:func:`flowmod.evaluate.breakdown`), for one plot."""
+    return {label(m, w): breakdown(predictions(params, m, "general", w), "distance", list(EDGES))
+            for m in methods for w in (False, True)}
+
+
+def near_far(params: Any, methods: list[str], near: float = 30.0) -> pd.DataFrame:
+    """F1 (mean over seeds) of both classifiers on the generalisation set's near vehicles
+    (< ``near`` m) and those from ``near`` m to Table 4's end."""
+    from flowmod.metrics import metrics
+
+    rows = []
+    for m in methods:
+        for w in (False, True):
+            d = _scored(predictions(params, m, "general", w), "general",
+                        params.general_max_distance)
+            y = d["label"].to_numpy()
+            row: dict[str, Any] = {"classifier": label(m, w)}
+            for name, k in ((f"< {near:g} m", d["distance"] < near),
+                            (f"{near:g}-{params.general_max_distance:g} m",
+                             d["distance"] >= near)):
+                k = k.to_numpy()
+                row[f"F1 {name} (%)"] = round(100 * float(np.mean(
+                    [metrics(y[k], p[k])["f1"] for p in seed_probs(d)])), 1)
+                row[f"n {name}"] = int(k.sum())
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def built_note(params: Any, done: list[str]) -> str:
+    """A line for the chapter: which methods are built, and how to build the others."""
+    if not params.wide_methods:
+        return ("This profile trains no classifier on all distances (`wide_methods` is "
+                "empty). Set it (e.g. `wide_methods=[dis]`) and run `make extensions`.")
+    todo = [m for m in params.wide_methods if m not in done]
+    out = (f"Methods trained on all distances with these parameters: **{len(done)} of "
+           f"{len(params.wide_methods)}** ({', '.join(done) or 'none'}).")
+    if todo:
+        out += (f" The other {len(todo)} ({', '.join(todo)}; {len(todo) * params.seeds} "
+                "models) are trained by `make extensions` (or this chapter with "
+                "`extension_build=true`).")
+    return out
+
+
+def headline(params: Any, table: pd.DataFrame, done: list[str]) -> str:
+    """One sentence for the landing page: Table 4's F1 of the main method trained on all
+    distances against the paper's training (from :func:`table4`), or how to build it."""
+    if not params.wide_methods:
+        return "not part of this profile (wide_methods is empty)"
+    main = next((m for m in done if m != "gt"), done[0] if done else None)
+    if main is None:
+        return ("not built in this run (make extensions trains them: "
+                f"{len(params.wide_methods) * params.seeds} models)")
+    t = table[table["vehicles"].str.endswith("(Table 4)")
+              & (table["scored against"] == "paper rule (previous keyframe)")].set_index(
+        "method")
+    wide, paper = t.loc[label(main, True)], t.loc[label(main, False)]
+    return (f"trained on every distance up to {params.general_max_distance:g} m instead of "
+            f"30-70 m keyframes only, the {main} classifier reaches Table 4 F1 "
+            f"{wide['F1 (%)']:.1f} % (interval over scenes {wide['F1 95% CI, scenes (%)']} %) "
+            f"against {paper['F1 (%)']:.1f} %")
