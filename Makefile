@@ -20,7 +20,7 @@ PYTEST_ARGS ?=
 
 RUN_SET    := $(if $(DATAROOT),--set dataroot=$(DATAROOT)) $(foreach s,$(SET),--set $(s))
 
-.PHONY: help env data run status gc book extensions test bench lint clean browser weights
+.PHONY: help env data run status gc book extensions selfflow test bench lint clean browser weights
 
 help:  ## list the targets
 	@echo "flowmod: optical-flow motion detection, reproduced"
@@ -61,7 +61,10 @@ book: run browser  ## run, then render the book into build/html (and check it in
 	$(PY) -m flowmod.report.browser $(HTML) --screenshot build/book-screenshot.png --screenshots build/screenshots
 
 extensions: RUN_SET += --set extension_build=true
-extensions: book  ## make book, training chapter 10's models first (demo: 21 models, ~30 min more)
+extensions: book  ## make book, training chapters 10 and 11's models first (demo: 27 models, ~40 min more)
+
+selfflow: RUN_SET += --set selfflow_build=true
+selfflow: book  ## make book, training chapter 12's FastFlowNets first (demo: 2 x 600 steps, ~25 min more; resumable)
 
 test: env browser lint  ## lint, unit tests, notebooks on the smoke profile, the book build
 	$(PY) -m pytest $(PYTEST_ARGS)

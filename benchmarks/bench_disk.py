@@ -56,9 +56,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="pairs to extrapolate to (default: trainval keyframe pairs)")
     args = ap.parse_args(argv)
     p = load_profile(args.profile)
-    # chapter 10's models are trained by `make extensions` only: counted when present
+    # chapters 10 and 11's models (and 11's crops) are built by `make extensions` only:
+    # counted when present
     missing = [str(s.node) for s in dag.status(p) if s.state != "up to date"
-               and s.node.stage not in ("xtrain", "xevaluate")]
+               and not dag.gated(s.node)]
     if missing:
         print(f"{len(missing)} nodes not up to date ({', '.join(missing[:3])} ...): run `make book` "
               f"(PROFILE={args.profile}) first")
@@ -77,7 +78,12 @@ def main(argv: list[str] | None = None) -> int:
            "run MB total": sum(folders.values()),
            "chapter 10 models MB": folder_bytes(ext) / 1e6 if (ext := p.run_path / "extensions"
                                                               / "models").is_dir() else 0.0,
-           "demo goal MB (make book, without chapter 10's models)": 500, "methods": methods}
+           "chapter 11 models and crops MB": sum(
+               folder_bytes(d) / 1e6 for d in (p.run_path / "extensions" / "wide" / "models",
+                                               *(p.run_path / "crops").glob("*/wide"))
+               if d.is_dir()),
+           "demo goal MB (make book, without chapters 10 and 11's models)": 500,
+           "methods": methods}
     res = repo_root() / "benchmarks" / "results"
     res.mkdir(parents=True, exist_ok=True)
     write_json(res / "disk.json", out)

@@ -170,6 +170,14 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
     assert g11["wide_n_built"] == 1
     assert g11["wide_headline"] == wide.headline(p, wide.table4(p, ["dis"]), ["dis"])
     assert (smoke_run["base"] / "runs" / "figures" / "wide_f1_distance.png").stat().st_size > 5000
+    # chapter 12: both networks trained (smoke: 4 steps), the headline from their evaluation
+    from flowmod.flow import selftrain
+
+    g12 = glue_of(smoke_run, "12_self_trained_flow")
+    assert g12["selfflow_n_built"] == 2
+    assert g12["selfflow_headline"] == selftrain.headline(p, ["photometric", "supervised"])
+    for name in ("selfflow_training.png", "selfflow_example.png"):
+        assert (smoke_run["base"] / "runs" / "figures" / name).stat().st_size > 5000
 
 
 def test_missing_real_dataroot_is_rejected_before_work(tmp_path):
@@ -302,6 +310,8 @@ def test_paper_profile_runs_on_a_devkit_dataset_by_parameters_only(smoke_world, 
     assert g10["ext_headline"].startswith("not part of this profile")
     g11 = book.read_glue(tmp_path / "executed" / "11_all_distances.ipynb")
     assert g11["wide_n_built"] == 0 and g11["wide_headline"].startswith("not part of this")
+    g12 = book.read_glue(tmp_path / "executed" / "12_self_trained_flow.ipynb")
+    assert g12["selfflow_n_built"] == 0, "make selfflow trains; make book does not"
 
 
 def test_try_it_commands_run(smoke_run, tmp_path):

@@ -27,7 +27,8 @@ pytestmark = pytest.mark.slow
 #: the test below fails if the two disagree or if the status does not follow them.
 SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "profile": ("other", set(), ()),
-    "seed": (1, {"world", "select", "flow", "train", "evaluate", "xtrain", "wtrain"}, ()),
+    "seed": (1, {"world", "select", "flow", "train", "evaluate", "xtrain", "wtrain",
+                  "selfflow"}, ()),
     "device": ("cpu", set(), ()),
     "force": (True, set(), ()),
     "synthetic": (False, set(), ()),
@@ -48,7 +49,7 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "general_min_distance": (1.0, {"general", "wide"}, ()),
     "general_max_distance": (90.0, {"general", "wide"}, ()),
     "general_max_scenes": (2, {"general"}, ()),
-    "flow_scale": (0.5, {"flow", "crops"}, ()),
+    "flow_scale": (0.5, {"flow", "crops", "selfflow"}, ()),
     "dis_preset": ("fast", {"flow", "crops"}, ("dis",)),
     "flow_dtype": ("float32", {"flow", "crops"}, ()),
     "raft_weights": ("weights/raft.pth", {"flow", "crops"}, ("raft",)),
@@ -77,10 +78,19 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "clip_method": ("gt", {"flow"}, ()),
     "extension_build": (False, set(), ()),
     "wide_sweep_stride": (2, {"wide"}, ()),
+    "selfflow_build": (False, set(), ()),
+    "selfflow_iters": (5, {"selfflow"}, ()),
+    "selfflow_batch": (3, {"selfflow"}, ()),
+    "selfflow_lr": (1e-3, {"selfflow"}, ()),
+    "selfflow_crop": ([128, 128], {"selfflow"}, ()),
+    "selfflow_smooth": (0.2, {"selfflow"}, ()),
+    "selfflow_pairs": (3, {"selfflow"}, ()),
+    "selfflow_eval_pairs": (1, {"selfflow"}, ()),
+    "selfflow_eval_every": (3, {"selfflow"}, ()),
 }
 #: Parameters whose change is not "some stages read another value" (checked on their own).
 SPECIAL = {"run_dir", "dataroot", "version", "flow_methods", "seeds", "extension_inputs",
-           "extension_methods", "wide_methods"}
+           "extension_methods", "wide_methods", "selfflow_modes"}
 
 
 def downstream(p: Params, start: set[dag.Node]) -> set[dag.Node]:
@@ -162,7 +172,7 @@ def test_status_explains_in_one_line(finished):
         ln for ln in text.splitlines() if "crops[dis/keyframe]" in ln)
     # the dis chain of chapters 03-08 (7 nodes), chapter 10's dis residual (2 nodes) and
     # chapter 11's dis chain (flow, crops, model, predictions)
-    assert text.splitlines()[-1] == ("18 of 31 up to date; 13 to build (make run, or python "
+    assert text.splitlines()[-1] == ("20 of 33 up to date; 13 to build (make run, or python "
                                      "-m flowmod.runner)")
     quiet = pipeline.format_status(p.model_copy(update={"extension_build": False}))
     assert quiet.splitlines()[-1].endswith(

@@ -96,6 +96,9 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
           "a classifier trained on all distances"),
     Stage("wgeneralise", 1, "11", "extensions/wide/metrics/{method}",
           "its generalisation and test predictions"),
+    # beyond the paper (chapter 12): FastFlowNet trained here, when selfflow_modes is set
+    Stage("selfflow", 1, "12", "selfflow/{part}",
+          "FastFlowNet trained from scratch, held-out end-point error"),
 )}
 
 
@@ -149,6 +152,7 @@ def inputs(node: Node, p: Params) -> tuple[Node, ...]:
         "wtrain": (Node("crops", m, WIDE),),
         "wgeneralise": (*(Node("wtrain", m, k) for k in seed_parts(p)),
                         *(Node("crops", m, pp) for pp in PARTS), Node("general")),
+        "selfflow": (world, select),
     }
     if s in table:
         return table[s]
@@ -194,6 +198,7 @@ def nodes(p: Params) -> list[Node]:
             out += [Node("flow", m, WIDE)] if p.flow_store == "pairs" else []
             out += [Node("crops", m, WIDE)] + [Node("wtrain", m, k) for k in seed_parts(p)]
         out += [Node("wgeneralise", m) for m in p.wide_methods]
+    out += [Node("selfflow", None, mode) for mode in p.selfflow_modes]  # chapter 12
     return out
 
 
@@ -203,10 +208,22 @@ def chapter(node: Node) -> str:
     return "11" if node.part == WIDE else STAGES[node.stage].chapter
 
 
+def gate(node: Node) -> str | None:
+    """The run parameter without which ``node`` is not built, or None: ``extension_build``
+    (``make extensions``) for the models and predictions of chapters 10 and 11 and chapter
+    11's flow and crops; ``selfflow_build`` (``make selfflow``) for chapter 12's networks."""
+    if node.stage == "selfflow":
+        return "selfflow_build"
+    return "extension_build" if node.stage in GATED_STAGES or node.part == WIDE else None
+
+
 def gated(node: Node) -> bool:
-    """True for the nodes only ``extension_build`` (``make extensions``) builds: the models
-    and predictions of chapters 10 and 11, and chapter 11's flow and crops."""
-    return node.stage in GATED_STAGES or node.part == WIDE
+    """True for the nodes that only a run parameter builds (:func:`gate`)."""
+    return gate(node) is not None
+
+
+#: The make target that turns each gate on.
+GATE_TARGETS = {"extension_build": "make extensions", "selfflow_build": "make selfflow"}
 
 
 def extension_chains(p: Params) -> list[tuple[str | None, str]]:
@@ -545,10 +562,10 @@ def published(p: Params, node: Node) -> Path:
 
 def _how(node: Node) -> str:
     """How to build ``node``: the chapter to run (and ``extension_build`` where gated)."""
-    ch = chapter(node)
-    if gated(node):
-        return (f"run chapter {ch} with extension_build=true first (make extensions, or "
-                f"python -m flowmod.runner --only {ch} --set extension_build=true)")
+    ch, flag = chapter(node), gate(node)
+    if flag:
+        return (f"run chapter {ch} with {flag}=true first ({GATE_TARGETS[flag]}, or "
+                f"python -m flowmod.runner --only {ch} --set {flag}=true)")
     return f"run chapter {ch} first (python -m flowmod.runner --only {ch})"
 
 

@@ -80,7 +80,7 @@ class Params(BaseModel):
     profile: str = _field("demo", role="run",
                           description="profile name; artefacts go to runs/<profile>/")
     seed: int = _field(0, ge=0, read_by=("world", "select", "flow", "train", "evaluate", "xtrain",
-                                "wtrain"),
+                                "wtrain", "selfflow"),
                        description="master seed for every random choice")
     run_dir: str = _field("runs/demo", role="run",
                           description="stage artefacts (relative to the repo root)")
@@ -161,7 +161,7 @@ class Params(BaseModel):
     flow_networks: list[Literal["raft", "raft_small", "fastflownet"]] = _field(
         list, role="plan",
         description="networks the runner adds to flow_methods when their weights are present")
-    flow_scale: float = _field(0.5, gt=0.0, le=1.0, read_by=_FLOW,
+    flow_scale: float = _field(0.5, gt=0.0, le=1.0, read_by=(*_FLOW, "selfflow"),
                                description="image scale at which flow is computed and stored")
     dis_preset: Literal["ultrafast", "fast", "medium"] = _field(
         "medium", read_by=_FLOW, methods=("dis",), description="OpenCV DIS preset")
@@ -245,6 +245,37 @@ class Params(BaseModel):
         description="chapter 11: every k-th camera frame of a training scene with sweeps "
                     "starts a non-keyframe pair (general_interval frames apart); 0 = none")
 
+    # --- beyond the paper (chapter 12): FastFlowNet trained here ---------------------------
+    selfflow_modes: list[Literal["photometric", "supervised"]] = _field(
+        lambda: ["photometric", "supervised"], role="plan",
+        description="chapter 12: how FastFlowNet is trained from scratch: photometric "
+                    "(self-supervised) and/or supervised by the exact flow (generated world "
+                    "only); [] = off")
+    selfflow_build: bool = _field(
+        False, role="run",
+        description="chapter 12 trains its stale networks (make selfflow); off: it shows "
+                    "the ones built")
+    selfflow_iters: int = _field(600, ge=1, le=10_000_000, read_by=("selfflow",),
+                                 description="chapter 12: training steps (the CPU budget)")
+    selfflow_batch: int = _field(4, ge=1, le=256, read_by=("selfflow",),
+                                 description="chapter 12: pairs per step")
+    selfflow_lr: float = _field(3e-4, gt=0.0, le=1.0, read_by=("selfflow",),
+                                description="chapter 12: Adam learning rate")
+    selfflow_crop: list[int] = _field(
+        lambda: [256, 448], read_by=("selfflow",), min_length=2, max_length=2,
+        description="chapter 12: training window (h, w) px at flow_scale, multiples of 64")
+    selfflow_smooth: float = _field(0.05, ge=0.0, le=100.0, read_by=("selfflow",),
+                                    description="chapter 12: smoothness weight (photometric)")
+    selfflow_pairs: int = _field(256, ge=1, le=10_000_000, read_by=("selfflow",),
+                                 description="chapter 12: training pairs (keyframe pairs of "
+                                             "the train and val scenes, drawn with the seed)")
+    selfflow_eval_pairs: int = _field(16, ge=1, le=10_000, read_by=("selfflow",),
+                                      description="chapter 12: held-out pairs (test scenes) "
+                                                  "of the end-point error")
+    selfflow_eval_every: int = _field(100, ge=0, le=10_000_000, read_by=("selfflow",),
+                                      description="chapter 12: steps between held-out "
+                                                  "evaluations (0: at the end only)")
+
     @model_validator(mode="after")
     def _cross_checks(self) -> Params:
         if self.min_distance >= self.max_distance:
@@ -302,6 +333,9 @@ class Params(BaseModel):
                 f"wide_methods={self.wide_methods}: {stray} not in flow_methods="
                 f"{self.flow_methods} (chapter 11 trains on their flow); name some of them "
                 "or [] for none")
+        if any(c <= 0 or c % 64 for c in self.selfflow_crop):
+            raise ValueError(f"selfflow_crop={self.selfflow_crop}: both sides must be positive "
+                             "multiples of 64 (FastFlowNet's pyramid)")
         if self.world_sweep_scenes > self.world_scenes:
             raise ValueError(
                 f"world_sweep_scenes={self.world_sweep_scenes} must be <= "

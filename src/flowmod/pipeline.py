@@ -17,6 +17,7 @@ from typing import Any
 import pandas as pd
 
 from flowmod import crops, dag, evaluate, flow, select, train, variants, wide, world
+from flowmod.flow import selftrain
 from flowmod.params import Params
 from flowmod.report import world_report
 
@@ -33,6 +34,7 @@ BUILDERS: dict[str, Callable[[Params, bool], Any]] = {
     "08": lambda p, progress: evaluate.run_general(p),
     "10": lambda p, progress: variants.run(p, progress=progress),
     "11": lambda p, progress: wide.run(p, progress=progress),
+    "12": lambda p, progress: selftrain.run(p, progress=progress),
 }
 
 
@@ -50,9 +52,9 @@ def build(p: Params, chapters: Iterable[str] | None = None, progress: bool = Fal
 def status_frame(p: Params) -> pd.DataFrame:
     """:func:`flowmod.dag.status` as a table: chapter, node, state, why, path."""
     rows = [{"chapter": dag.chapter(s.node), "node": str(s.node), "state": s.state,
-             "gated": dag.gated(s.node), "why": s.why, "path": str(s.path)}
+             "gate": dag.gate(s.node) or "", "why": s.why, "path": str(s.path)}
             for s in dag.status(p)]
-    return pd.DataFrame(rows, columns=["chapter", "node", "state", "gated", "why", "path"])
+    return pd.DataFrame(rows, columns=["chapter", "node", "state", "gate", "why", "path"])
 
 
 def format_status(p: Params) -> str:
@@ -65,13 +67,17 @@ def format_status(p: Params) -> str:
         lines.append(f"{r.chapter}  {r.node:<{width}}  {r.state:<10}{why}")
     stale = df[df["state"] != "up to date"]
     n_stale = len(stale)
-    gated = stale[stale["gated"].astype(bool)]
-    which = " and ".join(sorted(set(gated["chapter"])))
-    lines.append(f"{len(df) - n_stale} of {len(df)} up to date" + (
+    tail = f"{len(df) - n_stale} of {len(df)} up to date" + (
         f"; {n_stale} to build (make run, or python -m flowmod.runner)" if n_stale else "")
-        + (f"; chapter{'s' * (' and ' in which)} {which}'s {len(gated)} (models, predictions"
-           f"{', flow, crops' if '11' in which else ''}) only with extension_build: "
-           "make extensions" if len(gated) and not p.extension_build else ""))
+    what = {"extension_build": "models, predictions", "selfflow_build": "flow networks"}
+    for flag, gated in stale[stale["gate"] != ""].groupby("gate", sort=True):
+        if getattr(p, flag):
+            continue
+        which = " and ".join(sorted(set(gated["chapter"])))
+        extra = ", flow, crops" if "11" in which else ""
+        tail += (f"; chapter{'s' * (' and ' in which)} {which}'s {len(gated)} "
+                 f"({what[flag]}{extra}) only with {flag}: {dag.GATE_TARGETS[flag]}")
+    lines.append(tail)
     return "\n".join(lines)
 
 

@@ -1,0 +1,164 @@
+"""Chapter 12: FastFlowNet trained here from scratch: its losses, its batches, resuming, the
+published weights as an ordinary ``fastflownet`` checkpoint, and the stage's nodes."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from flowmod import dag, pipeline
+from flowmod.flow import selftrain
+from flowmod.flow.networks import FastFlowNetFlow
+from flowmod.params import ProfileError, load_profile
+
+
+def _texture(h: int = 64, w: int = 96, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (h, w, 3)).astype(np.float32), (0, 0), 1.5)
+    return img
+
+
+def _t(img: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(img.transpose(2, 0, 1)).float()[None]
+
+
+def test_photometric_loss_is_lowest_at_the_true_motion_and_ignores_exposure():
+    img1 = _texture()
+    d = (3.0, -2.0)  # the content moves by d: img2(p) = img1(p - d)
+    m = np.float32([[1, 0, d[0]], [0, 1, d[1]]])
+    img2 = cv2.warpAffine(img1, m, (img1.shape[1], img1.shape[0]),
+                          borderMode=cv2.BORDER_REFLECT)
+    a, b = _t(img1), _t(img2)
+
+    def loss(flow, b=b):
+        f = torch.tensor(flow, dtype=torch.float32).view(1, 2, 1, 1).expand(1, 2, 64, 96)
+        return selftrain.photometric_loss(a, b, f.contiguous(), smooth=0.0)[0].item()
+
+    true = loss(d)
+    assert true < 0.5 * loss((0.0, 0.0))
+    assert true < loss((4.0, -2.0)) and true < loss((3.0, -1.0))
+    brighter = torch.clamp(1.3 * b + 12.0, 0, 255)  # another exposure: census does not mind
+    assert loss(d, brighter) < 0.5 * loss((0.0, 0.0), brighter)
+
+
+def test_supervised_loss_smoothness_and_inside_mask():
+    flow = torch.zeros(1, 2, 4, 5)
+    gt = torch.zeros(1, 2, 4, 5)
+    gt[:, 0] = 3.0
+    gt[:, 1] = 4.0  # 5 px off everywhere
+    valid = torch.ones(1, 1, 4, 5)
+    valid[..., 0] = 0
+    loss, parts = selftrain.supervised_loss(flow, gt, valid)
+    assert abs(loss.item() - 5.0) < 1e-3 and abs(parts["epe"] - 5.0) < 1e-3
+    img = torch.full((1, 3, 4, 5), 100.0)
+    assert selftrain.smoothness(gt, img).item() == 0.0, "constant flow is smooth"
+    noisy = gt + torch.randn(1, 2, 4, 5, generator=torch.Generator().manual_seed(0))
+    assert selftrain.smoothness(noisy, img).item() > 0.1
+    out = torch.zeros(1, 2, 4, 5)
+    out[:, 0, :, 3:] = 2.0  # columns 3 and 4 move right by 2: 5 and 6 are outside
+    m = selftrain.inside(out)[0, 0]
+    assert m[:, :3].all() and not m[:, 3:].any()
+
+
+@pytest.fixture(scope="module")
+def pairs_data(smoke_built):
+    """Four keyframe pairs of the smoke world's training scenes, with their exact flow, at
+    the smoke profile's flow_scale."""
+    p = smoke_built
+    sel = pd.read_parquet(dag.published(p, dag.Node("select")) / "pairs.parquet")
+    train = sel[sel["split"] == "train"].head(4)
+    return p, train
+
+
+def _data(p, train, tmp_path, gt: bool = True) -> selftrain.FramePairs:
+    root = p.dataroot_path
+    files = (selftrain.cache_gt(train, root, p.version, p.flow_scale, tmp_path / "gt", False)
+             if gt else None)
+    return selftrain.FramePairs([(root / r.path_1, root / r.path_2)
+                                 for r in train.itertuples()], p.flow_scale, files)
+
+
+def test_batches_are_drawn_from_seed_and_step(pairs_data, tmp_path):
+    p, train = pairs_data
+    data = _data(p, train, tmp_path)
+    img, flow, valid = data.load(0)[0], data.load(0)[2], data.load(0)[3]
+    assert img.shape[:2] == flow.shape[:2] == valid.shape
+    assert img.shape[0] == round(900 * p.flow_scale)
+    a = selftrain.draw_batch(data, 3, 0, 2, (64, 128))
+    b = selftrain.draw_batch(data, 3, 0, 2, (64, 128))
+    c = selftrain.draw_batch(data, 4, 0, 2, (64, 128))
+    assert a["img1"].shape == (2, 3, 64, 128) and a["gt"].shape == (2, 2, 64, 128)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not torch.equal(a["img1"], c["img1"])
+    with pytest.raises(selftrain.SelfFlowError, match="selfflow_crop.*larger"):
+        selftrain.draw_batch(data, 0, 0, 1, (1024, 2048))
+
+
+def test_training_resumes_where_it_stopped_and_learns(pairs_data, tmp_path):
+    p, train = pairs_data
+    data = _data(p, train, tmp_path)
+    kw = dict(iters=6, batch=1, lr=1e-3, crop=(64, 128), smooth=0.05, seed=0, progress=False)
+    straight, h1 = selftrain.train_flow(data, "supervised", tmp_path / "a", **kw)
+    part, _ = selftrain.train_flow(data, "supervised", tmp_path / "b", stop_after=3, **kw)
+    assert (tmp_path / "b" / "last.pt").is_file()
+    resumed, h2 = selftrain.train_flow(data, "supervised", tmp_path / "b", **kw)
+    for k, v in straight.state_dict().items():
+        torch.testing.assert_close(resumed.state_dict()[k], v, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(h1["loss"], h2["loss"], rtol=1e-5)
+    assert list(h2["step"]) == [1, 2, 3, 4, 5, 6]
+    with pytest.raises(selftrain.SelfFlowError, match="exact flow"):
+        selftrain.train_flow(_data(p, train, tmp_path, gt=False), "supervised",
+                             tmp_path / "c", **kw)
+    with pytest.raises(selftrain.SelfFlowError, match="multiples of 64"):
+        selftrain.train_flow(data, "photometric", tmp_path / "d", **{**kw, "crop": (60, 128)})
+
+
+def test_published_weights_are_a_fastflownet_checkpoint_with_the_recorded_error(smoke_built):
+    p = smoke_built
+    assert selftrain.built(p) == ["photometric", "supervised"]
+    for mode in selftrain.built(p):
+        hist, ev = selftrain.results(p, mode)
+        assert ev["steps"] == p.selfflow_iters == len(hist)
+        est = FastFlowNetFlow(selftrain.weights_path(p, mode), device="cpu", scale=p.flow_scale)
+        sel = dag.published(p, dag.Node("select"))
+        pairs = pd.read_parquet(sel / "pairs.parquet")
+        test = selftrain._sample(pairs[pairs["split"] == "test"], p.selfflow_eval_pairs,
+                                 (p.seed, 1))
+        h = selftrain.held_out(test, pd.read_parquet(sel / "objects.parquet"),
+                               p.dataroot_path, p.version, True)
+        again = selftrain.score(est.estimate, h)
+        assert again["epe"] == pytest.approx(ev["fastflownet"]["epe"], rel=1e-4)
+        assert hist["heldout_epe"].dropna().iloc[-1] == pytest.approx(again["epe"], rel=1e-4)
+        assert set(ev["baselines"]) == {"zero flow", "farneback", "dis (medium)"}
+    t = selftrain.epe_table(p, selftrain.built(p))
+    assert list(t["method"]) == ["zero flow", "farneback", "dis (medium)",
+                                 "fastflownet (photometric)", "fastflownet (supervised)"]
+    assert "against DIS's" in selftrain.headline(p, selftrain.built(p))
+    assert not (dag.node_dir(p, dag.Node("selfflow", None, "supervised")) / "gt").exists()
+
+
+def test_selfflow_nodes_parameters_and_gate(smoke_built, tmp_path):
+    demo = load_profile("demo")
+    assert [str(n) for n in dag.nodes_of_chapter(demo, "12")] == [
+        "selfflow[photometric]", "selfflow[supervised]"]
+    assert dag.gate(dag.Node("selfflow", None, "photometric")) == "selfflow_build"
+    assert load_profile("paper", dataroot="/x").selfflow_modes == ["photometric"]
+    with pytest.raises(ProfileError, match="selfflow_crop.*multiples of 64"):
+        load_profile("demo", selfflow_crop=[250, 448])
+    fresh = load_profile("smoke", run_dir=str(tmp_path / "runs"))
+    with pytest.raises(dag.MissingInput, match="selfflow_build=true.*make selfflow"):
+        dag.published(fresh, dag.Node("selfflow", None, "photometric"))
+    # more steps asked for, not built: the status names the make target; nothing is shown
+    more = smoke_built.model_copy(update={"selfflow_iters": 5, "selfflow_build": False})
+    assert selftrain.built(more) == [] and selftrain.run(more) == []
+    assert pipeline.format_status(more).splitlines()[-1].endswith(
+        "chapter 12's 2 (flow networks) only with selfflow_build: make selfflow")
+    assert "make selfflow" in selftrain.headline(more, [])
+    info = json.loads((dag.node_dir(smoke_built, dag.Node("selfflow", None, "photometric"))
+                       / "manifest.json").read_text())
+    assert info["params"]["selfflow_iters"] == 4 and info["params"]["flow_scale"] == 0.25
