@@ -102,7 +102,7 @@ def test_chapter11_nodes_belong_to_chapter_11_and_need_extension_build():
     assert "crops[gt/wide]" not in [str(n) for n in dag.nodes_of_chapter(demo, "05")]
     smoke = load_profile("smoke")  # flow_store: pairs keeps the flow of the wide pairs too
     assert "flow[dis/wide]" in [str(n) for n in dag.nodes_of_chapter(smoke, "11")]
-    assert [n for n in dag.nodes(demo) if dag.gated(n)] == [
+    assert [n for n in dag.nodes(demo) if dag.gate(n) == "extension_build"] == [
         n for n in dag.nodes(demo) if n.stage in dag.GATED_STAGES or n.part == dag.WIDE]
     assert not dag.gated(dag.Node("wide"))
     assert dag.inputs(dag.Node("crops", "dis", "wide"), demo)[-1] == dag.Node("wide")

@@ -1,0 +1,105 @@
+"""Seconds per training step of chapter 12's FastFlowNet, apart from the rest of its stage.
+
+    .venv/bin/python benchmarks/bench_selfflow.py [--device cpu|cuda] [--repeat N]
+
+Times one optimiser step (forward, loss, backward, Adam) of the photometric and the
+supervised loss on random images at the demo's window and batch, and at the paper profile's
+(skipped on CPU: minutes a step), plus the held-out inference of one 1600 x 900 pair at
+flow_scale 0.5. Writes ``benchmarks/results/selfflow_<device>.json``. Figures only, never
+asserted: the machine is noisy (2-4x swings); compare them as ratios (photometric /
+supervised, this machine / a GPU).
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import time
+
+import numpy as np
+import torch
+
+from flowmod.artefacts import write_json
+from flowmod.environment import resolve_device
+from flowmod.flow import selftrain
+from flowmod.flow.nets import FastFlowNet, fastflownet_flow
+from flowmod.flow.networks import FastFlowNetFlow
+from flowmod.params import load_profile
+from flowmod.paths import repo_root
+
+
+def step_seconds(mode: str, batch: int, crop: tuple[int, int], dev: torch.device,
+                 repeat: int) -> float:
+    """Median seconds of one training step (after a warm-up step)."""
+    torch.manual_seed(0)
+    model = FastFlowNet().to(dev)
+    opt = torch.optim.Adam(model.parameters(), lr=3e-4)
+    g = torch.Generator().manual_seed(0)
+    h, w = crop
+    x1 = (255 * torch.rand(batch, 3, h, w, generator=g)).to(dev)
+    x2 = (255 * torch.rand(batch, 3, h, w, generator=g)).to(dev)
+    gt = (5 * torch.randn(batch, 2, h, w, generator=g)).to(dev)
+    valid = torch.ones(batch, 1, h, w, device=dev)
+    times = []
+    for k in range(repeat + 1):
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        flow = fastflownet_flow(model, x1, x2)
+        loss = (selftrain.photometric_loss(x1, x2, flow, 0.05, selftrain.PHOTOMETRIC_SCALE)[0]
+                if mode == "photometric"
+                else selftrain.supervised_loss(flow, gt, valid)[0])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+        if k:
+            times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--repeat", type=int, default=5)
+    args = ap.parse_args(argv)
+    dev = resolve_device(args.device)
+    demo, paper = load_profile("demo"), load_profile("paper", dataroot="/unused")
+    settings = {"demo": (demo.selfflow_batch, tuple(demo.selfflow_crop))}
+    if dev.type == "cuda":
+        settings["paper"] = (paper.selfflow_batch, tuple(paper.selfflow_crop))
+    out: dict = {"device": str(dev), "machine": platform.processor() or platform.machine(),
+                 "torch_threads": torch.get_num_threads(), "steps": {}}
+    for name, (batch, crop) in settings.items():
+        for mode in selftrain.MODES:
+            s = step_seconds(mode, batch, crop, dev, args.repeat)
+            out["steps"][f"{name} {mode} (batch {batch}, {crop[0]}x{crop[1]})"] = {
+                "s_per_step": s, "pairs_per_s": batch / s}
+    rng = np.random.default_rng(0)
+    img1 = rng.integers(0, 256, (900, 1600, 3), dtype=np.uint8)
+    img2 = np.roll(img1, 3, axis=1)
+    est = FastFlowNetFlow(model=FastFlowNet(), device=dev, scale=0.5)
+    est.estimate(img1, img2)  # warm-up
+    t0 = time.perf_counter()
+    for _ in range(args.repeat):
+        est.estimate(img1, img2)
+    out["inference_s_per_pair_1600x900_scale_0.5"] = (time.perf_counter() - t0) / args.repeat
+    steps = out["steps"]
+    demo_steps = [v["s_per_step"] for k, v in steps.items() if k.startswith("demo")]
+    out["demo_budget_min"] = demo.selfflow_iters * sum(demo_steps) / 60
+    if "paper" in " ".join(steps):
+        out["paper_budget_h"] = paper.selfflow_iters * next(
+            v["s_per_step"] for k, v in steps.items() if k.startswith("paper photometric")) / 3600
+    res = repo_root() / "benchmarks" / "results"
+    res.mkdir(parents=True, exist_ok=True)
+    write_json(res / f"selfflow_{dev.type}.json", out)
+    import json
+
+    print(json.dumps(out, indent=2, default=lambda v: round(v, 3)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
