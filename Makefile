@@ -61,7 +61,7 @@ book: run browser  ## run, then render the book into build/html (and check it in
 	$(PY) -m flowmod.report.browser $(HTML) --screenshot build/book-screenshot.png --screenshots build/screenshots
 
 extensions: RUN_SET += --set extension_build=true
-extensions: book  ## make book, training chapters 10 and 11's models first (demo: 27 models, ~40 min more)
+extensions: book  ## make book, training chapters 10 and 11's models first (demo: 27 models, ~50 min more)
 
 selfflow: RUN_SET += --set selfflow_build=true
 selfflow: book  ## make book, training chapter 12's FastFlowNets first (demo: 2 x 600 steps, ~25 min more; resumable)

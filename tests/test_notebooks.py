@@ -168,6 +168,7 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
 
     g11 = glue_of(smoke_run, "11_all_distances")
     assert g11["wide_n_built"] == 1
+    assert {k: g11[k] for k in wide.near_counts(p)} == wide.near_counts(p)
     assert g11["wide_headline"] == wide.headline(p, wide.table4(p, ["dis"]), ["dis"])
     assert (smoke_run["base"] / "runs" / "figures" / "wide_f1_distance.png").stat().st_size > 5000
     # chapter 12: both networks trained (smoke: 4 steps), the headline from their evaluation

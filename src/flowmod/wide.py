@@ -147,6 +147,25 @@ def training_summary(params: Any) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def near_counts(params: Any) -> dict[str, float]:
+    """How many vehicles nearer than ``min_distance`` (and of them moving) the all-distances
+    training set (train and val) and Table 4's set hold: what removing the filter can teach
+    and where it is tested. NaN without chapter 11 (``wide_methods`` empty)."""
+    from flowmod import dag
+
+    keys = ("train", "train_moving", "general", "general_moving")
+    if not params.wide_methods:
+        return {f"wide_near_{k}": float("nan") for k in keys}
+    out = {}
+    for name, node in (("train", "wide"), ("general", "general")):
+        obj = pd.read_parquet(dag.published(params, dag.Node(node)) / "objects.parquet")
+        near = obj[(obj["distance"] < params.min_distance)
+                   & (obj["distance"] <= params.general_max_distance)]
+        out[f"wide_near_{name}"] = float(len(near))
+        out[f"wide_near_{name}_moving"] = float(near["label"].sum())
+    return out
+
+
 def predictions(params: Any, method: str, split: str, wide: bool) -> pd.DataFrame:
     """Published predictions (``prob_s<k>`` per seed) of ``method``'s classifiers on
     ``split`` (``general`` or ``test``): trained on all distances (``wide``) or the paper's
