@@ -47,7 +47,7 @@ def step_seconds(mode: str, batch: int, crop: tuple[int, int], dev: torch.device
             torch.cuda.synchronize()
         t0 = time.perf_counter()
         flow = fastflownet_flow(model, x1, x2)
-        loss = (selftrain.photometric_loss(x1, x2, flow, 0.05, selftrain.PHOTOMETRIC_SCALE)[0]
+        loss = (selftrain.photometric_loss(x1, x2, flow, 0.05, selftrain.PHOTOMETRIC_SCALES)[0]
                 if mode == "photometric"
                 else selftrain.supervised_loss(flow, gt, valid)[0])
         opt.zero_grad(set_to_none=True)

@@ -47,8 +47,9 @@ from flowmod.progress import bar
 MODES = ("photometric", "supervised")
 #: Steps between resumable checkpoints (``last.pt``).
 CHECKPOINT_EVERY = 25
-#: Scale at which the photometric loss compares the images (see :func:`photometric_loss`).
-PHOTOMETRIC_SCALE = 0.5
+#: Scales at which the photometric loss compares the images (:func:`photometric_loss`): half
+#: the window (FastFlowNet's flow is at 1/4 resolution anyway) and two coarser ones.
+PHOTOMETRIC_SCALES = (0.5, 0.25, 0.125)
 #: The DIS preset of the baseline (the CPU default of chapter 03).
 DIS_PRESET = "medium"
 
@@ -103,20 +104,24 @@ def smoothness(flow: Tensor, img: Tensor, edge: float = 10.0) -> Tensor:
 
 
 def photometric_loss(img1: Tensor, img2: Tensor, flow: Tensor, smooth: float,
-                     scale: float = 1.0) -> tuple[Tensor, dict[str, float]]:
+                     scales: Sequence[float] = (1.0,)) -> tuple[Tensor, dict[str, float]]:
     """The self-supervised loss of ``flow`` (B, 2, H, W, px) for images (B, 3, H, W) BGR
     [0, 255]: robust census distance of img1 and img2 warped back by the flow, over pixels
-    that stay inside the image, plus ``smooth`` x :func:`smoothness`; computed on images and
-    flow resized by ``scale`` (training: 0.5, a quarter of the cost; FastFlowNet's flow is
-    at 1/4 resolution anyway). Returns (loss, parts)."""
-    if scale != 1.0:
-        img1, img2 = (F.interpolate(x, scale_factor=scale, mode="area") for x in (img1, img2))
-        flow = scale * F.interpolate(flow, scale_factor=scale, mode="area")
-    warped = warp(img2, flow)
-    m = inside(flow)
-    dist = census_distance(census(img1), census(warped))
-    photo = ((dist + 0.01) ** 0.4 * m).sum() / m.sum().clamp(min=1.0)
-    sm = smoothness(flow, img1)
+    that stay inside the image, averaged over images and flow resized by each of ``scales``
+    (coarse scales widen the census window's reach: a 7 px window at 1/8 sees 56 px), plus
+    ``smooth`` x :func:`smoothness` at the first scale. Returns (loss, parts)."""
+    terms, sm = [], flow.new_zeros(())
+    for k, s in enumerate(scales):
+        a, b, f = img1, img2, flow
+        if s != 1.0:
+            a, b = (F.interpolate(x, scale_factor=s, mode="area") for x in (img1, img2))
+            f = s * F.interpolate(flow, scale_factor=s, mode="area")
+        m = inside(f)
+        dist = census_distance(census(a), census(warp(b, f)))
+        terms.append(((dist + 0.01) ** 0.4 * m).sum() / m.sum().clamp(min=1.0))
+        if k == 0:
+            sm = smoothness(f, a)
+    photo = torch.stack(terms).mean()
     return photo + smooth * sm, {"photometric": float(photo.detach()),
                                  "smoothness": float(sm.detach())}
 
@@ -329,7 +334,7 @@ def train_flow(data: FramePairs, mode: str, work: Path, *, iters: int, batch: in
             flow = fastflownet_flow(model, b["img1"], b["img2"])
             if mode == "photometric":
                 loss, parts = photometric_loss(b["img1"], b["img2"], flow, smooth,
-                                               PHOTOMETRIC_SCALE)
+                                               PHOTOMETRIC_SCALES)
             else:
                 loss, parts = supervised_loss(flow, b["gt"], b["valid"])
             opt.zero_grad(set_to_none=True)
