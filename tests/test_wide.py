@@ -154,7 +154,8 @@ def test_table4_rows_and_comparisons_come_from_the_predictions(smoke_built):
     assert sum(by[wide.label("dis", True)]["n"]) == len(wide.predictions(
         p, "dis", "general", True).query(f"distance < {wide.EDGES[-1]}"))
     nf = wide.near_far(p, done)
-    assert (nf.filter(like="n ").sum(axis=1) == len(d)).all()
+    assert (nf.filter(regex="^n ").sum(axis=1) == len(d)).all()
+    assert (nf.filter(regex="^moving ").sum(axis=1) == d["label"].sum()).all()
     assert "dis classifier reaches Table 4 F1" in wide.headline(p, t, done)
 
 

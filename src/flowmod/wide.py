@@ -224,8 +224,9 @@ def by_distance(params: Any, methods: list[str]) -> dict[str, pd.DataFrame]:
 
 
 def near_far(params: Any, methods: list[str], near: float = 30.0) -> pd.DataFrame:
-    """F1 (mean over seeds) of both classifiers on the generalisation set's near vehicles
-    (< ``near`` m) and those from ``near`` m to Table 4's end."""
+    """F1 and the share of still vehicles called moving (false alarms), means over seeds, of
+    both classifiers on the generalisation set's near vehicles (< ``near`` m) and those from
+    ``near`` m to Table 4's end, with the object and mover counts."""
     from flowmod.metrics import metrics
 
     rows = []
@@ -239,9 +240,14 @@ def near_far(params: Any, methods: list[str], near: float = 30.0) -> pd.DataFram
                             (f"{near:g}-{params.general_max_distance:g} m",
                              d["distance"] >= near)):
                 k = k.to_numpy()
+                still = k & (y == 0)
                 row[f"F1 {name} (%)"] = round(100 * float(np.mean(
                     [metrics(y[k], p[k])["f1"] for p in seed_probs(d)])), 1)
+                row[f"still called moving {name} (%)"] = round(100 * float(np.mean(
+                    [(p[still] >= 0.5).mean() if still.any() else np.nan
+                     for p in seed_probs(d)])), 1)
                 row[f"n {name}"] = int(k.sum())
+                row[f"moving {name}"] = int(y[k].sum())
             rows.append(row)
     return pd.DataFrame(rows)
 
