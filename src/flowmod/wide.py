@@ -179,9 +179,8 @@ def predictions(params: Any, method: str, split: str, wide: bool) -> pd.DataFram
 
 
 def label(method: str, wide: bool) -> str:
-    """A row's name: ``dis, trained on 30-70 m keyframes`` or ``dis, trained on all
-    distances``."""
-    return f"{method}, trained on {'all distances' if wide else '30-70 m keyframes'}"
+    """A row's name: ``dis (30-70 m)`` (the paper's training) or ``dis (all distances)``."""
+    return f"{method} ({'all distances' if wide else '30-70 m'})"
 
 
 def table4(params: Any, done: list[str]) -> pd.DataFrame:
