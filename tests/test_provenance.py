@@ -60,15 +60,15 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "ray_address": ("auto", set(), ()),
     "crop_size": (48, {"crops", "context"}, ()),
     "crop_scale": (2.5, {"crops", "context"}, ()),
-    "epochs": (2, {"train", "xtrain"}, ()),
-    "batch_size": (8, {"train", "xtrain"}, ()),
-    "lr": (0.02, {"train", "xtrain"}, ()),
-    "momentum": (0.8, {"train", "xtrain"}, ()),
-    "weight_decay": (0.02, {"train", "xtrain"}, ()),
-    "step_size": (5, {"train", "xtrain"}, ()),
-    "gamma": (0.4, {"train", "xtrain"}, ()),
-    "hflip_p": (0.3, {"train", "xtrain"}, ()),
-    "amp": ("bf16", {"train", "xtrain"}, ()),
+    "epochs": (2, {"train", "xtrain", "wtrain"}, ()),
+    "batch_size": (8, {"train", "xtrain", "wtrain"}, ()),
+    "lr": (0.02, {"train", "xtrain", "wtrain"}, ()),
+    "momentum": (0.8, {"train", "xtrain", "wtrain"}, ()),
+    "weight_decay": (0.02, {"train", "xtrain", "wtrain"}, ()),
+    "step_size": (5, {"train", "xtrain", "wtrain"}, ()),
+    "gamma": (0.4, {"train", "xtrain", "wtrain"}, ()),
+    "hflip_p": (0.3, {"train", "xtrain", "wtrain"}, ()),
+    "amp": ("bf16", {"train", "xtrain", "wtrain"}, ()),
     "general_beyond_distance": (80.0, {"general"}, ()),
     "raft_iters": (12, {"flow", "crops"}, ("raft", "raft_small")),
     "num_workers": (1, set(), ()),
@@ -85,7 +85,7 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "selfflow_crop": ([128, 128], {"selfflow"}, ()),
     "selfflow_smooth": (0.2, {"selfflow"}, ()),
     "selfflow_pairs": (3, {"selfflow"}, ()),
-    "selfflow_eval_pairs": (1, {"selfflow"}, ()),
+    "selfflow_eval_pairs": (2, {"selfflow"}, ()),
     "selfflow_eval_every": (3, {"selfflow"}, ()),
 }
 #: Parameters whose change is not "some stages read another value" (checked on their own).
@@ -249,7 +249,7 @@ def test_reruns_recompute_exactly_what_changed_and_match_a_fresh_run(finished, t
         p, dag.Node("crops", "dis", "keyframe"))["fingerprint"]
     # the same parameters from scratch (same world) give the same numbers
     scratch = p.model_copy(update={"run_dir": str(tmp_path / "scratch")})
-    pipeline.build(scratch)
+    pipeline.build(scratch, chapters=["01", "02", "03", "05", "06", "07", "08"])  # scores'
     assert scores(scratch) == scores(p)
     # switching a parameter back restores the kept variants: nothing is computed again
     back = p.model_copy(update={"epochs": 1})
@@ -257,7 +257,7 @@ def test_reruns_recompute_exactly_what_changed_and_match_a_fresh_run(finished, t
     assert stale and all("will be restored" in s.why for s in stale)
     rebuilt = rerun(back)
     assert {n.stage for n in rebuilt} == {"train", "evaluate", "generalise", "xtrain",
-                                          "xevaluate"}
+                                          "xevaluate", "wtrain", "wgeneralise"}
     for n in rebuilt:
         assert dag.recorded(back, n)["written"] == at_step_4[n], f"{n} restored, not retrained"
     # the flow of an earlier option comes back from the pool, no pair computed again
@@ -349,6 +349,13 @@ def test_gc_removes_only_what_no_node_reads(finished, tmp_path):
     shutil.copytree(finished.run_path, run, symlinks=True)
     p = finished.model_copy(update={"run_dir": str(run)})
     assert pipeline.unreferenced(p) == []
+    # the medium flow files: chapter 11's wide flow node (stale, not rebuilt: only 03 ran)
+    # still reads some of them (its keyframe pairs are the paper's image pairs)
+    files = {part: {r.path(pid) for pid in r.pair_ids}
+             for part in (*dag.PARTS, dag.WIDE) for r in [flow.FlowReader(p, "dis", part)]}
+    medium = files["keyframe"] | files["general"] | files[dag.WIDE]
+    assert len({f.parent for f in medium}) == 1, "one option folder: medium"
+    n_medium = len(medium - files[dag.WIDE])
     fast = p.model_copy(update={"dis_preset": "fast"})
     pipeline.build(fast, chapters=["03"])
     pool = run / "flow" / "dis" / "pool"
@@ -360,22 +367,28 @@ def test_gc_removes_only_what_no_node_reads(finished, tmp_path):
     other_crops.mkdir(parents=True)
     (other_crops / "x.npy").write_bytes(b"crops of another geometry")
     assert set(pipeline.unreferenced(fast)) == {stray, other_crops}
-    n_medium = len(flow.FlowReader(p, "dis", "keyframe").pair_ids) + len(
-        flow.FlowReader(p, "dis", "general").pair_ids)
     assert runner.main(["--profile", "smoke", "--set", f"run_dir={run}", "--set",
                         f"dataroot={p.dataroot}", "--set", "dis_preset=fast", "--gc",
                         "--variants", "--dry-run"]) == 0
     assert stray.exists() and other_crops.exists(), "dry run removes nothing"
     stale = not_up_to_date(fast)  # crops and below: dis_preset changed, only 03 was rebuilt
     assert {n.stage for n in stale} == {"crops", "train", "evaluate", "generalise", "xtrain",
-                                        "xevaluate"}
+                                        "xevaluate", "wtrain", "wgeneralise", "flow"}
+    assert {n for n in stale if n.stage == "flow"} == {dag.Node("flow", "dis", dag.WIDE)}
     n, _ = pipeline.collect_garbage(fast, variants=True)
     variants = 2  # the dis flow nodes' medium results
     assert n == 2 + variants + n_medium
     assert not stray.exists() and not other_crops.exists()
-    assert len([d for d in pool.iterdir() if d.is_dir()]) == 1, "emptied option folder removed"
+    assert {f for f in medium if f.exists()} == files[dag.WIDE], "what a node reads stays"
+    # the medium folder keeps the files the wide node reads (an emptied one would go)
+    assert len([d for d in pool.iterdir() if d.is_dir()]) == 2
     assert not_up_to_date(fast) == stale, "nothing a node reads was removed"
     for part in dag.PARTS:
         r = flow.FlowReader(fast, "dis", part)
         assert all(r.load(pid).shape[2] == 2 for pid in r.pair_ids)
+    # chapter 11's flow rebuilt too: the medium folder empties and goes
+    flow.run(fast, progress=False, parts=(dag.WIDE,), methods=["dis"])
+    n, _ = pipeline.collect_garbage(fast, variants=True)
+    assert n == 1 + len(files[dag.WIDE]), "the wide node's medium variant and its files"
+    assert len([d for d in pool.iterdir() if d.is_dir()]) == 1, "emptied option folder removed"
     assert pipeline.collect_garbage(fast) == (0, 0)
