@@ -127,8 +127,7 @@ def test_published_weights_are_a_fastflownet_checkpoint_with_the_recorded_error(
         est = FastFlowNetFlow(selftrain.weights_path(p, mode), device="cpu", scale=p.flow_scale)
         sel = dag.published(p, dag.Node("select"))
         pairs = pd.read_parquet(sel / "pairs.parquet")
-        test = selftrain._sample(pairs[pairs["split"] == "test"], p.selfflow_eval_pairs,
-                                 (p.seed, 1))
+        test = selftrain.heldout_pairs(pairs, p.selfflow_eval_pairs, p.seed)
         h = selftrain.held_out(test, pd.read_parquet(sel / "objects.parquet"),
                                p.dataroot_path, p.version, True)
         again = selftrain.score(est.estimate, h)

@@ -678,7 +678,7 @@ def run(params: Any, progress: bool = True, parts: Mapping[str, Sequence[str]] =
             b = dag.begin(params, dag.Node("crops", m, part))
             if not b.up_to_date:
                 q = b.params
-                objects_node = dag.inputs(b.node, params)[-1]  # select, general or wide
+                objects_node = dag.objects_node(part)
                 objects = part_objects(b.input_dir(objects_node), part)
                 load, items, files, computed = None, None, {}, None
                 work = b.start(fresh=q.force)

@@ -135,7 +135,7 @@ def inputs(node: Node, p: Params) -> tuple[Node, ...]:
     s, m, part = node.stage, node.method, node.part
     models = tuple(Node("train", m, k) for k in seed_parts(p))
     world, select = Node("world"), Node("select")
-    objects = {None: select, "keyframe": select, WIDE: Node("wide")}.get(part, Node("general"))
+    objects = objects_node(part)
     table: dict[str, tuple[Node, ...]] = {
         "world": (),
         "difficulty": (world,),
@@ -166,6 +166,13 @@ def inputs(node: Node, p: Params) -> tuple[Node, ...]:
         flow = tuple(Node("crops", m, pp) for pp in PARTS) if m else ()
         return (*xmodels, *flow, *ctx.values())
     raise KeyError(f"unknown stage {s!r}")
+
+
+def objects_node(part: str | None) -> Node:
+    """The selection node holding a flow or crops part's pairs and objects: ``select``
+    (keyframe), ``wide`` (chapter 11's part) or ``general``."""
+    return {None: Node("select"), "keyframe": Node("select"), WIDE: Node("wide")}.get(
+        part, Node("general"))
 
 
 def is_generated_world(p: Params) -> bool:
@@ -224,6 +231,18 @@ def gated(node: Node) -> bool:
 
 #: The make target that turns each gate on.
 GATE_TARGETS = {"extension_build": "make extensions", "selfflow_build": "make selfflow"}
+
+
+def built_note(what: str, done: list[str], planned: int, others: str, flag: str) -> str:
+    """A chapter's line on what its gate (``flag``) has built: ``{what} with these
+    parameters: **d of n** (names).`` and, while some are missing, ``The other k
+    ({others}) are trained by `make ...` (or this chapter with `flag=true`).``"""
+    out = (f"{what} with these parameters: **{len(done)} of {planned}** "
+           f"({', '.join(done) or 'none'}).")
+    if len(done) < planned:
+        out += (f" The other {planned - len(done)} ({others}) are trained by "
+                f"`{GATE_TARGETS[flag]}` (or this chapter with `{flag}=true`).")
+    return out
 
 
 def extension_chains(p: Params) -> list[tuple[str | None, str]]:

@@ -75,6 +75,24 @@ def seed_probs(df: pd.DataFrame) -> np.ndarray:
     return df[cols].to_numpy(dtype=np.float64).T
 
 
+def scored(df: pd.DataFrame, split: str, max_distance: float) -> pd.DataFrame:
+    """The objects a split is scored on: all of the test split; of the generalisation set
+    those within ``max_distance`` (Table 4's row, the paper's label)."""
+    return df if split == "test" else df[df["distance"] <= max_distance]
+
+
+def paired(a: pd.DataFrame, b: pd.DataFrame, what: str, seed: int = 0) -> dict[str, Any]:
+    """:func:`flowmod.metrics.paired_comparison` of ``a``'s models minus ``b``'s (two
+    predictions tables of the same objects, per-seed ``prob_s<k>``); :class:`ValueError`
+    naming ``what`` if they hold different objects."""
+    from flowmod.metrics import paired_comparison
+
+    if not a["ann_token"].reset_index(drop=True).equals(b["ann_token"].reset_index(drop=True)):
+        raise ValueError(f"{what} were scored on different objects")
+    return paired_comparison(a["label"].to_numpy(), seed_probs(a), seed_probs(b),
+                             a["scene"].to_numpy(), seed=seed)
+
+
 def score(df: pd.DataFrame, label_col: str = "label", seed: int = 0) -> dict[str, Any]:
     """Scores of ``df``'s models against ``df[label_col]``: per seed, their mean and range,
     the interval of the mean F1 with whole scenes resampled (:func:`seed_summary`)."""

@@ -592,7 +592,7 @@ def run(p: Params, progress: bool = True) -> Selection:
         nusc = open_nuscenes(b.params.dataroot_path, b.params.version)
         sel = select_keyframes(b.params, nusc, progress)
         write_tables(b.start(fresh=True), {"pairs": sel.pairs, "objects": sel.objects,
-                                     "scenes": sel.scenes})
+                                           "scenes": sel.scenes})
         b.publish(rows=len(sel.objects), pairs=len(sel.pairs))
     g = dag.begin(p, dag.Node("general"))
     if not g.up_to_date:

@@ -32,9 +32,9 @@ import pandas as pd
 
 from flowmod.context import read_context
 from flowmod.crops import read_crops
+from flowmod.evaluate import paired, scored, seed_probs
 from flowmod.evaluate import results as flow_results
-from flowmod.evaluate import seed_probs
-from flowmod.metrics import comparison_table, paired_comparison, seed_summary
+from flowmod.metrics import comparison_table, seed_summary
 
 
 @dataclass(frozen=True)
@@ -221,12 +221,6 @@ def predictions(params: Any, method: str | None, variant: str, split: str) -> pd
     return pd.read_parquet(folder / f"{split}.parquet")
 
 
-def scored(df: pd.DataFrame, split: str, max_distance: float) -> pd.DataFrame:
-    """The objects a split is scored on: all of the test split; of the generalisation set
-    those within ``max_distance`` (Table 4's row, the paper's label)."""
-    return df if split == "test" else df[df["distance"] <= max_distance]
-
-
 def chains(params: Any) -> list[tuple[str | None, str]]:
     """Rows of the chapter's table: per extension method the raw flow (the paper's models)
     and its built inputs, then the image-only input."""
@@ -275,11 +269,8 @@ def comparisons(params: Any, split: str = "test",
         ref = m or params.extension_methods[0]
         a = scored(predictions(params, m, v, split), split, params.general_max_distance)
         b = scored(predictions(params, ref, "flow", split), split, params.general_max_distance)
-        if not a["ann_token"].reset_index(drop=True).equals(b["ann_token"].reset_index(drop=True)):
-            raise ValueError(f"{m}/{v} and {ref}/flow were scored on different objects")
-        rows[f"{m + ': ' if m else ''}{v} - {ref}: flow"] = paired_comparison(
-            a["label"].to_numpy(), seed_probs(a), seed_probs(b), a["scene"].to_numpy(),
-            seed=params.seed)
+        rows[f"{m + ': ' if m else ''}{v} - {ref}: flow"] = paired(
+            a, b, f"{m}/{v} and {ref}/flow", params.seed)
     return comparison_table(rows)
 
 
@@ -327,13 +318,12 @@ def built_note(params: Any, done: list[tuple[str | None, str]]) -> str:
         return ("This profile trains no other input (`extension_inputs` is empty): the "
                 "tables below hold the paper's raw-flow models only. Set it (e.g. "
                 "`extension_inputs=[residual]`) and run `make extensions`.")
+    from flowmod import dag
+
     todo = [c for c in plan(params) if c not in done]
-    names = ", ".join(f"{m or 'no flow'}/{v}" for m, v in done) or "none"
-    out = f"Chains built with these parameters: **{len(done)} of {len(plan(params))}** ({names})."
-    if todo:
-        out += (f" The other {len(todo)} ({len(todo) * params.seeds} models) are trained by "
-                "`make extensions` (or this chapter with `extension_build=true`).")
-    return out
+    return dag.built_note("Chains built", [f"{m or 'no flow'}/{v}" for m, v in done],
+                          len(plan(params)), f"{len(todo) * params.seeds} models",
+                          "extension_build")
 
 
 def headline(params: Any, test: pd.DataFrame, general: pd.DataFrame) -> str:

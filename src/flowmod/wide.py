@@ -29,10 +29,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from flowmod.evaluate import breakdown, predict_seeds, seed_probs
+from flowmod.evaluate import breakdown, paired, predict_seeds, scored, seed_probs
 from flowmod.evaluate import results as paper_results
 from flowmod.evaluate import table4 as paper_table4
-from flowmod.metrics import comparison_table, paired_comparison
+from flowmod.metrics import comparison_table
 
 #: Distance bins of the chapter's breakdowns (m): Table 4's range and beyond it.
 EDGES = (0, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100.01)
@@ -109,26 +109,6 @@ def built(params: Any) -> list[str]:
 
 # --- the chapter's tables and figures ---------------------------------------------------------
 
-def training_sets(params: Any) -> pd.DataFrame:
-    """Objects of the paper's training set (keyframes, ``min_distance``-``max_distance``)
-    and of chapter 11's (every distance, sweeps), per split and distance bin, with the share
-    of moving ones: what the strict filtering leaves out."""
-    from flowmod import dag
-
-    paper = pd.read_parquet(dag.published(params, dag.Node("select")) / "objects.parquet")
-    wide = pd.read_parquet(dag.published(params, dag.Node("wide")) / "objects.parquet")
-    rows = []
-    for name, df in (("paper: 30-70 m keyframes", paper), ("all distances", wide)):
-        df = df[df["split"].isin(["train", "val"])]
-        bins = pd.cut(df["distance"], list(EDGES), right=False)
-        for (split, b), g in df.groupby([df["split"], bins], observed=True, sort=True):
-            rows.append({"training set": name, "split": split, "distance (m)": str(b),
-                         "objects": len(g), "sweep pairs' objects": int((g["set"] == "sweep")
-                                                                        .sum()),
-                         "moving (%)": round(100 * g["label"].mean(), 1)})
-    return pd.DataFrame(rows)
-
-
 def training_summary(params: Any) -> pd.DataFrame:
     """One row per training set and split: pairs, objects, moving share, distance range."""
     from flowmod import dag
@@ -193,10 +173,6 @@ def table4(params: Any, done: list[str]) -> pd.DataFrame:
     return paper_table4(preds, params.general_max_distance)
 
 
-def _scored(df: pd.DataFrame, split: str, max_distance: float) -> pd.DataFrame:
-    return df if split == "test" else df[df["distance"] <= max_distance]
-
-
 def comparisons(params: Any, methods: list[str], split: str = "general") -> pd.DataFrame:
     """Trained on all distances minus the paper's training, per method, paired on the same
     objects (``general``: Table 4's range; ``test``: the keyframe test split), with the
@@ -204,14 +180,10 @@ def comparisons(params: Any, methods: list[str], split: str = "general") -> pd.D
     (:func:`flowmod.metrics.paired_comparison`)."""
     rows = {}
     for m in methods:
-        a, b = (_scored(predictions(params, m, split, w), split, params.general_max_distance)
+        a, b = (scored(predictions(params, m, split, w), split, params.general_max_distance)
                 for w in (True, False))
-        if not a["ann_token"].reset_index(drop=True).equals(
-                b["ann_token"].reset_index(drop=True)):
-            raise ValueError(f"{m}: the two classifiers were scored on different objects")
-        rows[f"{m}: all distances - 30-70 m"] = paired_comparison(
-            a["label"].to_numpy(), seed_probs(a), seed_probs(b), a["scene"].to_numpy(),
-            seed=params.seed)
+        rows[f"{m}: all distances - 30-70 m"] = paired(
+            a, b, f"{m}: the two classifiers", params.seed)
     return comparison_table(rows)
 
 
@@ -231,8 +203,8 @@ def near_far(params: Any, methods: list[str], near: float = 30.0) -> pd.DataFram
     rows = []
     for m in methods:
         for w in (False, True):
-            d = _scored(predictions(params, m, "general", w), "general",
-                        params.general_max_distance)
+            d = scored(predictions(params, m, "general", w), "general",
+                       params.general_max_distance)
             y = d["label"].to_numpy()
             row: dict[str, Any] = {"classifier": label(m, w)}
             for name, k in ((f"< {near:g} m", d["distance"] < near),
@@ -256,14 +228,12 @@ def built_note(params: Any, done: list[str]) -> str:
     if not params.wide_methods:
         return ("This profile trains no classifier on all distances (`wide_methods` is "
                 "empty). Set it (e.g. `wide_methods=[dis]`) and run `make extensions`.")
+    from flowmod import dag
+
     todo = [m for m in params.wide_methods if m not in done]
-    out = (f"Methods trained on all distances with these parameters: **{len(done)} of "
-           f"{len(params.wide_methods)}** ({', '.join(done) or 'none'}).")
-    if todo:
-        out += (f" The other {len(todo)} ({', '.join(todo)}; {len(todo) * params.seeds} "
-                "models) are trained by `make extensions` (or this chapter with "
-                "`extension_build=true`).")
-    return out
+    return dag.built_note("Methods trained on all distances", done, len(params.wide_methods),
+                          f"{', '.join(todo)}; {len(todo) * params.seeds} models",
+                          "extension_build")
 
 
 def headline(params: Any, table: pd.DataFrame, done: list[str]) -> str:

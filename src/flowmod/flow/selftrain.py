@@ -363,6 +363,11 @@ def _sample(df: pd.DataFrame, n: int, seed: Sequence[int]) -> pd.DataFrame:
     return df.iloc[np.sort(idx)].reset_index(drop=True)
 
 
+def heldout_pairs(pairs: pd.DataFrame, n: int, seed: int) -> pd.DataFrame:
+    """The ``n`` held-out pairs (of the test scenes) drawn with ``seed``."""
+    return _sample(pairs[pairs["split"] == "test"], n, (seed, 1))
+
+
 def run(params: Any, progress: bool = True) -> list[str]:
     """Build every stale ``selfflow[<mode>]`` node when ``selfflow_build`` is on (``make
     selfflow``); otherwise build nothing. Returns the modes whose weights are current."""
@@ -394,7 +399,7 @@ def _build(b: Any, mode: str, progress: bool) -> None:
     sel = b.input_dir(dag.Node("select"))
     pairs = pd.read_parquet(sel / "pairs.parquet")
     train = _sample(pairs[pairs["split"].isin(["train", "val"])], q.selfflow_pairs, (q.seed, 0))
-    test = _sample(pairs[pairs["split"] == "test"], q.selfflow_eval_pairs, (q.seed, 1))
+    test = heldout_pairs(pairs, q.selfflow_eval_pairs, q.seed)
     if train.empty or test.empty:
         raise SelfFlowError(f"no training ({len(train)}) or held-out ({len(test)}) pair in "
                             "chapter 02's selection: run chapter 02 first")
@@ -537,8 +542,7 @@ def example(params: Any, done: list[str], k: int = 0
 
     sel = dag.published(params, dag.Node("select"))
     pairs = pd.read_parquet(sel / "pairs.parquet")
-    test = _sample(pairs[pairs["split"] == "test"], params.selfflow_eval_pairs,
-                   (params.seed, 1)).iloc[[k]]
+    test = heldout_pairs(pairs, params.selfflow_eval_pairs, params.seed).iloc[[k]]
     synthetic = world.is_synthetic(params.dataroot_path, params.version)
     h = held_out(test, pd.read_parquet(sel / "objects.parquet"), params.dataroot_path,
                  params.version, synthetic)
@@ -556,11 +560,9 @@ def built_note(params: Any, done: list[str]) -> str:
     if not params.selfflow_modes:
         return ("This profile trains no flow network (`selfflow_modes` is empty). Set it (e.g. "
                 "`selfflow_modes=[photometric]`) and run `make selfflow`.")
+    from flowmod import dag
+
     todo = [m for m in params.selfflow_modes if m not in done]
-    out = (f"Networks trained with these parameters: **{len(done)} of "
-           f"{len(params.selfflow_modes)}** ({', '.join(done) or 'none'}).")
-    if todo:
-        out += (f" The other {len(todo)} ({', '.join(todo)}; {params.selfflow_iters} steps "
-                "each) are trained by `make selfflow` (or this chapter with "
-                "`selfflow_build=true`).")
-    return out
+    return dag.built_note("Networks trained", done, len(params.selfflow_modes),
+                          f"{', '.join(todo)}; {params.selfflow_iters} steps each",
+                          "selfflow_build")

@@ -443,11 +443,6 @@ def kept_pairs(pairs: pd.DataFrame, objects: pd.DataFrame, part: str, n: int,
     return pairs[pairs["pair_id"].isin(shown | set(drawn))]
 
 
-def _objects_node(part: str) -> dag.Node:
-    return {"keyframe": dag.Node("select"), dag.WIDE: dag.Node("wide")}.get(
-        part, dag.Node("general"))
-
-
 def run(params: Params, progress: bool = True, parts: Sequence[str] = dag.PARTS,
         methods: Sequence[str] | None = None) -> dict[str, dict[str, pd.DataFrame]]:
     """Build every ``flow[<method>/<part>]`` node of the profile (:mod:`flowmod.dag`) of
@@ -459,7 +454,7 @@ def run(params: Params, progress: bool = True, parts: Sequence[str] = dag.PARTS,
             b = dag.begin(params, dag.Node("flow", method, part))
             if not b.up_to_date:
                 q = b.params
-                pairs_file = b.input_dir(_objects_node(part)) / "pairs.parquet"
+                pairs_file = b.input_dir(dag.objects_node(part)) / "pairs.parquet"
                 pairs = pd.read_parquet(pairs_file)
                 if q.flow_store == "crops":  # the crops stage computes the rest itself
                     objects = pd.read_parquet(pairs_file.with_name("objects.parquet"))
