@@ -217,6 +217,12 @@ class FastFlowNet(nn.Module):
         return [f2, f3, f4, f5, f6]
 
     def forward(self, img1: Tensor, img2: Tensor) -> Tensor:
+        return self.levels(img1, img2)[0]
+
+    def levels(self, img1: Tensor, img2: Tensor) -> list[Tensor]:
+        """The flow of every decoder level, finest first: ``[flow2, ..., flow6]``, level
+        ``l`` (B, 2, H / 2^l, W / 2^l), each in units of pixels of the input / 20 (what a
+        multi-scale loss supervises; :meth:`forward` returns ``flow2``)."""
         h, w = img1.shape[-2:]
         if h % FFN_DIV_SIZE or w % FFN_DIV_SIZE:
             raise ValueError(
@@ -235,6 +241,7 @@ class FastFlowNet(nn.Module):
         }  # fmt: skip
 
         flow = f1[6].new_zeros(b, 2, *f1[6].shape[-2:])
+        out: list[Tensor] = []
         for lvl in (6, 5, 4, 3, 2):
             target = f2[lvl]
             if lvl < 6:
@@ -243,7 +250,23 @@ class FastFlowNet(nn.Module):
             cost = correlation(f1[lvl], target, 4, FFN_CORR_INDEX)
             x = torch.cat((cost, rconv[lvl](f1[lvl]), flow), 1)
             flow = dec[lvl](x) + flow  # level 6 starts from zero flow: plain prediction
-        return flow
+            out.insert(0, flow)
+        return out
+
+
+def fastflownet_inputs(img1: Tensor, img2: Tensor) -> tuple[Tensor, Tensor]:
+    """FastFlowNet's input for BGR images (B, 3, H, W) in [0, 255]: /255, minus the
+    per-channel mean over both images, bilinear resize to the next multiples of 64."""
+    h, w = img1.shape[-2:]
+    x1, x2 = img1 / 255.0, img2 / 255.0
+    mean = torch.cat((x1, x2), dim=2).mean(dim=(2, 3), keepdim=True)
+    x1, x2 = x1 - mean, x2 - mean
+    hh = FFN_DIV_SIZE * -(-h // FFN_DIV_SIZE)
+    ww = FFN_DIV_SIZE * -(-w // FFN_DIV_SIZE)
+    if (hh, ww) != (h, w):
+        x1 = F.interpolate(x1, size=(hh, ww), mode="bilinear", align_corners=False)
+        x2 = F.interpolate(x2, size=(hh, ww), mode="bilinear", align_corners=False)
+    return x1, x2
 
 
 def fastflownet_flow(model: FastFlowNet, img1: Tensor, img2: Tensor) -> Tensor:
@@ -254,14 +277,8 @@ def fastflownet_flow(model: FastFlowNet, img1: Tensor, img2: Tensor) -> Tensor:
     that size, x20, resize back to (H, W) with u, v multiplied by the size ratios.
     """
     h, w = img1.shape[-2:]
-    x1, x2 = img1 / 255.0, img2 / 255.0
-    mean = torch.cat((x1, x2), dim=2).mean(dim=(2, 3), keepdim=True)
-    x1, x2 = x1 - mean, x2 - mean
-    hh = FFN_DIV_SIZE * -(-h // FFN_DIV_SIZE)
-    ww = FFN_DIV_SIZE * -(-w // FFN_DIV_SIZE)
-    if (hh, ww) != (h, w):
-        x1 = F.interpolate(x1, size=(hh, ww), mode="bilinear", align_corners=False)
-        x2 = F.interpolate(x2, size=(hh, ww), mode="bilinear", align_corners=False)
+    x1, x2 = fastflownet_inputs(img1, img2)
+    hh, ww = x1.shape[-2:]
     out = model(x1, x2)
     flow = FFN_DIV_FLOW * F.interpolate(out, size=(hh, ww), mode="bilinear", align_corners=False)
     if (hh, ww) != (h, w):

@@ -1,0 +1,438 @@
+"""FastFlowNet pretrained here, supervised, on a synthetic world of its own.
+
+The paper's flow networks were trained supervised on synthetic data (FlyingChairs, Things)
+before they met real frames. No such weights can be had offline, so this module makes the
+study's own: FastFlowNet (:class:`flowmod.flow.nets.FastFlowNet`) trained from scratch on
+the exact flow of a *pretraining world*, a generated world of its own seed and size that
+shares no scene with the book's worlds (the book's every scene can then be a test scene).
+
+The recipe (:class:`Recipe`, recorded in the manifest) in short: frame pairs 1 to
+``max_gap`` camera frames apart (12 Hz sweeps and keyframes) of the world's training
+scenes, read at ``scale`` (the book's ``flow_scale``); random ``crop`` windows, a random
+horizontal flip; the multi-scale end-point error of every decoder level against the exact
+flow over its valid pixels (:func:`pyramid_loss`); Adam with the rate halved at fixed
+steps (so weights stopped at any step are what the same recipe gives at that step);
+gradient norm clipped. Every ``eval_every`` steps: end-point error on keyframe pairs of the
+validation scenes, overall and inside the far (Table-1, 30-70 m) vehicles' boxes, beside
+DIS. The batch of step ``i`` is drawn with ``(seed, i)``; a killed run resumes from
+``last.pt``.
+
+``python -m flowmod.flow.pretrain`` (``make flownet``) generates the world, trains, and
+publishes ``weights/fastflownet_synth/``: ``weights.pt`` (float16 state_dict, an ordinary
+``fastflownet_weights`` file) and ``manifest.json`` (recipe, world fingerprint, steps, the
+validation curve, the final validation errors of the published float16 weights, sha256,
+where and how long it ran).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pandas as pd
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from flowmod.artefacts import atomic_path, file_digest, fingerprint, write_json
+from flowmod.flow.estimators import GTFlow
+from flowmod.flow.nets import FFN_DIV_FLOW, FastFlowNet, fastflownet_inputs
+from flowmod.flow.registry import read_image, resize_flow
+from flowmod.flow.selftrain import HeldOut, baselines, held_out, score_model
+from flowmod.params import validate
+from flowmod.paths import repo_root
+from flowmod.progress import bar
+
+#: Where the shipped weights live (relative to the repository root).
+WEIGHTS_DIR = "weights/fastflownet_synth"
+#: Decoder levels of :meth:`FastFlowNet.levels`, finest first.
+LEVELS = (2, 3, 4, 5, 6)
+#: Steps between resumable checkpoints.
+CHECKPOINT_EVERY = 100
+
+
+class PretrainError(ValueError):
+    """Bad input to the pretraining; the message names the thing and the fix."""
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """Everything the shipped weights depend on besides the code."""
+
+    world_seed: int = 1000
+    world_scenes: int = 32
+    world_keyframes: int = 10
+    world_vehicles: int = 28
+    #: every ``val_every``-th scene (sorted by name) is a validation scene
+    val_every: int = 4
+    scale: float = 0.5
+    max_gap: int = 6
+    #: a training pair starts every ``start_stride``-th camera frame
+    start_stride: int = 4
+    batch: int = 4
+    crop: tuple[int, int] = (256, 448)
+    lr: float = 3e-4
+    #: steps at which the rate is multiplied by ``gamma``
+    milestones: tuple[int, ...] = (6_000, 10_000, 14_000)
+    gamma: float = 0.5
+    clip: float = 1.0
+    #: loss weights of levels 2..6 (means over valid pixels, px of the input)
+    level_weights: tuple[float, ...] = (1.0, 0.5, 0.25, 0.25, 0.25)
+    flip_p: float = 0.5
+    eval_every: int = 1000
+    eval_pairs: int = 24
+    seed: int = 0
+    threads: int = 2
+
+    def world_params(self, dataroot: str) -> Any:
+        """The :class:`flowmod.params.Params` of the pretraining world (sweeps everywhere)."""
+        return validate({
+            "profile": "pretrain", "dataroot": dataroot, "seed": self.world_seed,
+            "world_scenes": self.world_scenes, "world_keyframes": self.world_keyframes,
+            "world_sweep_scenes": self.world_scenes, "world_vehicles": self.world_vehicles,
+            "flow_scale": self.scale}, source="pretraining recipe")
+
+
+# --- the loss (a pure function of tensors) ------------------------------------------------------
+
+def level_target(gt: Tensor, valid: Tensor, level: int) -> tuple[Tensor, Tensor]:
+    """The exact flow (B, 2, H, W) px and its valid mask (B, 1, H, W) at decoder ``level``
+    (H / 2^level): the mean over each cell's valid pixels; a cell is valid where more than
+    half of its pixels are."""
+    k = 2 ** level
+    v = valid.float()
+    share = F.avg_pool2d(v, k, k)
+    flow = F.avg_pool2d(gt * v, k, k) / share.clamp(min=1e-6)
+    return flow, (share > 0.5).float()
+
+
+def pyramid_loss(levels: Sequence[Tensor], gt: Tensor, valid: Tensor,
+                 weights: Sequence[float]) -> tuple[Tensor, dict[str, float]]:
+    """Weighted sum over decoder levels (finest first, units px / 20) of the mean end-point
+    error, px of the input, over valid cells. Returns (loss, {"epe2": finest level's EPE})."""
+    loss, parts = gt.new_zeros(()), {}
+    for lvl, flow, w in zip(LEVELS, levels, weights, strict=True):
+        target, ok = level_target(gt, valid, lvl)
+        err = torch.sqrt(((FFN_DIV_FLOW * flow - target) ** 2).sum(1, keepdim=True) + 1e-6)
+        epe = (err * ok).sum() / ok.sum().clamp(min=1.0)
+        loss = loss + w * epe
+        if lvl == LEVELS[0]:
+            parts["epe2"] = float(epe.detach())
+    return loss, parts
+
+
+# --- the pretraining world ------------------------------------------------------------------------
+
+def ensure_world(recipe: Recipe, dataroot: Path, progress: bool = True) -> str:
+    """Generate the pretraining world at ``dataroot`` unless it is there; its fingerprint
+    (the tables' content)."""
+    from flowmod import world  # lazy: the world's generator is only needed here
+
+    p = recipe.world_params(str(dataroot))
+    world.ensure_world(p, progress=progress)
+    vdir = dataroot / p.version
+    files = sorted(f for f in vdir.glob("*.json") if f.name != "flowmod.manifest.json")
+    return fingerprint([(f.name, file_digest(f)) for f in files], n=64)
+
+
+def scene_frames(dataroot: Path, version: str) -> dict[str, list[dict]]:
+    """``{scene name: its CAM_FRONT sample_data records in time order}``."""
+    from flowmod.select import camera_frames, open_nuscenes
+
+    nusc = open_nuscenes(dataroot, version)
+    return {sc["name"]: camera_frames(nusc, sc["token"], keyframes_only=False)
+            for sc in sorted(nusc.scene, key=lambda s: s["name"])}
+
+
+def scene_split(scenes: Sequence[str], val_every: int) -> dict[str, str]:
+    """``train`` or ``val`` per scene name: every ``val_every``-th (sorted) is validation."""
+    return {s: "val" if k % val_every == val_every - 1 else "train"
+            for k, s in enumerate(sorted(scenes))}
+
+
+def training_pairs(frames: dict[str, list[dict]], split: dict[str, str], max_gap: int,
+                   stride: int) -> pd.DataFrame:
+    """Pairs of the training scenes: from every ``stride``-th frame, the frames 1 ..
+    ``max_gap`` later. Columns scene, gap, sd_token_1/2, path_1/2."""
+    rows = []
+    for scene, fr in frames.items():
+        if split[scene] != "train":
+            continue
+        for i in range(0, len(fr), stride):
+            for gap in range(1, max_gap + 1):
+                if i + gap < len(fr):
+                    a, b = fr[i], fr[i + gap]
+                    rows.append({"scene": scene, "gap": gap, "sd_token_1": a["token"],
+                                 "sd_token_2": b["token"], "path_1": a["filename"],
+                                 "path_2": b["filename"]})
+    return pd.DataFrame(rows)
+
+
+def validation_set(recipe: Recipe, dataroot: Path, split: dict[str, str]) -> HeldOut:
+    """``eval_pairs`` keyframe pairs of the validation scenes holding far vehicles (Table 1,
+    30-70 m, the book's selection rules), drawn with the seed, with their exact flow."""
+    from flowmod.select import filter_scenes, keyframe_set, open_nuscenes, scene_table
+
+    p = recipe.world_params(str(dataroot))
+    nusc = open_nuscenes(dataroot, p.version)
+    scenes = filter_scenes(scene_table(nusc), p.exclude_descriptions)
+    scenes = scenes[(scenes["excluded_by"] == "") & (scenes["scene"].map(split) == "val")]
+    pairs, objects = keyframe_set(nusc, scenes.assign(split="val"), p, progress=False)
+    pick = np.random.default_rng([recipe.seed, 1]).permutation(len(pairs))[:recipe.eval_pairs]
+    pairs = pairs.iloc[np.sort(pick)].reset_index(drop=True)
+    return held_out(pairs, objects, dataroot, p.version, synthetic=True)
+
+
+# --- data -------------------------------------------------------------------------------------------
+
+@dataclass
+class PairCache:
+    """Training pairs read at the recipe's scale, decoded once and kept as ``.npy`` in
+    ``folder``: images (h, w, 3) uint8 BGR, exact flow (h, w, 2) float16 px, valid (h, w)."""
+
+    pairs: pd.DataFrame
+    dataroot: Path
+    version: str
+    scale: float
+    folder: Path
+    _gt: GTFlow | None = field(default=None, repr=False)
+
+    def _image(self, rel: str) -> np.ndarray:
+        f = self.folder / "images" / (Path(rel).stem + ".npy")
+        if f.is_file():
+            return np.load(f)
+        img = read_image(self.dataroot / rel)
+        h, w = (round(s * self.scale) for s in img.shape[:2])
+        img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+        f.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(f) as tmp:
+            np.save(tmp, img)
+        return img
+
+    def _flow(self, i: int, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        f = self.folder / "flow" / f"{i:06d}.npz"
+        if f.is_file():
+            z = np.load(f)
+            return z["flow"].astype(np.float32), z["valid"]
+        self._gt = self._gt or GTFlow(self.dataroot, self.version)
+        r = self.pairs.iloc[i]
+        flow, valid = self._gt.estimate_tokens(r.sd_token_1, r.sd_token_2)
+        small = resize_flow(flow, size)
+        vsmall = cv2.resize(valid.astype(np.uint8), size[::-1],
+                            interpolation=cv2.INTER_NEAREST).astype(bool)
+        f.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(f) as tmp:
+            np.savez(tmp, flow=small.astype(np.float16), valid=vsmall)
+        return small.astype(np.float16).astype(np.float32), vsmall
+
+    def load(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Pair ``i``: img1, img2 (h, w, 3) uint8, flow (h, w, 2) float32 px, valid (h, w)."""
+        r = self.pairs.iloc[i]
+        a, b = self._image(r.path_1), self._image(r.path_2)
+        flow, valid = self._flow(i, a.shape[:2])
+        return a, b, flow, valid
+
+
+def draw_batch(data: PairCache, recipe: Recipe, step: int) -> dict[str, Tensor]:
+    """The batch of ``step``, drawn with ``(seed, step)``: pairs, one ``crop`` window each
+    and a horizontal flip with ``flip_p`` (images mirrored, u negated). Tensors img1, img2
+    (B, 3, h, w) float BGR [0, 255], gt (B, 2, h, w) px, valid (B, 1, h, w)."""
+    rng = np.random.default_rng([recipe.seed, step])
+    ch, cw = recipe.crop
+    out: dict[str, list[np.ndarray]] = {"img1": [], "img2": [], "gt": [], "valid": []}
+    for i in rng.integers(0, len(data.pairs), size=recipe.batch):
+        a, b, gt, valid = data.load(int(i))
+        h, w = a.shape[:2]
+        if h < ch or w < cw:
+            raise PretrainError(f"crop {recipe.crop} is larger than the frames at scale "
+                                f"{recipe.scale} ({h}x{w}): use a smaller crop")
+        y, x = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
+        win = (slice(y, y + ch), slice(x, x + cw))
+        a, b, gt, valid = a[win], b[win], gt[win], valid[win]
+        if rng.random() < recipe.flip_p:
+            a, b, valid = a[:, ::-1], b[:, ::-1], valid[:, ::-1]
+            gt = gt[:, ::-1] * np.array([-1.0, 1.0], np.float32)
+        out["img1"].append(a.transpose(2, 0, 1))
+        out["img2"].append(b.transpose(2, 0, 1))
+        out["gt"].append(gt.transpose(2, 0, 1))
+        out["valid"].append(valid[None])
+    return {k: torch.from_numpy(np.ascontiguousarray(np.stack(v))).float()
+            for k, v in out.items()}
+
+
+# --- training ------------------------------------------------------------------------------------------
+
+def learning_rate(recipe: Recipe, step: int) -> float:
+    """The rate of step ``step`` (0-based): ``lr`` times ``gamma`` per milestone passed."""
+    return recipe.lr * recipe.gamma ** sum(step >= m for m in recipe.milestones)
+
+
+def train_step(model: FastFlowNet, opt: torch.optim.Optimizer, batch: dict[str, Tensor],
+               recipe: Recipe, step: int) -> dict[str, float]:
+    """One optimiser step on ``batch``; returns the step's loss and finest-level EPE."""
+    for g in opt.param_groups:
+        g["lr"] = learning_rate(recipe, step)
+    x1, x2 = fastflownet_inputs(batch["img1"], batch["img2"])
+    loss, parts = pyramid_loss(model.levels(x1, x2), batch["gt"], batch["valid"],
+                               recipe.level_weights)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), recipe.clip)
+    opt.step()
+    return {"loss": float(loss.detach()), **parts}
+
+
+def _resume(work: Path, model: FastFlowNet, opt: torch.optim.Optimizer, recipe: Recipe
+            ) -> tuple[int, list[dict[str, float]]]:
+    last = work / "last.pt"
+    if not last.is_file():
+        return 0, []
+    state = torch.load(last, map_location="cpu", weights_only=True)
+    if state["recipe"] != json.dumps(asdict(recipe), sort_keys=True):
+        raise PretrainError(f"{last} was written by another recipe: remove {work} or use the "
+                            "recipe it was made with")
+    model.load_state_dict(state["model"])
+    opt.load_state_dict(state["optim"])
+    return int(state["step"]), list(state["history"])
+
+
+def _checkpoint(work: Path, model: FastFlowNet, opt: torch.optim.Optimizer, recipe: Recipe,
+                step: int, rows: list[dict[str, float]]) -> None:
+    with atomic_path(work / "last.pt") as tmp:
+        torch.save({"model": model.state_dict(), "optim": opt.state_dict(), "step": step,
+                    "history": rows, "recipe": json.dumps(asdict(recipe), sort_keys=True)},
+                   tmp)
+
+
+def train(recipe: Recipe, data: PairCache, work: Path, steps: int, heldout: HeldOut | None,
+          progress: bool = True) -> tuple[FastFlowNet, list[dict[str, float]]]:
+    """Train (or resume) to ``steps`` in ``work``; evaluate on ``heldout`` every
+    ``eval_every`` steps. Returns the model and the history (a row per step)."""
+    torch.set_num_threads(recipe.threads)
+    torch.manual_seed(recipe.seed)
+    model = FastFlowNet()
+    opt = torch.optim.Adam(model.parameters(), lr=recipe.lr)
+    start, rows = _resume(work, model, opt, recipe)
+    model.train()
+    pbar = bar(total=steps, initial=start, desc="pretrain fastflownet", unit="step",
+               disable=not progress)
+    for step in range(start, steps):
+        t0 = time.perf_counter()
+        row = {"step": step + 1, **train_step(model, opt, draw_batch(data, recipe, step),
+                                               recipe, step)}
+        row["seconds"] = time.perf_counter() - t0
+        if heldout is not None and (step + 1) % recipe.eval_every == 0:
+            row.update({f"val_{k}": v for k, v in
+                        score_model(model, heldout, recipe.scale).items()})
+        rows.append(row)
+        pbar.update(1)
+        pbar.set_postfix(loss=f"{row['loss']:.2f}")
+        if (step + 1) % CHECKPOINT_EVERY == 0 or step + 1 == steps:
+            _checkpoint(work, model, opt, recipe, step + 1, rows)
+    pbar.close()
+    return model, rows
+
+
+# --- publishing ----------------------------------------------------------------------------------------
+
+def half_state(model: FastFlowNet) -> dict[str, Tensor]:
+    """The model's state_dict in float16 (what is shipped)."""
+    return {k: v.detach().cpu().half() for k, v in model.state_dict().items()}
+
+
+def load_half(path: Path) -> FastFlowNet:
+    """A FastFlowNet (float32) from a float16 state_dict file."""
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    model = FastFlowNet()
+    model.load_state_dict({k: v.float() for k, v in state.items()})
+    return model.eval()
+
+
+def curve(rows: Sequence[dict[str, float]]) -> list[dict[str, float]]:
+    """The validation rows of a history: step and the val_* metrics."""
+    return [{k: v for k, v in r.items() if k == "step" or k.startswith("val_")}
+            for r in rows if "val_epe" in r]
+
+
+def publish(recipe: Recipe, work: Path, out: Path, world_fp: str, heldout: HeldOut,
+            wall_seconds: float | None = None) -> dict[str, Any]:
+    """Publish ``work/last.pt`` as ``out/weights.pt`` (float16) with ``out/manifest.json``;
+    the validation errors are those of the float16 weights. Returns the manifest."""
+    state = torch.load(work / "last.pt", map_location="cpu", weights_only=True)
+    model = FastFlowNet()
+    model.load_state_dict(state["model"])
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out / "weights.pt") as tmp:
+        torch.save(half_state(model), tmp)
+    rows = state["history"]
+    final = score_model(load_half(out / "weights.pt"), heldout, recipe.scale)
+    manifest = {
+        "network": "FastFlowNet (flowmod.flow.nets), trained from scratch here",
+        "recipe": asdict(recipe), "steps": int(state["step"]),
+        "world": {"fingerprint": world_fp, "dataroot_params":
+                  recipe.world_params("data/pretrain").model_dump(
+                      include={"seed", "world_scenes", "world_keyframes",
+                               "world_sweep_scenes", "world_vehicles"})},
+        "validation": {"pairs": len(heldout.img1), "final_float16": final,
+                       "baselines": baselines(heldout, recipe.scale), "curve": curve(rows)},
+        "first_losses": [r["loss"] for r in rows[:5]],
+        "train_seconds": float(sum(r["seconds"] for r in rows)),
+        "wall_seconds": wall_seconds,
+        "where": {"machine": platform.machine(), "processor": platform.processor(),
+                  "torch": torch.__version__, "threads": recipe.threads,
+                  "device": "cpu", "python": platform.python_version()},
+        "sha256": file_digest(out / "weights.pt"),
+        "format": "float16 state_dict; load with torch.load(weights_only=True)",
+    }
+    write_json(out / "manifest.json", manifest)
+    return manifest
+
+
+def prepare(recipe: Recipe, dataroot: Path, work: Path, progress: bool = True
+            ) -> tuple[str, PairCache, HeldOut]:
+    """The world (generated if missing), its training pairs and the validation set."""
+    world_fp = ensure_world(recipe, dataroot, progress)
+    version = recipe.world_params(str(dataroot)).version
+    frames = scene_frames(dataroot, version)
+    split = scene_split(list(frames), recipe.val_every)
+    pairs = training_pairs(frames, split, recipe.max_gap, recipe.start_stride)
+    if pairs.empty:
+        raise PretrainError(f"no training pair in {dataroot}: the world has no training scene")
+    data = PairCache(pairs, dataroot, version, recipe.scale, work / "cache")
+    return world_fp, data, validation_set(recipe, dataroot, split)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m flowmod.flow.pretrain``: train (resumable) and publish the weights."""
+    ap = argparse.ArgumentParser(prog="python -m flowmod.flow.pretrain",
+                                 description=main.__doc__)
+    ap.add_argument("--steps", type=int, default=16_000, help="train to this step")
+    ap.add_argument("--dataroot", type=Path, default=repo_root() / "data" / "pretrain")
+    ap.add_argument("--work", type=Path, default=repo_root() / "runs" / "pretrain")
+    ap.add_argument("--out", type=Path, default=repo_root() / WEIGHTS_DIR)
+    ap.add_argument("--publish-only", action="store_true",
+                    help="publish the last checkpoint as it is (its step) without training")
+    args = ap.parse_args(argv)
+    recipe, t0 = Recipe(), time.time()
+    args.work.mkdir(parents=True, exist_ok=True)
+    world_fp, data, heldout = prepare(recipe, args.dataroot.resolve(), args.work)
+    print(f"[pretrain] {len(data.pairs)} training pairs, {len(heldout.img1)} validation pairs",
+          flush=True)
+    if not args.publish_only:
+        train(recipe, data, args.work, args.steps, heldout)
+    m = publish(recipe, args.work, args.out, world_fp, heldout, time.time() - t0)
+    print(f"[pretrain] published {args.out}/weights.pt: step {m['steps']}, validation "
+          f"EPE in far boxes {m['validation']['final_float16']['epe_boxes']:.2f} px", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
