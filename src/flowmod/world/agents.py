@@ -15,19 +15,19 @@ import numpy as np
 from flowmod.params import TABLE1_CATEGORIES
 from flowmod.world.layout import _ego_plan, _layout, _static_objects
 from flowmod.world.scene import (
-    _choice,
-    _footprints,
-    _profile_const,
-    _profile_ramp,
-    _straight,
     arc_length,
+    footprints,
     lane_across,
     park_across,
+    profile_const,
+    profile_ramp,
     rects_overlap,
     road_frames,
     road_point,
     speed_at,
+    straight_path,
     traj_state,
+    weighted_choice,
     wrap_angle,
 )
 
@@ -96,17 +96,17 @@ def _size(rng: np.random.Generator, category: str) -> list[float]:
 
 def _moving_profile(rng: np.random.Generator, duration: float, vmax: float = 14.0) -> dict:
     """A speed profile for traffic: cruising, rolling near 2 m/s, or crossing 2 m/s."""
-    kind = _choice(rng, {"const": 0.5, "roll": 0.16, "accel": 0.17, "brake": 0.17})
+    kind = weighted_choice(rng, {"const": 0.5, "roll": 0.16, "accel": 0.17, "brake": 0.17})
     if kind == "const":
-        return _profile_const(rng.uniform(2.6, vmax))
+        return profile_const(rng.uniform(2.6, vmax))
     if kind == "roll":
-        return _profile_const(rng.uniform(0.6, 3.6))
+        return profile_const(rng.uniform(0.6, 3.6))
     t0 = rng.uniform(-1.0, max(duration - 1.5, 0.5))
     if kind == "accel":
-        return _profile_ramp(
+        return profile_ramp(
             t0, rng.uniform(0.0, 1.4), rng.uniform(3.0, 9.0), rng.uniform(0.8, 2.2)
         )
-    return _profile_ramp(t0, rng.uniform(3.0, 9.0), rng.uniform(0.0, 1.2), rng.uniform(0.8, 2.5))
+    return profile_ramp(t0, rng.uniform(3.0, 9.0), rng.uniform(0.0, 1.2), rng.uniform(0.8, 2.5))
 
 
 def _targeted_point(
@@ -155,14 +155,14 @@ def _place(
         hit = _targeted_point(rng, road, across, ego, duration, d_range, box_h)
         if hit is not None:
             x, y, _, t_star = hit
-            traj = {"path": _straight(x, y, heading), "s0": 0.0, "speed": prof}
+            traj = {"path": straight_path(x, y, heading), "s0": 0.0, "speed": prof}
             traj["s0"] = float(-(arc_length(traj, t_star) - 0.0))
             traj["t_view"] = t_star  # placed in view, 30-75 m ahead, at this time (s)
             return traj
         if p_target >= 1.0:
             return None
     x, y = road_point(road, free_x, across)  # main road: along = x; cross road: along = y
-    return {"path": _straight(x, y, heading), "s0": 0.0, "speed": prof}
+    return {"path": straight_path(x, y, heading), "s0": 0.0, "speed": prof}
 
 
 def _view_intervals(
@@ -218,11 +218,11 @@ def _agent_candidate(rng, roads, ego, duration, cross_x, vmax, p_target: float =
     }
     if cross_x is not None:
         roles.update({"cross": 0.08, "queue": 0.05, "cross_parked": 0.05})
-    role = _choice(rng, roles)
+    role = weighted_choice(rng, roles)
     if role in ("parked", "cross_parked"):
-        category = _choice(rng, PARKED_WEIGHTS)
+        category = weighted_choice(rng, PARKED_WEIGHTS)
     else:
-        category = _choice(rng, DRIVING_WEIGHTS)
+        category = weighted_choice(rng, DRIVING_WEIGHTS)
         if role == "roll" and category.startswith("vehicle.bus"):
             category = "vehicle.car"
     size = _size(rng, category)
@@ -244,7 +244,7 @@ def _agent_candidate(rng, roads, ego, duration, cross_x, vmax, p_target: float =
         else:
             free = float(rng.choice([-1, 1])) * rng.uniform(max(main["walk"]) + 3, 120)
         traj = _place(
-            rng, road, across, h, ego, duration, _profile_const(0.0), size[2], near, free, p_target
+            rng, road, across, h, ego, duration, profile_const(0.0), size[2], near, free, p_target
         )
         return category, size, "parked", traj
     if role == "halt":  # standing in a lane (waiting, double-parked); may drive off
@@ -253,7 +253,7 @@ def _agent_candidate(rng, roads, ego, duration, cross_x, vmax, p_target: float =
         across = lane_across(main, direction, lane) + rng.normal(0, 0.15)
         h = 0.0 if direction > 0 else math.pi
         t_go = rng.uniform(0.0, duration * 2.0)
-        prof = _profile_ramp(t_go, 0.0, rng.uniform(3.0, 8.0), rng.uniform(0.8, 2.0))
+        prof = profile_ramp(t_go, 0.0, rng.uniform(3.0, 8.0), rng.uniform(0.8, 2.0))
         free = rng.uniform(x_lo + 10.0, x_hi + 120.0)
         traj = _place(rng, main, across, h, ego, duration, prof, size[2], near, free, p_target)
         return category, size, "stopped", traj
@@ -264,7 +264,7 @@ def _agent_candidate(rng, roads, ego, duration, cross_x, vmax, p_target: float =
         h = 0.0 if direction > 0 else math.pi
         d_range = near
         if role == "far":
-            prof = _profile_const(rng.uniform(6.0, vmax))
+            prof = profile_const(rng.uniform(6.0, vmax))
             free = rng.uniform(x_lo + 60.0, x_hi + 130.0)
             d_range = (55.0, 110.0)
         elif role == "convoy":
@@ -272,7 +272,7 @@ def _agent_candidate(rng, roads, ego, duration, cross_x, vmax, p_target: float =
             prof = {"t": list(ego["speed"]["t"]), "v": [float(v * f) for v in ego["speed"]["v"]]}
             free = rng.uniform(x_lo + 12.0, x_lo + 90.0)
         elif role == "roll":
-            prof = _profile_const(rng.uniform(0.5, 3.8))
+            prof = profile_const(rng.uniform(0.5, 3.8))
             free = rng.uniform(x_lo + 10.0, x_hi + 90.0)
         elif role == "oncoming":
             prof = _moving_profile(rng, duration, vmax)
@@ -281,7 +281,7 @@ def _agent_candidate(rng, roads, ego, duration, cross_x, vmax, p_target: float =
             prof = _moving_profile(rng, duration, vmax)
             if rng.random() < 0.4 and len(prof["v"]) == 1:  # travelling with the ego
                 v_ego = float(np.mean(speed_at(ego["speed"], np.linspace(0, duration, 5))))
-                prof = _profile_const(max(v_ego + rng.normal(0, 1.5), 0.6))
+                prof = profile_const(max(v_ego + rng.normal(0, 1.5), 0.6))
             free = rng.uniform(x_lo - 10.0, x_hi + 110.0)
         traj = _place(rng, main, across, h, ego, duration, prof, size[2], d_range, free, p_target)
         return category, size, "moving", traj
@@ -296,7 +296,7 @@ def _agent_candidate(rng, roads, ego, duration, cross_x, vmax, p_target: float =
         t_c = rng.uniform(-3.0, duration + 3.0)  # time at the main road's centre line
         free = -direction * v * t_c
         traj = _place(
-            rng, cross, across, h, ego, duration, _profile_const(v), size[2], near, free, p_target
+            rng, cross, across, h, ego, duration, profile_const(v), size[2], near, free, p_target
         )
         return category, size, "moving", traj
     # queue before the stop line on the cross road; may start during the scene
@@ -307,8 +307,8 @@ def _agent_candidate(rng, roads, ego, duration, cross_x, vmax, p_target: float =
     along = -direction * dist
     x, y = road_point(cross, along, across)
     t_go = rng.uniform(0.0, duration + 6.0)
-    prof = _profile_ramp(t_go, 0.0, rng.uniform(5.0, 10.0), rng.uniform(1.0, 2.5))
-    return category, size, "queue", {"path": _straight(x, y, h), "s0": 0.0, "speed": prof}
+    prof = profile_ramp(t_go, 0.0, rng.uniform(5.0, 10.0), rng.uniform(1.0, 2.5))
+    return category, size, "queue", {"path": straight_path(x, y, h), "s0": 0.0, "speed": prof}
 
 
 def _pedestrian_candidate(rng, roads, ego, duration):
@@ -341,13 +341,14 @@ def _pedestrian_candidate(rng, roads, ego, duration):
         h = math.pi / 2 if start_y < 0 else -math.pi / 2
         v = rng.uniform(0.9, 1.6)
         t_start = rng.uniform(-4, duration)
-        traj = {"path": _straight(x, y, h), "s0": 0.0, "speed": _profile_ramp(t_start, 0.0, v, 5.0)}
+        prof = profile_ramp(t_start, 0.0, v, 5.0)
+        traj = {"path": straight_path(x, y, h), "s0": 0.0, "speed": prof}
         return category, size, "walking", traj
     return (
         category,
         size,
         ("walking" if v > 0 else "standing"),
-        {"path": _straight(x, y, h), "s0": 0.0, "speed": _profile_const(v)},
+        {"path": straight_path(x, y, h), "s0": 0.0, "speed": profile_const(v)},
     )
 
 
@@ -375,7 +376,7 @@ def sample_scene(
     vmax = 15.0 if layout["kind"] == "arterial" else 12.0
 
     times = np.arange(-0.5, duration + 0.75, 0.25)
-    ego_fp = _footprints(ego, (1.9, 4.8, 1.6), times, 0.6)
+    ego_fp = footprints(ego, (1.9, 4.8, 1.6), times, 0.6)
     # ego reference point is the rear axle: shift the footprint forward by 1.4 m
     ego_fp = (ego_fp[0] + 1.4 * np.cos(ego_fp[2]), ego_fp[1] + 1.4 * np.sin(ego_fp[2]), *ego_fp[2:])
     accepted_fp = [ego_fp]
@@ -404,7 +405,7 @@ def sample_scene(
             if cand is None or cand[3] is None:
                 continue
             category, size, role, traj = cand
-            fp = _footprints(
+            fp = footprints(
                 traj, size, times, 0.5, rng.uniform(2.5, 7.0) if role == "parked" else None
             )
             if any(rects_overlap(fp, other).any() for other in accepted_fp):
@@ -453,7 +454,7 @@ def sample_scene(
         if sum(a["kind"] == "pedestrian" for a in agents) >= n_peds:
             break
         category, size, role, traj = _pedestrian_candidate(rng, roads, ego, duration)
-        fp = _footprints(traj, size, times, 0.3)
+        fp = footprints(traj, size, times, 0.3)
         if any(rects_overlap(fp, other).any() for other in accepted_fp):
             continue
         accepted_fp.append(fp)

@@ -13,14 +13,14 @@ import math
 import numpy as np
 
 from flowmod.world.scene import (
-    _choice,
-    _profile_ramp,
-    _straight,
     arc_length,
     lane_across,
+    profile_ramp,
     road_coords,
     road_frames,
     road_point,
+    straight_path,
+    weighted_choice,
 )
 
 # --------------------------------------------------------------------------------------------
@@ -41,7 +41,7 @@ def _ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cros
         options.update(
             {"wait": 0.14, "brake": 0.12, "go": 0.1, "turn_left": 0.07, "turn_right": 0.07}
         )
-    kind = _choice(rng, options)
+    kind = weighted_choice(rng, options)
     if kind == "turn_left":
         lane = 0
         y = lane_across(main, +1, lane)
@@ -51,9 +51,9 @@ def _ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cros
 
     if kind in ("cruise", "follow"):
         v = rng.uniform(2.5, 11.0) if main["lanes"] < 3 else rng.uniform(4.0, 14.0)
-        prof = _profile_ramp(rng.uniform(0, duration), v, v + rng.uniform(-2.5, 2.5), 0.6)
+        prof = profile_ramp(rng.uniform(0, duration), v, v + rng.uniform(-2.5, 2.5), 0.6)
         prof["v"][1] = max(prof["v"][1], 1.0)
-        return kind, lane, {"path": _straight(0.0, y, 0.0), "s0": 0.0, "speed": prof}
+        return kind, lane, {"path": straight_path(0.0, y, 0.0), "s0": 0.0, "speed": prof}
     if kind == "stop_and_go":
         n = 4
         ts = np.sort(rng.uniform(-0.5, duration + 0.5, n))
@@ -63,29 +63,29 @@ def _ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cros
             kind,
             lane,
             {
-                "path": _straight(0.0, y, 0.0),
+                "path": straight_path(0.0, y, 0.0),
                 "s0": 0.0,
                 "speed": {"t": [float(a) for a in ts], "v": [float(a) for a in vs]},
             },
         )
     if kind == "wait":
         t_go = rng.uniform(duration * 0.7, duration + 8.0)
-        prof = _profile_ramp(t_go, 0.0, rng.uniform(6, 10), rng.uniform(1.5, 2.5))
+        prof = profile_ramp(t_go, 0.0, rng.uniform(6, 10), rng.uniform(1.5, 2.5))
         x0 = stop_x - rng.uniform(0.0, 1.5)
-        return kind, lane, {"path": _straight(x0, y, 0.0), "s0": 0.0, "speed": prof}
+        return kind, lane, {"path": straight_path(x0, y, 0.0), "s0": 0.0, "speed": prof}
     if kind == "go":
         t_go = rng.uniform(0.0, duration * 0.4)
-        prof = _profile_ramp(t_go, 0.0, rng.uniform(7, 12), rng.uniform(1.2, 2.5))
+        prof = profile_ramp(t_go, 0.0, rng.uniform(7, 12), rng.uniform(1.2, 2.5))
         x0 = stop_x - rng.uniform(0.0, 1.5)
-        return kind, lane, {"path": _straight(x0, y, 0.0), "s0": 0.0, "speed": prof}
+        return kind, lane, {"path": straight_path(x0, y, 0.0), "s0": 0.0, "speed": prof}
     if kind == "brake":
         v0 = rng.uniform(5.0, 12.0)
         dec = rng.uniform(1.5, 3.0)
         t_b = rng.uniform(0.5, max(duration - v0 / dec, 1.0))
-        prof = _profile_ramp(t_b, v0, 0.0, dec)
+        prof = profile_ramp(t_b, v0, 0.0, dec)
         stop_dist = v0 * t_b + v0 * v0 / (2 * dec)
         x0 = stop_x - rng.uniform(0.0, 1.5) - stop_dist
-        return kind, lane, {"path": _straight(x0, y, 0.0), "s0": 0.0, "speed": prof}
+        return kind, lane, {"path": straight_path(x0, y, 0.0), "s0": 0.0, "speed": prof}
     # turns: from the main road onto the cross road
     cross = roads[1]
     if kind == "turn_left":
@@ -111,7 +111,7 @@ def _ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cros
     }
     prof = {"t": [float(a) for a in prof["t"]], "v": [float(a) for a in prof["v"]]}
     # the arc starts at x_s when t = t_turn: position the start so that s(t_turn) = x_s - x0
-    tmp = {"path": _straight(0.0, y, 0.0), "s0": 0.0, "speed": prof}
+    tmp = {"path": straight_path(0.0, y, 0.0), "s0": 0.0, "speed": prof}
     s_turn = float(arc_length(tmp, t_turn))
     x0 = x_s - s_turn
     path = {"x": x0, "y": y, "h": 0.0, "segs": [[x_s - x0, 0.0], [arc_len, k]]}
@@ -119,7 +119,7 @@ def _ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cros
 
 
 def _layout(rng: np.random.Generator, with_cross: bool) -> dict:
-    kind = _choice(rng, {"urban": 0.5, "suburban": 0.3, "arterial": 0.2})
+    kind = weighted_choice(rng, {"urban": 0.5, "suburban": 0.3, "arterial": 0.2})
     lanes = int(rng.choice([1, 2, 2, 2, 3])) if kind != "arterial" else int(rng.choice([2, 3]))
     main = {
         "o": [0.0, 0.0],

@@ -193,7 +193,7 @@ def road_point(road: dict, along: float, across: float) -> tuple[float, float]:
 # --------------------------------------------------------------------------------------------
 
 
-def _footprints(
+def footprints(
     traj: dict,
     size: tuple[float, float, float],
     times: np.ndarray,
@@ -230,23 +230,26 @@ def rects_overlap(a, b) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def _choice(rng: np.random.Generator, weights: dict[str, float]) -> str:
+def weighted_choice(rng: np.random.Generator, weights: dict[str, float]) -> str:
+    """One key of ``weights`` drawn with probability proportional to its weight."""
     keys = list(weights)
     p = np.array([weights[k] for k in keys], dtype=np.float64)
     return keys[int(rng.choice(len(keys), p=p / p.sum()))]
 
 
-def _profile_const(v: float) -> dict:
+def profile_const(v: float) -> dict:
+    """A constant speed profile at ``v`` (m/s)."""
     return {"t": [0.0], "v": [float(v)]}
 
 
-def _profile_ramp(t0: float, v0: float, v1: float, accel: float) -> dict:
+def profile_ramp(t0: float, v0: float, v1: float, accel: float) -> dict:
     """Constant v0 until t0, then constant acceleration magnitude ``accel`` to v1."""
     dur = abs(v1 - v0) / max(accel, 1e-6)
     return {"t": [float(t0), float(t0 + dur)], "v": [float(v0), float(v1)]}
 
 
-def _straight(x: float, y: float, h: float) -> dict:
+def straight_path(x: float, y: float, h: float) -> dict:
+    """A straight path from (x, y) (m, scene frame) with heading ``h`` (rad)."""
     return {"x": float(x), "y": float(y), "h": float(h), "segs": []}
 
 
