@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from flowmod.params import TABLE1_CATEGORIES
-from flowmod.world.layout import _ego_plan, _layout, _static_objects
+from flowmod.world.layout import ego_plan, sample_layout, static_objects
 from flowmod.world.scene import (
     arc_length,
     footprints,
@@ -364,14 +364,14 @@ def sample_scene(
     rng = np.random.default_rng([int(seed), int(index), 101])
     duration = (n_keyframes - 1) * 0.5
     want_cross = rng.random() < 0.75
-    layout = _layout(rng, want_cross)
+    layout = sample_layout(rng, want_cross)
     roads = road_frames(layout)
     cross_x = None
     if want_cross:
         cross_x = round(float(rng.uniform(35.0, 110.0)), 2)
         layout["cross"]["o"] = [cross_x, 0.0]
         roads = road_frames(layout)
-    ego_kind, _ego_lane, ego = _ego_plan(rng, duration, roads, cross_x)
+    ego_kind, _ego_lane, ego = ego_plan(rng, duration, roads, cross_x)
     # the intersection relative to the ego: shift the cross road so the plan fits it
     vmax = 15.0 if layout["kind"] == "arterial" else 12.0
 
@@ -471,7 +471,7 @@ def sample_scene(
 
     ego_x = traj_state(ego, np.array([0.0, duration]))["x"]
     x_range = (float(min(ego_x) - 40.0), float(max(ego_x) + 330.0))
-    statics = _static_objects(rng, layout, x_range)
+    statics = static_objects(rng, layout, x_range)
 
     sun_az = float(rng.uniform(-math.pi, math.pi))
     look = {

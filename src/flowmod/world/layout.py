@@ -1,8 +1,8 @@
 """Sampling the stage of a scene: the road layout, the static objects and the ego's plan.
 
-Holds :func:`_layout` (main road and optional cross road), :func:`_static_objects`
+Holds :func:`sample_layout` (main road and optional cross road), :func:`static_objects`
 (buildings, trees, poles, hedges and walls along the roads, and a distant backdrop) and
-:func:`_ego_plan` (the ego's behaviour and trajectory on the main road), all in the scene frame
+:func:`ego_plan` (the ego's behaviour and trajectory on the main road), all in the scene frame
 of :mod:`~flowmod.world.scene`; :func:`flowmod.world.agents.sample_scene` calls them.
 """
 
@@ -28,7 +28,7 @@ from flowmod.world.scene import (
 # --------------------------------------------------------------------------------------------
 
 
-def _ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cross_x: float | None):
+def ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cross_x: float | None):
     """Ego trajectory and behaviour name. Lanes of the main road, travelling +x."""
     main = roads[0]
     lane = int(rng.integers(0, main["lanes"]))
@@ -118,7 +118,7 @@ def _ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cros
     return kind, lane, {"path": path, "s0": 0.0, "speed": prof}
 
 
-def _layout(rng: np.random.Generator, with_cross: bool) -> dict:
+def sample_layout(rng: np.random.Generator, with_cross: bool) -> dict:
     kind = weighted_choice(rng, {"urban": 0.5, "suburban": 0.3, "arterial": 0.2})
     lanes = int(rng.choice([1, 2, 2, 2, 3])) if kind != "arterial" else int(rng.choice([2, 3]))
     main = {
@@ -153,7 +153,7 @@ def _layout(rng: np.random.Generator, with_cross: bool) -> dict:
     return layout
 
 
-def _static_objects(rng: np.random.Generator, layout: dict, x_range: tuple[float, float]) -> list:
+def static_objects(rng: np.random.Generator, layout: dict, x_range: tuple[float, float]) -> list:
     """Buildings, trees, poles and hedges along the roads (boxes in the scene frame).
 
     Each object: ``{"kind", "c": [x, y, z_centre], "yaw", "size": [w, l, h], "tex": seed}``,
