@@ -28,13 +28,29 @@ from flowmod.world.scene import (
 # --------------------------------------------------------------------------------------------
 
 
-def ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cross_x: float | None):
-    """Ego trajectory and behaviour name. Lanes of the main road, travelling +x."""
+def ego_plan(
+    rng: np.random.Generator, duration: float, roads: list[dict], cross_x: float | None
+) -> tuple[str, int, dict]:
+    """The ego's behaviour name, lane and trajectory: lanes of the main road, travelling +x.
+
+    ``duration``: of the scene (s); ``cross_x``: the cross road's x (m), None without one.
+    """
     main = roads[0]
-    lane = int(rng.integers(0, main["lanes"]))
-    y = lane_across(main, +1, lane)
+    kind, lane, y = _ego_behaviour(rng, main, cross_x)
     kerb_c = max(roads[1]["kerb"]) if len(roads) > 1 else 0.0
     stop_x = cross_x - kerb_c - 4.5 if cross_x is not None else None
+    if kind in ("turn_left", "turn_right"):
+        return kind, lane, _turn_plan(rng, kind, duration, roads[1], cross_x, y)
+    return kind, lane, _lane_plan(rng, kind, duration, main, y, stop_x)
+
+
+def _ego_behaviour(
+    rng: np.random.Generator, main: dict, cross_x: float | None
+) -> tuple[str, int, float]:
+    """The ego's behaviour name, its lane of the main road and that lane's across offset (m);
+    the behaviours at the cross road only when there is one."""
+    lane = int(rng.integers(0, main["lanes"]))
+    y = lane_across(main, +1, lane)
 
     options = {"cruise": 0.3, "stop_and_go": 0.1, "follow": 0.1}
     if cross_x is not None:
@@ -48,46 +64,59 @@ def ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cross
     if kind == "turn_right":
         lane = main["lanes"] - 1
         y = lane_across(main, +1, lane)
+    return kind, lane, y
 
+
+def _lane_plan(
+    rng: np.random.Generator,
+    kind: str,
+    duration: float,
+    main: dict,
+    y: float,
+    stop_x: float | None,
+) -> dict:
+    """The ego's trajectory along its lane (across offset ``y``, m) for every behaviour but
+    the turns; ``stop_x``: the stop line before the cross road (m), None without one."""
     if kind in ("cruise", "follow"):
         v = rng.uniform(2.5, 11.0) if main["lanes"] < 3 else rng.uniform(4.0, 14.0)
         prof = profile_ramp(rng.uniform(0, duration), v, v + rng.uniform(-2.5, 2.5), 0.6)
         prof["v"][1] = max(prof["v"][1], 1.0)
-        return kind, lane, {"path": straight_path(0.0, y, 0.0), "s0": 0.0, "speed": prof}
+        return {"path": straight_path(0.0, y, 0.0), "s0": 0.0, "speed": prof}
     if kind == "stop_and_go":
         n = 4
         ts = np.sort(rng.uniform(-0.5, duration + 0.5, n))
         vs = rng.uniform(0.0, 7.0, n)
         vs[::2] = rng.uniform(0.0, 1.5, len(vs[::2]))
-        return (
-            kind,
-            lane,
-            {
-                "path": straight_path(0.0, y, 0.0),
-                "s0": 0.0,
-                "speed": {"t": [float(a) for a in ts], "v": [float(a) for a in vs]},
-            },
-        )
+        return {
+            "path": straight_path(0.0, y, 0.0),
+            "s0": 0.0,
+            "speed": {"t": [float(a) for a in ts], "v": [float(a) for a in vs]},
+        }
     if kind == "wait":
         t_go = rng.uniform(duration * 0.7, duration + 8.0)
         prof = profile_ramp(t_go, 0.0, rng.uniform(6, 10), rng.uniform(1.5, 2.5))
         x0 = stop_x - rng.uniform(0.0, 1.5)
-        return kind, lane, {"path": straight_path(x0, y, 0.0), "s0": 0.0, "speed": prof}
+        return {"path": straight_path(x0, y, 0.0), "s0": 0.0, "speed": prof}
     if kind == "go":
         t_go = rng.uniform(0.0, duration * 0.4)
         prof = profile_ramp(t_go, 0.0, rng.uniform(7, 12), rng.uniform(1.2, 2.5))
         x0 = stop_x - rng.uniform(0.0, 1.5)
-        return kind, lane, {"path": straight_path(x0, y, 0.0), "s0": 0.0, "speed": prof}
-    if kind == "brake":
-        v0 = rng.uniform(5.0, 12.0)
-        dec = rng.uniform(1.5, 3.0)
-        t_b = rng.uniform(0.5, max(duration - v0 / dec, 1.0))
-        prof = profile_ramp(t_b, v0, 0.0, dec)
-        stop_dist = v0 * t_b + v0 * v0 / (2 * dec)
-        x0 = stop_x - rng.uniform(0.0, 1.5) - stop_dist
-        return kind, lane, {"path": straight_path(x0, y, 0.0), "s0": 0.0, "speed": prof}
-    # turns: from the main road onto the cross road
-    cross = roads[1]
+        return {"path": straight_path(x0, y, 0.0), "s0": 0.0, "speed": prof}
+    # brake: to a stop at the stop line
+    v0 = rng.uniform(5.0, 12.0)
+    dec = rng.uniform(1.5, 3.0)
+    t_b = rng.uniform(0.5, max(duration - v0 / dec, 1.0))
+    prof = profile_ramp(t_b, v0, 0.0, dec)
+    stop_dist = v0 * t_b + v0 * v0 / (2 * dec)
+    x0 = stop_x - rng.uniform(0.0, 1.5) - stop_dist
+    return {"path": straight_path(x0, y, 0.0), "s0": 0.0, "speed": prof}
+
+
+def _turn_plan(
+    rng: np.random.Generator, kind: str, duration: float, cross: dict, cross_x: float, y: float
+) -> dict:
+    """The ego's trajectory turning (``kind`` turn_left / turn_right) from its lane of the
+    main road (across offset ``y``, m) onto the ``cross`` road at x = ``cross_x`` (m)."""
     if kind == "turn_left":
         x_t = cross_x + cross["median"] / 2 + 0.5 * cross["lane_w"]
         radius = max(x_t - (cross_x - max(cross["kerb"])), 6.0)
@@ -115,7 +144,7 @@ def ego_plan(rng: np.random.Generator, duration: float, roads: list[dict], cross
     s_turn = float(arc_length(tmp, t_turn))
     x0 = x_s - s_turn
     path = {"x": x0, "y": y, "h": 0.0, "segs": [[x_s - x0, 0.0], [arc_len, k]]}
-    return kind, lane, {"path": path, "s0": 0.0, "speed": prof}
+    return {"path": path, "s0": 0.0, "speed": prof}
 
 
 def sample_layout(rng: np.random.Generator, with_cross: bool) -> dict:
@@ -158,122 +187,176 @@ def static_objects(rng: np.random.Generator, layout: dict, x_range: tuple[float,
 
     Each object: ``{"kind", "c": [x, y, z_centre], "yaw", "size": [w, l, h], "tex": seed}``,
     a box in the nuScenes convention (local x along ``l``, y along ``w``, z up), yaw in rad.
+    ``x_range``: the span of the main road to fill (m).
     """
     roads = road_frames(layout)
     objs: list[dict] = []
     urban = layout["kind"] == "urban"
-
-    def inside_other_road(ri: int, xs: np.ndarray, ys: np.ndarray, pad: float) -> bool:
-        for rj, other in enumerate(roads):
-            if rj == ri:
-                continue
-            _, acr = road_coords(other, xs, ys)
-            half = max(other["walk"]) + pad
-            if acr.max() > -half and acr.min() < half:  # footprint overlaps the corridor
-                return True
-        return False
-
-    def corners(cx, cy, yaw, length, width):
-        c, s = math.cos(yaw), math.sin(yaw)
-        pts = np.array(
-            [
-                [length / 2, width / 2],
-                [length / 2, -width / 2],
-                [-length / 2, width / 2],
-                [-length / 2, -width / 2],
-            ]
-        )
-        return cx + c * pts[:, 0] - s * pts[:, 1], cy + s * pts[:, 0] + c * pts[:, 1]
-
-    for ri, road in enumerate(roads):
+    for ri in range(len(roads)):
         if ri == 0:
             a_lo, a_hi = x_range
         else:
             a_lo, a_hi = -250.0, 250.0
         for side in (0, 1):
-            sign = -1.0 if side == 0 else 1.0
-            line = road["walk"][side] + road["setback"][side]
-            dense = urban or rng.random() < 0.4
-            a = a_lo + rng.uniform(0, 10)
-            while a < a_hi:
-                if dense:
-                    length = rng.uniform(10, 35)
-                    depth = rng.uniform(10, 25)
-                    height = rng.uniform(8, 40) if urban else rng.uniform(5, 12)
-                    gap = rng.uniform(0, 6) if urban else rng.uniform(3, 20)
-                else:
-                    length = rng.uniform(8, 18)
-                    depth = rng.uniform(8, 14)
-                    height = rng.uniform(4, 9)
-                    gap = rng.uniform(10, 35)
-                along = a + length / 2
-                across = sign * (line + depth / 2)
-                cx, cy = road_point(road, along, across)
-                xs, ys = corners(cx, cy, road["h"], length, depth)
-                if not inside_other_road(ri, xs, ys, 1.0):
-                    objs.append(
-                        {
-                            "kind": "building",
-                            "c": [float(cx), float(cy), float(height / 2)],
-                            "yaw": float(road["h"]),
-                            "size": [float(depth), float(length), float(height)],
-                            "tex": int(rng.integers(0, 2**31 - 1)),
-                        }
-                    )
-                a += length + gap
-            # trees / poles / hedges on the sidewalk and in front yards
-            a = a_lo + rng.uniform(0, 8)
-            spacing = rng.uniform(8, 16) if rng.random() < 0.75 else rng.uniform(20, 40)
-            while a < a_hi:
-                across = sign * (
-                    road["kerb"][side] + rng.uniform(0.8, max(road["walk_w"] - 0.6, 0.9))
+            objs += _buildings(rng, roads, ri, side, a_lo, a_hi, urban)
+            objs += _sidewalk_objects(rng, roads, ri, side, a_lo, a_hi)
+            objs += _yard_hedges(rng, roads, ri, side, a_lo, a_hi)
+    objs += _backdrop(rng, x_range)
+    return objs
+
+
+def _inside_other_road(
+    roads: list[dict], ri: int, xs: np.ndarray, ys: np.ndarray, pad: float
+) -> bool:
+    """True if the points (xs, ys) (m) overlap the corridor (sidewalks + ``pad`` m) of a road
+    other than road ``ri``."""
+    for rj, other in enumerate(roads):
+        if rj == ri:
+            continue
+        _, acr = road_coords(other, xs, ys)
+        half = max(other["walk"]) + pad
+        if acr.max() > -half and acr.min() < half:  # footprint overlaps the corridor
+            return True
+    return False
+
+
+def _rect_corners(
+    cx: float, cy: float, yaw: float, length: float, width: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """x and y (m), each (4,), of the corners of a rectangle centred at (cx, cy), its length
+    along ``yaw`` (rad)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    pts = np.array(
+        [
+            [length / 2, width / 2],
+            [length / 2, -width / 2],
+            [-length / 2, width / 2],
+            [-length / 2, -width / 2],
+        ]
+    )
+    return cx + c * pts[:, 0] - s * pts[:, 1], cy + s * pts[:, 0] + c * pts[:, 1]
+
+
+def _buildings(
+    rng: np.random.Generator,
+    roads: list[dict],
+    ri: int,
+    side: int,
+    a_lo: float,
+    a_hi: float,
+    urban: bool,
+) -> list[dict]:
+    """A row of buildings behind the sidewalk (and set-back) of one side (0 right, 1 left)
+    of road ``ri``, from along = ``a_lo`` to ``a_hi`` (m): dense or sparse."""
+    road = roads[ri]
+    objs: list[dict] = []
+    sign = -1.0 if side == 0 else 1.0
+    line = road["walk"][side] + road["setback"][side]
+    dense = urban or rng.random() < 0.4
+    a = a_lo + rng.uniform(0, 10)
+    while a < a_hi:
+        if dense:
+            length = rng.uniform(10, 35)
+            depth = rng.uniform(10, 25)
+            height = rng.uniform(8, 40) if urban else rng.uniform(5, 12)
+            gap = rng.uniform(0, 6) if urban else rng.uniform(3, 20)
+        else:
+            length = rng.uniform(8, 18)
+            depth = rng.uniform(8, 14)
+            height = rng.uniform(4, 9)
+            gap = rng.uniform(10, 35)
+        along = a + length / 2
+        across = sign * (line + depth / 2)
+        cx, cy = road_point(road, along, across)
+        xs, ys = _rect_corners(cx, cy, road["h"], length, depth)
+        if not _inside_other_road(roads, ri, xs, ys, 1.0):
+            objs.append(
+                {
+                    "kind": "building",
+                    "c": [float(cx), float(cy), float(height / 2)],
+                    "yaw": float(road["h"]),
+                    "size": [float(depth), float(length), float(height)],
+                    "tex": int(rng.integers(0, 2**31 - 1)),
+                }
+            )
+        a += length + gap
+    return objs
+
+
+def _sidewalk_objects(
+    rng: np.random.Generator, roads: list[dict], ri: int, side: int, a_lo: float, a_hi: float
+) -> list[dict]:
+    """Trees and poles on the sidewalk of one side (0 right, 1 left) of road ``ri``, from
+    along = ``a_lo`` to ``a_hi`` (m), evenly spaced with jitter."""
+    road = roads[ri]
+    objs: list[dict] = []
+    sign = -1.0 if side == 0 else 1.0
+    a = a_lo + rng.uniform(0, 8)
+    spacing = rng.uniform(8, 16) if rng.random() < 0.75 else rng.uniform(20, 40)
+    while a < a_hi:
+        across = sign * (road["kerb"][side] + rng.uniform(0.8, max(road["walk_w"] - 0.6, 0.9)))
+        cx, cy = road_point(road, a, across)
+        if not _inside_other_road(roads, ri, np.array([cx]), np.array([cy]), 2.0):
+            if rng.random() < 0.7:
+                h = rng.uniform(4, 11)
+                objs.append(
+                    {
+                        "kind": "tree",
+                        "c": [float(cx), float(cy), float(h / 2)],
+                        "yaw": float(rng.uniform(0, math.pi)),
+                        "size": [float(h * rng.uniform(0.4, 0.7))] * 2 + [float(h)],
+                        "tex": int(rng.integers(0, 2**31 - 1)),
+                    }
                 )
-                cx, cy = road_point(road, a, across)
-                if not inside_other_road(ri, np.array([cx]), np.array([cy]), 2.0):
-                    if rng.random() < 0.7:
-                        h = rng.uniform(4, 11)
-                        objs.append(
-                            {
-                                "kind": "tree",
-                                "c": [float(cx), float(cy), float(h / 2)],
-                                "yaw": float(rng.uniform(0, math.pi)),
-                                "size": [float(h * rng.uniform(0.4, 0.7))] * 2 + [float(h)],
-                                "tex": int(rng.integers(0, 2**31 - 1)),
-                            }
-                        )
-                    else:
-                        h = rng.uniform(5, 9)
-                        objs.append(
-                            {
-                                "kind": "pole",
-                                "c": [float(cx), float(cy), float(h / 2)],
-                                "yaw": float(road["h"]),
-                                "size": [0.22, 0.22, float(h)],
-                                "tex": int(rng.integers(0, 2**31 - 1)),
-                            }
-                        )
-                a += spacing * rng.uniform(0.7, 1.3)
-            # hedges / walls in front of set-back buildings
-            if road["setback"][side] > 2.0 and rng.random() < 0.6:
-                a = a_lo
-                while a < a_hi:
-                    length = rng.uniform(6, 25)
-                    across = sign * (road["walk"][side] + 0.5)
-                    cx, cy = road_point(road, a + length / 2, across)
-                    xs, ys = corners(cx, cy, road["h"], length, 0.6)
-                    if not inside_other_road(ri, xs, ys, 1.0):
-                        h = rng.uniform(0.8, 1.8)
-                        objs.append(
-                            {
-                                "kind": "hedge" if rng.random() < 0.7 else "wall",
-                                "c": [float(cx), float(cy), float(h / 2)],
-                                "yaw": float(road["h"]),
-                                "size": [0.6, float(length), float(h)],
-                                "tex": int(rng.integers(0, 2**31 - 1)),
-                            }
-                        )
-                    a += length + rng.uniform(2, 12)
-    # a distant backdrop across the far end of the main road
+            else:
+                h = rng.uniform(5, 9)
+                objs.append(
+                    {
+                        "kind": "pole",
+                        "c": [float(cx), float(cy), float(h / 2)],
+                        "yaw": float(road["h"]),
+                        "size": [0.22, 0.22, float(h)],
+                        "tex": int(rng.integers(0, 2**31 - 1)),
+                    }
+                )
+        a += spacing * rng.uniform(0.7, 1.3)
+    return objs
+
+
+def _yard_hedges(
+    rng: np.random.Generator, roads: list[dict], ri: int, side: int, a_lo: float, a_hi: float
+) -> list[dict]:
+    """Hedges and low walls at the back of the sidewalk of one side (0 right, 1 left) of road
+    ``ri``, in front of set-back buildings (sometimes), from along = ``a_lo`` to ``a_hi`` (m)."""
+    road = roads[ri]
+    objs: list[dict] = []
+    sign = -1.0 if side == 0 else 1.0
+    if road["setback"][side] > 2.0 and rng.random() < 0.6:
+        a = a_lo
+        while a < a_hi:
+            length = rng.uniform(6, 25)
+            across = sign * (road["walk"][side] + 0.5)
+            cx, cy = road_point(road, a + length / 2, across)
+            xs, ys = _rect_corners(cx, cy, road["h"], length, 0.6)
+            if not _inside_other_road(roads, ri, xs, ys, 1.0):
+                h = rng.uniform(0.8, 1.8)
+                objs.append(
+                    {
+                        "kind": "hedge" if rng.random() < 0.7 else "wall",
+                        "c": [float(cx), float(cy), float(h / 2)],
+                        "yaw": float(road["h"]),
+                        "size": [0.6, float(length), float(h)],
+                        "tex": int(rng.integers(0, 2**31 - 1)),
+                    }
+                )
+            a += length + rng.uniform(2, 12)
+    return objs
+
+
+def _backdrop(rng: np.random.Generator, x_range: tuple[float, float]) -> list[dict]:
+    """A distant backdrop (skyline, tree line) across the far end of the main road, 350-600 m
+    beyond ``x_range[1]`` (m)."""
+    objs: list[dict] = []
     for _ in range(int(rng.integers(3, 7))):
         dist = rng.uniform(350, 600)
         off = rng.uniform(-250, 250)
