@@ -9,8 +9,10 @@ JSON-able description, built on :mod:`~flowmod.world.layout`), :func:`sample_cal
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
+from pyquaternion import Quaternion
 
 from flowmod.params import TABLE1_CATEGORIES
 from flowmod.world.layout import ego_plan, sample_layout, static_objects
@@ -197,7 +199,22 @@ def _in_band(iv: np.ndarray, lo: float = 30.0, hi: float = 70.0, fov: float = 0.
     return (iv[:, 0] >= lo - 1.7) & (iv[:, 0] <= hi - 1.7) & (iv[:, 1] > -fov) & (iv[:, 2] < fov)
 
 
-def _agent_candidate(rng, roads, ego, duration, cross_x, vmax, p_target: float = 0.85):
+#: Distances (m) from the ego at which a targeted vehicle is placed in view.
+_NEAR = (30.0, 72.0)
+
+#: A candidate agent: (category, size (w, l, h) in m, role, trajectory or None).
+Candidate = tuple[str, list[float], str, dict | None]
+
+
+def _agent_candidate(
+    rng: np.random.Generator,
+    roads: list[dict],
+    ego: dict,
+    duration: float,
+    cross_x: float | None,
+    vmax: float,
+    p_target: float = 0.85,
+) -> Candidate | None:
     """One candidate vehicle: (category, size, role, trajectory) or None.
 
     ``p_target``: probability of placing it in view 30-72 m ahead at some time (1 = always,
@@ -205,7 +222,23 @@ def _agent_candidate(rng, roads, ego, duration, cross_x, vmax, p_target: float =
     main = roads[0]
     ego_x0 = float(traj_state(ego, 0.0)["x"])
     ego_x1 = float(traj_state(ego, duration)["x"])
-    x_lo, x_hi = min(ego_x0, ego_x1), max(ego_x0, ego_x1)
+    x_span = (min(ego_x0, ego_x1), max(ego_x0, ego_x1))
+    role, category = _vehicle_role(rng, main, cross_x)
+    size = _size(rng, category)
+    if role in ("parked", "cross_parked"):
+        return _parked_candidate(rng, role, category, size, roads, ego, duration, x_span, p_target)
+    if role == "halt":  # standing in a lane (waiting, double-parked); may drive off
+        traj = _halted_traj(rng, size, main, ego, duration, x_span, p_target)
+        return category, size, "stopped", traj
+    if role in ("same", "far", "convoy", "roll", "oncoming"):
+        traj = _lane_traj(rng, role, size, main, ego, duration, vmax, x_span, p_target)
+        return category, size, "moving", traj
+    return _cross_candidate(rng, role, category, size, roads, ego, duration, vmax, p_target)
+
+
+def _vehicle_role(rng: np.random.Generator, main: dict, cross_x: float | None) -> tuple[str, str]:
+    """A vehicle's role (parked, halt, same, ...; the cross-road roles only with a cross road)
+    and its category (no bus rolling near 2 m/s)."""
     has_park = [main["park"][0], main["park"][1]]
     roles = {
         "parked": 0.34 if any(has_park) else 0.0,
@@ -225,67 +258,121 @@ def _agent_candidate(rng, roads, ego, duration, cross_x, vmax, p_target: float =
         category = weighted_choice(rng, DRIVING_WEIGHTS)
         if role == "roll" and category.startswith("vehicle.bus"):
             category = "vehicle.car"
-    size = _size(rng, category)
-    near = (30.0, 72.0)
+    return role, category
 
-    if role in ("parked", "cross_parked"):
-        road = main if role == "parked" else roads[1]
-        sides = [i for i in (0, 1) if road["park"][i]]
-        if not sides:
-            return None
-        side = int(rng.choice(sides))
-        across = park_across(road, side) + rng.uniform(-0.25, 0.25)
-        h = road["h"] + (0.0 if side == 0 else math.pi)
-        if rng.random() < 0.15:
-            h += math.pi  # parked facing the other way
-        h += rng.normal(0, 0.03)
-        if road is main:
-            free = rng.uniform(x_lo + 5.0, x_hi + 140.0)
-        else:
-            free = float(rng.choice([-1, 1])) * rng.uniform(max(main["walk"]) + 3, 120)
-        traj = _place(
-            rng, road, across, h, ego, duration, profile_const(0.0), size[2], near, free, p_target
-        )
-        return category, size, "parked", traj
-    if role == "halt":  # standing in a lane (waiting, double-parked); may drive off
-        direction = int(rng.choice([-1, 1]))
-        lane = int(rng.integers(0, main["lanes"]))
-        across = lane_across(main, direction, lane) + rng.normal(0, 0.15)
-        h = 0.0 if direction > 0 else math.pi
-        t_go = rng.uniform(0.0, duration * 2.0)
-        prof = profile_ramp(t_go, 0.0, rng.uniform(3.0, 8.0), rng.uniform(0.8, 2.0))
-        free = rng.uniform(x_lo + 10.0, x_hi + 120.0)
-        traj = _place(rng, main, across, h, ego, duration, prof, size[2], near, free, p_target)
-        return category, size, "stopped", traj
-    if role in ("same", "far", "convoy", "roll", "oncoming"):
-        direction = -1 if role == "oncoming" else 1
-        lane = int(rng.integers(0, main["lanes"]))
-        across = lane_across(main, direction, lane) + rng.normal(0, 0.15)
-        h = 0.0 if direction > 0 else math.pi
-        d_range = near
-        if role == "far":
-            prof = profile_const(rng.uniform(6.0, vmax))
-            free = rng.uniform(x_lo + 60.0, x_hi + 130.0)
-            d_range = (55.0, 110.0)
-        elif role == "convoy":
-            f = rng.uniform(0.85, 1.15)
-            prof = {"t": list(ego["speed"]["t"]), "v": [float(v * f) for v in ego["speed"]["v"]]}
-            free = rng.uniform(x_lo + 12.0, x_lo + 90.0)
-        elif role == "roll":
-            prof = profile_const(rng.uniform(0.5, 3.8))
-            free = rng.uniform(x_lo + 10.0, x_hi + 90.0)
-        elif role == "oncoming":
-            prof = _moving_profile(rng, duration, vmax)
-            free = rng.uniform(x_lo + 20.0, x_hi + 220.0)
-        else:
-            prof = _moving_profile(rng, duration, vmax)
-            if rng.random() < 0.4 and len(prof["v"]) == 1:  # travelling with the ego
-                v_ego = float(np.mean(speed_at(ego["speed"], np.linspace(0, duration, 5))))
-                prof = profile_const(max(v_ego + rng.normal(0, 1.5), 0.6))
-            free = rng.uniform(x_lo - 10.0, x_hi + 110.0)
-        traj = _place(rng, main, across, h, ego, duration, prof, size[2], d_range, free, p_target)
-        return category, size, "moving", traj
-    cross = roads[1]
+
+def _parked_candidate(
+    rng: np.random.Generator,
+    role: str,
+    category: str,
+    size: list[float],
+    roads: list[dict],
+    ego: dict,
+    duration: float,
+    x_span: tuple[float, float],
+    p_target: float,
+) -> Candidate | None:
+    """A vehicle parked at a kerb of the main road (role ``parked``) or of the cross road
+    (``cross_parked``); None when that road has no parking lane. ``x_span``: the ego's x range
+    over the scene (m)."""
+    main = roads[0]
+    road = main if role == "parked" else roads[1]
+    sides = [i for i in (0, 1) if road["park"][i]]
+    if not sides:
+        return None
+    side = int(rng.choice(sides))
+    across = park_across(road, side) + rng.uniform(-0.25, 0.25)
+    h = road["h"] + (0.0 if side == 0 else math.pi)
+    if rng.random() < 0.15:
+        h += math.pi  # parked facing the other way
+    h += rng.normal(0, 0.03)
+    if road is main:
+        free = rng.uniform(x_span[0] + 5.0, x_span[1] + 140.0)
+    else:
+        free = float(rng.choice([-1, 1])) * rng.uniform(max(main["walk"]) + 3, 120)
+    traj = _place(
+        rng, road, across, h, ego, duration, profile_const(0.0), size[2], _NEAR, free, p_target
+    )
+    return category, size, "parked", traj
+
+
+def _halted_traj(
+    rng: np.random.Generator,
+    size: list[float],
+    main: dict,
+    ego: dict,
+    duration: float,
+    x_span: tuple[float, float],
+    p_target: float,
+) -> dict | None:
+    """Trajectory of a vehicle standing in a lane of the main road that may drive off (None
+    when it must be in view and cannot be)."""
+    direction = int(rng.choice([-1, 1]))
+    lane = int(rng.integers(0, main["lanes"]))
+    across = lane_across(main, direction, lane) + rng.normal(0, 0.15)
+    h = 0.0 if direction > 0 else math.pi
+    t_go = rng.uniform(0.0, duration * 2.0)
+    prof = profile_ramp(t_go, 0.0, rng.uniform(3.0, 8.0), rng.uniform(0.8, 2.0))
+    free = rng.uniform(x_span[0] + 10.0, x_span[1] + 120.0)
+    return _place(rng, main, across, h, ego, duration, prof, size[2], _NEAR, free, p_target)
+
+
+def _lane_traj(
+    rng: np.random.Generator,
+    role: str,
+    size: list[float],
+    main: dict,
+    ego: dict,
+    duration: float,
+    vmax: float,
+    x_span: tuple[float, float],
+    p_target: float,
+) -> dict | None:
+    """Trajectory of a vehicle driving in a lane of the main road: with the ego (``same``,
+    ``far``, ``convoy``, ``roll``) or against it (``oncoming``); ``vmax`` in m/s."""
+    x_lo, x_hi = x_span
+    direction = -1 if role == "oncoming" else 1
+    lane = int(rng.integers(0, main["lanes"]))
+    across = lane_across(main, direction, lane) + rng.normal(0, 0.15)
+    h = 0.0 if direction > 0 else math.pi
+    d_range = _NEAR
+    if role == "far":
+        prof = profile_const(rng.uniform(6.0, vmax))
+        free = rng.uniform(x_lo + 60.0, x_hi + 130.0)
+        d_range = (55.0, 110.0)
+    elif role == "convoy":
+        f = rng.uniform(0.85, 1.15)
+        prof = {"t": list(ego["speed"]["t"]), "v": [float(v * f) for v in ego["speed"]["v"]]}
+        free = rng.uniform(x_lo + 12.0, x_lo + 90.0)
+    elif role == "roll":
+        prof = profile_const(rng.uniform(0.5, 3.8))
+        free = rng.uniform(x_lo + 10.0, x_hi + 90.0)
+    elif role == "oncoming":
+        prof = _moving_profile(rng, duration, vmax)
+        free = rng.uniform(x_lo + 20.0, x_hi + 220.0)
+    else:
+        prof = _moving_profile(rng, duration, vmax)
+        if rng.random() < 0.4 and len(prof["v"]) == 1:  # travelling with the ego
+            v_ego = float(np.mean(speed_at(ego["speed"], np.linspace(0, duration, 5))))
+            prof = profile_const(max(v_ego + rng.normal(0, 1.5), 0.6))
+        free = rng.uniform(x_lo - 10.0, x_hi + 110.0)
+    return _place(rng, main, across, h, ego, duration, prof, size[2], d_range, free, p_target)
+
+
+def _cross_candidate(
+    rng: np.random.Generator,
+    role: str,
+    category: str,
+    size: list[float],
+    roads: list[dict],
+    ego: dict,
+    duration: float,
+    vmax: float,
+    p_target: float,
+) -> Candidate | None:
+    """A vehicle on the cross road: crossing the main road (role ``cross``) or queued before
+    its stop line, maybe starting during the scene (``queue``; None when it must be in view)."""
+    main, cross = roads[0], roads[1]
     direction = int(rng.choice([-1, 1]))
     lane = int(rng.integers(0, cross["lanes"]))
     across = lane_across(cross, direction, lane)
@@ -296,7 +383,7 @@ def _agent_candidate(rng, roads, ego, duration, cross_x, vmax, p_target: float =
         t_c = rng.uniform(-3.0, duration + 3.0)  # time at the main road's centre line
         free = -direction * v * t_c
         traj = _place(
-            rng, cross, across, h, ego, duration, profile_const(v), size[2], near, free, p_target
+            rng, cross, across, h, ego, duration, profile_const(v), size[2], _NEAR, free, p_target
         )
         return category, size, "moving", traj
     # queue before the stop line on the cross road; may start during the scene
@@ -363,128 +450,19 @@ def sample_scene(
     """Sample one scene's description (JSON-able dict). Deterministic in (seed, index, sizes)."""
     rng = np.random.default_rng([int(seed), int(index), 101])
     duration = (n_keyframes - 1) * 0.5
-    want_cross = rng.random() < 0.75
-    layout = sample_layout(rng, want_cross)
-    roads = road_frames(layout)
-    cross_x = None
-    if want_cross:
-        cross_x = round(float(rng.uniform(35.0, 110.0)), 2)
-        layout["cross"]["o"] = [cross_x, 0.0]
-        roads = road_frames(layout)
+    layout, roads, cross_x = _sample_streets(rng)
     ego_kind, _ego_lane, ego = ego_plan(rng, duration, roads, cross_x)
     # the intersection relative to the ego: shift the cross road so the plan fits it
     vmax = 15.0 if layout["kind"] == "arterial" else 12.0
-
-    times = np.arange(-0.5, duration + 0.75, 0.25)
-    ego_fp = footprints(ego, (1.9, 4.8, 1.6), times, 0.6)
-    # ego reference point is the rear axle: shift the footprint forward by 1.4 m
-    ego_fp = (ego_fp[0] + 1.4 * np.cos(ego_fp[2]), ego_fp[1] + 1.4 * np.sin(ego_fp[2]), *ego_fp[2:])
-    accepted_fp = [ego_fp]
-    # the keyframes' camera positions, for view-aware placement
-    kf_times = np.arange(n_keyframes) * 0.5
-    ego_kf = traj_state(ego, kf_times)
-    cam_h = ego_kf["h"]
-    cam_xy = np.stack([ego_kf["x"] + 1.7 * np.cos(cam_h), ego_kf["y"] + 1.7 * np.sin(cam_h)], 1)
-    accepted_iv: list[np.ndarray] = []
-    accepted_good: list[np.ndarray] = []
-    min_gain = max(2, n_keyframes // 2)
-    agents: list[dict] = []
-    n_target = max(1, int(round(n_vehicles * rng.uniform(0.85, 1.15))))
-    attempts = 0
-    n_vehicles_now = 0
-    while n_vehicles_now < n_target and attempts < 80 * n_target:
-        # phase 1: vehicles placed in view (best of 8); 2: any placement; 3: fill up
-        phase1 = n_vehicles_now < 0.85 * n_target and attempts < 40 * n_target
-        phase3 = attempts > 60 * n_target
-        best = None
-        for _ in range(8 if phase1 else 1):
-            attempts += 1
-            cand = _agent_candidate(
-                rng, roads, ego, duration, cross_x, vmax, 1.0 if phase1 else 0.85
-            )
-            if cand is None or cand[3] is None:
-                continue
-            category, size, role, traj = cand
-            fp = footprints(
-                traj, size, times, 0.5, rng.uniform(2.5, 7.0) if role == "parked" else None
-            )
-            if any(rects_overlap(fp, other).any() for other in accepted_fp):
-                continue
-            iv = _view_intervals(traj, size, kf_times, cam_xy, cam_h)
-            good = _in_band(iv)
-            if accepted_iv:
-                acc = np.asarray(accepted_iv)  # (N, T, 3)
-                good &= ~_hides(acc, iv[None]).any(axis=0)
-                damage = int((_hides(iv[None], acc) & np.asarray(accepted_good)).sum())
-            else:
-                damage = 0
-            targeted = "t_view" in traj and category in TARGET_CATEGORIES
-            score = int(good.sum()) - damage if targeted else -damage
-            if best is None or score > best[0]:
-                best = (score, targeted, cand, fp, iv, good)
-        if best is None:
-            continue
-        score, targeted, (category, size, role, traj), fp, iv, good = best
-        damage = int(good.sum()) - score if targeted else -score
-        if targeted:
-            wanted = score >= min_gain or (rng.random() < 0.1 and damage <= 3)
-        else:
-            wanted = damage <= 2 or (rng.random() < 0.1 and damage <= 5)
-        if not (wanted or (phase3 and damage <= 6)):
-            continue
-        if accepted_iv:
-            hidden = _hides(iv[None], np.asarray(accepted_iv))
-            accepted_good = [g & ~h for g, h in zip(accepted_good, hidden, strict=True)]
-        accepted_iv.append(iv)
-        accepted_good.append(good if targeted else np.zeros_like(good))
-        accepted_fp.append(fp)
-        agents.append(
-            {
-                "kind": "vehicle",
-                "category": category,
-                "size": size,
-                "role": role,
-                "traj": traj,
-                "tex": int(rng.integers(0, 2**31 - 1)),
-            }
-        )
-        n_vehicles_now += 1
-    n_peds = int(rng.integers(2, 9))
-    for _ in range(6 * n_peds):
-        if sum(a["kind"] == "pedestrian" for a in agents) >= n_peds:
-            break
-        category, size, role, traj = _pedestrian_candidate(rng, roads, ego, duration)
-        fp = footprints(traj, size, times, 0.3)
-        if any(rects_overlap(fp, other).any() for other in accepted_fp):
-            continue
-        accepted_fp.append(fp)
-        agents.append(
-            {
-                "kind": "pedestrian",
-                "category": category,
-                "size": size,
-                "role": role,
-                "traj": traj,
-                "tex": int(rng.integers(0, 2**31 - 1)),
-            }
-        )
+    placed = _start_placement(roads, ego, duration, cross_x, vmax, n_keyframes)
+    agents = _place_vehicles(rng, placed, n_vehicles, n_keyframes)
+    _add_pedestrians(rng, placed, agents)
 
     ego_x = traj_state(ego, np.array([0.0, duration]))["x"]
     x_range = (float(min(ego_x) - 40.0), float(max(ego_x) + 330.0))
     statics = static_objects(rng, layout, x_range)
 
-    sun_az = float(rng.uniform(-math.pi, math.pi))
-    look = {
-        "weather": weather,
-        "sun_azimuth": sun_az,
-        "sun_elevation": float(rng.uniform(0.25, 1.1)),
-        "gain": float(rng.uniform(0.85, 1.15)),
-        "white_balance": [float(a) for a in rng.uniform(0.93, 1.07, 3)],
-        "noise": float(rng.uniform(1.5, 3.0)),
-        "jpeg_quality": int(rng.integers(85, 91)),
-        "asphalt": int(rng.integers(0, 4)),
-        "textures": int(rng.integers(0, 2**31 - 1)),
-    }
+    look = _sample_look(rng, weather)
     description = _describe(rng, ego_kind, layout, agents, weather)
     return {
         "index": int(index),
@@ -505,6 +483,203 @@ def sample_scene(
     }
 
 
+def _sample_streets(rng: np.random.Generator) -> tuple[dict, list[dict], float | None]:
+    """The layout, its road frames and the cross road's x on the main road (m; 75 % of
+    scenes have one, else None)."""
+    want_cross = rng.random() < 0.75
+    layout = sample_layout(rng, want_cross)
+    roads = road_frames(layout)
+    cross_x = None
+    if want_cross:
+        cross_x = round(float(rng.uniform(35.0, 110.0)), 2)
+        layout["cross"]["o"] = [cross_x, 0.0]
+        roads = road_frames(layout)
+    return layout, roads, cross_x
+
+
+@dataclass
+class _Placement:
+    """Placing a scene's agents: the street and the ego, the times checked for collisions,
+    the keyframe cameras, and what is accepted so far."""
+
+    roads: list[dict]  # main road first
+    ego: dict  # the ego's trajectory
+    duration: float  # s
+    cross_x: float | None  # the cross road's x (m), None without one
+    vmax: float  # top speed of traffic (m/s)
+    times: np.ndarray  # (T,) s, collision checks
+    kf_times: np.ndarray  # (K,) s, the keyframes
+    cam_xy: np.ndarray  # (K, 2) m, camera positions at the keyframes
+    cam_h: np.ndarray  # (K,) rad, camera headings at the keyframes
+    fp: list = field(default_factory=list)  # accepted footprints over ``times`` (ego first)
+    iv: list = field(default_factory=list)  # per accepted vehicle: view intervals (K, 3)
+    good: list = field(default_factory=list)  # per accepted vehicle: well seen, (K,) bool
+
+
+def _start_placement(
+    roads: list[dict],
+    ego: dict,
+    duration: float,
+    cross_x: float | None,
+    vmax: float,
+    n_keyframes: int,
+) -> _Placement:
+    """The placement state before any agent: the ego's footprint (from its rear-axle
+    reference point) and the camera positions at the keyframes, for view-aware placement."""
+    times = np.arange(-0.5, duration + 0.75, 0.25)
+    ego_fp = footprints(ego, (1.9, 4.8, 1.6), times, 0.6)
+    # ego reference point is the rear axle: shift the footprint forward by 1.4 m
+    ego_fp = (ego_fp[0] + 1.4 * np.cos(ego_fp[2]), ego_fp[1] + 1.4 * np.sin(ego_fp[2]), *ego_fp[2:])
+    # the keyframes' camera positions, for view-aware placement
+    kf_times = np.arange(n_keyframes) * 0.5
+    ego_kf = traj_state(ego, kf_times)
+    cam_h = ego_kf["h"]
+    cam_xy = np.stack([ego_kf["x"] + 1.7 * np.cos(cam_h), ego_kf["y"] + 1.7 * np.sin(cam_h)], 1)
+    return _Placement(
+        roads, ego, duration, cross_x, vmax, times, kf_times, cam_xy, cam_h, fp=[ego_fp]
+    )
+
+
+def _place_vehicles(
+    rng: np.random.Generator, placed: _Placement, n_vehicles: int, n_keyframes: int
+) -> list[dict]:
+    """About ``n_vehicles`` vehicles (+-15 %) free of collisions, in three phases: placed in
+    view (best of 8 candidates), then any placement, then filling up."""
+    min_gain = max(2, n_keyframes // 2)
+    agents: list[dict] = []
+    n_target = max(1, int(round(n_vehicles * rng.uniform(0.85, 1.15))))
+    attempts = 0
+    n_vehicles_now = 0
+    while n_vehicles_now < n_target and attempts < 80 * n_target:
+        # phase 1: vehicles placed in view (best of 8); 2: any placement; 3: fill up
+        phase1 = n_vehicles_now < 0.85 * n_target and attempts < 40 * n_target
+        phase3 = attempts > 60 * n_target
+        n_tries = 8 if phase1 else 1
+        best = _best_candidate(rng, placed, n_tries, 1.0 if phase1 else 0.85)
+        attempts += n_tries
+        if best is None:
+            continue
+        if not _wanted(rng, best, min_gain, phase3):
+            continue
+        _accept(placed, best)
+        category, size, role, traj = best[2]
+        agents.append(_agent_record(rng, "vehicle", category, size, role, traj))
+        n_vehicles_now += 1
+    return agents
+
+
+def _best_candidate(
+    rng: np.random.Generator, placed: _Placement, n_tries: int, p_target: float
+) -> tuple | None:
+    """The best scored of ``n_tries`` vehicle candidates (see :func:`_score_candidate`), or
+    None if none could be placed free of collisions."""
+    best = None
+    for _ in range(n_tries):
+        cand = _agent_candidate(
+            rng, placed.roads, placed.ego, placed.duration, placed.cross_x, placed.vmax, p_target
+        )
+        if cand is None or cand[3] is None:
+            continue
+        scored = _score_candidate(rng, placed, cand)
+        if scored is None:
+            continue
+        if best is None or scored[0] > best[0]:
+            best = scored
+    return best
+
+
+def _score_candidate(rng: np.random.Generator, placed: _Placement, cand: Candidate) -> tuple | None:
+    """``(score, targeted, cand, footprint, view intervals (K, 3), well seen (K,) bool)`` of a
+    candidate, None if it collides with an accepted agent. The score: keyframes where a
+    targeted vehicle is well seen, less the keyframes it hides of accepted ones."""
+    category, size, role, traj = cand
+    margin_l = rng.uniform(2.5, 7.0) if role == "parked" else None
+    fp = footprints(traj, size, placed.times, 0.5, margin_l)
+    if any(rects_overlap(fp, other).any() for other in placed.fp):
+        return None
+    iv = _view_intervals(traj, size, placed.kf_times, placed.cam_xy, placed.cam_h)
+    good = _in_band(iv)
+    if placed.iv:
+        acc = np.asarray(placed.iv)  # (N, T, 3)
+        good &= ~_hides(acc, iv[None]).any(axis=0)
+        damage = int((_hides(iv[None], acc) & np.asarray(placed.good)).sum())
+    else:
+        damage = 0
+    targeted = "t_view" in traj and category in TARGET_CATEGORIES
+    score = int(good.sum()) - damage if targeted else -damage
+    return score, targeted, cand, fp, iv, good
+
+
+def _wanted(rng: np.random.Generator, best: tuple, min_gain: int, phase3: bool) -> bool:
+    """Whether to accept the best candidate: a targeted one that gains ``min_gain`` keyframes,
+    one that hides little of the others, sometimes one that hides more."""
+    score, targeted, _cand, _fp, _iv, good = best
+    damage = int(good.sum()) - score if targeted else -score
+    if targeted:
+        wanted = score >= min_gain or (rng.random() < 0.1 and damage <= 3)
+    else:
+        wanted = damage <= 2 or (rng.random() < 0.1 and damage <= 5)
+    return wanted or (phase3 and damage <= 6)
+
+
+def _accept(placed: _Placement, best: tuple) -> None:
+    """Record an accepted vehicle: its footprint and view, and what it hides of the others."""
+    _score, targeted, _cand, fp, iv, good = best
+    if placed.iv:
+        hidden = _hides(iv[None], np.asarray(placed.iv))
+        placed.good = [g & ~h for g, h in zip(placed.good, hidden, strict=True)]
+    placed.iv.append(iv)
+    placed.good.append(good if targeted else np.zeros_like(good))
+    placed.fp.append(fp)
+
+
+def _agent_record(
+    rng: np.random.Generator, kind: str, category: str, size: list[float], role: str, traj: dict
+) -> dict:
+    """An agent of the scene description, with its texture seed."""
+    return {
+        "kind": kind,
+        "category": category,
+        "size": size,
+        "role": role,
+        "traj": traj,
+        "tex": int(rng.integers(0, 2**31 - 1)),
+    }
+
+
+def _add_pedestrians(rng: np.random.Generator, placed: _Placement, agents: list[dict]) -> None:
+    """Append 2-8 pedestrians free of collisions to ``agents`` (fewer if they do not fit)."""
+    n_peds = int(rng.integers(2, 9))
+    for _ in range(6 * n_peds):
+        if sum(a["kind"] == "pedestrian" for a in agents) >= n_peds:
+            break
+        category, size, role, traj = _pedestrian_candidate(
+            rng, placed.roads, placed.ego, placed.duration
+        )
+        fp = footprints(traj, size, placed.times, 0.3)
+        if any(rects_overlap(fp, other).any() for other in placed.fp):
+            continue
+        placed.fp.append(fp)
+        agents.append(_agent_record(rng, "pedestrian", category, size, role, traj))
+
+
+def _sample_look(rng: np.random.Generator, weather: str) -> dict:
+    """The scene's look: sun direction (rad), camera gain, white balance and noise, JPEG
+    quality, asphalt variant and texture seed."""
+    sun_az = float(rng.uniform(-math.pi, math.pi))
+    return {
+        "weather": weather,
+        "sun_azimuth": sun_az,
+        "sun_elevation": float(rng.uniform(0.25, 1.1)),
+        "gain": float(rng.uniform(0.85, 1.15)),
+        "white_balance": [float(a) for a in rng.uniform(0.93, 1.07, 3)],
+        "noise": float(rng.uniform(1.5, 3.0)),
+        "jpeg_quality": int(rng.integers(85, 91)),
+        "asphalt": int(rng.integers(0, 4)),
+        "textures": int(rng.integers(0, 2**31 - 1)),
+    }
+
+
 #: nuScenes CAM_FRONT: camera->ego rotation (camera z forward, x right, y down).
 CAM_R0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
@@ -512,8 +687,6 @@ CAM_R0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 def sample_calibration(seed: int, index: int) -> dict:
     """CAM_FRONT calibration like nuScenes: K (3x3, px), rotation (w, x, y, z; camera->ego),
     translation (m, ego frame), with small per-scene variations."""
-    from pyquaternion import Quaternion
-
     rng = np.random.default_rng([int(seed), int(index), 202])
     yaw, pitch, roll = rng.uniform(-0.005, 0.005, 3)
     cz, sz = math.cos(yaw), math.sin(yaw)
