@@ -9,6 +9,7 @@ function in metres per texture pixel; the renderer maps textures onto planes by 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -364,6 +365,38 @@ def _livery(category: str, rng) -> tuple[tuple, tuple | None]:
     return PAINTS[int(rng.integers(0, len(PAINTS)))], None
 
 
+#: Texture pixels per metre of the vehicle textures.
+_PX = 1.0 / VEHICLE_RES
+#: Tyres, bumpers and grilles (BGR).
+_DARK = (28, 28, 30)
+
+
+@dataclass
+class _Faces:
+    """A vehicle's face textures being painted, float32 BGR at ``VEHICLE_RES`` m/px: ``side``
+    (H, L, 3) with the vehicle's front at the right, ``front`` and ``back`` (H, W, 3), ``top``
+    (W, L, 3); the body colour and the livery stripe colour (BGR; None: no stripe)."""
+
+    side: np.ndarray
+    front: np.ndarray
+    back: np.ndarray
+    top: np.ndarray
+    body: tuple
+    stripe: tuple | None
+
+    @property
+    def size_px(self) -> tuple[int, int, int]:
+        """(L, W, H): the vehicle's length, width and height in texture pixels."""
+        return self.side.shape[1], self.front.shape[1], self.side.shape[0]
+
+    @property
+    def wheel(self) -> tuple[float, float]:
+        """The wheel radius and the row of the wheel centres on the side (px)."""
+        H = self.side.shape[0]
+        r_wheel = min(0.36 * _PX, H * 0.22)
+        return r_wheel, H - r_wheel * 0.95
+
+
 def vehicle_faces(
     rng: np.random.Generator, category: str, size: tuple[float, float, float]
 ) -> dict[str, np.ndarray]:
@@ -381,113 +414,146 @@ def vehicle_faces(
     front = _body(rng, W, H, body)
     back = _body(rng, W, H, body)
     top = _body(rng, L, W, body)
-    px = 1.0 / VEHICLE_RES
-    r_wheel = min(0.36 * px, H * 0.22)
-    wy = H - r_wheel * 0.95
-    dark = (28, 28, 30)
-
+    f = _Faces(side, front, back, top, body, stripe)
     if category in ("vehicle.car", "vehicle.emergency.police", "vehicle.emergency.ambulance"):
-        boxy = category == "vehicle.emergency.ambulance"
-        g0 = int(H * (0.12 if boxy else 0.08))
-        g1 = int(H * (0.45 if boxy else 0.50))
-        # side windows (front at right); boxy vans have windows only in the cab
-        wx0 = int(L * (0.72 if boxy else 0.2))
-        _glass(side, wx0, g0, L * 0.86, g1, rng)
-        if not boxy:
-            for xp in np.linspace(wx0, L * 0.86, 3)[1:-1]:
-                _rect(side, xp - 3, g0, xp + 3, g1, body)
-        cv2.line(
-            side, (int(L * 0.5), g1), (int(L * 0.5), int(H * 0.85)), tuple(c * 0.7 for c in body), 1
-        )
-        _rect(side, 0, H * 0.86, L, H, dark)
-        for fx in (0.17, 0.8):
-            _wheel(side, L * fx, wy, r_wheel)
-        _glass(front, W * 0.06, H * 0.08, W * 0.94, H * 0.42, rng)
-        _glass(back, W * 0.1, H * 0.1, W * 0.9, H * (0.45 if not boxy else 0.35), rng)
-        _rect(top, L * 0.25, W * 0.12, L * 0.8, W * 0.88, tuple(c * 0.85 for c in body))
-        if stripe is not None:
-            _rect(side, 0, H * 0.55, L, H * 0.68, stripe)
-            if boxy or category == "vehicle.emergency.police":
-                for k, x in enumerate(range(0, L, max(int(0.5 * px), 4))):
-                    if k % 2 == 0:
-                        _rect(side, x, H * 0.55, x + 0.5 * px, H * 0.68, (240, 240, 240))
-            _rect(front, 0, H * 0.5, W, H * 0.6, stripe)
-            _rect(back, 0, H * 0.55, W, H * 0.65, stripe)
-            _rect(top, L * 0.45, W * 0.1, L * 0.55, W * 0.45, (30, 30, 230))
-            _rect(top, L * 0.45, W * 0.55, L * 0.55, W * 0.9, (230, 60, 30))
+        _paint_car(f, rng, category)
     elif category in ("vehicle.truck", "vehicle.construction", "vehicle.trailer"):
-        cab = 0.0 if category == "vehicle.trailer" else min(2.4 * px / L, 0.4)
-        cargo = tuple(rng.uniform(120, 250, 3)) if rng.random() < 0.6 else body
-        _rect(side, 0, 0, L * (1 - cab), H * 0.8, cargo)
-        for y in np.arange(H * 0.1, H * 0.8, 0.4 * px):
-            cv2.line(
-                side, (0, int(y)), (int(L * (1 - cab)), int(y)), tuple(c * 0.85 for c in cargo), 1
-            )
-        if rng.random() < 0.5:
-            _rect(side, L * 0.15, H * 0.2, L * 0.55, H * 0.5, tuple(rng.uniform(20, 230, 3)))
-        if cab > 0:
-            _glass(side, L * (1 - cab * 0.8), H * 0.1, L * 0.97, H * 0.42, rng)
-            _glass(front, W * 0.06, H * 0.1, W * 0.94, H * 0.4, rng)
-        else:
-            _rect(front, 0, 0, W, H * 0.8, cargo)
-        _rect(back, W * 0.03, H * 0.03, W * 0.97, H * 0.8, tuple(c * 0.9 for c in cargo))
-        cv2.line(back, (W // 2, int(H * 0.05)), (W // 2, int(H * 0.8)), dark, 2)
-        _rect(side, 0, H * 0.8, L, H, dark)
-        if stripe is not None:  # hazard stripes
-            for x in range(0, L, 16):
-                cv2.line(side, (x, int(H * 0.72)), (x + 8, int(H * 0.8)), stripe, 4)
-        n_axles = 2 if l_m < 8 else 3
-        xs = [0.12, 0.3, 0.85] if n_axles == 3 else [0.15, 0.82]
-        if category == "vehicle.trailer":
-            xs = [0.08, 0.2]
-        for fx in xs:
-            _wheel(side, L * fx, wy, r_wheel * 1.15)
-        _rect(top, 0, 0, L, W, tuple(c * 0.9 for c in cargo))
+        _paint_truck(f, rng, category, l_m)
     elif category.startswith("vehicle.bus"):
-        _glass(side, L * 0.03, H * 0.18, L * 0.97, H * 0.55, rng)
-        for x in np.arange(L * 0.03, L * 0.97, 1.3 * px):
-            _rect(side, x - 3, H * 0.18, x + 3, H * 0.55, body)
-        _glass(side, L * 0.86, H * 0.18, L * 0.93, H * 0.9, rng)  # door
-        if category == "vehicle.bus.bendy":
-            xm = L * 0.5
-            for k in range(8):
-                cv2.line(side, (int(xm - 20 + 5 * k), 0), (int(xm - 20 + 5 * k), H), dark, 2)
-        if stripe is not None:
-            _rect(side, 0, H * 0.6, L, H * 0.7, stripe)
-        _rect(side, 0, H * 0.9, L, H, dark)
-        for fx in [0.12, 0.4, 0.6, 0.85] if category == "vehicle.bus.bendy" else [0.18, 0.8]:
-            _wheel(side, L * fx, wy, r_wheel * 1.1)
-        _glass(front, W * 0.05, H * 0.08, W * 0.95, H * 0.55, rng)
-        _rect(front, W * 0.15, H * 0.02, W * 0.85, H * 0.08, (20, 200, 255))  # destination
-        _glass(back, W * 0.15, H * 0.15, W * 0.85, H * 0.4, rng)
-        _rect(top, 0, 0, L, W, (170, 170, 170))
-        for x in np.arange(L * 0.2, L * 0.8, 3 * px):
-            _rect(top, x, W * 0.25, x + 1.5 * px, W * 0.75, (140, 140, 145))
+        _paint_bus(f, rng, category)
     else:  # two-wheelers: dark frame and a rider
-        side = _body(rng, L, H, (40, 40, 45))
-        rider = tuple(rng.uniform(20, 200, 3))
-        _rect(side, L * 0.35, H * 0.0, L * 0.65, H * 0.6, rider)
-        cv2.circle(side, (int(L * 0.5), int(H * 0.08)), int(H * 0.08), (60, 60, 70), -1)
-        for fx in (0.15, 0.85):
-            _wheel(side, L * fx, H - r_wheel * 0.9, r_wheel)
-        front = _body(rng, W, H, rider)
-        back = front.copy()
-        top = _body(rng, L, W, rider)
-    # lights, plates, grille (four-wheelers)
+        _paint_two_wheeler(f, rng)
     if not category.startswith(("vehicle.bicycle", "vehicle.motorcycle")):
-        ly0, ly1 = H * 0.55, H * 0.66
-        _rect(front, W * 0.05, ly0, W * 0.2, ly1, (235, 245, 250))
-        _rect(front, W * 0.8, ly0, W * 0.95, ly1, (235, 245, 250))
-        _rect(front, W * 0.28, ly0, W * 0.72, H * 0.75, (35, 35, 38))
-        _rect(front, W * 0.4, H * 0.78, W * 0.6, H * 0.85, (230, 230, 230))
-        _rect(back, W * 0.04, ly0, W * 0.18, ly1, (30, 30, 200))
-        _rect(back, W * 0.82, ly0, W * 0.96, ly1, (30, 30, 200))
-        _rect(back, W * 0.4, H * 0.7, W * 0.6, H * 0.78, (230, 230, 230))
-        _rect(front, 0, H * 0.9, W, H, (28, 28, 30))
-        _rect(back, 0, H * 0.9, W, H, (28, 28, 30))
-    return {
-        k: to_u8(v) for k, v in (("side", side), ("front", front), ("back", back), ("top", top))
-    }
+        _paint_lights(f)
+    faces = (("side", f.side), ("front", f.front), ("back", f.back), ("top", f.top))
+    return {k: to_u8(v) for k, v in faces}
+
+
+def _paint_car(f: _Faces, rng: np.random.Generator, category: str) -> None:
+    """Cars, police cars and ambulances (boxy vans): windows, wheels, livery stripes."""
+    side, front, back, top, body, stripe = f.side, f.front, f.back, f.top, f.body, f.stripe
+    L, W, H = f.size_px
+    r_wheel, wy = f.wheel
+    boxy = category == "vehicle.emergency.ambulance"
+    g0 = int(H * (0.12 if boxy else 0.08))
+    g1 = int(H * (0.45 if boxy else 0.50))
+    # side windows (front at right); boxy vans have windows only in the cab
+    wx0 = int(L * (0.72 if boxy else 0.2))
+    _glass(side, wx0, g0, L * 0.86, g1, rng)
+    if not boxy:
+        for xp in np.linspace(wx0, L * 0.86, 3)[1:-1]:
+            _rect(side, xp - 3, g0, xp + 3, g1, body)
+    cv2.line(
+        side, (int(L * 0.5), g1), (int(L * 0.5), int(H * 0.85)), tuple(c * 0.7 for c in body), 1
+    )
+    _rect(side, 0, H * 0.86, L, H, _DARK)
+    for fx in (0.17, 0.8):
+        _wheel(side, L * fx, wy, r_wheel)
+    _glass(front, W * 0.06, H * 0.08, W * 0.94, H * 0.42, rng)
+    _glass(back, W * 0.1, H * 0.1, W * 0.9, H * (0.45 if not boxy else 0.35), rng)
+    _rect(top, L * 0.25, W * 0.12, L * 0.8, W * 0.88, tuple(c * 0.85 for c in body))
+    if stripe is not None:
+        _rect(side, 0, H * 0.55, L, H * 0.68, stripe)
+        if boxy or category == "vehicle.emergency.police":
+            for k, x in enumerate(range(0, L, max(int(0.5 * _PX), 4))):
+                if k % 2 == 0:
+                    _rect(side, x, H * 0.55, x + 0.5 * _PX, H * 0.68, (240, 240, 240))
+        _rect(front, 0, H * 0.5, W, H * 0.6, stripe)
+        _rect(back, 0, H * 0.55, W, H * 0.65, stripe)
+        _rect(top, L * 0.45, W * 0.1, L * 0.55, W * 0.45, (30, 30, 230))
+        _rect(top, L * 0.45, W * 0.55, L * 0.55, W * 0.9, (230, 60, 30))
+
+
+def _paint_truck(f: _Faces, rng: np.random.Generator, category: str, l_m: float) -> None:
+    """Trucks, construction vehicles and trailers (``l_m`` long, m): cargo box, cab, axles."""
+    side, front, back, top, body, stripe = f.side, f.front, f.back, f.top, f.body, f.stripe
+    L, W, H = f.size_px
+    r_wheel, wy = f.wheel
+    cab = 0.0 if category == "vehicle.trailer" else min(2.4 * _PX / L, 0.4)
+    cargo = tuple(rng.uniform(120, 250, 3)) if rng.random() < 0.6 else body
+    _rect(side, 0, 0, L * (1 - cab), H * 0.8, cargo)
+    for y in np.arange(H * 0.1, H * 0.8, 0.4 * _PX):
+        cv2.line(
+            side, (0, int(y)), (int(L * (1 - cab)), int(y)), tuple(c * 0.85 for c in cargo), 1
+        )
+    if rng.random() < 0.5:
+        _rect(side, L * 0.15, H * 0.2, L * 0.55, H * 0.5, tuple(rng.uniform(20, 230, 3)))
+    if cab > 0:
+        _glass(side, L * (1 - cab * 0.8), H * 0.1, L * 0.97, H * 0.42, rng)
+        _glass(front, W * 0.06, H * 0.1, W * 0.94, H * 0.4, rng)
+    else:
+        _rect(front, 0, 0, W, H * 0.8, cargo)
+    _rect(back, W * 0.03, H * 0.03, W * 0.97, H * 0.8, tuple(c * 0.9 for c in cargo))
+    cv2.line(back, (W // 2, int(H * 0.05)), (W // 2, int(H * 0.8)), _DARK, 2)
+    _rect(side, 0, H * 0.8, L, H, _DARK)
+    if stripe is not None:  # hazard stripes
+        for x in range(0, L, 16):
+            cv2.line(side, (x, int(H * 0.72)), (x + 8, int(H * 0.8)), stripe, 4)
+    n_axles = 2 if l_m < 8 else 3
+    xs = [0.12, 0.3, 0.85] if n_axles == 3 else [0.15, 0.82]
+    if category == "vehicle.trailer":
+        xs = [0.08, 0.2]
+    for fx in xs:
+        _wheel(side, L * fx, wy, r_wheel * 1.15)
+    _rect(top, 0, 0, L, W, tuple(c * 0.9 for c in cargo))
+
+
+def _paint_bus(f: _Faces, rng: np.random.Generator, category: str) -> None:
+    """Rigid and bendy buses: a band of windows, a door, the joint, destination sign, roof."""
+    side, front, back, top, body, stripe = f.side, f.front, f.back, f.top, f.body, f.stripe
+    L, W, H = f.size_px
+    r_wheel, wy = f.wheel
+    _glass(side, L * 0.03, H * 0.18, L * 0.97, H * 0.55, rng)
+    for x in np.arange(L * 0.03, L * 0.97, 1.3 * _PX):
+        _rect(side, x - 3, H * 0.18, x + 3, H * 0.55, body)
+    _glass(side, L * 0.86, H * 0.18, L * 0.93, H * 0.9, rng)  # door
+    if category == "vehicle.bus.bendy":
+        xm = L * 0.5
+        for k in range(8):
+            cv2.line(side, (int(xm - 20 + 5 * k), 0), (int(xm - 20 + 5 * k), H), _DARK, 2)
+    if stripe is not None:
+        _rect(side, 0, H * 0.6, L, H * 0.7, stripe)
+    _rect(side, 0, H * 0.9, L, H, _DARK)
+    for fx in [0.12, 0.4, 0.6, 0.85] if category == "vehicle.bus.bendy" else [0.18, 0.8]:
+        _wheel(side, L * fx, wy, r_wheel * 1.1)
+    _glass(front, W * 0.05, H * 0.08, W * 0.95, H * 0.55, rng)
+    _rect(front, W * 0.15, H * 0.02, W * 0.85, H * 0.08, (20, 200, 255))  # destination
+    _glass(back, W * 0.15, H * 0.15, W * 0.85, H * 0.4, rng)
+    _rect(top, 0, 0, L, W, (170, 170, 170))
+    for x in np.arange(L * 0.2, L * 0.8, 3 * _PX):
+        _rect(top, x, W * 0.25, x + 1.5 * _PX, W * 0.75, (140, 140, 145))
+
+
+def _paint_two_wheeler(f: _Faces, rng: np.random.Generator) -> None:
+    """Motorcycles and bicycles: new faces, a dark frame with two wheels and a rider."""
+    L, W, H = f.size_px
+    r_wheel, _wy = f.wheel
+    side = _body(rng, L, H, (40, 40, 45))
+    rider = tuple(rng.uniform(20, 200, 3))
+    _rect(side, L * 0.35, H * 0.0, L * 0.65, H * 0.6, rider)
+    cv2.circle(side, (int(L * 0.5), int(H * 0.08)), int(H * 0.08), (60, 60, 70), -1)
+    for fx in (0.15, 0.85):
+        _wheel(side, L * fx, H - r_wheel * 0.9, r_wheel)
+    f.side = side
+    f.front = _body(rng, W, H, rider)
+    f.back = f.front.copy()
+    f.top = _body(rng, L, W, rider)
+
+
+def _paint_lights(f: _Faces) -> None:
+    """Head and tail lights, number plates, grille and bumpers of a four-wheeler."""
+    front, back = f.front, f.back
+    _L, W, H = f.size_px
+    ly0, ly1 = H * 0.55, H * 0.66
+    _rect(front, W * 0.05, ly0, W * 0.2, ly1, (235, 245, 250))
+    _rect(front, W * 0.8, ly0, W * 0.95, ly1, (235, 245, 250))
+    _rect(front, W * 0.28, ly0, W * 0.72, H * 0.75, (35, 35, 38))
+    _rect(front, W * 0.4, H * 0.78, W * 0.6, H * 0.85, (230, 230, 230))
+    _rect(back, W * 0.04, ly0, W * 0.18, ly1, (30, 30, 200))
+    _rect(back, W * 0.82, ly0, W * 0.96, ly1, (30, 30, 200))
+    _rect(back, W * 0.4, H * 0.7, W * 0.6, H * 0.78, (230, 230, 230))
+    _rect(front, 0, H * 0.9, W, H, (28, 28, 30))
+    _rect(back, 0, H * 0.9, W, H, (28, 28, 30))
 
 
 def pedestrian_faces(
