@@ -365,7 +365,7 @@ class Frame:
     lights: list = field(default_factory=list)
 
 
-def _clip_near(pts: np.ndarray, z_near: float = Z_NEAR) -> np.ndarray:
+def clip_near(pts: np.ndarray, z_near: float = Z_NEAR) -> np.ndarray:
     """Sutherland-Hodgman clip of a camera-frame polygon (n, 3) against z >= z_near."""
     out = []
     n = len(pts)
@@ -380,7 +380,7 @@ def _clip_near(pts: np.ndarray, z_near: float = Z_NEAR) -> np.ndarray:
     return np.array(out).reshape(-1, 3)
 
 
-def _project_bbox(points_cam: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, tuple[int, ...]]:
+def project_bbox(points_cam: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, tuple[int, ...]]:
     """Project camera-frame points (N, 3) with K: pixel coordinates (N, 2) and their integer
     bounding box (x0, x1, y0, y1), end-exclusive, clipped to the image."""
     uvw = points_cam @ K.T
@@ -392,8 +392,10 @@ def _project_bbox(points_cam: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, tu
     return uv, (x0, x1, y0, y1)
 
 
-_US = np.arange(W_IMG, dtype=np.float32)
-_VS = np.arange(H_IMG, dtype=np.float32)
+#: u (px) of every image column, (W,) float32.
+U_COLS = np.arange(W_IMG, dtype=np.float32)
+#: v (px) of every image row, (H,) float32.
+V_ROWS = np.arange(H_IMG, dtype=np.float32)
 
 
 @lru_cache(maxsize=8)
@@ -401,22 +403,25 @@ def _kinv_cached(k_key: tuple) -> np.ndarray:
     return np.linalg.inv(np.array(k_key).reshape(3, 3))
 
 
-def _kinv(K: np.ndarray) -> np.ndarray:
+def kinv(K: np.ndarray) -> np.ndarray:
+    """Cached inverse of the intrinsics ``K`` (3, 3)."""
     return _kinv_cached(tuple(K.ravel().tolist()))
 
 
 @lru_cache(maxsize=1)
-def _pixel_uv() -> tuple[np.ndarray, np.ndarray]:
+def pixel_uv() -> tuple[np.ndarray, np.ndarray]:
+    """(u, v) of every pixel (px), each (H*W,) float32, row-major pixel order (cached)."""
     v, u = np.divmod(np.arange(H_IMG * W_IMG, dtype=np.int64), W_IMG)
     return u.astype(np.float32), v.astype(np.float32)
 
 
-def _yaw_matrix(yaw: float) -> np.ndarray:
+def yaw_matrix(yaw: float) -> np.ndarray:
+    """Rotation (3, 3) about z by ``yaw`` (rad)."""
     c, s = math.cos(yaw), math.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _visible_sphere(
+def visible_sphere(
     center: np.ndarray, radius: float, R_wc: np.ndarray, c: np.ndarray, K: np.ndarray
 ) -> bool:
     """Bounding sphere (scene frame) intersects the view frustum (near plane and 4 sides)."""

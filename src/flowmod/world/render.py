@@ -30,22 +30,22 @@ import cv2
 import numpy as np
 
 from flowmod.world.geometry import (
-    _US,
-    _VS,
     GROUND_MAX_DEPTH,
     H_IMG,
+    U_COLS,
+    V_ROWS,
     W_IMG,
     Z_NEAR,
     Frame,
     Obj,
     Quad,
     SceneGeometry,
-    _clip_near,
-    _kinv,
-    _project_bbox,
-    _visible_sphere,
-    _yaw_matrix,
     camera_pose,
+    clip_near,
+    kinv,
+    project_bbox,
+    visible_sphere,
+    yaw_matrix,
 )
 from flowmod.world.shading import _contact_shadows, _shade, _shade_background
 
@@ -82,11 +82,11 @@ def draw_quad(
     zmin, zmax = Xc[:, 2].min(), Xc[:, 2].max()
     if zmax < Z_NEAR:
         return
-    poly = _clip_near(Xc) if zmin < Z_NEAR else Xc
+    poly = clip_near(Xc) if zmin < Z_NEAR else Xc
     if len(poly) < 3:
         return
     K = fr.K
-    uv, (x0, x1, y0, y1) = _project_bbox(poly, K)
+    uv, (x0, x1, y0, y1) = project_bbox(poly, K)
     if x1 <= x0 or y1 <= y0:
         return
     w, h = x1 - x0, y1 - y0
@@ -96,9 +96,9 @@ def draw_quad(
     d = float(n_c @ Xc[0])
     if abs(d) < 1e-12:
         return
-    g = _kinv(K).T @ n_c / d
-    iz = (np.float32(g[0]) * _US[x0:x1])[None, :] + (
-        np.float32(g[1]) * _VS[y0:y1] + np.float32(g[2])
+    g = kinv(K).T @ n_c / d
+    iz = (np.float32(g[0]) * U_COLS[x0:x1])[None, :] + (
+        np.float32(g[1]) * V_ROWS[y0:y1] + np.float32(g[2])
     )[:, None]
     mask = np.zeros((h, w), np.uint8)
     pts = np.round((uv - [x0, y0]) * 16).astype(np.int32)
@@ -159,9 +159,11 @@ def draw_quad(
 
 def _ground_depth(fr: Frame) -> None:
     """Analytic inverse depth of the ground plane z = 0 (affine in u, v); sky elsewhere."""
-    Kinv = _kinv(fr.K)
+    Kinv = kinv(fr.K)
     g = -(fr.R_wc[2] @ Kinv) / float(fr.c[2])  # invz = g . (u, v, 1)
-    invz = (np.float32(g[0]) * _US)[None, :] + (np.float32(g[1]) * _VS + np.float32(g[2]))[:, None]
+    invz = (np.float32(g[0]) * U_COLS)[None, :] + (
+        np.float32(g[1]) * V_ROWS + np.float32(g[2])
+    )[:, None]
     ground = invz > np.float32(1.0 / GROUND_MAX_DEPTH)
     np.copyto(fr.invz, np.where(ground, invz, np.float32(0.0)))
     np.copyto(fr.sid, ground.astype(np.uint16))  # SID_GROUND = 1, SID_SKY = 0
@@ -177,7 +179,7 @@ def object_corners(obj: Obj, R: np.ndarray, t: np.ndarray, q: Quad) -> np.ndarra
 def _static_cache(geo: SceneGeometry, obj: Obj) -> list[tuple]:
     """Per quad of a static object: (world corners, outward normal, shade); computed once."""
     if obj.cache is None:
-        R = _yaw_matrix(obj.yaw)
+        R = yaw_matrix(obj.yaw)
         out = []
         for q in obj.quads:
             cw = object_corners(obj, R, obj.center, q)
@@ -210,7 +212,7 @@ def render(geo: SceneGeometry, t: float, textured: bool = True) -> Frame:
     # near to far: far objects hidden behind near ones fail the z-test early
     posed.sort(key=lambda o: float(np.sum((o[2] - c) ** 2)))
     for obj, R, ctr in posed:
-        if not _visible_sphere(ctr, obj.radius, R_wc, c, cam.K):
+        if not visible_sphere(ctr, obj.radius, R_wc, c, cam.K):
             continue
         if R is None:
             for q, (cw, n, shade) in zip(obj.quads, _static_cache(geo, obj), strict=True):
@@ -248,9 +250,9 @@ def silhouette_fraction(fr: Frame, corners_scene: np.ndarray, sid: int) -> tuple
     if Xc[:, 2].min() < Z_NEAR:
         # clip every face; the silhouette is the hull of the clipped faces' vertices
         faces = [(0, 1, 2, 3), (4, 5, 6, 7), (0, 1, 5, 4), (2, 3, 7, 6), (0, 3, 7, 4), (1, 2, 6, 5)]
-        pts = [_clip_near(Xc[list(f)]) for f in faces]
+        pts = [clip_near(Xc[list(f)]) for f in faces]
         Xc = np.concatenate([p for p in pts if len(p)], axis=0)
-    uv, (x0, x1, y0, y1) = _project_bbox(Xc, fr.K)
+    uv, (x0, x1, y0, y1) = project_bbox(Xc, fr.K)
     if x1 <= x0 or y1 <= y0:
         return float("nan"), 0
     hull = cv2.convexHull(np.round((uv - [x0, y0]) * 16).astype(np.int32))
@@ -269,7 +271,7 @@ def box_corners(center: np.ndarray, yaw: float, size: tuple[float, float, float]
     x = np.array([1, 1, 1, 1, -1, -1, -1, -1]) * length / 2
     y = np.array([1, -1, -1, 1, 1, -1, -1, 1]) * w / 2
     z = np.array([1, 1, -1, -1, 1, 1, -1, -1]) * h / 2
-    return np.stack([x, y, z], 1) @ _yaw_matrix(yaw).T + center
+    return np.stack([x, y, z], 1) @ yaw_matrix(yaw).T + center
 
 
 def ray_visibility(c: np.ndarray, target: np.ndarray, occluders: list[tuple]) -> float:
@@ -284,7 +286,7 @@ def ray_visibility(c: np.ndarray, target: np.ndarray, occluders: list[tuple]) ->
     seen = np.ones(P, bool)
     d = target - c
     for ctr, yaw, (w, length, h) in occluders:
-        R = _yaw_matrix(yaw)
+        R = yaw_matrix(yaw)
         o = (c - ctr) @ R
         dl = d @ R
         half = np.array([length / 2, w / 2, h / 2])

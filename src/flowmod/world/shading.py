@@ -23,10 +23,10 @@ from flowmod.world.geometry import (
     Z_NEAR,
     Frame,
     SceneGeometry,
-    _clip_near,
-    _kinv,
-    _pixel_uv,
-    _visible_sphere,
+    clip_near,
+    kinv,
+    pixel_uv,
+    visible_sphere,
 )
 
 # --------------------------------------------------------------------------------------------
@@ -176,8 +176,8 @@ def _shade_background(geo: SceneGeometry, fr: Frame) -> None:
     zenith = np.array(zenith, np.float32)
     img = fr.img.reshape(-1, 3)
     f = float(fr.K[0, 0])
-    M = (fr.R_wc @ _kinv(fr.K)).astype(np.float32)
-    U, V = _pixel_uv()
+    M = (fr.R_wc @ kinv(fr.K)).astype(np.float32)
+    U, V = pixel_uv()
     sid = fr.sid.ravel()
 
     gi = np.flatnonzero(sid == SID_GROUND)
@@ -276,7 +276,7 @@ def _contact_shadows(fr: Frame, posed) -> None:
         a = obj.agent
         if a is None or a["kind"] != "vehicle":
             continue
-        if not _visible_sphere(np.array([ctr[0], ctr[1], 0.0]), obj.radius, fr.R_wc, fr.c, fr.K):
+        if not visible_sphere(np.array([ctr[0], ctr[1], 0.0]), obj.radius, fr.R_wc, fr.c, fr.K):
             continue
         w, length, _ = a["size"]
         fpts = np.array(
@@ -291,7 +291,7 @@ def _contact_shadows(fr: Frame, posed) -> None:
         Xc = (world - fr.c) @ fr.R_wc
         if Xc[:, 2].max() < Z_NEAR:
             continue
-        poly = _clip_near(Xc)
+        poly = clip_near(Xc)
         if len(poly) < 3:
             continue
         uvw = poly @ fr.K.T
