@@ -47,7 +47,7 @@ from flowmod.world.geometry import (
     visible_sphere,
     yaw_matrix,
 )
-from flowmod.world.shading import _contact_shadows, _shade, _shade_background
+from flowmod.world.shading import contact_shadows, face_shade, shade_background
 
 # --------------------------------------------------------------------------------------------
 # Drawing
@@ -184,7 +184,7 @@ def _static_cache(geo: SceneGeometry, obj: Obj) -> list[tuple]:
         for q in obj.quads:
             cw = object_corners(obj, R, obj.center, q)
             n = _cross(cw[3] - cw[0], cw[1] - cw[0])
-            out.append((cw, n, _shade(n, geo.sun, geo.look)))
+            out.append((cw, n, face_shade(n, geo.sun, geo.look)))
         obj.cache = out
     return obj.cache
 
@@ -222,13 +222,13 @@ def render(geo: SceneGeometry, t: float, textured: bool = True) -> Frame:
             for q in obj.quads:
                 cw = object_corners(obj, R, ctr, q)
                 n = _cross(cw[3] - cw[0], cw[1] - cw[0])
-                shade = _shade(n, geo.sun, geo.look) if textured else 1.0
+                shade = face_shade(n, geo.sun, geo.look) if textured else 1.0
                 draw_quad(fr, cw, q, obj.sid, shade, textured, n)
             lights = [(R @ pos + ctr, col, rad) for pos, col, rad in obj.lights]
         fr.lights.extend((p, col, rad, obj.sid) for p, col, rad in lights)
     if textured:
-        _shade_background(geo, fr)
-        _contact_shadows(fr, agents)
+        shade_background(geo, fr)
+        contact_shadows(fr, agents)
     return fr
 
 

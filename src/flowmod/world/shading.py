@@ -52,7 +52,7 @@ def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray, wrap: bool) -> np.nda
     return out.reshape(rows * cols, -1)[:n]
 
 
-def _shade(normal_w: np.ndarray, sun: np.ndarray, look: dict) -> float:
+def face_shade(normal_w: np.ndarray, sun: np.ndarray, look: dict) -> float:
     """Lambertian face brightness relative to the ground (1.0); ``normal_w`` any length."""
     if look["weather"] in ("clear", "after_rain"):
         amb, dif = 0.5, 0.6
@@ -168,7 +168,7 @@ def _road_paint(geo: SceneGeometry, coords: list, fp: np.ndarray):
     return white, yellow, kerb
 
 
-def _shade_background(geo: SceneGeometry, fr: Frame) -> None:
+def shade_background(geo: SceneGeometry, fr: Frame) -> None:
     """Colour the pixels still showing ground or sky (deferred shading)."""
     look = geo.look
     horizon, zenith, cloudiness, fog_dist, wet = WEATHER_LOOK[look["weather"]]
@@ -270,7 +270,7 @@ def _shade_background(geo: SceneGeometry, fr: Frame) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-def _contact_shadows(fr: Frame, posed) -> None:
+def contact_shadows(fr: Frame, posed) -> None:
     """Darken the ground under vehicles (soft footprint), only where the ground is seen."""
     for obj, R, ctr in posed:
         a = obj.agent
