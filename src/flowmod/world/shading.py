@@ -175,94 +175,144 @@ def shade_background(geo: SceneGeometry, fr: Frame) -> None:
     horizon = np.array(horizon, np.float32)
     zenith = np.array(zenith, np.float32)
     img = fr.img.reshape(-1, 3)
-    f = float(fr.K[0, 0])
     M = (fr.R_wc @ kinv(fr.K)).astype(np.float32)
-    U, V = pixel_uv()
     sid = fr.sid.ravel()
 
     gi = np.flatnonzero(sid == SID_GROUND)
     if gi.size:
-        u, v = U[gi], V[gi]
-        dx = M[0, 0] * u + M[0, 1] * v + M[0, 2]
-        dy = M[1, 0] * u + M[1, 1] * v + M[1, 2]
-        dz = M[2, 0] * u + M[2, 1] * v + M[2, 2]
-        t = 1.0 / fr.invz.ravel()[gi]  # depth Z (m) = ray parameter (rays have camera z = 1)
-        gx = np.float32(fr.c[0]) + t * dx
-        gy = np.float32(fr.c[1]) + t * dy
-        norm = np.sqrt(dx * dx + dy * dy + dz * dz)
-        sin_g = np.maximum(-dz / norm, np.float32(0.02))
-        fp = (t * norm / np.float32(f)) / np.sqrt(sin_g)  # pixel footprint on the ground, m
-        coords = [ws.road_coords(r, gx, gy) for r in geo.roads]
-        # materials: 0 asphalt, 1 sidewalk, 2 verge
-        region = np.full(gi.size, 2, np.int8)
-        for r, (_, acr) in zip(geo.roads, coords, strict=True):
-            region[(acr >= -r["walk"][0]) & (acr <= r["walk"][1]) & (region == 2)] = 1
-        for r, (_, acr) in zip(geo.roads, coords, strict=True):
-            region[(acr >= -r["kerb"][0]) & (acr <= r["kerb"][1])] = 0
-        level = np.floor(np.log2(np.maximum(fp * np.float32(1.0 / wt.GROUND_RES), 1.0))).astype(
-            np.int8
-        )
-        col = np.empty((gi.size, 3), np.uint8)
-        for m_id, tex in enumerate(geo.ground_tiles()):
-            sel_m = region == m_id
-            if not sel_m.any():
-                continue
-            levels = tex.levels
-            lv = np.minimum(level, len(levels) - 1)
-            size0 = levels[0].shape[0]
-            idx_m = np.flatnonzero(sel_m)
-            u0 = np.mod(gx[idx_m] * np.float32(1.0 / wt.GROUND_RES), size0)
-            v0 = np.mod(gy[idx_m] * np.float32(1.0 / wt.GROUND_RES), size0)
-            lv_m = lv[idx_m]
-            for k in np.unique(lv_m):
-                sel = np.flatnonzero(lv_m == k)
-                s = np.float32(2.0**-k)
-                col[idx_m[sel]] = _sample(
-                    levels[k], (u0[sel] + 0.5) * s - 0.5, (v0[sel] + 0.5) * s - 0.5, True
-                )
-        colf = col.astype(np.float32)
-        mval = _sample(
-            geo.modulation_field(),
-            np.mod(gx * np.float32(1.25), 256),
-            np.mod(gy * np.float32(1.25), 256),
-            True,
-        )[:, 0]
-        colf *= (1.0 + 0.12 * mval)[:, None]
-        white, yellow, kerb = _road_paint(geo, coords, fp)
-        for alpha, paint in (
-            (white * 0.85, (222, 226, 228)),
-            (yellow, (40, 165, 210)),
-            (kerb, (170, 172, 175)),
-        ):
-            idx = np.flatnonzero(alpha > 0)
-            if idx.size:
-                colf[idx] += alpha[idx, None] * (np.array(paint, np.float32) - colf[idx])
-        if wet != 1.0:
-            colf *= np.where(region == 2, np.float32(0.9), np.float32(wet))[:, None]
-        fog = 1.0 - np.exp(-t * norm * np.float32(1.0 / fog_dist))
-        colf += fog[:, None] * (horizon - colf)
-        img[gi] = np.clip(colf, 0, 255).astype(np.uint8)
+        img[gi] = _ground_colours(geo, fr, M, gi, horizon, fog_dist, wet)
 
     si = np.flatnonzero(sid == SID_SKY)
     if si.size:
-        u, v = U[si], V[si]
-        dx = M[0, 0] * u + M[0, 1] * v + M[0, 2]
-        dy = M[1, 0] * u + M[1, 1] * v + M[1, 2]
-        dz = M[2, 0] * u + M[2, 1] * v + M[2, 2]
-        norm = np.sqrt(dx * dx + dy * dy + dz * dz)
-        e = np.clip(dz / norm, 0.0, 1.0)
-        mix = np.sqrt(e)[:, None]
-        col = horizon * (1 - mix) + zenith * mix
-        dzc = np.maximum(dz, 0.02 * norm)
-        cu = np.mod(187.5 * dx / dzc, 512)
-        cv = np.mod(187.5 * dy / dzc, 512)
-        dens = _sample(geo.cloud_field(), cu, cv, True)[:, 0] * np.float32(cloudiness)
-        dens *= np.clip(e * 6.0, 0, 1)
-        cloud_col = np.array(
-            [235, 235, 235] if look["weather"] != "night" else [50, 45, 40], np.float32
-        )
-        col += dens[:, None] * (cloud_col - col)
-        img[si] = np.clip(col, 0, 255).astype(np.uint8)
+        img[si] = _sky_colours(geo, M, si, horizon, zenith, cloudiness)
+
+
+def _ray_dirs(M: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Scene-frame ray directions (dx, dy, dz), each (n,) float32, of the pixels ``idx``
+    (flat indices); ``M`` = R_wc K^-1 (3, 3) float32, so the rays have camera z = 1."""
+    U, V = pixel_uv()
+    u, v = U[idx], V[idx]
+    dx = M[0, 0] * u + M[0, 1] * v + M[0, 2]
+    dy = M[1, 0] * u + M[1, 1] * v + M[1, 2]
+    dz = M[2, 0] * u + M[2, 1] * v + M[2, 2]
+    return dx, dy, dz
+
+
+def _ground_colours(
+    geo: SceneGeometry,
+    fr: Frame,
+    M: np.ndarray,
+    gi: np.ndarray,
+    horizon: np.ndarray,
+    fog_dist: float,
+    wet: float,
+) -> np.ndarray:
+    """Colours (n, 3) uint8 BGR of the ground pixels ``gi`` (flat indices): material
+    textures, lane paint, wetness (factor ``wet``) and fog towards ``horizon`` (``fog_dist``
+    m)."""
+    f = float(fr.K[0, 0])
+    dx, dy, dz = _ray_dirs(M, gi)
+    t = 1.0 / fr.invz.ravel()[gi]  # depth Z (m) = ray parameter (rays have camera z = 1)
+    gx = np.float32(fr.c[0]) + t * dx
+    gy = np.float32(fr.c[1]) + t * dy
+    norm = np.sqrt(dx * dx + dy * dy + dz * dz)
+    sin_g = np.maximum(-dz / norm, np.float32(0.02))
+    fp = (t * norm / np.float32(f)) / np.sqrt(sin_g)  # pixel footprint on the ground, m
+    coords = [ws.road_coords(r, gx, gy) for r in geo.roads]
+    region = _ground_regions(geo, coords, gi.size)
+    colf = _ground_albedo(geo, region, fp, gx, gy)
+    white, yellow, kerb = _road_paint(geo, coords, fp)
+    for alpha, paint in (
+        (white * 0.85, (222, 226, 228)),
+        (yellow, (40, 165, 210)),
+        (kerb, (170, 172, 175)),
+    ):
+        idx = np.flatnonzero(alpha > 0)
+        if idx.size:
+            colf[idx] += alpha[idx, None] * (np.array(paint, np.float32) - colf[idx])
+    if wet != 1.0:
+        colf *= np.where(region == 2, np.float32(0.9), np.float32(wet))[:, None]
+    fog = 1.0 - np.exp(-t * norm * np.float32(1.0 / fog_dist))
+    colf += fog[:, None] * (horizon - colf)
+    return np.clip(colf, 0, 255).astype(np.uint8)
+
+
+def _ground_regions(geo: SceneGeometry, coords: list, n: int) -> np.ndarray:
+    """Material of ``n`` ground points, (n,) int8: 0 asphalt, 1 sidewalk, 2 verge.
+
+    ``coords``: per road the (along, across) arrays of the points (m).
+    """
+    region = np.full(n, 2, np.int8)
+    for r, (_, acr) in zip(geo.roads, coords, strict=True):
+        region[(acr >= -r["walk"][0]) & (acr <= r["walk"][1]) & (region == 2)] = 1
+    for r, (_, acr) in zip(geo.roads, coords, strict=True):
+        region[(acr >= -r["kerb"][0]) & (acr <= r["kerb"][1])] = 0
+    return region
+
+
+def _ground_albedo(
+    geo: SceneGeometry, region: np.ndarray, fp: np.ndarray, gx: np.ndarray, gy: np.ndarray
+) -> np.ndarray:
+    """Texture colours (n, 3) float32 BGR of ground points (gx, gy) (m) of materials
+    ``region``, sampled at the mip level of their footprint ``fp`` (m), with a slow
+    brightness modulation."""
+    level = np.floor(np.log2(np.maximum(fp * np.float32(1.0 / wt.GROUND_RES), 1.0))).astype(
+        np.int8
+    )
+    col = np.empty((region.size, 3), np.uint8)
+    for m_id, tex in enumerate(geo.ground_tiles()):
+        sel_m = region == m_id
+        if not sel_m.any():
+            continue
+        levels = tex.levels
+        lv = np.minimum(level, len(levels) - 1)
+        size0 = levels[0].shape[0]
+        idx_m = np.flatnonzero(sel_m)
+        u0 = np.mod(gx[idx_m] * np.float32(1.0 / wt.GROUND_RES), size0)
+        v0 = np.mod(gy[idx_m] * np.float32(1.0 / wt.GROUND_RES), size0)
+        lv_m = lv[idx_m]
+        for k in np.unique(lv_m):
+            sel = np.flatnonzero(lv_m == k)
+            s = np.float32(2.0**-k)
+            col[idx_m[sel]] = _sample(
+                levels[k], (u0[sel] + 0.5) * s - 0.5, (v0[sel] + 0.5) * s - 0.5, True
+            )
+    colf = col.astype(np.float32)
+    mval = _sample(
+        geo.modulation_field(),
+        np.mod(gx * np.float32(1.25), 256),
+        np.mod(gy * np.float32(1.25), 256),
+        True,
+    )[:, 0]
+    colf *= (1.0 + 0.12 * mval)[:, None]
+    return colf
+
+
+def _sky_colours(
+    geo: SceneGeometry,
+    M: np.ndarray,
+    si: np.ndarray,
+    horizon: np.ndarray,
+    zenith: np.ndarray,
+    cloudiness: float,
+) -> np.ndarray:
+    """Colours (n, 3) uint8 BGR of the sky pixels ``si`` (flat indices): a gradient from
+    ``horizon`` to ``zenith`` with clouds (density scaled by ``cloudiness``)."""
+    dx, dy, dz = _ray_dirs(M, si)
+    norm = np.sqrt(dx * dx + dy * dy + dz * dz)
+    e = np.clip(dz / norm, 0.0, 1.0)
+    mix = np.sqrt(e)[:, None]
+    col = horizon * (1 - mix) + zenith * mix
+    dzc = np.maximum(dz, 0.02 * norm)
+    cu = np.mod(187.5 * dx / dzc, 512)
+    cv = np.mod(187.5 * dy / dzc, 512)
+    dens = _sample(geo.cloud_field(), cu, cv, True)[:, 0] * np.float32(cloudiness)
+    dens *= np.clip(e * 6.0, 0, 1)
+    cloud_col = np.array(
+        [235, 235, 235] if geo.look["weather"] != "night" else [50, 45, 40], np.float32
+    )
+    col += dens[:, None] * (cloud_col - col)
+    return np.clip(col, 0, 255).astype(np.uint8)
 
 
 # --------------------------------------------------------------------------------------------
