@@ -78,78 +78,142 @@ def draw_quad(
     n_w = _cross(ev_w, eu_w) if normal_w is None else normal_w
     if not q.double and float(n_w @ (fr.c - corners_w[0])) <= 0:
         return
-    Xc = (corners_w - fr.c) @ fr.R_wc
-    zmin, zmax = Xc[:, 2].min(), Xc[:, 2].max()
-    if zmax < Z_NEAR:
+    seen = _quad_in_view(fr, corners_w)
+    if seen is None:
         return
-    poly = clip_near(Xc) if zmin < Z_NEAR else Xc
-    if len(poly) < 3:
+    Xc, poly, uv, box = seen
+    iz = _plane_invz(fr, n_w, Xc[0], box)
+    if iz is None:
         return
-    K = fr.K
-    uv, (x0, x1, y0, y1) = project_bbox(poly, K)
-    if x1 <= x0 or y1 <= y0:
-        return
-    w, h = x1 - x0, y1 - y0
-    # inverse depth plane: 1/Z = g . (u, v, 1)
-    R_cw = fr.R_wc.T
-    n_c = R_cw @ n_w
-    d = float(n_c @ Xc[0])
-    if abs(d) < 1e-12:
-        return
-    g = kinv(K).T @ n_c / d
-    iz = (np.float32(g[0]) * U_COLS[x0:x1])[None, :] + (
-        np.float32(g[1]) * V_ROWS[y0:y1] + np.float32(g[2])
-    )[:, None]
-    mask = np.zeros((h, w), np.uint8)
-    pts = np.round((uv - [x0, y0]) * 16).astype(np.int32)
-    cv2.fillConvexPoly(mask, pts, 1, cv2.LINE_8, 4)
-    iz_roi = fr.invz[y0:y1, x0:x1]
-    m = (mask > 0) & (iz > iz_roi)
+    m = _coverage(fr, uv, iz, box)
     if not m.any():
         return
     if (textured or q.alpha) and q.tex is not None:
-        levels = q.tex.levels if textured else None
-        alphas = q.tex.alpha if q.alpha else None
-        ref = levels if levels is not None else alphas
-        th, tw_ = ref[0].shape[:2]
-        # mip level from texels per image pixel at a representative depth
-        zs = np.clip(poly[:, 2], Z_NEAR, None)
-        zref = math.sqrt(float(zs.min()) * float(zs.max()))
-        du = math.sqrt(math.sqrt(float(eu_w @ eu_w)) / tw_ * math.sqrt(float(ev_w @ ev_w)) / th)
-        texel_px = du * K[0, 0] / zref
-        lvl = int(
-            min(max(math.floor(math.log2(max(1.0 / max(texel_px, 1e-9), 1.0))), 0), len(ref) - 1)
-        )
-
-        def warp(src: np.ndarray, interp: int) -> np.ndarray:
-            sh, sw = src.shape[:2]
-            eu = eu_w / sw
-            ev = ev_w / sh
-            p0 = corners_w[0] + 0.5 * eu + 0.5 * ev
-            if q.flip:
-                p0 = corners_w[1] - 0.5 * eu + 0.5 * ev
-                eu = -eu
-            Hm = K @ R_cw @ np.column_stack([eu, ev, p0 - fr.c])
-            Hm[0] -= x0 * Hm[2]
-            Hm[1] -= y0 * Hm[2]
-            return cv2.warpPerspective(
-                src,
-                Hm,
-                (w, h),
-                flags=interp,
-                borderMode=cv2.BORDER_WRAP if q.wrap else cv2.BORDER_REPLICATE,
-            )
-
-        if alphas is not None:
-            a = warp(alphas[min(lvl, len(alphas) - 1)], cv2.INTER_LINEAR)
-            m &= a >= 128
-        if textured and levels is not None:
-            col = warp(levels[min(lvl, len(levels) - 1)], cv2.INTER_LINEAR)
-            if abs(shade - 1.0) > 1e-3:
-                col = cv2.convertScaleAbs(col, alpha=shade)
-            np.copyto(fr.img[y0:y1, x0:x1], col, where=m[..., None])
-    np.copyto(iz_roi, iz, where=m)
+        _texture_quad(fr, corners_w, q, poly, box, m, shade, textured)
+    x0, x1, y0, y1 = box
+    np.copyto(fr.invz[y0:y1, x0:x1], iz, where=m)
     fr.sid[y0:y1, x0:x1][m] = sid
+
+
+def _quad_in_view(
+    fr: Frame, corners_w: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, ...]] | None:
+    """The quad in the camera: corners (4, 3) in the camera frame, the polygon clipped to
+    z >= Z_NEAR (n, 3), its pixels (n, 2) and their bounding box (x0, x1, y0, y1); None when
+    it is behind the camera or outside the image."""
+    Xc = (corners_w - fr.c) @ fr.R_wc
+    zmin, zmax = Xc[:, 2].min(), Xc[:, 2].max()
+    if zmax < Z_NEAR:
+        return None
+    poly = clip_near(Xc) if zmin < Z_NEAR else Xc
+    if len(poly) < 3:
+        return None
+    uv, (x0, x1, y0, y1) = project_bbox(poly, fr.K)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    return Xc, poly, uv, (x0, x1, y0, y1)
+
+
+def _plane_invz(
+    fr: Frame, n_w: np.ndarray, corner_c: np.ndarray, box: tuple[int, ...]
+) -> np.ndarray | None:
+    """Inverse depth (1/m) of the quad's plane over its bounding box, (h, w) float32: affine
+    in the pixel coordinates, 1/Z = g . (u, v, 1). ``n_w``: the plane's normal (world),
+    ``corner_c``: a point of it in the camera frame. None when the plane passes through the
+    camera centre."""
+    x0, x1, y0, y1 = box
+    R_cw = fr.R_wc.T
+    n_c = R_cw @ n_w
+    d = float(n_c @ corner_c)
+    if abs(d) < 1e-12:
+        return None
+    g = kinv(fr.K).T @ n_c / d
+    return (np.float32(g[0]) * U_COLS[x0:x1])[None, :] + (
+        np.float32(g[1]) * V_ROWS[y0:y1] + np.float32(g[2])
+    )[:, None]
+
+
+def _coverage(fr: Frame, uv: np.ndarray, iz: np.ndarray, box: tuple[int, ...]) -> np.ndarray:
+    """The pixels of the bounding box inside the polygon ``uv`` (n, 2) and nearer than what
+    is drawn there (inverse depth ``iz`` above the z-buffer): (h, w) bool."""
+    x0, x1, y0, y1 = box
+    w, h = x1 - x0, y1 - y0
+    mask = np.zeros((h, w), np.uint8)
+    pts = np.round((uv - [x0, y0]) * 16).astype(np.int32)
+    cv2.fillConvexPoly(mask, pts, 1, cv2.LINE_8, 4)
+    return (mask > 0) & (iz > fr.invz[y0:y1, x0:x1])
+
+
+def _texture_quad(
+    fr: Frame,
+    corners_w: np.ndarray,
+    q: Quad,
+    poly: np.ndarray,
+    box: tuple[int, ...],
+    m: np.ndarray,
+    shade: float,
+    textured: bool,
+) -> None:
+    """Paint the quad's texture (brightness ``shade``) into the image where ``m`` (h, w)
+    bool; an alpha texture first narrows ``m`` (in place) to its opaque texels."""
+    levels = q.tex.levels if textured else None
+    alphas = q.tex.alpha if q.alpha else None
+    ref = levels if levels is not None else alphas
+    lvl = _mip_level(fr.K, poly, corners_w, ref)
+    if alphas is not None:
+        a = _warp_texture(fr, corners_w, q, box, alphas[min(lvl, len(alphas) - 1)])
+        m &= a >= 128
+    if textured and levels is not None:
+        col = _warp_texture(fr, corners_w, q, box, levels[min(lvl, len(levels) - 1)])
+        if abs(shade - 1.0) > 1e-3:
+            col = cv2.convertScaleAbs(col, alpha=shade)
+        x0, x1, y0, y1 = box
+        np.copyto(fr.img[y0:y1, x0:x1], col, where=m[..., None])
+
+
+def _mip_level(
+    K: np.ndarray, poly: np.ndarray, corners_w: np.ndarray, ref: list[np.ndarray]
+) -> int:
+    """The mip level of the pyramid ``ref`` whose texels are about one image pixel at the
+    quad's representative depth (geometric mean of the clipped polygon's ``poly`` depths)."""
+    eu_w = corners_w[1] - corners_w[0]
+    ev_w = corners_w[3] - corners_w[0]
+    th, tw_ = ref[0].shape[:2]
+    zs = np.clip(poly[:, 2], Z_NEAR, None)
+    zref = math.sqrt(float(zs.min()) * float(zs.max()))
+    du = math.sqrt(math.sqrt(float(eu_w @ eu_w)) / tw_ * math.sqrt(float(ev_w @ ev_w)) / th)
+    texel_px = du * K[0, 0] / zref
+    return int(
+        min(max(math.floor(math.log2(max(1.0 / max(texel_px, 1e-9), 1.0))), 0), len(ref) - 1)
+    )
+
+
+def _warp_texture(
+    fr: Frame, corners_w: np.ndarray, q: Quad, box: tuple[int, ...], src: np.ndarray
+) -> np.ndarray:
+    """``src`` (one mip level of the quad's texture or alpha) warped onto the bounding box by
+    the quad's homography (bilinear; tiled if ``q.wrap``), (h, w[, 3])."""
+    x0, x1, y0, y1 = box
+    w, h = x1 - x0, y1 - y0
+    eu_w = corners_w[1] - corners_w[0]
+    ev_w = corners_w[3] - corners_w[0]
+    sh, sw = src.shape[:2]
+    eu = eu_w / sw
+    ev = ev_w / sh
+    p0 = corners_w[0] + 0.5 * eu + 0.5 * ev
+    if q.flip:
+        p0 = corners_w[1] - 0.5 * eu + 0.5 * ev
+        eu = -eu
+    Hm = fr.K @ fr.R_wc.T @ np.column_stack([eu, ev, p0 - fr.c])
+    Hm[0] -= x0 * Hm[2]
+    Hm[1] -= y0 * Hm[2]
+    return cv2.warpPerspective(
+        src,
+        Hm,
+        (w, h),
+        flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_WRAP if q.wrap else cv2.BORDER_REPLICATE,
+    )
 
 
 # --------------------------------------------------------------------------------------------
