@@ -55,7 +55,7 @@ from flowmod.world.records import (
     _write_bytes,
     _write_json,
 )
-from flowmod.world.truth import WORLD_FILE, WorldError, _load_world, is_synthetic, world_params
+from flowmod.world.truth import WORLD_FILE, WorldError, is_synthetic, load_world, world_params
 
 #: The world stage's code version (bump when the generator changes what it writes).
 GENERATOR_VERSION = dag.STAGES["world"].version
@@ -182,7 +182,7 @@ def generate_world(
         p = root / stale
         if p.is_file() and p.name.startswith("synth-"):
             p.unlink()
-    _load_world.cache_clear()
+    load_world.cache_clear()
     return root
 
 

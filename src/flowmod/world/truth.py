@@ -30,7 +30,7 @@ def is_synthetic(dataroot: str | os.PathLike[str], version: str) -> bool:
 
 def world_params(dataroot: str | os.PathLike[str], version: str) -> dict:
     """The size parameters a synthetic world was generated with (n_scenes, ..., seed)."""
-    return dict(_load_world(*_world_key(dataroot, version))["params"])
+    return dict(load_world(*_world_key(dataroot, version))["params"])
 
 
 
@@ -51,7 +51,10 @@ def _world_key(dataroot: str | os.PathLike[str], version: str) -> tuple[str, flo
 
 
 @lru_cache(maxsize=2)
-def _load_world(path: str, mtime: float) -> dict:
+def load_world(path: str, mtime: float) -> dict:
+    """The world description in ``path`` (cached per path and mtime) with two indexes:
+    ``_sd`` (sample_data token -> (scene index, timestamp in us)) and ``_inst`` (instance
+    token -> (scene index, agent index))."""
     world = json.loads(Path(path).read_text())
     sd_index = {}
     inst_index = {}
@@ -69,12 +72,12 @@ def _load_world(path: str, mtime: float) -> dict:
 def _geometry(path: str, mtime: float, scene_index: int):
     from flowmod.world import geometry as wg
 
-    return wg.SceneGeometry(_load_world(path, mtime)["scenes"][scene_index])
+    return wg.SceneGeometry(load_world(path, mtime)["scenes"][scene_index])
 
 
 def scene_of(dataroot: str | os.PathLike[str], version: str, sd_token: str) -> tuple[dict, float]:
     """(scene description, scene time in s) of a CAM_FRONT sample_data token."""
-    world = _load_world(*_world_key(dataroot, version))
+    world = load_world(*_world_key(dataroot, version))
     if sd_token not in world["_sd"]:
         raise WorldError(f"sample_data token {sd_token!r} is not a frame of this synthetic world")
     si, ts = world["_sd"][sd_token]
@@ -98,7 +101,7 @@ def gt_flow(
     """
 
     key = _world_key(dataroot, version)
-    world = _load_world(*key)
+    world = load_world(*key)
     for tok in (sd_token_1, sd_token_2):
         if tok not in world["_sd"]:
             raise WorldError(f"sample_data token {tok!r} is not a frame of this synthetic world")
@@ -200,7 +203,7 @@ def true_velocity(
     """The world's exact instantaneous velocity of an instance: (3,) m/s, global frame."""
     from flowmod.world import scene as ws
 
-    world = _load_world(*_world_key(dataroot, version))
+    world = load_world(*_world_key(dataroot, version))
     if instance_token not in world["_inst"]:
         raise WorldError(f"instance token {instance_token!r} is not an agent of this world")
     si, ai = world["_inst"][instance_token]
