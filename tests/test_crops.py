@@ -289,7 +289,8 @@ def test_crops_mode_gives_the_stored_flow_crops_and_keeps_few_pairs(smoke_built,
     to the crops cut from stored flow (gt with its valid mask included), every metric
     equal; the flow nodes keep only the figures' and the seeded pairs; a rerun computes
     nothing; and the disk it takes is that of crops, not of flow."""
-    from flowmod import dag, flow, pipeline
+    from flowmod import dag, pipeline, select
+    from flowmod.chapters import common
 
     local = smoke_built
     p = local.model_copy(update={"flow_store": "crops", "flow_keep_pairs": 2,
@@ -298,42 +299,42 @@ def test_crops_mode_gives_the_stored_flow_crops_and_keeps_few_pairs(smoke_built,
     for m in p.flow_methods:
         for part, splits in crops.PART_SPLITS.items():
             for split in splits:
-                xa, ia = crops.open_crops(local, m, split)
-                xb, ib = crops.open_crops(p, m, split)
+                xa, ia = common.open_crops(local, m, split)
+                xb, ib = common.open_crops(p, m, split)
                 np.testing.assert_array_equal(xa, xb)
                 pd.testing.assert_frame_equal(ia, ib)
                 node = dag.Node("crops", m, part)
                 np.testing.assert_array_equal(
-                    crops.read_samples(dag.published(local, node), split),
-                    crops.read_samples(dag.published(p, node), split))
-            kept = flow.FlowReader(p, m, part).pair_ids
-            every = flow.FlowReader(local, m, part).pair_ids
+                    crops.read_samples(pipeline.published(local, node), split),
+                    crops.read_samples(pipeline.published(p, node), split))
+            kept = common.flow_reader(p, m, part).pair_ids
+            every = common.flow_reader(local, m, part).pair_ids
             assert set(kept) <= set(every)  # general: the whole clip may be all of it
             for pid in kept:  # kept flow is the same flow
-                np.testing.assert_array_equal(flow.FlowReader(p, m, part).load(pid),
-                                              flow.FlowReader(local, m, part).load(pid))
-        key = flow.FlowReader(p, m, "keyframe").pair_ids
-        assert len(key) == 3 < len(flow.FlowReader(local, m, "keyframe").pair_ids), (
+                np.testing.assert_array_equal(common.flow_reader(p, m, part).load(pid),
+                                              common.flow_reader(local, m, part).load(pid))
+        key = common.flow_reader(p, m, "keyframe").pair_ids
+        assert len(key) == 3 < len(common.flow_reader(local, m, "keyframe").pair_ids), (
             "Figure 1's pair and 2 drawn")
-    for node in dag.nodes(p):
+    for node in pipeline.nodes(p):
         if node.stage in ("evaluate", "generalise"):
-            for f in dag.published(local, node).glob("*.parquet"):
+            for f in pipeline.published(local, node).glob("*.parquet"):
                 pd.testing.assert_frame_equal(pd.read_parquet(f),
-                                              pd.read_parquet(dag.published(p, node) / f.name))
+                                              pd.read_parquet(pipeline.published(p, node) / f.name))
 
     def size(folder: Path) -> int:
         return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
 
     def flow_bytes(q, m: str) -> int:
-        r = flow.FlowReader(q, m, "keyframe")
+        r = common.flow_reader(q, m, "keyframe")
         return sum(r.path(pid).stat().st_size for pid in r.pair_ids)
 
     for m in p.flow_methods:
-        n_all = len(flow.FlowReader(local, m, "keyframe").pair_ids)
+        n_all = len(common.flow_reader(local, m, "keyframe").pair_ids)
         assert flow_bytes(p, m) * n_all == flow_bytes(local, m) * 3, "3 pairs' flow kept"
         # published: the node's arrays hold the crops, the per-pair files are gone
         assert not list((Path(p.run_dir) / "crops" / m / "pool").rglob("*.npy"))
-        node_dirs = [dag.published(p, dag.Node("crops", m, part)) for part in dag.PARTS]
+        node_dirs = [pipeline.published(p, dag.Node("crops", m, part)) for part in select.PARTS]
         assert sum(size(d) for d in node_dirs) < 0.2 * size(Path(local.run_dir) / "flow" / m / "pool")
         for d in node_dirs:
             assert read_manifest(d / "manifest.json")["flow_computed"] == len(
@@ -346,17 +347,17 @@ def test_crops_mode_gives_the_stored_flow_crops_and_keeps_few_pairs(smoke_built,
     # other splits, the same boxes: the crops nodes are rebuilt from the published rows,
     # no flow computed, every pair's crops as before
     q = Params.model_validate({**p.model_dump(), "split_fractions": [0.6, 0.2, 0.2]})
-    old = {m: dag.recorded(p, dag.Node("crops", m, "keyframe"))["fingerprint"]
+    old = {m: pipeline.recorded(p, dag.Node("crops", m, "keyframe"))["fingerprint"]
            for m in p.flow_methods}
     pipeline.build(q, chapters=["02", "05"])
     for m in q.flow_methods:
         node = dag.Node("crops", m, "keyframe")
-        rebuilt = read_manifest(dag.published(q, node) / "manifest.json")
+        rebuilt = read_manifest(pipeline.published(q, node) / "manifest.json")
         assert rebuilt["flow_computed"] == 0
         assert rebuilt["fingerprint"] != old[m]
 
         def every_split(r, m=m):
-            parts = [crops.open_crops(r, m, s) for s in crops.PART_SPLITS["keyframe"]]
+            parts = [common.open_crops(r, m, s) for s in crops.PART_SPLITS["keyframe"]]
             idx = pd.concat([i for _, i in parts], ignore_index=True)
             order = np.argsort(idx["pair_id"].to_numpy(), kind="stable")
             return np.concatenate([np.asarray(x) for x, _ in parts])[order], idx.iloc[order]

@@ -95,25 +95,26 @@ def test_smoke_study_on_ray_gives_the_local_metrics(smoke_built, ray_cluster, tm
     """The whole smoke study with executor: ray (and crops mode, the default of the demo and
     paper profiles: the crops stage computes every pair's flow on the cluster) in a fresh run
     folder: every kept flow file, every crop and every metric equals the local build's."""
-    from flowmod import crops, dag, pipeline
+    from flowmod import crops, pipeline, select
+    from flowmod.chapters import common
 
     local = smoke_built
     p = local.model_copy(update={"executor": "ray", "ray_address": "local", "n_jobs": 2,
                                  "flow_store": "crops", "run_dir": str(tmp_path / "runs")})
     pipeline.build(p)
     for m in p.flow_methods:
-        for part in dag.PARTS:
-            a, b = fl.FlowReader(local, m, part), fl.FlowReader(p, m, part)
+        for part in select.PARTS:
+            a, b = common.flow_reader(local, m, part), common.flow_reader(p, m, part)
             assert b.pair_ids and set(b.pair_ids) <= set(a.pair_ids)
             for pid in b.pair_ids:
                 assert a.path(pid).read_bytes() == b.path(pid).read_bytes(), (m, part, pid)
             for split in crops.PART_SPLITS[part]:
-                xa, _ = crops.open_crops(local, m, split)
-                xb, _ = crops.open_crops(p, m, split)
+                xa, _ = common.open_crops(local, m, split)
+                xb, _ = common.open_crops(p, m, split)
                 np.testing.assert_array_equal(xa, xb)
-    for node in dag.nodes(p):
+    for node in pipeline.nodes(p):
         if node.stage in ("evaluate", "generalise"):
-            fa, fb = dag.published(local, node), dag.published(p, node)
+            fa, fb = pipeline.published(local, node), pipeline.published(p, node)
             tables = sorted(f.name for f in fa.glob("*.parquet"))
             assert tables, node
             for name in tables:

@@ -147,11 +147,12 @@ def test_static_crops_explain_the_exact_flow_of_still_vehicles(smoke_built):
     """On the generated world the exact flow of a still vehicle and of the ground around it
     is the camera's own motion: the static-world crop from the two poses, the annotated box
     and the ground plane leaves hundredths of a pixel of it, while movers keep their own."""
-    from flowmod import crops, dag
+    from flowmod import crops, dag, pipeline
+    from flowmod.chapters import common
 
     p = smoke_built
-    pairs = pd.read_parquet(dag.published(p, dag.Node("select")) / "pairs.parquet")
-    x, idx = crops.open_crops(p, "gt", "train")
+    pairs = pd.read_parquet(pipeline.published(p, dag.Node("select")) / "pairs.parquet")
+    x, idx = common.open_crops(p, "gt", "train")
     still = idx["true_speed"].to_numpy() < 0.01
     assert still.sum() >= 5 and (~still).sum() >= 5
     static = crops.static_crops(idx, pairs, p.crop_size, p.crop_scale)

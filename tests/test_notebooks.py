@@ -91,7 +91,8 @@ def smoke_params(smoke_run):
 
 
 def test_crops_and_training_recorded(smoke_run):
-    from flowmod import dag, train
+    from flowmod import train
+    from flowmod.chapters import ch06_training as ch06
 
     p = smoke_params(smoke_run)
     g5, g6 = glue_of(smoke_run, "05_preprocessing"), glue_of(smoke_run, "06_training")
@@ -101,7 +102,7 @@ def test_crops_and_training_recorded(smoke_run):
     assert g6["n_model_parameters"] == 11_689_512 - 64 * 7 * 7 - (512 * 999 + 999)
     assert g6["epochs"] == 1
     for m in ("gt", "dis"):
-        hs = [train.history(p, m, part) for part in dag.seed_parts(p)]
+        hs = [ch06.history(p, m, part) for part in train.seed_parts(p)]
         # the recorded numbers are those of the published models' histories
         assert g6[f"best_epoch_{m}"] == int(hs[0]["val_f1"].to_numpy().argmax()) + 1
         assert g6[f"val_f1_{m}"] == round(100 * np.mean([h["val_f1"].max() for h in hs]), 1)
@@ -109,6 +110,7 @@ def test_crops_and_training_recorded(smoke_run):
 
 def test_evaluation_and_generalisation_recorded(smoke_run):
     from flowmod import evaluate
+    from flowmod.chapters import common
     from flowmod.metrics import metrics
 
     p = smoke_params(smoke_run)
@@ -117,66 +119,67 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
     assert g7["n_test"] == g2["n_test_objects"], "Table 3 is scored on the whole test split"
     for m in ("gt", "dis"):
         # every recorded number, recomputed from the saved predictions
-        preds = evaluate.results(p, m, "test")[0]
+        preds = common.results(p, m, "test")[0]
         f1s = [metrics(preds["label"], preds[c])["f1"] for c in evaluate.seed_columns(preds)]
         assert g7[f"test_f1_{m}"] == round(100 * np.mean(f1s), 1)
-        base = evaluate.results(p, m, "baseline")[0]
+        base = common.results(p, m, "baseline")[0]
         assert g7[f"baseline_f1_{m}"] == round(100 * metrics(base["label"], base["prob"])["f1"], 1)
-        gen = evaluate.results(p, m, "general")[0]
+        gen = common.results(p, m, "general")[0]
         in_range = gen[gen["distance"] <= p.general_max_distance]
         for key, col in (("paper", "label"), ("true", "true_label")):
             f1s = [metrics(in_range[col], in_range[c])["f1"]
                    for c in evaluate.seed_columns(in_range)]
             assert g8[f"general_f1_{m}_{key}"] == round(100 * np.mean(f1s), 1)
         assert (gen["distance"] > p.general_max_distance).any(), "70-100 m scored apart"
-    assert g8["n_general"] == (evaluate.results(p, "dis", "general")[0]["distance"]
+    assert g8["n_general"] == (common.results(p, "dis", "general")[0]["distance"]
                                <= p.general_max_distance).sum()
     assert g2["split_unit"] == "scene", "a generated world is split by scene"
     # chapter 09: the recorded signal and recalls, recomputed
-    from flowmod import extensions, select
+    from flowmod.extensions import blind_spots
 
     g9 = glue_of(smoke_run, "09_blind_spots")
-    sel, _ = select.load(p)
+    sel, _ = (common.selection(p), common.made_with(p))
     pairs = sel.pairs[sel.pairs["set"] == "keyframe"]
     f = float(np.median([k[0] for k in pairs["intrinsic"]]))
     dt = float(np.median(pairs["timestamp_2"] - pairs["timestamp_1"])) / 1e6
-    radial = extensions.physical_signal(f, dt)["radial: width change (px)"].iloc[1]
+    radial = blind_spots.physical_signal(f, dt)["radial: width change (px)"].iloc[1]
     assert g9["radial_px_50"] == round(float(radial), 2)
-    df = extensions.motion_geometry(evaluate.results(p, "dis")[0], sel.pairs)
-    blind = extensions.blind_spots(df, evaluate.seed_probs(df), df["scene"].to_numpy())
-    slow, _fast = extensions.recall_slow_and_fast(blind)
+    df = blind_spots.motion_geometry(common.results(p, "dis")[0], sel.pairs)
+    blind = blind_spots.blind_spots(df, evaluate.seed_probs(df), df["scene"].to_numpy())
+    slow, _fast = blind_spots.recall_slow_and_fast(blind)
     assert (g9["recall_slow_dis"] == "nan") if np.isnan(slow) else (
         g9["recall_slow_dis"] == round(100 * slow, 1))
     media = smoke_run["base"] / "runs" / "figures" / "media"
     assert any(media.glob("*.mp4")) and any(media.glob("*-strip.png"))
     # chapter 10: every chain built (smoke: extension_build), its F1 that of its predictions
-    from flowmod import variants
+    from flowmod.chapters import ch10_inputs as ch10
+    from flowmod.extensions import inputs
 
-    g10 = glue_of(smoke_run, "10_extensions")
+    g10 = glue_of(smoke_run, "10_inputs")
     assert g10["ext_n_built"] == g10["ext_n_planned"] == 3
-    for m, v in variants.chains(p):
+    for m, v in inputs.chains(p):
         for split, key in (("test", "test"), ("general", "general")):
-            d = variants.scored(variants.predictions(p, m, v, split), split, p.general_max_distance)
+            d = evaluate.scored(ch10.predictions(p, m, v, split), split, p.general_max_distance)
             f1 = np.mean([metrics(d["label"], d[c])["f1"] for c in evaluate.seed_columns(d)])
-            assert g10[f"ext_{key}_f1_{variants.glue_key(m, v)}"] == round(100 * f1, 1)
+            assert g10[f"ext_{key}_f1_{ch10.glue_key(m, v)}"] == round(100 * f1, 1)
     assert g10["ext_headline"].startswith("on dis flow, the best other input")
     assert g10["still_residual_px"] < 0.1 * g10["still_flow_px"]
     assert g10["moving_residual_px"] > g10["still_residual_px"]
     assert (smoke_run["base"] / "runs" / "figures" / "extension_inputs.png").stat().st_size > 5000
     # chapter 11: the dis classifier trained on all distances, its headline from Table 4
-    from flowmod import wide
+    from flowmod.chapters import ch11_all_distances as ch11
 
     g11 = glue_of(smoke_run, "11_all_distances")
     assert g11["wide_n_built"] == 1
-    assert {k: g11[k] for k in wide.near_counts(p)} == wide.near_counts(p)
-    assert g11["wide_headline"] == wide.headline(p, wide.table4(p, ["dis"]), ["dis"])
+    assert {k: g11[k] for k in ch11.near_counts(p)} == ch11.near_counts(p)
+    assert g11["wide_headline"] == ch11.headline(p, ch11.table4(p, ["dis"]), ["dis"])
     assert (smoke_run["base"] / "runs" / "figures" / "wide_f1_distance.png").stat().st_size > 5000
     # chapter 12: both networks trained (smoke: 4 steps), the headline from their evaluation
-    from flowmod.flow import selftrain
+    from flowmod.chapters import ch12_self_trained_flow as ch12
 
     g12 = glue_of(smoke_run, "12_self_trained_flow")
     assert g12["selfflow_n_built"] == 2
-    assert g12["selfflow_headline"] == selftrain.headline(p, ["photometric", "supervised"])
+    assert g12["selfflow_headline"] == ch12.headline(p, ["photometric", "supervised"])
     for name in ("selfflow_training.png", "selfflow_example.png"):
         assert (smoke_run["base"] / "runs" / "figures" / name).stat().st_size > 5000
 
@@ -306,7 +309,7 @@ def test_paper_profile_runs_on_a_devkit_dataset_by_parameters_only(smoke_world, 
     assert "true_agreement" not in book.read_glue(tmp_path / "executed" / "04_labeling.ipynb")
     g7 = book.read_glue(tmp_path / "executed" / "07_evaluation.ipynb")
     assert g7["headline_method"] == "dis" and "test_f1_gt" not in g7
-    g10 = book.read_glue(tmp_path / "executed" / "10_extensions.ipynb")
+    g10 = book.read_glue(tmp_path / "executed" / "10_inputs.ipynb")
     assert g10["ext_n_planned"] == 0, "chapter 10 is off in the paper profile (~90 GB)"
     assert g10["ext_headline"].startswith("not part of this profile")
     g11 = book.read_glue(tmp_path / "executed" / "11_all_distances.ipynb")

@@ -10,7 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from flowmod import dag, evaluate, predict, select
+from flowmod import dag, pipeline, predict
+from flowmod.chapters import common
 
 pytestmark = pytest.mark.slow
 
@@ -19,15 +20,15 @@ pytestmark = pytest.mark.slow
 def case(smoke_built, tmp_path_factory):
     """A test pair of the smoke run, its objects as a boxes CSV, the dis model of seed 0."""
     p = smoke_built
-    sel, _ = select.load(p)
-    preds = evaluate.results(p, "dis", "test")[0]
+    sel, _ = (common.selection(p), common.made_with(p))
+    preds = common.results(p, "dis", "test")[0]
     pid = preds["pair_id"].value_counts().index[0]
     objs = preds[preds["pair_id"] == pid]
     pair = sel.pairs.set_index("pair_id").loc[pid]
     tmp = tmp_path_factory.mktemp("predict")
     boxes = tmp / "boxes.csv"
     objs[["xmin", "ymin", "xmax", "ymax"]].to_csv(boxes, index=False)
-    model = dag.node_dir(p, dag.Node("train", "dis", "s0")) / "best.pt"
+    model = pipeline.node_dir(p, dag.Node("train", "dis", "s0")) / "best.pt"
     return {"f1": p.dataroot_path / pair.path_1, "f2": p.dataroot_path / pair.path_2,
             "boxes": boxes, "model": model, "objs": objs, "tmp": tmp, "params": p}
 
@@ -82,6 +83,6 @@ def test_cli_errors_name_the_problem(case):
     broken.write_bytes(b"not an image")
     proc = run(broken, case["f2"], "--boxes", case["boxes"], "--model", case["model"])
     assert proc.returncode == 2 and "broken.jpg" in proc.stderr
-    gt_model = dag.node_dir(case["params"], dag.Node("train", "gt", "s0")) / "best.pt"
+    gt_model = pipeline.node_dir(case["params"], dag.Node("train", "gt", "s0")) / "best.pt"
     proc = run(case["f1"], case["f2"], "--boxes", case["boxes"], "--model", gt_model)
     assert proc.returncode == 2 and "exact flow (gt)" in proc.stderr

@@ -16,7 +16,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from flowmod import dag, evaluate, pipeline
+from flowmod import dag, pipeline, select
+from flowmod.chapters import common
 from flowmod.flow import ImageError
 from flowmod.params import Params
 
@@ -96,14 +97,14 @@ SPECIAL = {"run_dir", "dataroot", "version", "flow_methods", "seeds", "extension
 def downstream(p: Params, start: set[dag.Node]) -> set[dag.Node]:
     """``start`` and every node that reads one of them, directly or not."""
     out = set(start)
-    for n in dag.nodes(p):  # data order: inputs come first
-        if any(i in out for i in dag.inputs(n, p)):
+    for n in pipeline.nodes(p):  # data order: inputs come first
+        if any(i in out for i in pipeline.inputs(n, p)):
             out.add(n)
     return out
 
 
 def not_up_to_date(p: Params) -> set[dag.Node]:
-    return {s.node for s in dag.status(p) if s.state != "up to date"}
+    return {s.node for s in pipeline.status(p) if s.state != "up to date"}
 
 
 @pytest.fixture(scope="module")
@@ -122,20 +123,20 @@ def test_every_parameter_makes_exactly_its_readers_and_downstream_stale(finished
     value, stages, methods = SPEC[name]
     assert getattr(finished, name) != value
     p = finished.model_copy(update={name: value})
-    direct = {n for n in dag.nodes(p)
+    direct = {n for n in pipeline.nodes(p)
               if n.stage in stages and (not methods or n.method in methods)}
     assert not_up_to_date(p) == downstream(p, direct)
-    for s in dag.status(p):
+    for s in pipeline.status(p):
         if s.node in direct and s.node.stage != "world":
             assert name in s.why, f"{s.node}: the one-line reason names the parameter: {s.why}"
 
 
 def test_special_parameters(finished, tmp_path):
-    nodes = set(dag.nodes(finished))
+    nodes = set(pipeline.nodes(finished))
     # another place for the data (not there yet): only the world is missing; what was built
     # from an identical world stays valid, since the world's identity is its content
     for name, value in (("dataroot", str(tmp_path / "elsewhere")), ("version", "v1.0-other")):
-        st = {s.node: s for s in dag.status(finished.model_copy(update={name: value}))}
+        st = {s.node: s for s in pipeline.status(finished.model_copy(update={name: value}))}
         assert st[dag.Node("world")].state == "missing"
         assert {n for n, s in st.items() if s.state != "up to date"} == {dag.Node("world")}
     # another run folder: nothing built there yet
@@ -143,24 +144,24 @@ def test_special_parameters(finished, tmp_path):
     assert not_up_to_date(fresh) == nodes - {dag.Node("world")}
     # one more flow method: its chain is missing, nothing else changes
     more = finished.model_copy(update={"flow_methods": [*finished.flow_methods, "farneback"]})
-    assert not_up_to_date(more) == {n for n in dag.nodes(more) if n.method == "farneback"}
+    assert not_up_to_date(more) == {n for n in pipeline.nodes(more) if n.method == "farneback"}
     # one more training seed: its models are missing, and the scores that average over seeds
     # are stale; the first seed's models are untouched
     two = finished.model_copy(update={"seeds": 2})
-    assert not_up_to_date(two) == {n for n in dag.nodes(two) if (n.part or "").endswith(
-        "s1")} | {n for n in dag.nodes(two) if n.stage in ("evaluate", "generalise", "xevaluate",
+    assert not_up_to_date(two) == {n for n in pipeline.nodes(two) if (n.part or "").endswith(
+        "s1")} | {n for n in pipeline.nodes(two) if n.stage in ("evaluate", "generalise", "xevaluate",
                                                             "wgeneralise")}
     # chapter 10's plan: one input fewer drops its nodes and changes nothing else; one method
     # fewer drops its chains
     fewer = finished.model_copy(update={"extension_inputs": finished.extension_inputs[1:]})
-    assert not_up_to_date(fewer) == set() and set(dag.nodes(fewer)) < nodes
+    assert not_up_to_date(fewer) == set() and set(pipeline.nodes(fewer)) < nodes
     gt_only = finished.model_copy(update={"extension_methods": ["gt"]})
     assert not_up_to_date(gt_only) == set()
-    assert {n.method for n in dag.nodes(gt_only) if n.stage == "xtrain"} == {"gt", None}
+    assert {n.method for n in pipeline.nodes(gt_only) if n.stage == "xtrain"} == {"gt", None}
     # chapter 11's plan: no method drops all its nodes (and its selection), nothing else
     off = finished.model_copy(update={"wide_methods": []})
     assert not_up_to_date(off) == set()
-    assert set(nodes) - set(dag.nodes(off)) == {n for n in nodes if dag.chapter(n) == "11"}
+    assert set(nodes) - set(pipeline.nodes(off)) == {n for n in nodes if pipeline.chapter(n) == "11"}
 
 
 def test_status_explains_in_one_line(finished):
@@ -200,15 +201,15 @@ def snapshot(run: Path) -> dict[Path, tuple[int, int]]:
 
 
 def manifests(p: Params) -> dict[dag.Node, float]:
-    return {n: (dag.recorded(p, n) or {}).get("written") for n in dag.nodes(p)}
+    return {n: (pipeline.recorded(p, n) or {}).get("written") for n in pipeline.nodes(p)}
 
 
 def scores(p: Params) -> dict[str, object]:
     out = {}
     for m in p.flow_methods:
-        preds, s = evaluate.results(p, m, "test")
+        preds, s = common.results(p, m, "test")
         out[m] = (round(s["f1"], 12), preds["prob"].round(9).tolist(),
-                  evaluate.results(p, m, "general")[0]["prob"].round(9).tolist())
+                  common.results(p, m, "general")[0]["prob"].round(9).tolist())
     return out
 
 
@@ -220,7 +221,7 @@ def rerun(p: Params) -> set[dag.Node]:
     after = manifests(p)
     rebuilt = {n for n in after if after[n] != before.get(n)}
     assert rebuilt == stale, "exactly the stale nodes are recomputed"
-    inside = [dag.node_dir(p, n) for n in rebuilt]
+    inside = [pipeline.node_dir(p, n) for n in rebuilt]
     now = snapshot(p.run_path)
     for f, stat in before_files.items():
         if any(d == f.parent or d in f.parents for d in inside):
@@ -241,11 +242,11 @@ def test_reruns_recompute_exactly_what_changed_and_match_a_fresh_run(finished, t
         if name == "epochs":
             at_step_4 = manifests(p)
         p = p.model_copy(update={name: value})
-        direct = {n for n in dag.nodes(p) if name in dag.reads(n)}
+        direct = {n for n in pipeline.nodes(p) if name in dag.reads(n)}
         assert rerun(p) == downstream(p, direct), name
     # the crop change retrained the models and chapter 07 scores the new ones
-    rec = dag.recorded(p, dag.Node("train", "dis", "s0"))
-    assert rec["inputs"]["crops[dis/keyframe]"] == dag.recorded(
+    rec = pipeline.recorded(p, dag.Node("train", "dis", "s0"))
+    assert rec["inputs"]["crops[dis/keyframe]"] == pipeline.recorded(
         p, dag.Node("crops", "dis", "keyframe"))["fingerprint"]
     # the same parameters from scratch (same world) give the same numbers
     scratch = p.model_copy(update={"run_dir": str(tmp_path / "scratch")})
@@ -253,18 +254,18 @@ def test_reruns_recompute_exactly_what_changed_and_match_a_fresh_run(finished, t
     assert scores(scratch) == scores(p)
     # switching a parameter back restores the kept variants: nothing is computed again
     back = p.model_copy(update={"epochs": 1})
-    stale = [s for s in dag.status(back) if s.state != "up to date"]
+    stale = [s for s in pipeline.status(back) if s.state != "up to date"]
     assert stale and all("will be restored" in s.why for s in stale)
     rebuilt = rerun(back)
     assert {n.stage for n in rebuilt} == {"train", "evaluate", "generalise", "xtrain",
                                           "xevaluate", "wtrain", "wgeneralise"}
     for n in rebuilt:
-        assert dag.recorded(back, n)["written"] == at_step_4[n], f"{n} restored, not retrained"
+        assert pipeline.recorded(back, n)["written"] == at_step_4[n], f"{n} restored, not retrained"
     # the flow of an earlier option comes back from the pool, no pair computed again
     pools = sorted((run / "flow" / "dis" / "pool").rglob("*.npy"))
     back = back.model_copy(update={"dis_preset": "medium"})
-    st = {s.node: s.why for s in dag.status(back)}
-    assert all("will be restored" in st[dag.Node("flow", "dis", part)] for part in dag.PARTS)
+    st = {s.node: s.why for s in pipeline.status(back)}
+    assert all("will be restored" in st[dag.Node("flow", "dis", part)] for part in select.PARTS)
     rerun(back)
     assert sorted((run / "flow" / "dis" / "pool").rglob("*.npy")) == pools
 
@@ -275,16 +276,16 @@ def test_another_world_in_the_same_run_folder_recomputes_flow(finished, tmp_path
     shutil.copytree(finished.run_path, run, symlinks=True)
     p = finished.model_copy(update={"run_dir": str(run)})
     other = p.model_copy(update={"dataroot": str(tmp_path / "world2"), "world_vehicles": 12})
-    st = {s.node: s for s in dag.status(other)}
+    st = {s.node: s for s in pipeline.status(other)}
     assert st[dag.Node("flow", "gt", "keyframe")].state == "stale"
-    old = {m: set(pd.read_parquet(dag.node_dir(p, dag.Node("flow", m, "keyframe"))
+    old = {m: set(pd.read_parquet(pipeline.node_dir(p, dag.Node("flow", m, "keyframe"))
                                   / "index.parquet")["key"]) for m in p.flow_methods}
     pipeline.build(other, ["01", "02", "03"])
     for method in other.flow_methods:
-        idx = pd.read_parquet(dag.node_dir(other, dag.Node("flow", method, "keyframe"))
+        idx = pd.read_parquet(pipeline.node_dir(other, dag.Node("flow", method, "keyframe"))
                               / "index.parquet")
         assert not set(idx["key"]) & old[method], "no flow of the old world is reused"
-        rec = dag.recorded(other, dag.Node("flow", method, "keyframe"))
+        rec = pipeline.recorded(other, dag.Node("flow", method, "keyframe"))
         assert rec["computed"] == rec["pairs"] == len(idx)
 
 
@@ -294,7 +295,7 @@ def test_failed_forced_rerun_loses_nothing(finished, tmp_path):
     shutil.copytree(finished.dataroot_path, data)
     p = finished.model_copy(update={"run_dir": str(run), "dataroot": str(data)})
     assert not_up_to_date(p) == set(), "a copy of identical data is the same world"
-    pairs = pd.read_parquet(dag.node_dir(p, dag.Node("select")) / "pairs.parquet")
+    pairs = pd.read_parquet(pipeline.node_dir(p, dag.Node("select")) / "pairs.parquet")
     victim = data / pairs["path_2"].iloc[len(pairs) // 2]
     victim.write_bytes(victim.read_bytes()[: victim.stat().st_size // 2])  # truncated JPEG
     before = snapshot(run)
@@ -325,17 +326,17 @@ def test_killed_flow_build_resumes_without_recomputing_finished_pairs(finished, 
     monkeypatch.setattr(stage, "_one_image_pair", dying)
     with pytest.raises(KeyboardInterrupt):
         pipeline.build(p, ["03"])
-    assert dag.recorded(p, dag.Node("flow", "dis", "keyframe")) is None, "not published"
+    assert pipeline.recorded(p, dag.Node("flow", "dis", "keyframe")) is None, "not published"
     first = list(calls)
     calls.clear()
     monkeypatch.setattr(stage, "_one_image_pair", lambda *a: calls.append(a[1]) or real(*a))
     pipeline.build(p, ["03"])
     assert not set(first) & set(calls), "finished pairs are not computed again"
-    rec = dag.recorded(p, dag.Node("flow", "dis", "keyframe"))
+    rec = pipeline.recorded(p, dag.Node("flow", "dis", "keyframe"))
     assert rec["computed"] == rec["pairs"] - 3
-    idx = pd.read_parquet(dag.node_dir(p, dag.Node("flow", "dis", "keyframe")) / "index.parquet")
+    idx = pd.read_parquet(pipeline.node_dir(p, dag.Node("flow", "dis", "keyframe")) / "index.parquet")
     assert np.isfinite(idx["seconds"]).all(), "timings of the killed run survive"
-    assert json.loads((dag.node_dir(p, dag.Node("flow", "dis", "keyframe"))
+    assert json.loads((pipeline.node_dir(p, dag.Node("flow", "dis", "keyframe"))
                        / "manifest.json").read_text())["pairs"] == len(idx)
 
 
@@ -343,7 +344,7 @@ def test_gc_removes_only_what_no_node_reads(finished, tmp_path):
     """runner --gc: a fresh run has nothing to collect; after a flow option changed, the old
     option's files stay while a kept variant lists them and go with --variants; stray files
     and crops pools of other options go; every node stays up to date and readable."""
-    from flowmod import flow, runner
+    from flowmod import runner
 
     run = tmp_path / "runs"
     shutil.copytree(finished.run_path, run, symlinks=True)
@@ -352,10 +353,10 @@ def test_gc_removes_only_what_no_node_reads(finished, tmp_path):
     # the medium flow files: chapter 11's wide flow node (stale, not rebuilt: only 03 ran)
     # still reads some of them (its keyframe pairs are the paper's image pairs)
     files = {part: {r.path(pid) for pid in r.pair_ids}
-             for part in (*dag.PARTS, dag.WIDE) for r in [flow.FlowReader(p, "dis", part)]}
-    medium = files["keyframe"] | files["general"] | files[dag.WIDE]
+             for part in (*select.PARTS, select.WIDE) for r in [common.flow_reader(p, "dis", part)]}
+    medium = files["keyframe"] | files["general"] | files[select.WIDE]
     assert len({f.parent for f in medium}) == 1, "one option folder: medium"
-    n_medium = len(medium - files[dag.WIDE])
+    n_medium = len(medium - files[select.WIDE])
     fast = p.model_copy(update={"dis_preset": "fast"})
     pipeline.build(fast, chapters=["03"])
     pool = run / "flow" / "dis" / "pool"
@@ -374,21 +375,21 @@ def test_gc_removes_only_what_no_node_reads(finished, tmp_path):
     stale = not_up_to_date(fast)  # crops and below: dis_preset changed, only 03 was rebuilt
     assert {n.stage for n in stale} == {"crops", "train", "evaluate", "generalise", "xtrain",
                                         "xevaluate", "wtrain", "wgeneralise", "flow"}
-    assert {n for n in stale if n.stage == "flow"} == {dag.Node("flow", "dis", dag.WIDE)}
+    assert {n for n in stale if n.stage == "flow"} == {dag.Node("flow", "dis", select.WIDE)}
     n, _ = pipeline.collect_garbage(fast, variants=True)
     variants = 2  # the dis flow nodes' medium results
     assert n == 2 + variants + n_medium
     assert not stray.exists() and not other_crops.exists()
-    assert {f for f in medium if f.exists()} == files[dag.WIDE], "what a node reads stays"
+    assert {f for f in medium if f.exists()} == files[select.WIDE], "what a node reads stays"
     # the medium folder keeps the files the wide node reads (an emptied one would go)
     assert len([d for d in pool.iterdir() if d.is_dir()]) == 2
     assert not_up_to_date(fast) == stale, "nothing a node reads was removed"
-    for part in dag.PARTS:
-        r = flow.FlowReader(fast, "dis", part)
+    for part in select.PARTS:
+        r = common.flow_reader(fast, "dis", part)
         assert all(r.load(pid).shape[2] == 2 for pid in r.pair_ids)
     # chapter 11's flow rebuilt too: the medium folder empties and goes
-    flow.run(fast, progress=False, parts=(dag.WIDE,), methods=["dis"])
+    pipeline.GRAPH.build_node(fast, dag.Node("flow", "dis", select.WIDE))
     n, _ = pipeline.collect_garbage(fast, variants=True)
-    assert n == 1 + len(files[dag.WIDE]), "the wide node's medium variant and its files"
+    assert n == 1 + len(files[select.WIDE]), "the wide node's medium variant and its files"
     assert len([d for d in pool.iterdir() if d.is_dir()]) == 1, "emptied option folder removed"
     assert pipeline.collect_garbage(fast) == (0, 0)

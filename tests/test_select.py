@@ -8,7 +8,8 @@ import pandas as pd
 import pytest
 from pyquaternion import Quaternion
 
-from flowmod import labels, select
+from flowmod import labels, pipeline, select
+from flowmod.chapters import common
 from flowmod.params import validate
 
 # --- pure parts --------------------------------------------------------------------------
@@ -55,7 +56,8 @@ def smoke_params(smoke_world, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def selection(smoke_params):
-    return select.run(smoke_params, progress=False)
+    pipeline.build(smoke_params, ["02"])
+    return common.selection(smoke_params)
 
 
 def _tables(dataroot, version):
@@ -166,10 +168,11 @@ def test_artefacts_are_skipped_when_up_to_date(smoke_params, selection):
     paths = sorted(smoke_params.run_path.glob("*/*.parquet"))
     assert {p.parent.name for p in paths} == {"select", "general"}
     before = {p: (p.stat().st_mtime_ns, p.stat().st_ino) for p in paths}
-    again = select.run(smoke_params, progress=False)
+    pipeline.build(smoke_params, ["02"])
+    again = common.selection(smoke_params)
     assert {p: (p.stat().st_mtime_ns, p.stat().st_ino) for p in paths} == before
     pd.testing.assert_frame_equal(again.objects, selection.objects)
-    loaded, made_with = select.load(smoke_params)
+    loaded, made_with = common.selection(smoke_params), common.made_with(smoke_params)
     assert made_with["speed_threshold"] == 2.0 and len(loaded.pairs) == len(selection.pairs)
 
 

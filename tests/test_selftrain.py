@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from flowmod import dag, pipeline
+from flowmod.chapters import ch12_self_trained_flow as ch12
 from flowmod.flow import selftrain
 from flowmod.flow.networks import FastFlowNetFlow
 from flowmod.params import ProfileError, load_profile
@@ -70,7 +71,7 @@ def pairs_data(smoke_built):
     """Four keyframe pairs of the smoke world's training scenes, with their exact flow, at
     the smoke profile's flow_scale."""
     p = smoke_built
-    sel = pd.read_parquet(dag.published(p, dag.Node("select")) / "pairs.parquet")
+    sel = pd.read_parquet(pipeline.published(p, dag.Node("select")) / "pairs.parquet")
     train = sel[sel["split"] == "train"].head(4)
     return p, train
 
@@ -120,12 +121,12 @@ def test_training_resumes_where_it_stopped_and_learns(pairs_data, tmp_path):
 
 def test_published_weights_are_a_fastflownet_checkpoint_with_the_recorded_error(smoke_built):
     p = smoke_built
-    assert selftrain.built(p) == ["photometric", "supervised"]
-    for mode in selftrain.built(p):
-        hist, ev = selftrain.results(p, mode)
+    assert ch12.built(p) == ["photometric", "supervised"]
+    for mode in ch12.built(p):
+        hist, ev = ch12.results(p, mode)
         assert ev["steps"] == p.selfflow_iters == len(hist)
-        est = FastFlowNetFlow(selftrain.weights_path(p, mode), device="cpu", scale=p.flow_scale)
-        sel = dag.published(p, dag.Node("select"))
+        est = FastFlowNetFlow(ch12.weights_path(p, mode), device="cpu", scale=p.flow_scale)
+        sel = pipeline.published(p, dag.Node("select"))
         pairs = pd.read_parquet(sel / "pairs.parquet")
         test = selftrain.heldout_pairs(pairs, p.selfflow_eval_pairs, p.seed)
         h = selftrain.held_out(test, pd.read_parquet(sel / "objects.parquet"),
@@ -134,30 +135,31 @@ def test_published_weights_are_a_fastflownet_checkpoint_with_the_recorded_error(
         assert again["epe"] == pytest.approx(ev["fastflownet"]["epe"], rel=1e-4)
         assert hist["heldout_epe"].dropna().iloc[-1] == pytest.approx(again["epe"], rel=1e-4)
         assert set(ev["baselines"]) == {"zero flow", "farneback", "dis (medium)"}
-    t = selftrain.epe_table(p, selftrain.built(p))
+    t = ch12.epe_table(p, ch12.built(p))
     assert list(t["method"]) == ["zero flow", "farneback", "dis (medium)",
                                  "fastflownet (photometric)", "fastflownet (supervised)"]
-    assert "against DIS's" in selftrain.headline(p, selftrain.built(p))
-    assert not (dag.node_dir(p, dag.Node("selfflow", None, "supervised")) / "gt").exists()
+    assert "against DIS's" in ch12.headline(p, ch12.built(p))
+    assert not (pipeline.node_dir(p, dag.Node("selfflow", None, "supervised")) / "gt").exists()
 
 
 def test_selfflow_nodes_parameters_and_gate(smoke_built, tmp_path):
     demo = load_profile("demo")
-    assert [str(n) for n in dag.nodes_of_chapter(demo, "12")] == [
+    assert [str(n) for n in pipeline.nodes(demo, ["12"])] == [
         "selfflow[photometric]", "selfflow[supervised]"]
-    assert dag.gate(dag.Node("selfflow", None, "photometric")) == "selfflow_build"
+    assert pipeline.gate(dag.Node("selfflow", None, "photometric")) == "selfflow_build"
     assert load_profile("paper", dataroot="/x").selfflow_modes == ["photometric"]
     with pytest.raises(ProfileError, match="selfflow_crop.*multiples of 64"):
         load_profile("demo", selfflow_crop=[250, 448])
     fresh = load_profile("smoke", run_dir=str(tmp_path / "runs"))
     with pytest.raises(dag.MissingInput, match="selfflow_build=true.*make selfflow"):
-        dag.published(fresh, dag.Node("selfflow", None, "photometric"))
+        pipeline.published(fresh, dag.Node("selfflow", None, "photometric"))
     # more steps asked for, not built: the status names the make target; nothing is shown
     more = smoke_built.model_copy(update={"selfflow_iters": 5, "selfflow_build": False})
-    assert selftrain.built(more) == [] and selftrain.run(more) == []
+    pipeline.build(more, ["12"])  # without selfflow_build: trains nothing
+    assert ch12.built(more) == []
     assert pipeline.format_status(more).splitlines()[-1].endswith(
         "chapter 12's 2 (flow networks) only with selfflow_build: make selfflow")
-    assert "make selfflow" in selftrain.headline(more, [])
-    info = json.loads((dag.node_dir(smoke_built, dag.Node("selfflow", None, "photometric"))
+    assert "make selfflow" in ch12.headline(more, [])
+    info = json.loads((pipeline.node_dir(smoke_built, dag.Node("selfflow", None, "photometric"))
                        / "manifest.json").read_text())
     assert info["params"]["selfflow_iters"] == 2 and info["params"]["flow_scale"] == 0.25

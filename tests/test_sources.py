@@ -98,11 +98,11 @@ def test_installed_versions_match_the_pins():
 def test_notebook_declares_every_parameter_its_stages_read(nb_path):
     """A chapter that builds a stage must receive every parameter the stage reads, or the
     stage would silently fingerprint (and use) the demo default instead of the profile's."""
-    from flowmod import dag
+    from flowmod import dag, pipeline
 
     p = load_profile("demo")
     declared = set(papermill.inspect_notebook(str(nb_path)))
-    for node in dag.nodes_of_chapter(p, nb_path.stem[:2]):
+    for node in pipeline.nodes(p, [nb_path.stem[:2]]):
         missing = set(dag.reads(node)) - declared
         assert not missing, f"{nb_path.name} builds {node} but does not declare {sorted(missing)}"
         if node.stage != "world":

@@ -9,9 +9,12 @@ import pandas as pd
 import pytest
 import torch
 
-from flowmod import context, crops, dag, variants
+from flowmod import crops, dag, evaluate, metrics, pipeline
 from flowmod.artefacts import CheckpointError
+from flowmod.chapters import ch10_inputs as ch10
+from flowmod.chapters import common
 from flowmod.crops import hflip
+from flowmod.extensions import context, inputs
 from flowmod.model import load_model, motion_resnet18, predict
 from flowmod.params import ProfileError, load_profile
 from flowmod.train import TrainingError, train_model
@@ -29,38 +32,38 @@ def test_compose_stacks_each_input_as_documented():
     flow, static, images = _parts()
     f, st = flow.astype(np.float32), static.astype(np.float32)
     img = (images.astype(np.float32) / 255 - 0.5) / 0.25
-    np.testing.assert_array_equal(variants.compose("flow", flow), f)
-    np.testing.assert_array_equal(variants.compose("residual", flow, static), f - st)
-    np.testing.assert_array_equal(variants.compose("flow+static", flow, static),
+    np.testing.assert_array_equal(inputs.compose("flow", flow), f)
+    np.testing.assert_array_equal(inputs.compose("residual", flow, static), f - st)
+    np.testing.assert_array_equal(inputs.compose("flow+static", flow, static),
                                   np.concatenate([f, st], 1))
-    np.testing.assert_allclose(variants.compose("images", images=images), img, rtol=1e-6)
-    both = variants.compose("images+flow", flow, images=images)
+    np.testing.assert_allclose(inputs.compose("images", images=images), img, rtol=1e-6)
+    both = inputs.compose("images+flow", flow, images=images)
     assert both.shape == (5, 8, 8, 8) and both.dtype == np.float32
     np.testing.assert_array_equal(both[:, :2], f)
     assert -2.0 <= both[:, 2:].min() and both[:, 2:].max() <= 2.0
-    for name, v in variants.VARIANTS.items():
-        x = variants.compose(name, flow, static, images)
+    for name, v in inputs.VARIANTS.items():
+        x = inputs.compose(name, flow, static, images)
         assert x.shape[1] == v.channels, name
     with pytest.raises(ValueError, match="needs \\['static'\\]"):
-        variants.compose("residual", flow)
+        inputs.compose("residual", flow)
 
 
 def test_inputs_compose_per_batch_and_check_lengths():
     flow, static, images = _parts(n=7)
-    x = variants.Inputs("flow+static", flow, static)
+    x = inputs.Inputs("flow+static", flow, static)
     assert x.shape == (7, 4, 8, 8) and len(x) == 7
     idx = np.array([1, 4, 6])
-    np.testing.assert_array_equal(x[idx], variants.compose("flow+static", flow[idx], static[idx]))
-    np.testing.assert_array_equal(x[2:4], variants.compose("flow+static", flow[2:4],
+    np.testing.assert_array_equal(x[idx], inputs.compose("flow+static", flow[idx], static[idx]))
+    np.testing.assert_array_equal(x[2:4], inputs.compose("flow+static", flow[2:4],
                                                            static[2:4]))
     with pytest.raises(ValueError, match="different lengths"):
-        variants.Inputs("residual", flow, static[:6])
+        inputs.Inputs("residual", flow, static[:6])
 
 
 def test_flip_negates_the_horizontal_flow_components_of_each_input():
     flow, static, images = _parts(n=2)
-    for name, v in variants.VARIANTS.items():
-        x = variants.compose(name, flow, static, images)
+    for name, v in inputs.VARIANTS.items():
+        x = inputs.compose(name, flow, static, images)
         y = hflip(x, v.negate)
         np.testing.assert_array_equal(hflip(y, v.negate), x)
         for c in range(v.channels):
@@ -68,10 +71,10 @@ def test_flip_negates_the_horizontal_flow_components_of_each_input():
             np.testing.assert_array_equal(y[:, c], sign * x[:, c, :, ::-1])
     # the flip of flow+static is the input of the flipped flow and flipped static flow
     np.testing.assert_array_equal(
-        hflip(variants.compose("flow+static", flow, static), (0, 2)),
-        variants.compose("flow+static", hflip(flow.astype(np.float32)),
+        hflip(inputs.compose("flow+static", flow, static), (0, 2)),
+        inputs.compose("flow+static", hflip(flow.astype(np.float32)),
                          hflip(static.astype(np.float32))))
-    t = torch.from_numpy(variants.compose("images+flow", flow, images=images))
+    t = torch.from_numpy(inputs.compose("images+flow", flow, images=images))
     assert torch.equal(hflip(t, (0,)), torch.from_numpy(hflip(t.numpy(), (0,))))
 
 
@@ -82,7 +85,7 @@ def test_models_of_other_channel_counts_train_save_and_load(tmp_path):
     static = rng.normal(0, 1, (n, 2, s, s)).astype(np.float16)
     y = (np.arange(n) % 2).astype(int)
     flow[y == 1, 0] += 3  # the movers' flow differs from the static world's
-    x = variants.Inputs("flow+static", flow, static)
+    x = inputs.Inputs("flow+static", flow, static)
     df = pd.DataFrame({"label": y})
     h = train_model(x, df, x, df, tmp_path, epochs=2, batch_size=16, progress=False,
                     device="cpu", amp=None, in_channels=4, flip_negate=(0, 2))
@@ -109,7 +112,7 @@ def test_extension_parameters_are_checked():
     with pytest.raises(ProfileError, match="extension_inputs"):
         load_profile("smoke", extension_inputs=["optical"])
     p = load_profile("smoke", extension_inputs=[])
-    assert not [n for n in dag.nodes(p) if dag.STAGES[n.stage].chapter == "10"]
+    assert not [n for n in pipeline.nodes(p) if pipeline.GRAPH.stage(n).chapter == "10"]
     # without inputs, any methods are fine: nothing of chapter 10 exists
     load_profile("smoke", extension_inputs=[], extension_methods=["farneback"])
 
@@ -117,15 +120,15 @@ def test_extension_parameters_are_checked():
 def test_chapter10_nodes_and_their_inputs():
     p = load_profile("smoke", extension_inputs=["residual", "images"],
                      extension_methods=["dis"], seeds=2)
-    ten = [str(n) for n in dag.nodes(p) if dag.STAGES[n.stage].chapter == "10"]
+    ten = [str(n) for n in pipeline.nodes(p) if pipeline.GRAPH.stage(n).chapter == "10"]
     assert ten == ["context[keyframe]", "context[general]", "xtrain[dis/residual/s0]",
                    "xtrain[dis/residual/s1]", "xtrain[images/s0]", "xtrain[images/s1]",
                    "xevaluate[dis/residual]", "xevaluate[images]"]
-    assert dag.inputs(dag.Node("xtrain", None, "images/s0"), p) == (
+    assert pipeline.inputs(dag.Node("xtrain", None, "images/s0"), p) == (
         dag.Node("context", None, "keyframe"),)
-    assert dag.Node("crops", "dis", "general") in dag.inputs(
+    assert dag.Node("crops", "dis", "general") in pipeline.inputs(
         dag.Node("xevaluate", "dis", "residual"), p)
-    assert str(dag.node_dir(p, dag.Node("xtrain", None, "images/s1"))).endswith(
+    assert str(pipeline.node_dir(p, dag.Node("xtrain", None, "images/s1"))).endswith(
         "extensions/models/images/s1")
 
 
@@ -134,12 +137,12 @@ def test_chapter10_nodes_and_their_inputs():
 
 def test_context_crops_match_the_flow_crops_objects_images_and_geometry(smoke_built):
     p = smoke_built
-    static, images, idx = variants.context_split(p, "train")
-    x, cidx = crops.open_crops(p, "gt", "train")
+    static, images, idx = ch10.context_split(p, "train")
+    x, cidx = common.open_crops(p, "gt", "train")
     assert idx["ann_token"].equals(cidx["ann_token"])
     assert static.shape == x.shape and images.shape == (len(x), 6, *x.shape[2:])
     # the image channels are the crops of the two frames' JPEGs in the flow crop's window
-    pairs = pd.read_parquet(dag.published(p, dag.Node("select")) / "pairs.parquet")
+    pairs = pd.read_parquet(pipeline.published(p, dag.Node("select")) / "pairs.parquet")
     row = pairs.set_index("pair_id").loc[idx["pair_id"].iloc[0]]
     box = idx[list(crops.BOX_COLUMNS)].to_numpy(float)[:1]
     for k, col in enumerate(("path_1", "path_2")):
@@ -147,18 +150,18 @@ def test_context_crops_match_the_flow_crops_objects_images_and_geometry(smoke_bu
                                 p.crop_size, p.crop_scale)[0].transpose(2, 0, 1)
         np.testing.assert_array_equal(images[0, 3 * k:3 * k + 3], want)
     # the static world explains the exact flow of still vehicles, not that of movers
-    t = variants.static_explains(x, static, idx["label"].to_numpy()).set_index("vehicles")
+    t = ch10.static_explains(x, static, idx["label"].to_numpy()).set_index("vehicles")
     moved = np.median(np.abs(np.asarray(x, np.float32)), axis=(1, 2, 3)) > 0.5
     assert moved.sum() >= 5
-    still = variants.static_explains(x[moved], static[moved], idx["label"].to_numpy()[moved])
+    still = ch10.static_explains(x[moved], static[moved], idx["label"].to_numpy()[moved])
     assert still.set_index("vehicles").loc["still", "residual / flow"] < 0.1
     assert t.loc["moving", "residual (px)"] > 3 * t.loc["still", "residual (px)"]
 
 
 def test_context_refuses_a_corrupt_image(smoke_built, tmp_path):
     p = smoke_built
-    pairs = pd.read_parquet(dag.published(p, dag.Node("select")) / "pairs.parquet")
-    objects = crops.part_objects(dag.published(p, dag.Node("select")), "keyframe")
+    pairs = pd.read_parquet(pipeline.published(p, dag.Node("select")) / "pairs.parquet")
+    objects = crops.part_objects(pipeline.published(p, dag.Node("select")), "keyframe")
     root = tmp_path / "root"
     bad = root / pairs["path_1"].iloc[0]
     bad.parent.mkdir(parents=True)
@@ -170,37 +173,38 @@ def test_context_refuses_a_corrupt_image(smoke_built, tmp_path):
 
 def test_chapter10_scores_are_those_of_its_predictions(smoke_built):
     p = smoke_built
-    assert variants.built(p) == variants.plan(p) == [("gt", "residual"), ("dis", "residual"),
+    assert ch10.built(p) == inputs.chains(p) == [("gt", "residual"), ("dis", "residual"),
                                                      (None, "images")]
-    rows = variants.chains(p)
+    rows = ch10.rows(p)
     assert rows == [("gt", "flow"), ("gt", "residual"), ("dis", "flow"), ("dis", "residual"),
                     (None, "images")]
-    table = variants.table(p, rows)
+    table = ch10.table(p, rows)
     assert len(table) == len(rows) == 5
     for (m, v), r in zip(rows, table.to_dict("records"), strict=True):
-        d = variants.predictions(p, m, v, "test")
-        f1 = np.mean([variants.seed_summary(d["label"].to_numpy(), pr[None],
+        d = ch10.predictions(p, m, v, "test")
+        f1 = np.mean([metrics.seed_summary(d["label"].to_numpy(), pr[None],
                                             d["scene"].to_numpy())["f1"]
-                      for pr in variants.seed_probs(d)])
+                      for pr in evaluate.seed_probs(d)])
         assert r["F1 (%)"] == round(100 * f1, 1)
-        assert r["channels"] == variants.VARIANTS[v].channels
-    comp = variants.comparisons(p, "general", rows)
+        assert r["channels"] == inputs.VARIANTS[v].channels
+    comp = ch10.comparisons(p, "general", rows)
     assert len(comp) == 3 and comp["comparison"].iloc[-1] == "images - gt: flow"
     # the test split's objects are those of Table 3
-    xd = variants.predictions(p, "dis", "residual", "test")
-    assert xd["ann_token"].equals(variants.predictions(p, "dis", "flow", "test")["ann_token"])
+    xd = ch10.predictions(p, "dis", "residual", "test")
+    assert xd["ann_token"].equals(ch10.predictions(p, "dis", "flow", "test")["ann_token"])
 
 
 def test_chapter10_shows_only_what_was_built_with_these_parameters(smoke_built):
     p = smoke_built
     # other training settings: the built models are not the ones asked for
     other = p.model_copy(update={"epochs": p.epochs + 1, "extension_build": False})
-    assert variants.built(other) == []
-    assert variants.run(other) == {c: None for c in variants.plan(other)}
-    assert "make extensions" in variants.headline(other, variants.table(other),
-                                                  variants.table(other, split="general"))
+    assert ch10.built(other) == []
+    pipeline.build(other, ["10"])  # without extension_build: trains nothing
+    assert ch10.built(other) == []
+    assert "make extensions" in ch10.headline(other, ch10.table(other),
+                                                  ch10.table(other, split="general"))
     # the same settings: everything is current
-    assert variants.built(p.model_copy(update={"extension_build": False})) == variants.plan(p)
+    assert ch10.built(p.model_copy(update={"extension_build": False})) == inputs.chains(p)
 
 
 def test_a_chapter_that_shows_what_is_built_reruns_when_more_is_built(smoke_built, tmp_path):
@@ -214,6 +218,6 @@ def test_a_chapter_that_shows_what_is_built_reruns_when_more_is_built(smoke_buil
     device = environment.device_info("cpu")
     built = runner.notebook_fingerprint(nb, values, p, device)
     elsewhere = p.model_copy(update={"run_dir": str(tmp_path / "runs")})  # nothing built there
-    assert [n for n in dag.expected(elsewhere) if dag.expected(elsewhere)[n] is None] == []
+    assert [n for n in pipeline.expected(elsewhere) if pipeline.expected(elsewhere)[n] is None] == []
     assert runner.notebook_fingerprint(nb, values, elsewhere, device) != built
     assert runner.notebook_fingerprint(nb, values, p, device) == built

@@ -8,7 +8,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from flowmod import crops, dag, pipeline, select, wide
+from flowmod import crops, dag, pipeline, select
+from flowmod.chapters import ch11_all_distances as ch11
+from flowmod.chapters import common
 from flowmod.evaluate import seed_probs
 from flowmod.metrics import metrics
 from flowmod.params import ProfileError, load_profile
@@ -95,35 +97,37 @@ def test_wide_methods_default_and_checks():
 
 def test_chapter11_nodes_belong_to_chapter_11_and_need_extension_build():
     demo = load_profile("demo")
-    eleven = [str(n) for n in dag.nodes_of_chapter(demo, "11")]
-    assert eleven == ["wide", "crops[gt/wide]", "wtrain[gt/s0]", "wtrain[gt/s1]",
-                      "wtrain[gt/s2]", "crops[dis/wide]", "wtrain[dis/s0]", "wtrain[dis/s1]",
+    eleven = [str(n) for n in pipeline.nodes(demo, ["11"])]
+    # stage by stage in data order, each node after its inputs
+    assert eleven == ["wide", "crops[gt/wide]", "crops[dis/wide]", "wtrain[gt/s0]",
+                      "wtrain[gt/s1]", "wtrain[gt/s2]", "wtrain[dis/s0]", "wtrain[dis/s1]",
                       "wtrain[dis/s2]", "wgeneralise[gt]", "wgeneralise[dis]"]
-    assert "crops[gt/wide]" not in [str(n) for n in dag.nodes_of_chapter(demo, "05")]
+    assert "crops[gt/wide]" not in [str(n) for n in pipeline.nodes(demo, ["05"])]
     smoke = load_profile("smoke")  # flow_store: pairs keeps the flow of the wide pairs too
-    assert "flow[dis/wide]" in [str(n) for n in dag.nodes_of_chapter(smoke, "11")]
-    assert [n for n in dag.nodes(demo) if dag.gate(n) == "extension_build"] == [
-        n for n in dag.nodes(demo) if n.stage in dag.GATED_STAGES or n.part == dag.WIDE]
-    assert not dag.gated(dag.Node("wide"))
-    assert dag.inputs(dag.Node("crops", "dis", "wide"), demo)[-1] == dag.Node("wide")
-    assert not [n for n in dag.nodes(load_profile("paper", dataroot="/x"))
-                if dag.chapter(n) == "11"]
+    assert "flow[dis/wide]" in [str(n) for n in pipeline.nodes(smoke, ["11"])]
+    assert [n for n in pipeline.nodes(demo) if pipeline.gate(n) == "extension_build"] == [
+        n for n in pipeline.nodes(demo)
+        if n.stage in ("xtrain", "xevaluate", "wtrain", "wgeneralise") or n.part == select.WIDE]
+    assert pipeline.gate(dag.Node("wide")) is None
+    assert pipeline.inputs(dag.Node("crops", "dis", "wide"), demo)[-1] == dag.Node("wide")
+    assert not [n for n in pipeline.nodes(load_profile("paper", dataroot="/x"))
+                if pipeline.chapter(n) == "11"]
 
 
 def test_a_missing_gated_node_says_how_to_build_it(tmp_path):
     p = load_profile("smoke", run_dir=str(tmp_path / "runs"))
     with pytest.raises(dag.MissingInput, match="extension_build=true.*make extensions"):
-        dag.published(p, dag.Node("wtrain", "dis", "s0"))
+        pipeline.published(p, dag.Node("wtrain", "dis", "s0"))
     with pytest.raises(dag.MissingInput, match=r"run chapter 11 first \(python"):
-        dag.published(p, dag.Node("wide"))
+        pipeline.published(p, dag.Node("wide"))
 
 
 def test_wide_crops_are_the_keyframe_crops_of_the_same_vehicles(smoke_built):
     """A vehicle in both training sets has the same crop: the same flow, the same window."""
     p = smoke_built
     for split in ("train", "val"):
-        wx, wdf = crops.read_crops(dag.published(p, dag.Node("crops", "dis", "wide")), split)
-        kx, kdf = crops.open_crops(p, "dis", split)
+        wx, wdf = crops.read_crops(pipeline.published(p, dag.Node("crops", "dis", "wide")), split)
+        kx, kdf = common.open_crops(p, "dis", split)
         key = ["pair_id", "instance_token"]
         m = wdf[key].reset_index().merge(kdf[key].reset_index(), on=key,
                                          suffixes=("_w", "_k"))
@@ -133,42 +137,43 @@ def test_wide_crops_are_the_keyframe_crops_of_the_same_vehicles(smoke_built):
 
 def test_table4_rows_and_comparisons_come_from_the_predictions(smoke_built):
     p = smoke_built
-    done = wide.built(p)
+    done = ch11.built(p)
     assert done == ["dis"]
-    t = wide.table4(p, done)
-    assert list(t["method"].unique()) == [wide.label("dis", False), wide.label("dis", True)]
-    row = t[(t["method"] == wide.label("dis", True)) & t["vehicles"].str.endswith("(Table 4)")
+    t = ch11.table4(p, done)
+    assert list(t["method"].unique()) == [ch11.label("dis", False), ch11.label("dis", True)]
+    row = t[(t["method"] == ch11.label("dis", True)) & t["vehicles"].str.endswith("(Table 4)")
             & (t["scored against"] == "paper rule (previous keyframe)")].iloc[0]
-    d = wide.predictions(p, "dis", "general", True)
+    d = ch11.predictions(p, "dis", "general", True)
     d = d[d["distance"] <= p.general_max_distance]
     f1 = np.mean([metrics(d["label"], pr)["f1"] for pr in seed_probs(d)])
     assert row["F1 (%)"] == round(100 * f1, 1) and row["objects"] == len(d)
     # both classifiers on the same objects: the paper's generalisation and test objects
     for split in ("general", "test"):
-        a = wide.predictions(p, "dis", split, True)
-        b = wide.predictions(p, "dis", split, False)
+        a = ch11.predictions(p, "dis", split, True)
+        b = ch11.predictions(p, "dis", split, False)
         assert a["ann_token"].equals(b["ann_token"])
-        assert len(wide.comparisons(p, done, split)) == 1
-    by = wide.by_distance(p, done)
-    assert list(by) == [wide.label("dis", False), wide.label("dis", True)]
-    assert sum(by[wide.label("dis", True)]["n"]) == len(wide.predictions(
-        p, "dis", "general", True).query(f"distance < {wide.EDGES[-1]}"))
-    nf = wide.near_far(p, done)
+        assert len(ch11.comparisons(p, done, split)) == 1
+    by = ch11.by_distance(p, done)
+    assert list(by) == [ch11.label("dis", False), ch11.label("dis", True)]
+    assert sum(by[ch11.label("dis", True)]["n"]) == len(ch11.predictions(
+        p, "dis", "general", True).query(f"distance < {ch11.EDGES[-1]}"))
+    nf = ch11.near_far(p, done)
     assert (nf.filter(regex="^n ").sum(axis=1) == len(d)).all()
     assert (nf.filter(regex="^moving ").sum(axis=1) == d["label"].sum()).all()
-    assert "dis classifier reaches Table 4 F1" in wide.headline(p, t, done)
+    assert "dis classifier reaches Table 4 F1" in ch11.headline(p, t, done)
 
 
 def test_chapter11_shows_only_what_was_built_with_these_parameters(smoke_built):
     p = smoke_built.model_copy(update={"extension_build": False})
-    assert wide.built(p) == ["dis"]
+    assert ch11.built(p) == ["dis"]
     other = p.model_copy(update={"lr": p.lr * 2})  # other models asked for
-    assert wide.built(other) == [] and wide.run(other) == []
-    assert "make extensions" in wide.headline(other, pd.DataFrame(), [])
-    assert "make extensions" in wide.built_note(other, [])
+    pipeline.build(other, ["11"])  # without extension_build: trains nothing
+    assert ch11.built(other) == []
+    assert "make extensions" in ch11.headline(other, pd.DataFrame(), [])
+    assert "make extensions" in ch11.built_note(other, [])
     # the training set is rebuilt by make book (cheap); the models are not
     stride = p.model_copy(update={"wide_sweep_stride": 3})
-    st = {s.node: s.state for s in dag.status(stride)}
+    st = {s.node: s.state for s in pipeline.status(stride)}
     assert st[dag.Node("wide")] == "stale" and st[dag.Node("wtrain", "dis", "s0")] != "up to date"
-    assert wide.built(stride) == []
+    assert ch11.built(stride) == []
     assert "chapter 11's" in pipeline.format_status(stride).splitlines()[-1]

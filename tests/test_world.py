@@ -13,7 +13,7 @@ from pyquaternion import Quaternion
 
 from flowmod import world
 from flowmod.params import TABLE1_CATEGORIES, validate
-from flowmod.report import world_report as wrep
+from flowmod import difficulty as wrep
 from flowmod.world import geometry as wg
 from flowmod.world import render as wr
 from flowmod.world import scene as ws
@@ -400,13 +400,22 @@ def test_difficulty_report_is_cached_per_world_and_threshold(smoke_world, smoke_
     real = wrep.naive_rule_report
     monkeypatch.setattr(wrep, "naive_rule_report",
                         lambda *a, **k: calls.append(k) or real(*a, **k))
-    first = wrep.difficulty_report(p, smoke_nusc)
-    again = wrep.difficulty_report(p, smoke_nusc)
+    first = _difficulty(p)
+    again = _difficulty(p)
     assert len(calls) == 1 and first == again and first["n_objects"] > 0
     # the world's difficulty target: the naive rule on exact flow stays well below a model
     assert first["f1_raw_vs_true"] <= 0.80, first
-    wrep.difficulty_report(p.model_copy(update={"speed_threshold": 3.0}), smoke_nusc)
+    _difficulty(p.model_copy(update={"speed_threshold": 3.0}))
     assert len(calls) == 2 and calls[-1]["speed_threshold"] == 3.0
+
+
+def _difficulty(p) -> dict:
+    """Build chapter 01's nodes of ``p`` and read the difficulty node's numbers."""
+    from flowmod import pipeline
+    from flowmod.chapters import ch01_world
+
+    pipeline.build(p, ["01"])
+    return ch01_world.difficulty(p)
 
 
 def test_stored_gt_flow_is_finite_and_exact_on_valid_pixels(smoke_world, smoke_nusc, tmp_path):

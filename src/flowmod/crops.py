@@ -16,8 +16,7 @@ halves rounded up. On a flow grid stored at scale ``s``, box coordinates map as
 
 Artefacts (``build_crops``): ``<out_dir>/<split>.npy``, an ``(N, 2, S, S)`` float16 array
 (channel 0 = u, 1 = v, pixels), and ``<split>.parquet``, the objects' rows in the same order.
-:func:`read_crops` opens both and checks that they agree; :func:`open_crops` opens a published
-split of the crops stage (:mod:`flowmod.dag`).
+:func:`read_crops` opens both and checks that they agree.
 """
 
 from __future__ import annotations
@@ -34,12 +33,16 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from flowmod import geometry
-from flowmod.artefacts import atomic_path, write_json
-from flowmod.flow.stage import FlowFiles
-from flowmod.flow.store import _npy_ok, roundtrip
+from flowmod import dag, geometry
+from flowmod.artefacts import atomic_path, fingerprint, write_json
+from flowmod.dag import StageParams
+from flowmod.flow import FlowReader, compute_flow, estimator_options, flow_root
+from flowmod.flow.stage import FlowFiles, pair_files, pool_config
+from flowmod.flow.store import npy_ok, roundtrip
 from flowmod.geometry import GRID, box_samples
+from flowmod.params import Params
 from flowmod.progress import bar
+from flowmod.select import WIDE, objects_node
 
 #: The nuScenes CAM_FRONT image size (width, height) in which object boxes are given.
 IMAGE_SIZE = (1600, 900)
@@ -328,6 +331,35 @@ def pair_crops(flow: np.ndarray, boxes: np.ndarray, size: int, scale: float,
     return crops, samples, n_bad, [fh, fw]
 
 
+def _resume_split(partial: Path, partial_samples: Path, state_file: Path, phash: str,
+                  n: int, size: int) -> tuple[np.memmap, np.memmap, int, int]:
+    """The split's partial arrays and how far a killed build got (pairs done, non-finite
+    values zeroed): reopened when the state matches ``phash`` and the shapes, else new."""
+    shape = (n, 2, size, size)
+    if partial.is_file() and state_file.is_file():
+        try:
+            state = json.loads(state_file.read_text())
+            if state.get("params_hash") == phash:
+                arr = np.lib.format.open_memmap(partial, mode="r+")
+                smp = np.lib.format.open_memmap(partial_samples, mode="r+")
+                if arr.shape == shape and arr.dtype == np.float16 and len(smp) == n:
+                    return arr, smp, int(state["pairs_done"]), int(state.get("nonfinite", 0))
+        except (OSError, ValueError, KeyError):
+            pass
+    arr = np.lib.format.open_memmap(partial, mode="w+", dtype=np.float16, shape=shape)
+    smp = np.lib.format.open_memmap(partial_samples, mode="w+", dtype=np.float32,
+                                    shape=(n, GRID * GRID, 2))
+    state_file.unlink(missing_ok=True)
+    return arr, smp, 0, 0
+
+
+def _pair_bounds(df: pd.DataFrame) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """The rows' pair ids and each pair's [start, end) rows (rows are grouped by pair)."""
+    pair_ids = df["pair_id"].astype(str).to_numpy()
+    starts = list(np.flatnonzero(np.r_[True, pair_ids[1:] != pair_ids[:-1]])) if len(df) else []
+    return pair_ids, list(zip(starts, starts[1:] + [len(df)], strict=False))
+
+
 def _build_split(
     df: pd.DataFrame, pair_items: PairItems, out_dir: Path, split: str, *,
     size: int, scale: float, image_size: tuple[int, int], progress: bool, checkpoint_every: int,
@@ -345,40 +377,14 @@ def _build_split(
     partial = npy.with_name(f".{split}.partial.npy")
     partial_samples = npy.with_name(f".{split}.samples.partial.npy")
     state_file = npy.with_name(f".{split}.progress.json")
-    shape = (len(df), 2, size, size)
-
-    pair_ids = df["pair_id"].astype(str).to_numpy()
-    starts = list(np.flatnonzero(np.r_[True, pair_ids[1:] != pair_ids[:-1]])) if len(df) else []
-    bounds = list(zip(starts, starts[1:] + [len(df)], strict=False))
-
-    done, n_nonfinite = 0, 0
-    arr = None
-    if partial.is_file() and state_file.is_file():
-        try:
-            state = json.loads(state_file.read_text())
-            if state.get("params_hash") == phash:
-                arr = np.lib.format.open_memmap(partial, mode="r+")
-                smp = np.lib.format.open_memmap(partial_samples, mode="r+")
-                if arr.shape != shape or arr.dtype != np.float16 or len(smp) != len(df):
-                    arr = None
-                else:
-                    done = int(state["pairs_done"])
-                    n_nonfinite = int(state.get("nonfinite", 0))
-        except (OSError, ValueError, KeyError):
-            arr = None
-    if arr is None:
-        arr = np.lib.format.open_memmap(partial, mode="w+", dtype=np.float16, shape=shape)
-        smp = np.lib.format.open_memmap(partial_samples, mode="w+", dtype=np.float32,
-                                        shape=(len(df), GRID * GRID, 2))
-        done, n_nonfinite = 0, 0
-        state_file.unlink(missing_ok=True)
-
+    arr, smp, done, n_nonfinite = _resume_split(partial, partial_samples, state_file, phash,
+                                                len(df), size)
+    pair_ids, bounds = _pair_bounds(df)
     boxes_all = df[list(BOX_COLUMNS)].to_numpy(dtype=np.float64)
     flow_shape = [image_size[1], image_size[0]]
     last_ckpt = time.monotonic()
-    pbar = bar(total=len(bounds), initial=done, desc=f"{label}/{split}", unit="pair",
-               disable=not progress)
-    try:
+    with bar(total=len(bounds), initial=done, desc=f"{label}/{split}", unit="pair",
+             disable=not progress) as pbar:
         for k in range(done, len(bounds)):
             a, b = bounds[k]
             crops_ab, samples_ab, bad, flow_shape = pair_items(pair_ids[a], boxes_all[a:b])
@@ -392,8 +398,6 @@ def _build_split(
                 smp.flush()
                 _write_state(state_file, phash, k + 1, n_nonfinite)
                 last_ckpt = time.monotonic()
-    finally:
-        pbar.close()
     arr.flush()
     smp.flush()
     del arr, smp
@@ -459,7 +463,7 @@ class PairCrops(FlowFiles):
             f.unlink(missing_ok=True)
 
     def complete(self, out: Path) -> bool:
-        return (_npy_ok(out, "float16", (None, 2, self.size, self.size))
+        return (npy_ok(out, "float16", (None, 2, self.size, self.size))
                 and self._side(out, "samples.npy").is_file()
                 and self._side(out, "json").is_file())
 
@@ -486,25 +490,22 @@ def pair_boxes(objects: pd.DataFrame) -> dict[str, list[list[float]]]:
             for pid, g in objects.groupby("pair_id", sort=False)}
 
 
-def _writer(q: Any) -> PairCrops:
+def make_writer(q: StageParams | Params) -> PairCrops:
     """Crops mode's writer under the parameters of ``q``."""
     return PairCrops(q.flow_dtype, q.flow_scale, q.crop_size, q.crop_scale)
 
 
-def _pool_root(q: Any, method: str) -> Path:
+def pool_root(q: StageParams | Params, method: str) -> Path:
+    """``<run>/crops/<method>/pool``: crops mode's per-pair files of every option."""
     return q.run_path / "crops" / method / "pool"
 
 
-def crops_pool(q: Any, method: str) -> Path:
+def crops_pool(q: StageParams | Params, method: str) -> Path:
     """The folder of crops mode's per-pair files for ``method`` under the options of ``q``
     (``<run>/crops/<method>/pool/<options fingerprint>``)."""
-    from flowmod.artefacts import fingerprint
-    from flowmod.flow import estimator_options
-    from flowmod.flow.stage import pool_config
-
     config = pool_config(method, q.flow_dtype, q.flow_scale, estimator_options(q, method),
-                         _writer(q))
-    return _pool_root(q, method) / fingerprint(config)
+                         make_writer(q))
+    return pool_root(q, method) / fingerprint(config)
 
 
 #: A crops-mode node's record of where each pair's rows are (:func:`pool_table`).
@@ -562,7 +563,7 @@ def restore_pool(pool: Path, files: Iterable[str], writer: PairCrops,
     return done
 
 
-def _crops_from_flow(q: Any, method: str, part: str, pairs: pd.DataFrame,
+def _crops_from_flow(q: StageParams, method: str, part: str, pairs: pd.DataFrame,
                      objects: pd.DataFrame, world: str, progress: bool,
                      sources: Sequence[Path] = ()) -> tuple[PairItems, dict[str, str], int]:
     """Crops mode: compute each pair's flow (local or Ray executor, as the flow stage) and
@@ -570,12 +571,9 @@ def _crops_from_flow(q: Any, method: str, part: str, pairs: pd.DataFrame,
     the pairs that a node of ``sources`` holds (:func:`restore_pool`). Returns the
     :data:`PairItems` that read them back, ``{pair_id: file}`` and the number of pairs whose
     flow was computed."""
-    from flowmod.flow import compute_flow, estimator_options
-    from flowmod.flow.stage import pair_files
-
     boxes = pair_boxes(objects)
     pairs = pairs[pairs["pair_id"].astype(str).isin(boxes)]
-    writer, pool = _writer(q), _pool_root(q, method)
+    writer, pool = make_writer(q), pool_root(q, method)
     extras = {str(pid): boxes[str(pid)] for pid in pairs["pair_id"]}
     planned = pair_files(pairs, method, q.dataroot_path, world, q.flow_dtype, q.flow_scale,
                          writer, extras, **estimator_options(q, method))
@@ -656,107 +654,49 @@ def part_objects(folder: Path, part: str) -> pd.DataFrame:
     return objects
 
 
-def open_crops(params: Any, method: str, split: str) -> tuple[np.memmap, pd.DataFrame]:
-    """The published crops of one split of ``method``: ``(x (N, 2, S, S) float16, index)``."""
-    from flowmod import dag
-
-    return read_crops(dag.published(params, dag.Node("crops", method, part_of(split))), split)
-
-
-def run(params: Any, progress: bool = True, parts: Mapping[str, Sequence[str]] = PART_SPLITS,
-        methods: Sequence[str] | None = None) -> dict[str, dict[str, Path]]:
-    """Build every ``crops[<method>/<part>]`` node (:mod:`flowmod.dag`) of ``parts`` (``{part:
-    its splits}``, default the paper's two) and ``methods`` (default flow_methods) that is
-    stale, from the published flow of the same part. Returns ``{method: {part: published
-    folder}}``."""
-    from flowmod import dag
-    from flowmod.flow import FlowReader
-
-    out: dict[str, dict[str, Path]] = {}
-    for m in (params.flow_methods if methods is None else methods):
-        for part, splits in parts.items():
-            b = dag.begin(params, dag.Node("crops", m, part))
-            if not b.up_to_date:
-                q = b.params
-                objects_node = dag.objects_node(part)
-                objects = part_objects(b.input_dir(objects_node), part)
-                load, items, files, computed = None, None, {}, None
-                work = b.start(fresh=q.force)
-                if q.flow_store == "crops":
-                    pairs = pd.read_parquet(b.input_dir(objects_node) / "pairs.parquet")
-                    world = b.inputs["world"]["fingerprint"]
-                    # a pair of the same boxes may be in the other part's node too
-                    sources = [d for other in (*PART_SPLITS, *WIDE_SPLITS) for d in dag.results(
-                        dag.node_dir(params, dag.Node("crops", m, other)))]
-                    items, files, computed = _crops_from_flow(
-                        q, m, part, pairs, objects, world, progress, sources)
-                else:
-                    load = FlowReader(params, m, part).load
-                info = build_crops(objects, load, work, pair_items=items,
-                                   size=q.crop_size, scale=q.crop_scale, splits=splits,
-                                   progress=progress, label=f"crops {m}")
-                writer, pool = _writer(q), _pool_root(q, m)
-                if files:
-                    pool_table(work, files, writer, pool)
-                b.publish(splits=info, rows=sum(i["rows"] for i in info.values()),
-                          flow_computed=computed)
-                # the published arrays hold every pair's rows: the per-pair files go
-                for f in files.values():
-                    writer.remove(pool / f)
-            out.setdefault(m, {})[part] = b.final
-    return out
+def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:
+    """Build one ``crops[<method>/<part>]`` node: the crops of the part's objects, split by
+    split, from the published flow of the same part (``flow_store: pairs``) or computed here
+    pair by pair (crops mode; the per-pair files go once the node is published)."""
+    q, m, part = b.params, b.node.method, b.node.part
+    objects = part_objects(b.input_dir(objects_node(part)), part)
+    load, items, files, computed = None, None, {}, None
+    work = b.start(fresh=q.force)
+    if q.flow_store == "crops":
+        pairs = pd.read_parquet(b.input_dir(objects_node(part)) / "pairs.parquet")
+        # a pair of the same boxes may be in another part's node too
+        sources = [d for other in (*PART_SPLITS, *WIDE_SPLITS)
+                   for d in dag.results(b.other(dag.Node("crops", m, other)))]
+        items, files, computed = _crops_from_flow(
+            q, m, part, pairs, objects, b.inputs["world"]["fingerprint"], progress, sources)
+    else:
+        load = FlowReader(b.input_dir(dag.Node("flow", m, part)),
+                          flow_root(q) / m / "pool", m, part).load
+    splits = {**PART_SPLITS, **WIDE_SPLITS}[part]
+    info = build_crops(objects, load, work, pair_items=items, size=q.crop_size,
+                       scale=q.crop_scale, splits=splits, progress=progress, label=f"crops {m}")
+    if files:
+        writer, pool = make_writer(q), pool_root(q, m)
+        pool_table(work, files, writer, pool)
+        # the published arrays hold every pair's rows: the per-pair files go
+        b.after_publish(lambda: [writer.remove(pool / f) for f in files.values()])
+    return {"splits": info, "rows": sum(i["rows"] for i in info.values()),
+            "flow_computed": computed}
 
 
-def median_mover(sel: Any, among: Sequence[str] | None = None) -> tuple[pd.Series, pd.Series]:
-    """A moving keyframe vehicle of median box width and its pair's row (for the figure of
-    the preprocessing steps); only in the pairs ``among`` if given (those with stored flow)."""
-    obj = sel.objects[(sel.objects["set"] == "keyframe") & (sel.objects["label"] == 1)]
-    if among is not None:
-        obj = obj[obj["pair_id"].isin(list(among))]
-    if not len(obj):
-        raise CropsError("no moving keyframe vehicle among the pairs with stored flow")
-    width = (obj["xmax"] - obj["xmin"]).to_numpy()
-    row = obj.iloc[int(np.argsort(width)[len(obj) // 2])]
-    return row, sel.pairs.set_index("pair_id").loc[row.pair_id]
+def _inputs(node: dag.Node, p: Params) -> tuple[dag.Node, ...]:
+    # crops mode computes the flow itself: the kept flow (figures) is not its input
+    if p.flow_store == "pairs":
+        return (dag.Node("flow", node.method, node.part), objects_node(node.part))
+    return (dag.Node("world"), objects_node(node.part))
 
 
-def run_summary(params: Any, built: dict[str, dict[str, Path]]) -> pd.DataFrame:
-    """One row per method and split: objects, crop size and where they are published."""
-    rows = []
-    for m, parts in built.items():
-        for part, folder in parts.items():
-            for split in PART_SPLITS[part]:
-                n = int(np.load(crop_paths(folder, split)[0], mmap_mode="r").shape[0])
-                rows.append({"method": m, "split": split, "objects": n,
-                             "crop (px)": params.crop_size,
-                             "folder": str(folder.relative_to(params.run_path))})
-    return pd.DataFrame(rows)
+def _nodes(p: Params) -> list[dag.Node]:
+    return ([dag.Node("crops", m, part) for m in p.flow_methods for part in PART_SPLITS]
+            + [dag.Node("crops", m, WIDE) for m in p.wide_methods])
 
 
-def storage_table(params: Any) -> pd.DataFrame:
-    """Disk used per item: crops per object vs full-frame flow per pair, for each method."""
-    from flowmod import dag
-    from flowmod.flow import FlowReader
-
-    rows = []
-    for m in params.flow_methods:
-        folders = {part: dag.published(params, dag.Node("crops", m, part)) for part in PART_SPLITS}
-        npys = [crop_paths(folders[part], split)[0]
-                for part, splits in PART_SPLITS.items() for split in splits]
-        n_obj = sum(int(np.load(p, mmap_mode="r").shape[0]) for p in npys)
-        crop_bytes = sum(p.stat().st_size for p in npys)
-        sample_bytes = sum(samples_path(folders[part], split).stat().st_size
-                           for part, splits in PART_SPLITS.items() for split in splits)
-        flows = [r.path(pid) for part in PART_SPLITS
-                 for r in [FlowReader(params, m, part)] for pid in r.index["pair_id"]]
-        flow_bytes = sum(p.stat().st_size for p in flows)
-        rows.append({
-            "method": m, "objects": n_obj, "crops total (MB)": crop_bytes / 1e6,
-            "per object (kB)": crop_bytes / max(n_obj, 1) / 1e3,
-            "flow samples per object (kB)": sample_bytes / max(n_obj, 1) / 1e3,
-            "flow pairs": len(flows),
-            "flow total (MB)": flow_bytes / 1e6,
-            "flow per pair (MB)": flow_bytes / max(len(flows), 1) / 1e6,
-            "original: float32 flow per pair (MB)": IMAGE_SIZE[0] * IMAGE_SIZE[1] * 2 * 4 / 1e6,
-        })
-    return pd.DataFrame(rows).round(2)
+#: The crops stage (chapter 05; chapter 11's part with extension_build).
+STAGE = dag.Stage("crops", 4, "05", "crops/{method}/{part}", "flow crops around every object",
+                  nodes=_nodes, inputs=_inputs, build=build,
+                  parts={WIDE: ("11", "extension_build")})

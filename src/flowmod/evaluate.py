@@ -5,30 +5,35 @@ Scores come from :mod:`flowmod.metrics`; predictions from :mod:`flowmod.model`."
 from __future__ import annotations
 
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from flowmod import dag, geometry
+from flowmod.artefacts import atomic_path, write_json
+from flowmod.crops import crop_windows, read_crops, read_samples
 from flowmod.metrics import (
     apply_threshold,
     fit_threshold,
     metrics,
+    paired_comparison,
     paper_protocol_f1,
     seed_summary,
     thin_still,
 )
-from flowmod.metrics import table3 as metrics_table3
-from flowmod.model import predict, resolve_device
+from flowmod.metrics import breakdown as metrics_breakdown
+from flowmod.model import load_model, predict, resolve_device
+from flowmod.params import Params
+from flowmod.train import EPOCH_PROBS, seed_parts
 
 # --- the stages (chapters 07 and 08) -------------------------------------------------------
 
 
-def models_of(b: Any, stage: str, method: str) -> list[tuple[str, Any, str | None]]:
+def models_of(b: dag.Build, stage: str, method: str) -> list[tuple[str, Path, str | None]]:
     """(part, best.pt, amp) of every training seed among a node's inputs of ``stage``
-    (``train``, or chapter 11's ``wtrain``) for ``method``."""
-    from flowmod import dag
-
+    (``train``, ``xtrain`` or ``wtrain``) for ``method`` (``method/input`` for ``xtrain``)."""
     out = []
     for name, rec in b.inputs.items():
         if name.startswith(f"{stage}[{method}/"):
@@ -39,24 +44,13 @@ def models_of(b: Any, stage: str, method: str) -> list[tuple[str, Any, str | Non
     return sorted(out)
 
 
-def predict_seeds(models: list[tuple[str, Any, str | None]], crops_folder: Any, split: str,
-                  device: Any = "auto") -> pd.DataFrame:
-    """The split's objects (crop index order) with ``prob_<part>`` of every model (in the
-    precision it was trained and selected in) and ``prob`` = the first seed's (the single
-    model the figures show)."""
-    from flowmod.crops import read_crops
-
-    x, df = read_crops(crops_folder, split)
-    return predict_models(models, x, df, device)
-
-
 def predict_models(models: list[tuple[str, Any, str | None]], x: Any, df: pd.DataFrame,
                    device: Any = "auto", in_channels: int | None = 2) -> pd.DataFrame:
     """``df`` (the rows of ``x``: (N, C, S, S)) with ``prob_<part>`` of every model (part,
     best.pt, amp) and ``prob`` = the first's; ``in_channels`` as
-    :func:`flowmod.model.load_model` (None: the checkpoint's)."""
-    from flowmod.model import load_model
-
+    :func:`flowmod.model.load_model` (None: the checkpoint's). Each model predicts in the
+    precision it was trained and selected in; ``prob`` is the first seed's (the single model
+    the figures show)."""
     probs = {}
     for part, path, amp in models:
         model = load_model(path, resolve_device(device), in_channels)
@@ -85,8 +79,6 @@ def paired(a: pd.DataFrame, b: pd.DataFrame, what: str, seed: int = 0) -> dict[s
     """:func:`flowmod.metrics.paired_comparison` of ``a``'s models minus ``b``'s (two
     predictions tables of the same objects, per-seed ``prob_s<k>``); :class:`ValueError`
     naming ``what`` if they hold different objects."""
-    from flowmod.metrics import paired_comparison
-
     if not a["ann_token"].reset_index(drop=True).equals(b["ann_token"].reset_index(drop=True)):
         raise ValueError(f"{what} were scored on different objects")
     return paired_comparison(a["label"].to_numpy(), seed_probs(a), seed_probs(b),
@@ -121,9 +113,6 @@ def geometric_baseline(pairs: pd.DataFrame, crops_folder: Any, seed: int = 0
     """The residual baseline on one method's flow, from the flow samples stored with its
     crops (``crops_folder``: a published crops node of the keyframe part): threshold on the
     static-world residual (m/s, :mod:`flowmod.geometry`) fitted on train, scored on test."""
-    from flowmod import geometry
-    from flowmod.crops import read_crops, read_samples
-
     frames, samples = [], []
     for split in ("train", "test"):
         frames.append(read_crops(crops_folder, split)[1])
@@ -138,9 +127,9 @@ def geometric_baseline(pairs: pd.DataFrame, crops_folder: Any, seed: int = 0
     return test.reset_index(drop=True), {**score(test, seed=seed), "threshold_m_s": t}
 
 
-def _write(folder: Any, frames: Mapping[str, pd.DataFrame], scores: Mapping[str, Any]) -> None:
-    from flowmod.artefacts import atomic_path, write_json
-
+def write_frames(folder: Path, frames: Mapping[str, pd.DataFrame],
+                 scores: Mapping[str, Any]) -> None:
+    """``<name>.parquet`` per table and ``<name>.json`` per score record (each atomically)."""
     for name, df in frames.items():
         with atomic_path(folder / f"{name}.parquet") as tmp:
             df.to_parquet(tmp, index=False)
@@ -148,78 +137,66 @@ def _write(folder: Any, frames: Mapping[str, pd.DataFrame], scores: Mapping[str,
         write_json(folder / f"{name}.json", s)
 
 
-def run(params: Any) -> dict[str, tuple[pd.DataFrame, dict[str, Any]]]:
-    """Build every stale ``evaluate[<method>]`` node (:mod:`flowmod.dag`): every training
-    seed's model (chosen on validation) scored once on the test split, the geometric
-    baseline on the same flow, and the original protocol from the probabilities saved during
-    training. Files: ``test.parquet`` + ``scores.json`` (the models), ``baseline.parquet``
-    + ``baseline.json``, ``original.json``. Returns ``{method: (predictions, scores)}``."""
-    from flowmod import dag
-    from flowmod.train import EPOCH_PROBS
-
-    out = {}
-    for m in params.flow_methods:
-        b = dag.begin(params, dag.Node("evaluate", m))
-        if not b.up_to_date:
-            q = b.params
-            models = models_of(b, "train", m)
-            preds = predict_seeds(models, b.input_dir(dag.Node("crops", m, "keyframe")),
-                                  "test", q.device)
-            base, base_s = geometric_baseline(
-                pd.read_parquet(b.input_dir(dag.Node("select")) / "pairs.parquet"),
-                b.input_dir(dag.Node("crops", m, "keyframe")), seed=q.seed)
-            epochs = [np.load(path.parent / EPOCH_PROBS) for _, path, _ in models]
-            batch = int(b.inputs[f"train[{m}/{models[0][0]}]"]["params"]["batch_size"])
-            _write(b.start(fresh=True), {"test": preds, "baseline": base},
-                   {"scores": {"split": "test", **score(preds, seed=q.seed)},
-                    "baseline": base_s, "original": original_protocol(preds, epochs, batch)})
-            b.publish(n=len(preds), seeds=len(models))
-        out[m] = results(params, m, "test")
-    return out
+def predict_splits(b: dag.Build, stage: str, key: str,
+                   splits: Mapping[str, tuple[Any, pd.DataFrame]],
+                   in_channels: int | None = 2) -> dict[str, pd.DataFrame]:
+    """The one predictor of a node's seeds: every model of the node's inputs of ``stage``
+    for ``key`` on each split's (x, index), written as ``<split>.parquet`` (``prob_s<k>``
+    per seed) into the building folder. Returns the tables."""
+    models = models_of(b, stage, key)
+    frames = {split: predict_models(models, x, df, b.params.device, in_channels)
+              for split, (x, df) in splits.items()}
+    write_frames(b.start(fresh=True), frames, {})
+    return frames
 
 
-def run_general(params: Any) -> dict[str, pd.DataFrame]:
-    """Build every stale ``generalise[<method>]`` node: every seed's model (chosen on
-    validation in chapter 06) applied to the generalisation crops, without retraining.
-    Returns ``{method: predictions}``."""
-    from flowmod import dag
-
-    out = {}
-    for m in params.flow_methods:
-        b = dag.begin(params, dag.Node("generalise", m))
-        if not b.up_to_date:
-            preds = predict_seeds(models_of(b, "train", m),
-                                  b.input_dir(dag.Node("crops", m, "general")), "general",
-                                  b.params.device)
-            _write(b.start(fresh=True), {"general": preds}, {})
-            b.publish(n=len(preds))
-        out[m] = results(params, m, "general")[0]
-    return out
-
-
-def results(params: Any, method: str, name: str = "test") -> tuple[pd.DataFrame, dict[str, Any]]:
-    """Published predictions and scores: ``name`` = ``test`` (the models on the test split),
-    ``baseline`` (the geometric baseline) or ``general`` (scores empty)."""
-    import json
-
-    from flowmod import dag
-
-    node = dag.Node("generalise" if name == "general" else "evaluate", method)
-    folder = dag.published(params, node)
-    preds = pd.read_parquet(folder / f"{name}.parquet")
-    js = folder / ("scores.json" if name == "test" else f"{name}.json")
-    return preds, (json.loads(js.read_text()) if js.is_file() else {})
+def build_evaluate(b: dag.Build, progress: bool) -> dict[str, Any]:
+    """Build one ``evaluate[<method>]`` node: every training seed's model (chosen on
+    validation) scored once on the test split (``test.parquet`` + ``scores.json``), the
+    geometric baseline on the same flow (``baseline.parquet`` + ``.json``), and the original
+    protocol from the probabilities saved during training (``original.json``)."""
+    q, m = b.params, b.node.method
+    crops_dir = b.input_dir(dag.Node("crops", m, "keyframe"))
+    preds = predict_splits(b, "train", m, {"test": read_crops(crops_dir, "test")})["test"]
+    base, base_s = geometric_baseline(
+        pd.read_parquet(b.input_dir(dag.Node("select")) / "pairs.parquet"), crops_dir,
+        seed=q.seed)
+    models = models_of(b, "train", m)
+    epochs = [np.load(path.parent / EPOCH_PROBS) for _, path, _ in models]
+    batch = int(b.inputs[f"train[{m}/{models[0][0]}]"]["params"]["batch_size"])
+    write_frames(b.dir, {"baseline": base},
+                 {"scores": {"split": "test", **score(preds, seed=q.seed)},
+                  "baseline": base_s, "original": original_protocol(preds, epochs, batch)})
+    return {"n": len(preds), "seeds": len(models)}
 
 
-def original_vs_clean(params: Any, method: str) -> dict[str, Any]:
-    """The published original-protocol comparison of ``method`` (see
-    :func:`original_protocol`)."""
-    import json
+def build_generalise(b: dag.Build, progress: bool) -> dict[str, Any]:
+    """Build one ``generalise[<method>]`` node: every seed's model (chosen on validation in
+    chapter 06) on the generalisation crops, without retraining (``general.parquet``)."""
+    m = b.node.method
+    folder = b.input_dir(dag.Node("crops", m, "general"))
+    preds = predict_splits(b, "train", m, {"general": read_crops(folder, "general")})
+    return {"n": len(preds["general"])}
 
-    from flowmod import dag
 
-    return json.loads((dag.published(params, dag.Node("evaluate", method))
-                       / "original.json").read_text())
+def _models(p: Params, method: str) -> tuple[dag.Node, ...]:
+    return tuple(dag.Node("train", method, k) for k in seed_parts(p))
+
+
+#: Chapter 07: the classifiers on the test split.
+EVALUATE = dag.Stage(
+    "evaluate", 4, "07", "metrics/{method}/test", "test predictions, baseline, scores",
+    nodes=lambda p: [dag.Node("evaluate", m) for m in p.flow_methods],
+    inputs=lambda n, p: (*_models(p, n.method), dag.Node("crops", n.method, "keyframe"),
+                         dag.Node("select")),
+    build=build_evaluate)
+#: Chapter 08: the classifiers on the generalisation set.
+GENERALISE = dag.Stage(
+    "generalise", 3, "08", "metrics/{method}/general", "generalisation predictions",
+    nodes=lambda p: [dag.Node("generalise", m) for m in p.flow_methods],
+    inputs=lambda n, p: (*_models(p, n.method), dag.Node("crops", n.method, "general"),
+                         dag.Node("general")),
+    build=build_generalise)
 
 
 def table4(preds: Mapping[str, pd.DataFrame], max_distance: float) -> pd.DataFrame:
@@ -260,8 +237,6 @@ def failure_reasons(df: pd.DataFrame, boxes: pd.DataFrame, threshold: float = 0.
     overlaps this object's crop window (the tripled square). Adds columns wrong,
     unclear_flow, crowded.
     """
-    from flowmod.crops import crop_windows
-
     out = df.copy()
     out["wrong"] = (out["prob"] > threshold).astype(int) != out["label"]
     out["unclear_flow"] = (out["distance"] > 50) | ((out["speed"] - speed_threshold).abs() < 1)
@@ -280,104 +255,10 @@ def failure_reasons(df: pd.DataFrame, boxes: pd.DataFrame, threshold: float = 0.
     return out
 
 
-# --- chapter 07's tables ---------------------------------------------------------------------
-
-def table3(params: Any) -> pd.DataFrame:
-    """Table 3 of this build: one row per flow method (the classifiers, mean over training
-    seeds with their range) and one per geometric baseline on the same flow, with the
-    scene-level 95 % interval and what it resamples."""
-    rows = [{"method": f"ResNet18 on {m} flow", **results(params, m, "test")[1]}
-            for m in params.flow_methods]
-    rows += [{"method": f"geometric residual, {m} flow", **results(params, m, "baseline")[1]}
-             for m in params.flow_methods]
-    return metrics_table3(rows)
-
-
-def comparisons(params: Any) -> pd.DataFrame:
-    """Paired comparisons of the classifiers on the same test objects: every pair of flow
-    methods (earlier minus later in the profile's order), the exact flow against each
-    estimate first."""
-    from itertools import combinations
-
-    from flowmod.metrics import comparison_table, paired_comparison
-
-    preds = {m: results(params, m, "test")[0] for m in params.flow_methods}
-    rows = {}
-    for a, b in combinations(params.flow_methods, 2):
-        da, db = preds[a], preds[b]
-        if not da["ann_token"].equals(db["ann_token"]):
-            raise ValueError(f"{a} and {b} were scored on different objects")
-        rows[f"{a} - {b}"] = paired_comparison(da["label"].to_numpy(), seed_probs(da),
-                                               seed_probs(db), da["scene"].to_numpy(),
-                                               seed=params.seed)
-    return comparison_table(rows)
-
-
-def protocols(params: Any) -> pd.DataFrame:
-    """Per method: the clean F1 (best validation epoch, whole test split) and what the
-    original code's protocol reports for the same models (epoch chosen on the test split,
-    stills thinned 1 of 2, F1 averaged per batch), means over training seeds, and
-    original minus clean."""
-    rows = []
-    for m in params.flow_methods:
-        r = original_vs_clean(params, m)
-        rows.append({"method": m, "clean F1 (%)": round(100 * r["clean"], 1),
-                     "original protocol F1 (%)": round(100 * r["original"], 1),
-                     "original - clean (points)": round(100 * r["original_minus_clean"], 1)})
-    return pd.DataFrame(rows)
-
-
-def chapter07_numbers(params: Any) -> dict[str, Any]:
-    """The numbers chapter 07 records for the book's other pages and the tests: per method
-    the classifiers' mean test F1 (%), the baseline's, the objects and scenes scored, the
-    headline method (the first estimated flow of the profile) and the protocol gap."""
-    out: dict[str, Any] = {}
-    gaps = []
-    for m in params.flow_methods:
-        s = results(params, m, "test")[1]
-        out[f"test_f1_{m}"] = round(100 * s["f1"], 1)
-        out[f"test_f1_min_{m}"] = round(100 * s["f1_min"], 1)
-        out[f"test_f1_max_{m}"] = round(100 * s["f1_max"], 1)
-        out[f"baseline_f1_{m}"] = round(100 * results(params, m, "baseline")[1]["f1"], 1)
-        gaps.append(original_vs_clean(params, m)["original_minus_clean"])
-        out["n_test"], out["n_test_scenes"] = s["n"], s["n_scenes"]
-        out["seeds"] = s["seeds"]
-    head = next((m for m in params.flow_methods if m != "gt"), params.flow_methods[0])
-    s = results(params, head, "test")[1]
-    out.update(headline_method=head, headline_f1=round(100 * s["f1"], 1),
-               headline_precision=round(100 * s["precision"], 1),
-               headline_recall=round(100 * s["recall"], 1),
-               headline_ci_lo=round(100 * s["ci"][0], 1), headline_ci_hi=round(100 * s["ci"][1], 1),
-               headline_baseline_f1=out[f"baseline_f1_{head}"],
-               protocol_gap=round(100 * float(np.mean(gaps)), 1))
-    return out
-
-
-def chapter08_numbers(params: Any, table: pd.DataFrame) -> dict[str, Any]:
-    """The numbers chapter 08 records: Table 4's F1 per method (paper's range, both
-    labels), the objects scored, and the headline method's F1."""
-    out: dict[str, Any] = {}
-    t4 = table[table["vehicles"].str.endswith("(Table 4)")]
-    for r in t4.to_dict("records"):
-        key = "paper" if r["scored against"].startswith("paper") else "true"
-        out[f"general_f1_{r['method']}_{key}"] = r["F1 (%)"]
-    paper = t4[t4["scored against"].str.startswith("paper")]
-    out["n_general"] = int(paper["objects"].iloc[0]) if len(paper) else 0
-    head = next((m for m in params.flow_methods if m != "gt"), params.flow_methods[0])
-    out["headline_general_f1"] = out.get(f"general_f1_{head}_paper", float("nan"))
-    beyond = table[~table["vehicles"].str.endswith("(Table 4)")
-                   & table["scored against"].str.startswith("paper")]
-    for r in beyond.to_dict("records"):
-        out[f"beyond_f1_{r['method']}"] = r["F1 (%)"]
-    return out
-
-
 def breakdown(df: pd.DataFrame, by: str, bins: Any = None) -> pd.DataFrame:
     """:func:`flowmod.metrics.breakdown` of a predictions table: every training seed (F1 the
     mean over seeds), with the scene-level interval and the object count of each group."""
-    from flowmod.metrics import breakdown as _breakdown
-
-    return _breakdown(df, df["label"], seed_probs(df), by=by, bins=bins,
+    return metrics_breakdown(df, df["label"], seed_probs(df), by=by, bins=bins,
                       groups=df["scene"].to_numpy())
 
 

@@ -1,59 +1,125 @@
-"""The study's stages run in-process, in data order: the same stage functions that the
-notebooks call, for tests, benchmarks and scripts that need the artefacts but not the book.
+"""The study's pipeline: every stage's declaration in data order, and what runs them.
 
     from flowmod import params, pipeline
     p = params.load_profile("smoke", run_dir="/tmp/runs")
     pipeline.build(p)                     # every stale node, nothing else
     print(pipeline.format_status(p))      # what runner --status prints
     pipeline.collect_garbage(p)           # what runner --gc does
+
+Each stage is declared once, beside its build function, in its own module
+(:class:`flowmod.dag.Stage`); :data:`STAGES` lists them in data order and :data:`GRAPH`
+(:class:`flowmod.dag.Graph`) answers every question about them: the nodes of a run, their
+inputs, folders, fingerprints and status, and the one driver that builds them. The notebooks
+call :func:`build` with their chapter; the chapter backends (:mod:`flowmod.chapters`) read
+what is published through :func:`published`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+import shutil
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 
-from flowmod import crops, dag, evaluate, flow, select, train, variants, wide, world
-from flowmod.flow import selftrain
+from flowmod import crops, dag, difficulty, evaluate, select, train
+from flowmod.extensions import context, inputs, selfflow, wide
+from flowmod.flow import stage as flow_stage
+from flowmod.flow.store import valid_path
 from flowmod.params import Params
-from flowmod.report import world_report
+from flowmod.world import source as world_source
 
-#: The builder of each chapter's stages, in data order.
-BUILDERS: dict[str, Callable[[Params, bool], Any]] = {
-    "01": lambda p, progress: (world.ensure_world(p, progress=progress),
-                               dag.is_generated_world(p)
-                               and world_report.difficulty_report(p, progress=progress)),
-    "02": lambda p, progress: select.run(p, progress=progress),
-    "03": lambda p, progress: flow.run(p, progress=progress),
-    "05": lambda p, progress: crops.run(p, progress=progress),
-    "06": lambda p, progress: train.run(p, progress=progress),
-    "07": lambda p, progress: evaluate.run(p),
-    "08": lambda p, progress: evaluate.run_general(p),
-    "10": lambda p, progress: variants.run(p, progress=progress),
-    "11": lambda p, progress: wide.run(p, progress=progress),
-    "12": lambda p, progress: selftrain.run(p, progress=progress),
-}
+#: Every stage, in data order (chapter 01 to 12).
+STAGES: tuple[dag.Stage, ...] = (
+    world_source.STAGE,      # 01 the data
+    difficulty.STAGE,        # 01 the naive exact-flow rule
+    select.SELECT,           # 02 Table-1 keyframe pairs, scene split
+    select.GENERAL,          # 02 generalisation pairs
+    flow_stage.STAGE,        # 03 optical flow (chapter 11's part too)
+    crops.STAGE,             # 05 flow crops (chapter 11's part too)
+    train.STAGE,             # 06 one classifier per seed
+    evaluate.EVALUATE,       # 07 test split, baseline, scores
+    evaluate.GENERALISE,     # 08 generalisation set
+    context.STAGE,           # 10 static-world flow and image crops
+    inputs.XTRAIN,           # 10 a classifier on another input
+    inputs.XEVALUATE,        # 10 its predictions
+    wide.WIDE_STAGE,         # 11 the training set at every distance
+    wide.WTRAIN,             # 11 a classifier trained on it
+    wide.WGENERALISE,        # 11 its predictions
+    selfflow.STAGE,          # 12 FastFlowNet trained here
+)
+#: The make target that turns each gate on.
+GATE_TARGETS = {"extension_build": "make extensions", "selfflow_build": "make selfflow"}
+GRAPH = dag.Graph(STAGES, GATE_TARGETS)
+
+#: The chapters that build nodes.
+CHAPTERS = tuple(sorted({c for s in STAGES for c in s.chapters()}))
 
 
-def build(p: Params, chapters: Iterable[str] | None = None, progress: bool = False) -> None:
-    """Build the stale nodes of the given chapters (default: all), in data order."""
-    wanted = set(chapters) if chapters is not None else set(BUILDERS)
-    unknown = wanted - set(BUILDERS)
+def nodes(p: Params, chapters: Iterable[str] | None = None) -> list[dag.Node]:
+    """Every node of a run with ``p`` (of ``chapters``), in data order."""
+    return GRAPH.nodes(p, chapters)
+
+
+def inputs(node: dag.Node, p: Params) -> tuple[dag.Node, ...]:
+    return GRAPH.inputs(node, p)
+
+
+def chapter(node: dag.Node) -> str:
+    return GRAPH.chapter(node)
+
+
+def gate(node: dag.Node) -> str | None:
+    return GRAPH.gate(node)
+
+
+def status(p: Params) -> list[dag.NodeStatus]:
+    return GRAPH.status(p)
+
+
+def expected(p: Params) -> dict[dag.Node, str | None]:
+    return GRAPH.expected(p)
+
+
+def node_dir(p: Params, node: dag.Node) -> Path:
+    return GRAPH.node_dir(p, node)
+
+
+def recorded(p: Params, node: dag.Node) -> dict[str, Any] | None:
+    return GRAPH.recorded(p, node)
+
+
+def published(p: Params, node: dag.Node) -> Path:
+    return GRAPH.published(p, node)
+
+
+def current(p: Params, node: dag.Node) -> bool:
+    return GRAPH.current(p, node)
+
+
+def built(p: Params, node: dag.Node) -> bool:
+    return GRAPH.built(p, node)
+
+
+def build(p: Params, chapters: Iterable[str] | None = None, progress: bool = False
+          ) -> list[dag.Node]:
+    """Build the stale nodes of the given chapters (default: all), in data order; a gated
+    node only with its gate on. Returns the nodes considered."""
+    wanted = None if chapters is None else set(chapters)
+    unknown = (wanted or set()) - set(CHAPTERS)
     if unknown:
-        raise ValueError(f"no stages in chapter(s) {sorted(unknown)}; known: {list(BUILDERS)}")
-    for ch, builder in BUILDERS.items():
-        if ch in wanted:
-            builder(p, progress)
+        raise ValueError(f"no stages in chapter(s) {sorted(unknown)}; known: {list(CHAPTERS)}")
+    return GRAPH.build(p, wanted, progress)
 
+
+# --- status -------------------------------------------------------------------------------------
 
 def status_frame(p: Params) -> pd.DataFrame:
-    """:func:`flowmod.dag.status` as a table: chapter, node, state, why, path."""
-    rows = [{"chapter": dag.chapter(s.node), "node": str(s.node), "state": s.state,
-             "gate": dag.gate(s.node) or "", "why": s.why, "path": str(s.path)}
-            for s in dag.status(p)]
+    """:func:`status` as a table: chapter, node, state, gate, why, path."""
+    rows = [{"chapter": chapter(s.node), "node": str(s.node), "state": s.state,
+             "gate": gate(s.node) or "", "why": s.why, "path": str(s.path)}
+            for s in status(p)]
     return pd.DataFrame(rows, columns=["chapter", "node", "state", "gate", "why", "path"])
 
 
@@ -76,23 +142,17 @@ def format_status(p: Params) -> str:
         which = " and ".join(sorted(set(gated["chapter"])))
         extra = ", flow, crops" if "11" in which else ""
         tail += (f"; chapter{'s' * (' and ' in which)} {which}'s {len(gated)} "
-                 f"({what[flag]}{extra}) only with {flag}: {dag.GATE_TARGETS[flag]}")
+                 f"({what[flag]}{extra}) only with {flag}: {GATE_TARGETS[flag]}")
     lines.append(tail)
     return "\n".join(lines)
 
 
-def unreferenced(p: Params, variants: bool = False) -> list[Path]:
-    """Files of the run folder's per-pair caches that no node of ``p`` can read any more:
-    flow pool files listed by no flow index (published or kept variant) and crops pool
-    folders of other options than ``p``'s (another geometry, flow option or dtype; the
-    crops nodes themselves keep their arrays; in ``flow_store: pairs`` no crops pool is
-    read). ``variants``: also every kept variant
-    (``.variant-`` folder: an earlier result that switching back would restore), and the
-    flow files only they listed. A method with a build in progress (a ``.building-``
-    folder) keeps its flow files: its unlisted files are its resume point."""
-    from flowmod.flow.store import valid_path
+# --- garbage ------------------------------------------------------------------------------------
 
-    out: list[Path] = sorted(p.run_path.rglob(".*.variant-*")) if variants else []
+def _unreferenced_flow(p: Params, variants: bool) -> list[Path]:
+    """Flow pool files listed by no flow index (published or kept variant; with
+    ``variants``, the files only kept variants list count as unreferenced)."""
+    out: list[Path] = []
     for method_dir in sorted((p.run_path / "flow").glob("*")):
         pool = method_dir / "pool"
         if not pool.is_dir() or any(method_dir.glob(".*.building-*")):
@@ -104,13 +164,27 @@ def unreferenced(p: Params, variants: bool = False) -> list[Path]:
             for f in pd.read_parquet(index, columns=["file"])["file"]:
                 keep |= {pool / f, valid_path(pool / f)}
         out += [f for f in sorted(pool.rglob("*.npy")) if f not in keep]
+    return out
+
+
+def unreferenced(p: Params, variants: bool = False) -> list[Path]:
+    """Files of the run folder's per-pair caches that no node of ``p`` can read any more:
+    flow pool files listed by no flow index (published or kept variant) and crops pool
+    folders of other options than ``p``'s (another geometry, flow option or dtype; the
+    crops nodes themselves keep their arrays; in ``flow_store: pairs`` no crops pool is
+    read). ``variants``: also every kept variant (``.variant-`` folder: an earlier result
+    that switching back would restore), and the flow files only they listed. A method with
+    a build in progress (a ``.building-`` folder) keeps its files: they are its resume
+    point."""
+    out: list[Path] = sorted(p.run_path.rglob(".*.variant-*")) if variants else []
+    out += _unreferenced_flow(p, variants)
     for pool_root in sorted((p.run_path / "crops").glob("*/pool")):
         m = pool_root.parent.name
         if any(pool_root.parent.glob(".*.building-*")):
             continue
-        current = (crops.crops_pool(p, m) if p.flow_store == "crops" and m in p.flow_methods
-                   else None)
-        out += [d for d in sorted(pool_root.iterdir()) if d.is_dir() and d != current]
+        keep = (crops.crops_pool(p, m) if p.flow_store == "crops" and m in p.flow_methods
+                else None)
+        out += [d for d in sorted(pool_root.iterdir()) if d.is_dir() and d != keep]
     return out
 
 
@@ -118,8 +192,6 @@ def collect_garbage(p: Params, dry_run: bool = False,
                     variants: bool = False) -> tuple[int, int]:
     """Remove :func:`unreferenced` files and folders (``dry_run``: only count them); then
     option folders left without flow files. Returns (items, bytes)."""
-    import shutil
-
     items = unreferenced(p, variants)
     size = sum(f.stat().st_size for i in items
                for f in ([i] if i.is_file() else list(i.rglob("*"))) if f.is_file())

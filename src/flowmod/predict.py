@@ -25,6 +25,14 @@ import numpy as np
 import pandas as pd
 
 from flowmod.artefacts import CheckpointError
+from flowmod.crops import pair_crops
+from flowmod.flow import ImageError, MissingWeightsError, get_estimator, read_image
+from flowmod.flow.networks import estimator_options
+from flowmod.flow.store import roundtrip
+from flowmod.model import load_model, predict
+from flowmod.params import validate
+from flowmod.report.viz import draw_boxes, label_colors
+from flowmod.train import recipe_from
 
 
 class PredictError(ValueError):
@@ -41,8 +49,6 @@ def read_recipe(model: Path) -> dict[str, Any]:
     rec = json.loads(man.read_text())
     if rec.get("recipe"):
         return rec["recipe"]
-    from flowmod.train import recipe_from
-
     method = rec["node"].split("[", 1)[1].split("/", 1)[0]
     run = model.parent.parents[2]
     flow = json.loads((run / "flow" / method / "keyframe" / "manifest.json").read_text())
@@ -77,13 +83,6 @@ def predict_boxes(frame1: np.ndarray, frame2: np.ndarray, boxes: pd.DataFrame,
                   model_path: Path, recipe: dict[str, Any], device: str = "auto"
                   ) -> pd.DataFrame:
     """Probability of moving for each box, processed as the model's training crops were."""
-    from flowmod.crops import pair_crops
-    from flowmod.flow import get_estimator
-    from flowmod.flow.networks import estimator_options
-    from flowmod.flow.store import roundtrip
-    from flowmod.model import load_model, predict
-    from flowmod.params import validate
-
     method = recipe["method"]
     if method == "gt":
         raise PredictError("this model was trained on the synthetic world's exact flow (gt), "
@@ -116,9 +115,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="annotated FRAME1 (PNG/JPEG)")
     ap.add_argument("--device", default="auto")
     args = ap.parse_args(argv)
-    from flowmod.flow import ImageError, MissingWeightsError, read_image
-    from flowmod.report.viz import draw_boxes, label_colors
-
     try:
         if not args.model.is_file():
             raise PredictError(f"model not found: {args.model}")

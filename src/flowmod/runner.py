@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import hashlib
+import json
 import os
 import re
 import shutil
@@ -27,18 +28,29 @@ import tempfile
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from flowmod import dag, environment, progress
+import nbformat
+import papermill
+from jupyter_client.manager import AsyncKernelManager
+
+from flowmod import environment, pipeline, progress
 from flowmod.artefacts import atomic_path, fingerprint, write_json
+from flowmod.flow.networks import planned_methods
 from flowmod.params import Params, ProfileError, load_profile, parse_overrides, profile_path
 from flowmod.paths import repo_root
 from flowmod.report.book import check_executed
+from flowmod.select import SelectionError, check_dataroot
 
 
 class NotebookFailed(RuntimeError):
     """A notebook raised; the message carries its name, the error and the executed copy."""
+
+    def __init__(self, message: str, seconds: float = 0.0) -> None:
+        super().__init__(message)
+        self.seconds = seconds
 
 
 def notebooks(folder: Path | None = None) -> list[Path]:
@@ -49,8 +61,6 @@ def notebooks(folder: Path | None = None) -> list[Path]:
 
 def declared_parameters(nb: Path) -> dict[str, dict[str, Any]]:
     """The parameters a notebook declares in its ``parameters`` cell (papermill's inference)."""
-    import papermill
-
     params = papermill.inspect_notebook(str(nb))
     if not params:
         raise ProfileError(
@@ -134,15 +144,13 @@ def notebook_fingerprint(nb: Path, values: dict[str, Any], p: Params,
     the fingerprints of every node of its and earlier chapters (:mod:`flowmod.dag`) and
     whether each is built, the library's code and the device; None while one of those
     nodes cannot be known yet."""
-    import nbformat
-
     chapter = nb.stem[:2]
-    exp = {n: fp for n, fp in dag.expected(p).items() if dag.chapter(n) <= chapter}
+    exp = {n: fp for n, fp in pipeline.expected(p).items() if pipeline.chapter(n) <= chapter}
     if any(fp is None for fp in exp.values()):
         return None
     # and whether each is built: a chapter that shows what is built (chapter 10 without
     # extension_build) is stale once someone builds more
-    nodes = {str(n): [fp, (dag.recorded(p, n) or {}).get("fingerprint") == fp]
+    nodes = {str(n): [fp, (pipeline.recorded(p, n) or {}).get("fingerprint") == fp]
              for n, fp in exp.items()}
     cells = [(c.cell_type, c.source, sorted(c.metadata.get("tags", [])))
              for c in nbformat.read(str(nb), as_version=4).cells]
@@ -152,8 +160,6 @@ def notebook_fingerprint(nb: Path, values: dict[str, Any], p: Params,
 
 def _executed_fingerprint(target: Path) -> str | None:
     """The fingerprint an executed copy was stamped with (None if absent or failed)."""
-    import nbformat
-
     if not target.is_file():
         return None
     try:
@@ -165,8 +171,6 @@ def _executed_fingerprint(target: Path) -> str | None:
 
 
 def _stamp(target: Path, fp: str | None) -> None:
-    import nbformat
-
     nb = nbformat.read(str(target), as_version=4)
     nb.metadata["flowmod"] = {"fingerprint": fp}
     with atomic_path(target) as tmp:
@@ -176,8 +180,6 @@ def _stamp(target: Path, fp: str | None) -> None:
 def _kernel_manager(folder: Path) -> type:
     """A kernel manager whose kernels talk over local IPC sockets in ``folder`` rather than
     TCP ports (nothing listens on the network, and ipykernel has nothing to warn about)."""
-    from jupyter_client.manager import AsyncKernelManager
-
     class IPCKernelManager(AsyncKernelManager):
         def __init__(self, **kw: Any) -> None:
             kw.setdefault("transport", "ipc")
@@ -185,6 +187,91 @@ def _kernel_manager(folder: Path) -> type:
             super().__init__(**kw)
 
     return IPCKernelManager
+
+
+@dataclass
+class Plan:
+    """What a run will do, checked before anything runs: the profile, the notebooks with
+    the parameters each receives, where executed copies go, and the device."""
+
+    p: Params
+    notebooks: list[tuple[Path, dict[str, Any]]]
+    out_dir: Path
+    device: dict[str, Any]
+
+
+def preflight(profile: str | Path, overrides: dict[str, Any] | None, out_dir: Path | None,
+              only: list[str] | None, notebooks_dir: Path | None) -> Plan:
+    """Validate the profile, every selected notebook's parameters, the device and (for real
+    data) the dataroot; :class:`ProfileError` in one line for the first problem."""
+    p = resolve_profile(profile, overrides)
+    selected = notebooks(notebooks_dir)
+    if only:
+        selected = [nb for nb in selected if any(nb.stem.startswith(o) for o in only)]
+        if not selected:
+            raise ProfileError(f"--only {only} matches no notebook in notebooks/")
+    plan = [(nb, notebook_parameters(nb, p)) for nb in selected]
+    try:
+        device = environment.device_info(p.device)
+    except RuntimeError as e:
+        raise ProfileError(f"device={p.device!r}: {e}") from None
+    if not p.synthetic:  # real data must be there before the first notebook starts
+        try:
+            check_dataroot(p.dataroot_path, p.version)
+        except SelectionError as e:
+            raise ProfileError(f"dataroot={p.dataroot!r}, version={p.version!r}: {e}") from None
+    out = Path(out_dir or repo_root() / "build" / "executed").resolve()
+    return Plan(p, plan, out, device)
+
+
+def _record(plan: Plan, profile: str | Path, overrides: dict[str, Any] | None,
+            partial: bool) -> dict[str, Any]:
+    """The run record (``run_info.json``); a partial rerun with the same parameters keeps
+    the other notebooks' records of the previous one."""
+    record: dict[str, Any] = {
+        "profile": plan.p.profile, "profile_file": str(profile_path(profile)),
+        "overrides": overrides or {}, "parameters": plan.p.model_dump(),
+        "commit": environment.git_commit(),
+        "versions": environment.versions().set_index("package")["version"].to_dict(),
+        "device": plan.device, "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "notebooks": {}, "status": "running",
+    }
+    info_path = plan.out_dir / "run_info.json"
+    if partial and info_path.is_file():
+        old = json.loads(info_path.read_text())
+        if old.get("parameters") == record["parameters"] and old.get("status") == "ok":
+            record["notebooks"] = {k: v for k, v in old["notebooks"].items()
+                                   if k not in {nb.stem for nb, _ in plan.notebooks}}
+            record["started"] = old["started"]
+    return record
+
+
+def execute(nb: Path, values: dict[str, Any], plan: Plan, kernel: str, ipc: Path
+            ) -> dict[str, Any]:
+    """Execute one notebook into ``plan.out_dir`` (or reuse its executed copy when its
+    fingerprint matches); returns its record. :class:`NotebookFailed` if a cell raised."""
+    target, p = plan.out_dir / nb.name, plan.p
+    fp = notebook_fingerprint(nb, values, p, plan.device)
+    if fp is not None and not p.force and _executed_fingerprint(target) == fp:
+        print(f"[flowmod] {nb.name} up to date (executed copy reused)", flush=True)
+        return {"status": "ok", "seconds": 0.0, "reused": True}
+    print(f"[flowmod] {nb.name} ...", flush=True)
+    t0 = time.perf_counter()
+    try:
+        with _echo_progress(plan.out_dir / ".progress.log", nb.stem):
+            papermill.execute_notebook(
+                str(nb), str(target), parameters=values, kernel_name=kernel,
+                cwd=str(nb.parent), progress_bar=False, log_output=False,
+                kernel_manager_class=_kernel_manager(ipc))
+    except papermill.PapermillExecutionError as e:
+        raise NotebookFailed(
+            f"{nb.name} failed in cell {e.exec_count}: {e.ename}: {e.evalue}\n"
+            f"executed copy with the traceback: {target}",
+            round(time.perf_counter() - t0, 1)) from None
+    seconds = time.perf_counter() - t0
+    _stamp(target, notebook_fingerprint(nb, values, p, plan.device))
+    print(f"[flowmod] {nb.name} ok ({seconds:.1f} s)", flush=True)
+    return {"status": "ok", "seconds": round(seconds, 1)}
 
 
 def run(
@@ -201,86 +288,22 @@ def run(
     Raises :class:`ProfileError` for a bad profile (before any notebook runs) and
     :class:`NotebookFailed` at the first notebook that fails.
     """
-    import papermill
-
-    p = resolve_profile(profile, overrides)
-    out_dir = Path(out_dir or repo_root() / "build" / "executed").resolve()
-    selected = notebooks(notebooks_dir)
-    if only:
-        selected = [nb for nb in selected if any(nb.stem.startswith(o) for o in only)]
-        if not selected:
-            raise ProfileError(f"--only {only} matches no notebook in notebooks/")
-    # Check every notebook's parameters before running the first one.
-    plan = [(nb, notebook_parameters(nb, p)) for nb in selected]
-    try:
-        device = environment.device_info(p.device)
-    except RuntimeError as e:
-        raise ProfileError(f"device={p.device!r}: {e}") from None
-    if not p.synthetic:  # real data must be there before the first notebook starts
-        from flowmod.select import SelectionError, check_dataroot
-
-        try:
-            check_dataroot(p.dataroot_path, p.version)
-        except SelectionError as e:
-            raise ProfileError(f"dataroot={p.dataroot!r}, version={p.version!r}: {e}") from None
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    record: dict[str, Any] = {
-        "profile": p.profile,
-        "profile_file": str(profile_path(profile)),
-        "overrides": overrides or {},
-        "parameters": p.model_dump(),
-        "commit": environment.git_commit(),
-        "versions": environment.versions().set_index("package")["version"].to_dict(),
-        "device": device,
-        "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "notebooks": {},
-        "status": "running",
-    }
-    info_path = out_dir / "run_info.json"
-    if only and info_path.is_file():
-        # a partial rerun with the same parameters keeps the other notebooks' records
-        import json
-
-        old = json.loads(info_path.read_text())
-        if old.get("parameters") == record["parameters"] and old.get("status") == "ok":
-            record["notebooks"] = {k: v for k, v in old["notebooks"].items()
-                                   if k not in {nb.stem for nb, _ in plan}}
-            record["started"] = old["started"]
+    plan = preflight(profile, overrides, out_dir, only, notebooks_dir)
+    plan.out_dir.mkdir(parents=True, exist_ok=True)
+    record = _record(plan, profile, overrides, partial=bool(only))
+    info_path = plan.out_dir / "run_info.json"
     write_json(info_path, record)
     ipc = Path(tempfile.mkdtemp(prefix="flowmod-kernel-"))
     try:
-        for nb, values in plan:
-            target = out_dir / nb.name
-            fp = notebook_fingerprint(nb, values, p, device)
-            if fp is not None and not p.force and _executed_fingerprint(target) == fp:
-                record["notebooks"][nb.stem] = {"status": "ok", "seconds": 0.0, "reused": True}
-                write_json(info_path, record)
-                print(f"[flowmod] {nb.name} up to date (executed copy reused)", flush=True)
-                continue
-            print(f"[flowmod] {nb.name} ...", flush=True)
-            t0 = time.perf_counter()
+        for nb, values in plan.notebooks:
             try:
-                with _echo_progress(out_dir / ".progress.log", nb.stem):
-                    papermill.execute_notebook(
-                        str(nb), str(target), parameters=values, kernel_name=kernel,
-                        cwd=str(nb.parent), progress_bar=False, log_output=False,
-                        kernel_manager_class=_kernel_manager(ipc),
-                    )
-            except papermill.PapermillExecutionError as e:
-                seconds = time.perf_counter() - t0
-                record["notebooks"][nb.stem] = {"status": "failed", "seconds": round(seconds, 1)}
+                record["notebooks"][nb.stem] = execute(nb, values, plan, kernel, ipc)
+            except NotebookFailed as e:
+                record["notebooks"][nb.stem] = {"status": "failed", "seconds": e.seconds}
                 record["status"] = "failed"
+                raise
+            finally:
                 write_json(info_path, record)
-                raise NotebookFailed(
-                    f"{nb.name} failed in cell {e.exec_count}: {e.ename}: {e.evalue}\n"
-                    f"executed copy with the traceback: {target}"
-                ) from None
-            seconds = time.perf_counter() - t0
-            _stamp(target, notebook_fingerprint(nb, values, p, device))
-            record["notebooks"][nb.stem] = {"status": "ok", "seconds": round(seconds, 1)}
-            write_json(info_path, record)
-            print(f"[flowmod] {nb.name} ok ({seconds:.1f} s)", flush=True)
     finally:
         shutil.rmtree(ipc, ignore_errors=True)
     record["status"] = "ok"
@@ -293,8 +316,6 @@ def resolve_profile(profile: str | Path, overrides: dict[str, Any] | None = None
                     say: Any = print) -> Params:
     """The validated profile with its ``flow_networks`` whose weights are present added to
     ``flow_methods`` (one line each said, added or not)."""
-    from flowmod.flow.networks import planned_methods
-
     p = load_profile(profile, **(overrides or {}))
     methods, notes = planned_methods(p)
     for line in notes:
@@ -327,8 +348,6 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         if args.gc:
-            from flowmod import pipeline
-
             p = resolve_profile(args.profile, parse_overrides(args.overrides))
             n, size = pipeline.collect_garbage(p, dry_run=args.dry_run, variants=args.variants)
             verb = "would free" if args.dry_run else "freed"
@@ -336,8 +355,6 @@ def main(argv: list[str] | None = None) -> int:
                   f"{size / 1e6:.1f} MB")
             return 0
         if args.status:
-            from flowmod import pipeline
-
             print(pipeline.format_status(resolve_profile(args.profile,
                                                          parse_overrides(args.overrides))))
             return 0

@@ -19,14 +19,19 @@ closest previous keyframe.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
+from nuscenes.nuscenes import NuScenes
+from nuscenes.utils.geometry_utils import BoxVisibility, view_points
+from pyquaternion import Quaternion
 
-from flowmod import dag, labels
+from flowmod import dag, labels, world
 from flowmod.artefacts import atomic_path
 from flowmod.params import Params
 from flowmod.progress import bar
@@ -65,12 +70,18 @@ def check_dataroot(dataroot: str | Path, version: str) -> Path:
     return vdir
 
 
-def open_nuscenes(dataroot: str | Path, version: str):
-    """Load the devkit's ``NuScenes`` after :func:`check_dataroot` (quietly)."""
-    from nuscenes.nuscenes import NuScenes
+def open_nuscenes(dataroot: str | Path, version: str) -> NuScenes:
+    """Load the devkit's ``NuScenes`` after :func:`check_dataroot` (quietly). The last one
+    loaded is reused while no table file of the version changed (size and mtime)."""
+    vdir = check_dataroot(dataroot, version)
+    stamp = tuple((f.name, f.stat().st_size, f.stat().st_mtime_ns)
+                  for f in sorted(vdir.glob("*.json")))
+    return _load_nuscenes(str(Path(dataroot).resolve()), version, stamp)
 
-    check_dataroot(dataroot, version)
-    return NuScenes(version=version, dataroot=str(dataroot), verbose=False)
+
+@lru_cache(maxsize=1)
+def _load_nuscenes(dataroot: str, version: str, stamp: tuple) -> NuScenes:
+    return NuScenes(version=version, dataroot=dataroot, verbose=False)
 
 
 def check_images(dataroot: str | Path, paths: Iterable[str]) -> list[str]:
@@ -211,9 +222,6 @@ def qualifying_boxes(
     (``get_sample_data`` with ``BoxVisibility.ALL``: all corners in front and inside the image;
     interpolated for sweeps).
     """
-    from nuscenes.utils.geometry_utils import BoxVisibility, view_points
-    from pyquaternion import Quaternion
-
     _, boxes, K = nusc.get_sample_data(sd["token"], box_vis_level=BoxVisibility.ALL)
     if not boxes:
         return {}
@@ -247,8 +255,6 @@ def frame_boxes(nusc, sd: dict) -> list[dict]:
     """Every annotated object of ``sd``'s frame (any category, any visibility) that has a
     corner in front of the camera and inside the image: instance token, category and the
     2D box of its corners in front of the camera, clipped to the image (px)."""
-    from nuscenes.utils.geometry_utils import BoxVisibility, view_points
-
     _, boxes, K = nusc.get_sample_data(sd["token"], box_vis_level=BoxVisibility.ANY)
     w, h = sd["width"], sd["height"]
     out = []
@@ -280,8 +286,6 @@ def _attribute(nusc, ann: dict) -> str:
 
 def camera_to_global(nusc, sd: dict) -> np.ndarray:
     """(4, 4) float64 transform from ``sd``'s camera frame to the global frame (m)."""
-    from pyquaternion import Quaternion
-
     cs = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
     pose = nusc.get("ego_pose", sd["ego_pose_token"])
     m = np.eye(4)
@@ -441,8 +445,6 @@ class Selection:
 
 def _add_true_speed(objects: pd.DataFrame, pairs: pd.DataFrame, p: Params) -> pd.DataFrame:
     """For a synthetic world: the true speed at frame 1's time and its label."""
-    from flowmod import world
-
     t1 = pairs.set_index("pair_id")["timestamp_1"]
     true = [
         float(labels.speed(world.true_velocity(p.dataroot_path, p.version, inst, int(t1[pid]))))
@@ -470,8 +472,6 @@ def _missing_images(p: Params, pairs: pd.DataFrame, objects: pd.DataFrame
 
 def _finish(p: Params, pairs: pd.DataFrame, objects: pd.DataFrame
             ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    from flowmod import world
-
     pairs, objects = _missing_images(p, pairs, objects)
     if world.is_synthetic(p.dataroot_path, p.version) and len(objects):
         objects = _add_true_speed(objects, pairs, p)
@@ -490,8 +490,6 @@ def select_keyframes(p: Params, nusc=None, progress: bool = True) -> Selection:
         )
     # Consecutive scenes of one nuScenes drive share places and parked cars: split by log.
     # A generated world's scenes are independent of each other: split by scene.
-    from flowmod import world
-
     unit = "scene" if world.is_synthetic(p.dataroot_path, p.version) else "log"
     groups = dict(zip(kept["scene"], kept["scene" if unit == "scene" else "log_token"],
                       strict=True))
@@ -582,90 +580,60 @@ def write_tables(d: Path, frames: dict[str, pd.DataFrame]) -> None:
             df.to_parquet(tmp, index=False)
 
 
-def run(p: Params, progress: bool = True) -> Selection:
-    """The selection stages of chapter 02: ``select`` (keyframe set, scene split) and
-    ``general`` (generalisation set), each rebuilt only when its fingerprint changed
-    (:mod:`flowmod.dag`). Returns what is published (both sets)."""
-    b = dag.begin(p, dag.Node("select"))
-    nusc = None
-    if not b.up_to_date:
-        nusc = open_nuscenes(b.params.dataroot_path, b.params.version)
-        sel = select_keyframes(b.params, nusc, progress)
-        write_tables(b.start(fresh=True), {"pairs": sel.pairs, "objects": sel.objects,
-                                           "scenes": sel.scenes})
-        b.publish(rows=len(sel.objects), pairs=len(sel.pairs))
-    g = dag.begin(p, dag.Node("general"))
-    if not g.up_to_date:
-        scenes = pd.read_parquet(g.input_dir(dag.Node("select")) / "scenes.parquet")
-        if nusc is None:
-            nusc = open_nuscenes(g.params.dataroot_path, g.params.version)
-        gp, go, gb = select_general(g.params, scenes, nusc, progress)
-        write_tables(g.start(fresh=True), {"pairs": gp, "objects": go, "boxes": gb})
-        g.publish(rows=len(go), pairs=len(gp))
-    return load(p)[0]
+def build_select(b: dag.Build, progress: bool) -> Mapping[str, Any]:
+    """Build the ``select`` node: the keyframe set and the scene split (``pairs``,
+    ``objects``, ``scenes`` tables)."""
+    q = b.params
+    sel = select_keyframes(q, open_nuscenes(q.dataroot_path, q.version), progress)
+    write_tables(b.start(fresh=True), {"pairs": sel.pairs, "objects": sel.objects,
+                                       "scenes": sel.scenes})
+    return {"rows": len(sel.objects), "pairs": len(sel.pairs)}
 
 
-def table1(p: Params) -> pd.DataFrame:
-    """Table 1 of the paper, regenerated from the parameters."""
-    vis_bins = {"1": "0-40 %", "2": "40-60 %", "3": "60-80 %", "4": "80-100 %"}
-    return pd.DataFrame([
-        {"setting": "Target categories", "description": "\n".join(p.categories)},
-        {"setting": "Distance", "description": f"{p.min_distance:g} m - {p.max_distance:g} m"
-                                               f" ({p.distance_mode} origin)"},
-        {"setting": "Visibility",
-         "description": ", ".join(vis_bins[v] for v in sorted(p.visibility_tokens))},
-        {"setting": "Sensor", "description": CAMERA},
-        {"setting": "Excluded scenes",
-         "description": ", ".join(p.exclude_descriptions) or "none"},
-    ])
+def build_general(b: dag.Build, progress: bool) -> Mapping[str, Any]:
+    """Build the ``general`` node: the generalisation set (``pairs``, ``objects`` and the
+    ``boxes`` of every annotated object in frame 1)."""
+    q = b.params
+    scenes = pd.read_parquet(b.input_dir(dag.Node("select")) / "scenes.parquet")
+    gp, go, gb = select_general(q, scenes, open_nuscenes(q.dataroot_path, q.version), progress)
+    write_tables(b.start(fresh=True), {"pairs": gp, "objects": go, "boxes": gb})
+    return {"rows": len(go), "pairs": len(gp)}
 
 
-# --- summaries for the book --------------------------------------------------------------
-
-def step_counts(sel: Selection) -> pd.DataFrame:
-    """How many scenes, pairs and objects survive each step of the selection."""
-    sc, pairs, obj = sel.scenes, sel.pairs, sel.objects
-    rows = [("scenes in the data set", len(sc))]
-    for reason, n in sc.loc[sc["excluded_by"] != "", "excluded_by"].value_counts().items():
-        rows.append((f"scenes excluded: '{reason}'", int(n)))
-    rows += [
-        ("scenes kept", int((sc["excluded_by"] == "").sum())),
-        ("keyframe pairs with a target vehicle", int((pairs["set"] == "keyframe").sum())),
-        ("target vehicles in keyframe pairs", int((obj["set"] == "keyframe").sum())),
-        ("generalisation scenes", int(pairs.loc[pairs["set"] == "general", "scene"].nunique())),
-        ("generalisation pairs", int((pairs["set"] == "general").sum())),
-        ("generalisation objects", int((obj["set"] == "general").sum())),
-    ]
-    return pd.DataFrame(rows, columns=["step", "count"])
+#: The two parts of the flow and crops stages: the paper's keyframe pairs and the
+#: generalisation pairs.
+PARTS = ("keyframe", "general")
+#: Chapter 11's part of the flow and crops stages: the training set at every distance.
+WIDE = "wide"
 
 
-def split_sizes(sel: Selection, kind: str = "keyframe") -> pd.DataFrame:
-    """Scenes, pairs, objects, moving and still objects per split."""
-    pairs = sel.pairs[sel.pairs["set"] == kind]
-    obj = sel.objects[sel.objects["set"] == kind]
-    out = pd.DataFrame({
-        "scenes": pairs.groupby("split")["scene"].nunique(),
-        "pairs": pairs.groupby("split").size(),
-        "objects": obj.groupby("split").size(),
-        "moving": obj.groupby("split")["label"].sum(),
-    }).reindex([s for s in SPLITS if s in set(pairs["split"])]).fillna(0).astype(int)
-    out["still"] = out["objects"] - out["moving"]
-    out["moving %"] = (100 * out["moving"] / out["objects"].clip(lower=1)).round(1)
-    return out
+def objects_node(part: str | None) -> dag.Node:
+    """The selection node holding a flow or crops part's pairs and objects: ``select``
+    (keyframe), ``wide`` (chapter 11's part) or ``general``."""
+    return {None: dag.Node("select"), "keyframe": dag.Node("select"),
+            WIDE: dag.Node("wide")}.get(part, dag.Node("general"))
 
 
-def load(p: Params) -> tuple[Selection, dict]:
-    """The published selection (both sets, ``set`` column) and the parameters that made the
-    keyframe set. :class:`flowmod.dag.MissingInput` names chapter 02 if it never ran."""
+#: The keyframe set and the scene split (chapter 02).
+SELECT = dag.Stage("select", 3, "02", "select", "Table-1 keyframe pairs and objects, scene split",
+                   nodes=lambda p: [dag.Node("select")],
+                   inputs=lambda n, p: (dag.Node("world"),), build=build_select)
+#: The generalisation set (chapter 02).
+GENERAL = dag.Stage("general", 3, "02", "general",
+                    "generalisation pairs and objects (held-out scenes)",
+                    nodes=lambda p: [dag.Node("general")],
+                    inputs=lambda n, p: (dag.Node("world"), dag.Node("select")),
+                    build=build_general)
+
+
+def read_selection(select_dir: Path, general_dir: Path) -> Selection:
+    """The published selection (both sets, ``set`` column) from the folders of the
+    ``select`` and ``general`` nodes."""
     frames = {}
-    for node in (dag.Node("select"), dag.Node("general")):
-        d = dag.published(p, node)
-        frames[node.stage] = {k: pd.read_parquet(f) for k in ("pairs", "objects", "scenes",
-                                                              "boxes")
-                              if (f := d / f"{k}.parquet").is_file()}
+    for name, d in (("select", select_dir), ("general", general_dir)):
+        frames[name] = {k: pd.read_parquet(f) for k in ("pairs", "objects", "scenes", "boxes")
+                        if (f := Path(d) / f"{k}.parquet").is_file()}
     key, gen = frames["select"], frames["general"]
-    sel = Selection(pd.concat([key["pairs"], gen["pairs"]], ignore_index=True),
-                    pd.concat([key["objects"], gen["objects"]], ignore_index=True),
-                    key["scenes"], gen.get("boxes", pd.DataFrame()))
-    made_with = dag.recorded(p, dag.Node("select"))["params"]
-    return sel, made_with
+    return Selection(pd.concat([key["pairs"], gen["pairs"]], ignore_index=True),
+                     pd.concat([key["objects"], gen["objects"]], ignore_index=True),
+                     key["scenes"], gen.get("boxes", pd.DataFrame()))

@@ -28,6 +28,7 @@ import math
 import os
 import time
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -37,10 +38,14 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
-from flowmod.artefacts import atomic_path
-from flowmod.crops import hflip
+from flowmod import dag
+from flowmod.artefacts import atomic_path, read_manifest
+from flowmod.crops import hflip, read_crops
+from flowmod.dag import StageParams
 from flowmod.metrics import metrics, sigmoid
 from flowmod.model import motion_resnet18, predict_logits, resolve_device
+from flowmod.params import Params
+from flowmod.progress import bar as tqdm
 
 HISTORY_COLUMNS = [
     "epoch", "train_loss", "val_loss", "val_f1", "val_precision", "val_recall", "lr", "seconds",
@@ -228,44 +233,181 @@ def _history_frame(rows: list[dict[str, Any]], best_epoch: int, best_f1: float) 
 # --- training --------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class TrainSettings:
+    """The paper's Table 2 and how to run it (defaults: the paper's values)."""
+
+    epochs: int = 60
+    batch_size: int = 128
+    lr: float = 0.01
+    momentum: float = 0.9
+    weight_decay: float = 0.01
+    step_size: int = 10
+    gamma: float = 0.5
+    hflip_p: float = 0.5
+    #: 'auto' (bf16/fp16 autocast on CUDA, off on CPU), None, 'bf16', 'fp16'
+    amp: str | None = "auto"
+    num_workers: int = 0
+    device: str | torch.device = "auto"
+    eval_batch_size: int = 256
+
+    @classmethod
+    def of(cls, q: StageParams | Params) -> TrainSettings:
+        """A training stage's settings from its parameters."""
+        return cls(epochs=q.epochs, batch_size=q.batch_size, lr=q.lr, momentum=q.momentum,
+                   weight_decay=q.weight_decay, step_size=q.step_size, gamma=q.gamma,
+                   hflip_p=q.hflip_p, amp=None if q.amp == "off" else q.amp,
+                   num_workers=q.num_workers, device=q.device)
+
+
+@dataclass
+class _Run:
+    """What one training run holds: the model, its optimiser, schedule and scaler, the
+    history so far and the best epoch."""
+
+    model: nn.Module
+    opt: torch.optim.Optimizer
+    sched: Any
+    scaler: Any
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    best_f1: float = -1.0
+    best_epoch: int = 0
+    epoch: int = 0
+
+
+def _new_run(s: TrainSettings, channels: int, seed: int, dev: torch.device,
+             amp_mode: str | None) -> _Run:
+    torch.manual_seed(seed)
+    model = motion_resnet18(channels).to(dev, memory_format=torch.channels_last)
+    opt = torch.optim.SGD(model.parameters(), lr=s.lr, momentum=s.momentum,
+                          weight_decay=s.weight_decay)
+    sched = torch.optim.lr_scheduler.StepLR(opt, step_size=s.step_size, gamma=s.gamma)
+    scaler = torch.amp.GradScaler(dev.type, enabled=amp_mode == "fp16")
+    return _Run(model, opt, sched, scaler)
+
+
+def _resume(run: _Run, last_path: Path, config: dict[str, Any], dev: torch.device) -> None:
+    """Continue ``run`` from the checkpoint at ``last_path`` (made with ``config``)."""
+    ck = torch.load(last_path, map_location="cpu", weights_only=True)
+    if ck.get("format") != CHECKPOINT_FORMAT:
+        raise TrainingError(f"{last_path}: not a flowmod training checkpoint")
+    diff = {k: (ck["config"].get(k), v) for k, v in config.items() if ck["config"].get(k) != v}
+    if diff:
+        raise TrainingError(
+            f"{last_path} was written with other settings/data "
+            f"(key: (checkpoint, now)) {diff}; pass resume=False or use a new out_dir"
+        )
+    run.model.load_state_dict(ck["model"])
+    run.opt.load_state_dict(ck["optimizer"])
+    run.sched.load_state_dict(ck["scheduler"])
+    run.scaler.load_state_dict(ck["scaler"])
+    run.rows = _history_rows(ck["history"])
+    run.best_f1, run.best_epoch = float(ck["best_f1"]), int(ck["best_epoch"])
+    run.epoch = int(ck["epoch"])
+    torch.set_rng_state(ck["rng"]["torch"])
+    if dev.type == "cuda" and ck["rng"].get("cuda"):
+        torch.cuda.set_rng_state_all(ck["rng"]["cuda"])
+
+
+def _checkpoint(run: _Run, path: Path, config: dict[str, Any], dev: torch.device) -> None:
+    _save({
+        "format": CHECKPOINT_FORMAT, "epoch": run.epoch, "config": config,
+        "model": run.model.state_dict(), "optimizer": run.opt.state_dict(),
+        "scheduler": run.sched.state_dict(), "scaler": run.scaler.state_dict(),
+        "history": _history_dict(run.rows), "best_f1": run.best_f1,
+        "best_epoch": run.best_epoch,
+        "rng": {"torch": torch.get_rng_state(),
+                "cuda": torch.cuda.get_rng_state_all() if dev.type == "cuda" else []},
+    }, path)
+
+
+def _train_epoch(run: _Run, ds: CropDataset, s: TrainSettings, seed: int, epoch: int,
+                 dev: torch.device, amp_dtype: Any, flip_negate: Sequence[int],
+                 desc: str, progress: bool) -> float:
+    """One epoch of SGD over ``ds`` in the order and with the flips of :func:`epoch_plan`;
+    returns the mean training loss."""
+    batches, flips = epoch_plan(len(ds), s.batch_size, s.hflip_p, seed, epoch)
+    loader = DataLoader(ds, batch_size=None, sampler=batches, num_workers=s.num_workers,
+                        pin_memory=dev.type == "cuda")
+    run.model.train()
+    loss_fn = nn.BCEWithLogitsLoss()
+    loss_sum = torch.zeros((), dtype=torch.float64, device=dev)
+    n_seen, pos = 0, 0
+    inner = tqdm(loader, desc=f"{desc}, epoch {epoch}", unit="batch", leave=False,
+                 disable=not progress)
+    for i, (xb, yb) in enumerate(inner):
+        b = len(yb)
+        xb, yb = xb.to(dev, non_blocking=True), yb.to(dev, non_blocking=True)
+        fb = torch.from_numpy(flips[pos : pos + b]).to(dev)
+        pos += b
+        if bool(fb.any()):
+            xb[fb] = hflip(xb[fb], flip_negate)
+        xb = xb.contiguous(memory_format=torch.channels_last)
+        run.opt.zero_grad(set_to_none=True)
+        with torch.autocast(dev.type, dtype=amp_dtype, enabled=amp_dtype is not None):
+            logits = run.model(xb).reshape(-1)
+        loss = loss_fn(logits.float(), yb)
+        if not torch.isfinite(loss):
+            raise TrainingError(f"epoch {epoch}, batch {i}: loss is {loss.item()} (non-finite "
+                                "crops? lr too high?)")
+        run.scaler.scale(loss).backward()
+        run.scaler.step(run.opt)
+        run.scaler.update()
+        loss_sum += loss.detach().double() * b
+        n_seen += b
+        if progress and i % 10 == 0:
+            inner.set_postfix(loss=f"{loss.item():.4f}")
+    inner.close()
+    return float(loss_sum.item()) / max(1, n_seen)
+
+
+def _config(s: TrainSettings, seed: int, amp_mode: str | None, train_x: Any, y_tr: np.ndarray,
+            y_va: np.ndarray, channels: int, flip_negate: Sequence[int]) -> dict[str, Any]:
+    """What a checkpoint must have been made with to be resumed."""
+    config = {
+        "batch_size": int(s.batch_size), "lr": float(s.lr), "momentum": float(s.momentum),
+        "weight_decay": float(s.weight_decay), "step_size": int(s.step_size),
+        "gamma": float(s.gamma), "hflip_p": float(s.hflip_p), "seed": int(seed),
+        "amp": str(amp_mode), "crop_size": int(train_x.shape[2]),
+        "n_train": len(y_tr), "n_train_moving": int(y_tr.sum()),
+        "n_val": len(y_va), "n_val_moving": int(y_va.sum()),
+    }
+    if channels != 2 or tuple(flip_negate) != (0,):  # the paper's input keeps its old config
+        config.update(channels=channels, flip_negate=[int(c) for c in flip_negate])
+    return config
+
+
+def _check_inputs(train_x: Any, train_df: pd.DataFrame, val_x: Any, val_df: pd.DataFrame,
+                  s: TrainSettings, label_col: str, channels: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    y_tr = check_split(train_x, train_df, "train", label_col, need_both=True, channels=channels)
+    y_va = check_split(val_x, val_df, "val", label_col, channels=channels)
+    if train_x.shape[2] != val_x.shape[2]:
+        raise TrainingError(
+            f"crop sizes differ: train S={train_x.shape[2]}, val S={val_x.shape[2]}")
+    if s.epochs < 1 or s.batch_size < 2:
+        raise TrainingError(f"need epochs >= 1 and batch_size >= 2, got {s.epochs}, "
+                            f"{s.batch_size}")
+    return y_tr, y_va
+
+
 def train_model(
-    train_x: Any,
-    train_df: pd.DataFrame,
-    val_x: Any,
-    val_df: pd.DataFrame,
-    out_dir: str | os.PathLike[str],
-    *,
-    epochs: int = 60,
-    batch_size: int = 128,
-    lr: float = 0.01,
-    momentum: float = 0.9,
-    weight_decay: float = 0.01,
-    step_size: int = 10,
-    gamma: float = 0.5,
-    hflip_p: float = 0.5,
-    num_workers: int = 0,
-    seed: int = 0,
-    device: str | torch.device = "auto",
-    amp: str | None = "auto",
-    label_col: str = "label",
-    eval_batch_size: int = 256,
-    resume: bool = True,
-    progress: bool = True,
-    record: Any | None = None,
-    desc: str = "train",
-    in_channels: int = 2,
-    flip_negate: Sequence[int] = (0,),
+    train_x: Any, train_df: pd.DataFrame, val_x: Any, val_df: pd.DataFrame,
+    out_dir: str | os.PathLike[str], settings: TrainSettings | None = None, *,
+    seed: int = 0, label_col: str = "label", resume: bool = True, progress: bool = True,
+    record: Any | None = None, desc: str = "train", in_channels: int = 2,
+    flip_negate: Sequence[int] = (0,), **overrides: Any,
 ) -> pd.DataFrame:
     """Train motion_resnet18 on crops; select the epoch with the best validation F1.
 
-    train_x, val_x: (N, C, S, S) crops (float16 memmaps from :func:`flowmod.crops.open_crops`
+    train_x, val_x: (N, C, S, S) crops (float16 memmaps from :func:`flowmod.crops.read_crops`
     or any array-like with ``shape`` and ``x[indices]``), pixels; C = ``in_channels``: 2 (u,
     v) for the paper's input, others for chapter 10's inputs, whose horizontal flip negates
-    the channels ``flip_negate`` (the horizontal flow components); train_df, val_df:
-    their indices with ``label_col`` (1 moving, 0
-    still). ``amp``: 'auto' (bf16/fp16 autocast on CUDA, off on CPU), None, 'bf16', 'fp16'.
-    With ``resume`` and an ``out_dir/last.pt`` of the same settings, training continues
-    after its last epoch (``epochs`` may be raised to train longer).
+    the channels ``flip_negate`` (the horizontal flow components); train_df, val_df: their
+    indices with ``label_col`` (1 moving, 0 still). ``settings``: Table 2
+    (:class:`TrainSettings`; ``overrides`` replace single fields, e.g. ``epochs=2``). With
+    ``resume`` and an ``out_dir/last.pt`` of the same settings, training continues after its
+    last epoch (``epochs`` may be raised to train longer).
 
     ``record`` (crops, e.g. the test split): their probabilities after every epoch are saved
     to ``out_dir/epoch_probs.npy`` and never scored or looked at here, so that evaluation can
@@ -275,205 +417,103 @@ def train_model(
     Returns the history (columns :data:`HISTORY_COLUMNS`; ``attrs`` best_epoch, best_f1),
     also written to ``out_dir/history.csv``. Weights: ``best.pt``, ``last.pt``.
     """
+    s = replace(settings or TrainSettings(), **overrides)
     channels = int(in_channels)
-    y_tr = check_split(train_x, train_df, "train", label_col, need_both=True, channels=channels)
-    y_va = check_split(val_x, val_df, "val", label_col, channels=channels)
-    if train_x.shape[2] != val_x.shape[2]:
-        raise TrainingError(
-            f"crop sizes differ: train S={train_x.shape[2]}, val S={val_x.shape[2]}"
-        )
-    if epochs < 1 or batch_size < 2:
-        raise TrainingError(f"need epochs >= 1 and batch_size >= 2, got {epochs}, {batch_size}")
-    from flowmod.progress import bar as tqdm
-
-    dev = resolve_device(device)
-    amp_mode = _resolve_amp(amp, dev)
+    y_tr, y_va = _check_inputs(train_x, train_df, val_x, val_df, s, label_col, channels)
+    dev = resolve_device(s.device)
+    amp_mode = _resolve_amp(s.amp, dev)
     amp_dtype = {"bf16": torch.bfloat16, "fp16": torch.float16, None: None}[amp_mode]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    best_path, last_path, hist_path = out / "best.pt", out / "last.pt", out / "history.csv"
-    config = {
-        "batch_size": int(batch_size), "lr": float(lr), "momentum": float(momentum),
-        "weight_decay": float(weight_decay), "step_size": int(step_size),
-        "gamma": float(gamma), "hflip_p": float(hflip_p), "seed": int(seed),
-        "amp": str(amp_mode), "crop_size": int(train_x.shape[2]),
-        "n_train": len(y_tr), "n_train_moving": int(y_tr.sum()),
-        "n_val": len(y_va), "n_val_moving": int(y_va.sum()),
-    }
-    if channels != 2 or tuple(flip_negate) != (0,):  # the paper's input keeps its old config
-        config.update(channels=channels, flip_negate=[int(c) for c in flip_negate])
-
+    config = _config(s, seed, amp_mode, train_x, y_tr, y_va, channels, flip_negate)
     with _deterministic(dev):
-        torch.manual_seed(seed)
-        model = motion_resnet18(channels).to(dev, memory_format=torch.channels_last)
-        opt = torch.optim.SGD(model.parameters(), lr=lr, momentum=momentum,
-                              weight_decay=weight_decay)
-        sched = torch.optim.lr_scheduler.StepLR(opt, step_size=step_size, gamma=gamma)
-        scaler = torch.amp.GradScaler(dev.type, enabled=amp_mode == "fp16")
-        loss_fn = nn.BCEWithLogitsLoss()
-        rows: list[dict[str, Any]] = []
-        best_f1, best_epoch, start = -1.0, 0, 0
-
-        if resume and last_path.is_file():
-            ck = torch.load(last_path, map_location="cpu", weights_only=True)
-            if ck.get("format") != CHECKPOINT_FORMAT:
-                raise TrainingError(f"{last_path}: not a flowmod training checkpoint")
-            diff = {k: (ck["config"].get(k), v) for k, v in config.items()
-                    if ck["config"].get(k) != v}
-            if diff:
-                raise TrainingError(
-                    f"{last_path} was written with other settings/data "
-                    f"(key: (checkpoint, now)) {diff}; pass resume=False or use a new out_dir"
-                )
-            model.load_state_dict(ck["model"])
-            opt.load_state_dict(ck["optimizer"])
-            sched.load_state_dict(ck["scheduler"])
-            scaler.load_state_dict(ck["scaler"])
-            rows = _history_rows(ck["history"])
-            best_f1, best_epoch, start = float(ck["best_f1"]), int(ck["best_epoch"]), int(
-                ck["epoch"])
-            torch.set_rng_state(ck["rng"]["torch"])
-            if dev.type == "cuda" and ck["rng"].get("cuda"):
-                torch.cuda.set_rng_state_all(ck["rng"]["cuda"])
-
+        run = _new_run(s, channels, seed, dev, amp_mode)
+        if resume and (out / "last.pt").is_file():
+            _resume(run, out / "last.pt", config, dev)
         ds = CropDataset(train_x, y_tr)
-        bar = tqdm(range(start + 1, epochs + 1), desc=desc, unit="epoch",
-                   disable=not progress, initial=start, total=epochs)
+        bar = tqdm(range(run.epoch + 1, s.epochs + 1), desc=desc, unit="epoch",
+                   disable=not progress, initial=run.epoch, total=s.epochs)
         for epoch in bar:
             t0 = time.perf_counter()
-            lr_now = float(opt.param_groups[0]["lr"])
-            batches, flips = epoch_plan(len(y_tr), batch_size, hflip_p, seed, epoch)
-            loader = DataLoader(ds, batch_size=None, sampler=batches, num_workers=num_workers,
-                                pin_memory=dev.type == "cuda")
-            model.train()
-            loss_sum = torch.zeros((), dtype=torch.float64, device=dev)
-            n_seen, pos = 0, 0
-            inner = tqdm(loader, desc=f"{desc}, epoch {epoch}", unit="batch", leave=False,
-                         disable=not progress)
-            for i, (xb, yb) in enumerate(inner):
-                b = len(yb)
-                xb = xb.to(dev, non_blocking=True)
-                yb = yb.to(dev, non_blocking=True)
-                fb = torch.from_numpy(flips[pos : pos + b]).to(dev)
-                pos += b
-                if bool(fb.any()):
-                    xb[fb] = hflip(xb[fb], flip_negate)
-                xb = xb.contiguous(memory_format=torch.channels_last)
-                opt.zero_grad(set_to_none=True)
-                with torch.autocast(dev.type, dtype=amp_dtype, enabled=amp_dtype is not None):
-                    logits = model(xb).reshape(-1)
-                loss = loss_fn(logits.float(), yb)
-                if not torch.isfinite(loss):
-                    raise TrainingError(
-                        f"epoch {epoch}, batch {i}: loss is {loss.item()} (non-finite crops? "
-                        "lr too high?)"
-                    )
-                scaler.scale(loss).backward()
-                scaler.step(opt)
-                scaler.update()
-                loss_sum += loss.detach().double() * b
-                n_seen += b
-                if progress and i % 10 == 0:
-                    inner.set_postfix(loss=f"{loss.item():.4f}")
-            inner.close()
-            train_loss = float(loss_sum.item()) / max(1, n_seen)
-
-            z = predict_logits(model, val_x, batch_size=eval_batch_size, device=dev,
-                               amp=amp_mode)
-            m = metrics(y_va, sigmoid(z))
-            sched.step()
-            row = {
-                "epoch": epoch, "train_loss": train_loss, "val_loss": _bce_with_logits(z, y_va),
-                "val_f1": m["f1"], "val_precision": m["precision"], "val_recall": m["recall"],
-                "lr": lr_now, "seconds": time.perf_counter() - t0,
-            }
-            rows.append(row)
-            if record is not None:
-                z_rec = predict_logits(model, record, batch_size=eval_batch_size, device=dev,
-                                       amp=amp_mode)
-                _append_probs(out / EPOCH_PROBS, epoch, sigmoid(z_rec))
-            if m["f1"] > best_f1:  # strict: ties keep the earlier epoch
-                best_f1, best_epoch = m["f1"], epoch
-                _save(model.state_dict(), best_path)
-            ckpt = {
-                "format": CHECKPOINT_FORMAT, "epoch": epoch, "config": config,
-                "model": model.state_dict(), "optimizer": opt.state_dict(),
-                "scheduler": sched.state_dict(), "scaler": scaler.state_dict(),
-                "history": _history_dict(rows), "best_f1": best_f1, "best_epoch": best_epoch,
-                "rng": {"torch": torch.get_rng_state(),
-                        "cuda": torch.cuda.get_rng_state_all() if dev.type == "cuda" else []},
-            }
-            _save(ckpt, last_path)
-            with atomic_path(hist_path) as tmp:
-                pd.DataFrame(rows, columns=HISTORY_COLUMNS).to_csv(tmp, index=False)
-            bar.set_postfix(loss=f"{train_loss:.4f}", val_f1=f"{m['f1']:.3f}",
-                            best=f"{best_epoch}")
+            lr_now = float(run.opt.param_groups[0]["lr"])
+            train_loss = _train_epoch(run, ds, s, seed, epoch, dev, amp_dtype, flip_negate,
+                                      desc, progress)
+            _end_epoch(run, epoch, train_loss, lr_now, t0, val_x, y_va, record, out, s, dev,
+                       amp_mode)
+            _checkpoint(run, out / "last.pt", config, dev)
+            with atomic_path(out / "history.csv") as tmp:
+                pd.DataFrame(run.rows, columns=HISTORY_COLUMNS).to_csv(tmp, index=False)
+            bar.set_postfix(loss=f"{train_loss:.4f}", val_f1=f"{run.rows[-1]['val_f1']:.3f}",
+                            best=f"{run.best_epoch}")
         bar.close()
-
-    if not math.isfinite(best_f1) or best_epoch == 0:
+    if not math.isfinite(run.best_f1) or run.best_epoch == 0:
         raise TrainingError("no epoch was trained (epochs <= the checkpoint's epoch?)")
-    return _history_frame(rows, best_epoch, best_f1)
+    return _history_frame(run.rows, run.best_epoch, run.best_f1)
 
 
-# --- the stage (notebook 06) ------------------------------------------------------------------
+def _end_epoch(run: _Run, epoch: int, train_loss: float, lr_now: float, t0: float,
+               val_x: Any, y_va: np.ndarray, record: Any | None, out: Path, s: TrainSettings,
+               dev: torch.device, amp_mode: str | None) -> None:
+    """Validate, step the schedule, record the epoch (and ``record``'s probabilities) and
+    keep the weights if the validation F1 is the best so far (ties keep the earlier)."""
+    z = predict_logits(run.model, val_x, batch_size=s.eval_batch_size, device=dev, amp=amp_mode)
+    m = metrics(y_va, sigmoid(z))
+    run.sched.step()
+    run.rows.append({
+        "epoch": epoch, "train_loss": train_loss, "val_loss": _bce_with_logits(z, y_va),
+        "val_f1": m["f1"], "val_precision": m["precision"], "val_recall": m["recall"],
+        "lr": lr_now, "seconds": time.perf_counter() - t0,
+    })
+    if record is not None:
+        z_rec = predict_logits(run.model, record, batch_size=s.eval_batch_size, device=dev,
+                               amp=amp_mode)
+        _append_probs(out / EPOCH_PROBS, epoch, sigmoid(z_rec))
+    if m["f1"] > run.best_f1:  # strict: ties keep the earlier epoch
+        run.best_f1, run.best_epoch = m["f1"], epoch
+        _save(run.model.state_dict(), out / "best.pt")
+    run.epoch = epoch
 
 
-def run(params: Any, progress: bool = True) -> dict[str, list[pd.DataFrame]]:
-    """Build every stale ``train[<method>/s<k>]`` node (:mod:`flowmod.dag`): for each flow
-    method, ``seeds`` classifiers (seeds ``seed`` .. ``seed + seeds - 1``) on its published
-    train/val crops, Table 2 settings from the profile. Returns ``{method: [history per
-    seed]}`` of the published models (``attrs`` best_epoch, best_f1, seed)."""
-    from flowmod import crops, dag
+# --- the stages that train a seed (chapters 06, 10, 11) ---------------------------------------
 
-    out: dict[str, list[pd.DataFrame]] = {}
-    for m in params.flow_methods:
-        for k, part in enumerate(dag.seed_parts(params)):
-            b = dag.begin(params, dag.Node("train", m, part))
-            if not b.up_to_date:
-                folder = b.input_dir(dag.Node("crops", m, "keyframe"))
-                tx, tdf = crops.read_crops(folder, "train")
-                vx, vdf = crops.read_crops(folder, "val")
-                h = train_node(b, tx, tdf, vx, vdf, k, f"train {m} seed {b.params.seed + k}",
-                               progress, record=crops.read_crops(folder, "test")[0])
-                q = b.params
-                b.publish(best_epoch=int(h.attrs["best_epoch"]), best_f1=float(h.attrs["best_f1"]),
-                          seed=q.seed + k, amp=q.amp, recipe=recipe(params, m))
-            out.setdefault(m, []).append(history(params, m, part))
-    return out
+def seed_parts(p: Params | StageParams) -> list[str]:
+    """The parts of a training stage: one per training seed (``s0`` .. ``s<seeds-1>``)."""
+    return [f"s{k}" for k in range(p.seeds)]
 
 
-def train_node(b: Any, train_x: Any, train_df: pd.DataFrame, val_x: Any, val_df: pd.DataFrame,
-               k: int, desc: str, progress: bool = True, record: Any | None = None,
-               in_channels: int = 2, flip_negate: Sequence[int] = (0,)) -> pd.DataFrame:
-    """Train the model of a training node (``b``: :class:`flowmod.dag.Build` of ``train`` or
-    chapter 10's ``xtrain``) in its building folder, seed ``seed + k``, with the profile's
-    Table 2 settings (resumable); then keep what a published model needs: ``best.pt`` in
-    float16 (no test decision changes, see the differences page), no ``last.pt`` (the
-    resumable checkpoint, twice best.pt, is only needed while building). Returns the
-    history; the caller publishes."""
+def seed_index(node: dag.Node) -> int:
+    """k of a training node's last part ``.../s<k>`` (its seed is ``seed + k``)."""
+    return int(str(node.part).rsplit("/", 1)[-1][1:])
+
+
+def train_seed(b: dag.Build, train: tuple[Any, pd.DataFrame], val: tuple[Any, pd.DataFrame],
+               progress: bool, what: str, record: Any | None = None, in_channels: int = 2,
+               flip_negate: Sequence[int] = (0,)) -> dict[str, Any]:
+    """Train the model of a training node (``b``: ``train``, ``xtrain`` or ``wtrain``) in its
+    building folder, seed ``seed + k``, with the profile's Table 2 settings (resumable); then
+    keep what a published model needs: ``best.pt`` in float16 (no test decision changes, see
+    the differences page), no ``last.pt`` (the resumable checkpoint, twice best.pt, is only
+    needed while building). Returns the manifest's training fields."""
     q = b.params
+    seed = q.seed + seed_index(b.node)
     work = b.start(fresh=q.force)
-    h = train_model(
-        train_x, train_df, val_x, val_df, work, epochs=q.epochs, record=record,
-        batch_size=q.batch_size, lr=q.lr, momentum=q.momentum, weight_decay=q.weight_decay,
-        step_size=q.step_size, gamma=q.gamma, hflip_p=q.hflip_p, num_workers=q.num_workers,
-        seed=q.seed + k, device=q.device, amp=None if q.amp == "off" else q.amp, resume=True,
-        progress=progress, desc=desc,
-        in_channels=in_channels, flip_negate=flip_negate)
+    h = train_model(*train, *val, work, TrainSettings.of(q), seed=seed, record=record,
+                    resume=True, progress=progress, desc=f"train {what} seed {seed}",
+                    in_channels=in_channels, flip_negate=flip_negate)
     half_weights(work / "best.pt")
     (work / "last.pt").unlink(missing_ok=True)
-    return h
+    return {"best_epoch": int(h.attrs["best_epoch"]), "best_f1": float(h.attrs["best_f1"]),
+            "seed": seed, "amp": q.amp}
 
 
-def recipe(params: Any, method: str) -> dict[str, Any]:
+def recipe(b: dag.Build, method: str, part: str = "keyframe") -> dict[str, Any]:
     """How a model's inputs are made, from the published flow and crops it was trained on:
     flow method, its parameters (as the flow node recorded them) and the crop geometry.
     Stored in the model's manifest, so that a model can be applied to new frames
     (``python -m flowmod.predict``) without the run that made it."""
-    from flowmod import dag
-
-    return recipe_from(method, dag.recorded(params, dag.Node("flow", method, "keyframe")) or {},
-                       dag.recorded(params, dag.Node("crops", method, "keyframe")) or {})
+    flow = read_manifest(b.other(dag.Node("flow", method, "keyframe")) / "manifest.json")
+    crops = read_manifest(b.other(dag.Node("crops", method, part)) / "manifest.json")
+    return recipe_from(method, flow or {}, crops or {})
 
 
 def recipe_from(method: str, flow_rec: dict[str, Any], crops_rec: dict[str, Any]
@@ -485,55 +525,18 @@ def recipe_from(method: str, flow_rec: dict[str, Any], crops_rec: dict[str, Any]
             "crop_scale": crops_rec.get("params", {}).get("crop_scale")}
 
 
-def model_path(params: Any, method: str, part: str = "s0") -> Path:
-    """The published ``best.pt`` of one training seed of ``method`` (state_dict of the best
-    validation epoch, float16 weights)."""
-    from flowmod import dag
-
-    return dag.published(params, dag.Node("train", method, part)) / "best.pt"
-
-
-def history(params: Any, method: str, part: str = "s0") -> pd.DataFrame:
-    """The published training history of one seed of ``method`` (``attrs`` best_epoch,
-    best_f1, seed)."""
-    from flowmod import dag
-
-    node = dag.Node("train", method, part)
-    rec = dag.recorded(params, node) or {}
-    df = pd.read_csv(dag.published(params, node) / "history.csv")
-    df.attrs.update(best_epoch=rec.get("best_epoch"), best_f1=rec.get("best_f1"),
-                    seed=rec.get("seed"))
-    return df
+def build(b: dag.Build, progress: bool) -> dict[str, Any]:
+    """Build one ``train[<method>/s<k>]`` node: a classifier on the method's keyframe
+    train/val crops (the test crops' probabilities recorded every epoch, never scored)."""
+    m = b.node.method
+    folder = b.input_dir(dag.Node("crops", m, "keyframe"))
+    info = train_seed(b, read_crops(folder, "train"), read_crops(folder, "val"), progress, m,
+                      record=read_crops(folder, "test")[0])
+    return {**info, "recipe": recipe(b, m)}
 
 
-def table2(params: Any) -> pd.DataFrame:
-    """Table 2 of the paper, from the parameters."""
-    return pd.DataFrame([
-        ("Optimizer", "Batch size", params.batch_size),
-        ("Optimizer", "Algorithm", "SGD"),
-        ("Optimizer", "Learning rate", params.lr),
-        ("Optimizer", "Weight decay", params.weight_decay),
-        ("Optimizer", "Momentum", params.momentum),
-        ("Scheduler", "Schedule", "StepLR (per epoch)"),
-        ("Scheduler", "Step size", params.step_size),
-        ("Scheduler", "Gamma", params.gamma),
-        ("Training", "Epochs", params.epochs),
-        ("Training", "Horizontal flip p", params.hflip_p),
-        ("Training", "Seeds per flow method", params.seeds),
-        ("Training", "Mixed precision", params.amp),
-        ("Input", "Crop size (px)", params.crop_size),
-    ], columns=["Function", "Hyperparameter", "Setting"])
-
-
-def summary(histories: dict[str, list[pd.DataFrame]]) -> pd.DataFrame:
-    """One row per trained model: method, seed, chosen epoch, its validation F1 (%), the
-    last epoch's training loss and the seconds of training."""
-    rows = []
-    for m, hs in histories.items():
-        for h in hs:
-            best = h.attrs["best_epoch"]
-            rows.append({"method": m, "seed": h.attrs.get("seed"), "chosen epoch": best,
-                         "val F1 (%)": round(100 * float(h.attrs["best_f1"]), 1),
-                         "last train loss": round(float(h["train_loss"].iloc[-1]), 4),
-                         "training (s)": round(float(h["seconds"].sum()), 1)})
-    return pd.DataFrame(rows)
+#: The training stage (chapter 06): the classifier of one training seed.
+STAGE = dag.Stage("train", 4, "06", "models/{method}/{part}", "the classifier of one training seed",
+                  nodes=lambda p: [dag.Node("train", m, k) for m in p.flow_methods
+                                   for k in seed_parts(p)],
+                  inputs=lambda n, p: (dag.Node("crops", n.method, "keyframe"),), build=build)

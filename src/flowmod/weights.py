@@ -17,7 +17,13 @@ from __future__ import annotations
 
 import argparse
 import sys
+import urllib.error
 from pathlib import Path
+
+from torchvision.models import optical_flow as of
+
+from flowmod.flow import nets
+from flowmod.flow.networks import WEIGHTS_PARAM, cache_files
 
 #: The checkpoints downloaded for RAFT: the KITTI fine-tuned large model (the paper's choice of
 #: KITTI weights) and the small model's only published weights.
@@ -26,8 +32,6 @@ RAFT_WEIGHTS = (("raft_large", "C_T_SKHT_K_V1"), ("raft_small", "C_T_V2"))
 
 def status() -> list[tuple[str, str, bool]]:
     """(method, file, present) for every weight file the flow stage looks for."""
-    from flowmod.flow.networks import WEIGHTS_PARAM, cache_files
-
     return [(m, str(f), f.is_file()) for m in WEIGHTS_PARAM for f in cache_files(m)]
 
 
@@ -39,12 +43,6 @@ def available_networks() -> list[str]:
 def download() -> list[Path]:
     """Download the RAFT checkpoints of :data:`RAFT_WEIGHTS` with torchvision's hash check;
     :class:`ConnectionError` with one line when there is no network."""
-    import urllib.error
-
-    from torchvision.models import optical_flow as of
-
-    from flowmod.flow import nets
-
     enums = {"raft_large": of.Raft_Large_Weights, "raft_small": of.Raft_Small_Weights}
     done = []
     for arch, member in RAFT_WEIGHTS:
@@ -73,8 +71,6 @@ def main(argv: list[str] | None = None) -> int:
         except ConnectionError as e:
             print(f"make weights: {e}", file=sys.stderr)
             return 1
-    from flowmod.flow import nets
-
     print(f"FastFlowNet: put fastflownet_ft_kitti.pth (checkpoints/ of "
           f"https://github.com/ltkong218/FastFlowNet) into {nets.hub_checkpoint_dir()}/")
     for method, path, present in status():

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from flowmod.flow.store import _check_flow
+from flowmod.flow.store import check_flow
 
 
 def flow_to_color(flow: np.ndarray, max_flow: float | None = None, bgr: bool = False) -> np.ndarray:
@@ -19,7 +19,7 @@ def flow_to_color(flow: np.ndarray, max_flow: float | None = None, bgr: bool = F
     import torch
     from torchvision.utils import flow_to_image
 
-    _check_flow(flow)
+    check_flow(flow)
     f = np.nan_to_num(flow.astype(np.float32))
     h, w = f.shape[:2]
     if max_flow is not None:
@@ -41,8 +41,8 @@ def flow_to_color(flow: np.ndarray, max_flow: float | None = None, bgr: bool = F
 
 def endpoint_error(flow: np.ndarray, gt: np.ndarray) -> np.ndarray:
     """Per-pixel end-point error (H, W) float32, pixels."""
-    _check_flow(flow)
-    _check_flow(gt, "gt")
+    check_flow(flow)
+    check_flow(gt, "gt")
     if flow.shape != gt.shape:
         raise ValueError(f"flow {flow.shape} and gt {gt.shape} differ in shape")
     d = flow.astype(np.float32) - gt.astype(np.float32)

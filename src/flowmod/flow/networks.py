@@ -18,16 +18,24 @@ from flowmod.environment import resolve_device
 from flowmod.flow.registry import (
     FlowEstimator,
     MissingWeightsError,
-    _check_pair,
-    _resize_image,
+    check_pair,
     register_estimator,
     resize_flow,
+    resize_image,
 )
 
 if TYPE_CHECKING:
     import torch
 
     from flowmod.params import Params
+
+
+def _nets() -> Any:
+    """:mod:`flowmod.flow.nets`, imported on first use: it imports torch, which the CPU
+    methods (and a Ray worker running them) never need."""
+    from flowmod.flow import nets  # lazy: torch is heavy (see the docstring)
+
+    return nets
 
 class _NetworkEstimator(FlowEstimator):
     """A torch network; ``weights``: a checkpoint path or an in-memory state_dict.
@@ -85,9 +93,9 @@ class _NetworkEstimator(FlowEstimator):
         if len(img1s) != len(img2s):
             raise ValueError(f"{len(img1s)} first images but {len(img2s)} second images")
         for a, b in zip(img1s, img2s, strict=True):
-            _check_pair(a, b)
-        small1 = [_resize_image(a, self.scale) for a in img1s]
-        small2 = [_resize_image(b, self.scale) for b in img2s]
+            check_pair(a, b)
+        small1 = [resize_image(a, self.scale) for a in img1s]
+        small2 = [resize_image(b, self.scale) for b in img2s]
         groups: dict[tuple[int, ...], list[int]] = {}
         for i, a in enumerate(small1):
             groups.setdefault(a.shape, []).append(i)
@@ -105,9 +113,7 @@ class _NetworkEstimator(FlowEstimator):
 
 
 def _missing_weights(method: str, param: str, what: str, cache_files: Sequence[str]) -> str:
-    from flowmod.flow.nets import hub_checkpoint_dir
-
-    cache = hub_checkpoint_dir()
+    cache = _nets().hub_checkpoint_dir()
     return (
         f"{method} needs trained weights and none were found (flow is never computed from "
         f"random weights). Either set the parameter {param} to {what}, or put "
@@ -144,8 +150,7 @@ class RAFTFlow(_NetworkEstimator):
         super().__init__(weights, device=device, scale=scale, batch_size=batch_size, model=model)
 
     def _build_and_load(self, weights: Any) -> Any:
-        from flowmod.flow import nets as fn
-
+        fn = _nets()
         model = fn.build_raft(self.arch)
         files = fn.torchvision_weight_files(self.arch)
         if weights is None:
@@ -185,10 +190,8 @@ class RAFTFlow(_NetworkEstimator):
         return fn.load_weights(model, sd, source)
 
     def _flow_tensor(self, img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
-        from flowmod.flow.nets import raft_flow
-
         rgb = [2, 1, 0]  # cv2 gives BGR; RAFT was trained on RGB
-        return raft_flow(self.model, img1[:, rgb], img2[:, rgb], self.num_flow_updates)
+        return _nets().raft_flow(self.model, img1[:, rgb], img2[:, rgb], self.num_flow_updates)
 
     def options(self) -> dict[str, Any]:
         return {**super().options(), "num_flow_updates": self.num_flow_updates}
@@ -215,8 +218,7 @@ class FastFlowNetFlow(_NetworkEstimator):
     weights_param = "fastflownet_weights"
 
     def _build_and_load(self, weights: Any) -> Any:
-        from flowmod.flow import nets as fn
-
+        fn = _nets()
         model = fn.FastFlowNet()
         if weights is None:
             weights = next((f for f in cache_files(self.name) if f.is_file()), None)
@@ -241,9 +243,7 @@ class FastFlowNetFlow(_NetworkEstimator):
         return fn.load_weights(model, fn.read_checkpoint(path), f"weights file {path}")
 
     def _flow_tensor(self, img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
-        from flowmod.flow.nets import fastflownet_flow
-
-        return fastflownet_flow(self.model, img1, img2)
+        return _nets().fastflownet_flow(self.model, img1, img2)
 
 
 def estimator_options(params: Params, method: str) -> dict[str, Any]:
@@ -272,8 +272,7 @@ WEIGHTS_PARAM = {"raft": "raft_weights", "raft_small": "raft_small_weights",
 
 def cache_files(method: str) -> list[Path]:
     """The files ``method`` looks for in ``$TORCH_HOME/hub/checkpoints/``, preferred first."""
-    from flowmod.flow import nets as fn
-
+    fn = _nets()
     if method == "fastflownet":
         names = list(fn.FFN_CHECKPOINT_NAMES)
     else:

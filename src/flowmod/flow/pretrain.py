@@ -50,6 +50,14 @@ from flowmod.flow.selftrain import HeldOut, baselines, held_out, score_model
 from flowmod.params import validate
 from flowmod.paths import repo_root
 from flowmod.progress import bar
+from flowmod.select import (
+    camera_frames,
+    filter_scenes,
+    keyframe_set,
+    open_nuscenes,
+    scene_table,
+)
+from flowmod.world import ensure_world as ensure_world_data
 
 #: Where the shipped weights live (relative to the repository root).
 WEIGHTS_DIR = "weights/fastflownet_synth"
@@ -134,10 +142,8 @@ def pyramid_loss(levels: Sequence[Tensor], gt: Tensor, valid: Tensor,
 def ensure_world(recipe: Recipe, dataroot: Path, progress: bool = True) -> str:
     """Generate the pretraining world at ``dataroot`` unless it is there; its fingerprint
     (the tables' content)."""
-    from flowmod import world  # lazy: the world's generator is only needed here
-
     p = recipe.world_params(str(dataroot))
-    world.ensure_world(p, progress=progress)
+    ensure_world_data(p, progress=progress)
     vdir = dataroot / p.version
     files = sorted(f for f in vdir.glob("*.json") if f.name != "flowmod.manifest.json")
     return fingerprint([(f.name, file_digest(f)) for f in files], n=64)
@@ -145,8 +151,6 @@ def ensure_world(recipe: Recipe, dataroot: Path, progress: bool = True) -> str:
 
 def scene_frames(dataroot: Path, version: str) -> dict[str, list[dict]]:
     """``{scene name: its CAM_FRONT sample_data records in time order}``."""
-    from flowmod.select import camera_frames, open_nuscenes
-
     nusc = open_nuscenes(dataroot, version)
     return {sc["name"]: camera_frames(nusc, sc["token"], keyframes_only=False)
             for sc in sorted(nusc.scene, key=lambda s: s["name"])}
@@ -179,8 +183,6 @@ def training_pairs(frames: dict[str, list[dict]], split: dict[str, str], max_gap
 def validation_set(recipe: Recipe, dataroot: Path, split: dict[str, str]) -> HeldOut:
     """``eval_pairs`` keyframe pairs of the validation scenes holding far vehicles (Table 1,
     30-70 m, the book's selection rules), drawn with the seed, with their exact flow."""
-    from flowmod.select import filter_scenes, keyframe_set, open_nuscenes, scene_table
-
     p = recipe.world_params(str(dataroot))
     nusc = open_nuscenes(dataroot, p.version)
     scenes = filter_scenes(scene_table(nusc), p.exclude_descriptions)

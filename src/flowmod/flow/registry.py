@@ -51,7 +51,7 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     return img
 
 
-def _check_pair(img1: np.ndarray, img2: np.ndarray) -> None:
+def check_pair(img1: np.ndarray, img2: np.ndarray) -> None:
     for name, img in (("img1", img1), ("img2", img2)):
         if not (isinstance(img, np.ndarray) and img.ndim == 3 and img.shape[2] == 3):
             raise ValueError(
@@ -79,7 +79,7 @@ def _scaled_size(shape: tuple[int, ...], scale: float) -> tuple[int, int]:
     return max(1, round(shape[0] * scale)), max(1, round(shape[1] * scale))
 
 
-def _resize_image(img: np.ndarray, scale: float) -> np.ndarray:
+def resize_image(img: np.ndarray, scale: float) -> np.ndarray:
     if scale == 1.0:
         return img
     h, w = _scaled_size(img.shape, scale)
@@ -117,8 +117,8 @@ class FlowEstimator:
 
     def estimate(self, img1: np.ndarray, img2: np.ndarray) -> np.ndarray:
         """Flow (H, W, 2) float32 in pixels from (H, W, 3) uint8 BGR ``img1`` to ``img2``."""
-        _check_pair(img1, img2)
-        flow = self._estimate(_resize_image(img1, self.scale), _resize_image(img2, self.scale))
+        check_pair(img1, img2)
+        flow = self._estimate(resize_image(img1, self.scale), resize_image(img2, self.scale))
         return resize_flow(flow, img1.shape[:2])
 
     def estimate_batch(
@@ -130,7 +130,7 @@ class FlowEstimator:
         return [self.estimate(a, b) for a, b in zip(img1s, img2s, strict=True)]
 
     def __repr__(self) -> str:
-        opts = ", ".join(f"{k}={_describe(v)}" for k, v in self.options().items())
+        opts = ", ".join(f"{k}={describe_option(v)}" for k, v in self.options().items())
         return f"{type(self).__name__}({opts})"
 
     def options(self) -> dict[str, Any]:
@@ -138,28 +138,28 @@ class FlowEstimator:
         return {"scale": self.scale}
 
 
-_REGISTRY: dict[str, type[FlowEstimator]] = {}
+REGISTRY: dict[str, type[FlowEstimator]] = {}
 
 
 def register_estimator(cls: type[FlowEstimator]) -> type[FlowEstimator]:
     """Class decorator: make ``cls`` available as ``get_estimator(cls.name)``."""
     if not cls.name:
         raise ValueError(f"{cls.__name__} has no name")
-    _REGISTRY[cls.name] = cls
+    REGISTRY[cls.name] = cls
     return cls
 
 
 def available_methods() -> list[str]:
     """Registered method names."""
-    return sorted(_REGISTRY)
+    return sorted(REGISTRY)
 
 
 def get_estimator(name: str, **options: Any) -> FlowEstimator:
     """Build the estimator ``name`` with ``options`` (see the module docstring)."""
-    if name not in _REGISTRY:
+    if name not in REGISTRY:
         raise ValueError(f"unknown flow method {name!r}; known: {', '.join(available_methods())}")
     try:
-        return _REGISTRY[name](**options)
+        return REGISTRY[name](**options)
     except TypeError as e:
         if "argument" in str(e):
             raise TypeError(f"flow method {name!r}: {e}") from e
@@ -171,7 +171,7 @@ def _gray(img: np.ndarray) -> np.ndarray:
 
 
 
-def _describe(v: Any) -> Any:
+def describe_option(v: Any) -> Any:
     if isinstance(v, Mapping):
         return "<state_dict>"
     if isinstance(v, (str, int, float, bool)) or v is None:

@@ -29,13 +29,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pandas as pd
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from flowmod.artefacts import atomic_path, write_json
+from flowmod.artefacts import atomic_path
+from flowmod.environment import resolve_device
 from flowmod.flow.estimators import DISFlow, FarnebackFlow, GTFlow
 from flowmod.flow.metrics import flow_metrics
 from flowmod.flow.nets import FFN_DIV_SIZE, FastFlowNet, fastflownet_flow, warp
@@ -151,8 +153,6 @@ class FramePairs:
     def load(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
         """Pair ``i``: (img1, img2) (h, w, 3) uint8 BGR at ``scale``, and (flow (h, w, 2) float32
         px at that scale, valid (h, w) bool) or (None, None)."""
-        import cv2
-
         imgs = []
         for path in self.paths[i]:
             img = read_image(path)
@@ -179,8 +179,6 @@ def cache_gt(pairs: pd.DataFrame, dataroot: Path, version: str, scale: float, ou
             flow, valid = est.estimate_tokens(r.sd_token_1, r.sd_token_2)
             h, w = (round(s * scale) for s in flow.shape[:2])
             small = resize_flow(flow, (h, w)) if (h, w) != flow.shape[:2] else flow
-            import cv2
-
             vsmall = cv2.resize(valid.astype(np.uint8), (w, h),
                                 interpolation=cv2.INTER_NEAREST).astype(bool)
             with atomic_path(v) as tmp:
@@ -284,7 +282,8 @@ def score_model(model: FastFlowNet, data: HeldOut, scale: float) -> dict[str, fl
 
 # --- training --------------------------------------------------------------------------------
 
-def _save(obj: Any, path: Path) -> None:
+def save_state(obj: Any, path: Path) -> None:
+    """``torch.save`` to ``path`` atomically."""
     with atomic_path(path) as tmp:
         torch.save(obj, tmp)
 
@@ -310,8 +309,6 @@ def train_flow(data: FramePairs, mode: str, work: Path, *, iters: int, batch: in
     if any(int(c) % FFN_DIV_SIZE for c in crop):
         raise SelfFlowError(f"selfflow_crop={list(crop)}: both sides must be multiples of "
                             f"{FFN_DIV_SIZE} (FastFlowNet's pyramid)")
-    from flowmod.environment import resolve_device
-
     dev = resolve_device(device)
     torch.manual_seed(seed)
     model = FastFlowNet().to(dev)
@@ -349,220 +346,21 @@ def train_flow(data: FramePairs, mode: str, work: Path, *, iters: int, batch: in
             pbar.update(1)
             pbar.set_postfix(loss=f"{row['loss']:.3f}")
             if (step + 1) % CHECKPOINT_EVERY == 0 or step + 1 == end:
-                _save({"model": model.state_dict(), "optim": opt.state_dict(),
+                save_state({"model": model.state_dict(), "optim": opt.state_dict(),
                        "step": step + 1, "history": rows}, last)
     finally:
         pbar.close()
     return model, pd.DataFrame(rows)
 
 
-# --- the stage (chapter 12) -------------------------------------------------------------------
+# --- pairs -------------------------------------------------------------------------------------
 
-def _sample(df: pd.DataFrame, n: int, seed: Sequence[int]) -> pd.DataFrame:
+def sample_pairs(df: pd.DataFrame, n: int, seed: Sequence[int]) -> pd.DataFrame:
+    """``n`` rows of ``df`` drawn with ``seed`` (in ``df``'s order)."""
     idx = np.random.default_rng(list(seed)).permutation(len(df))[:n]
     return df.iloc[np.sort(idx)].reset_index(drop=True)
 
 
 def heldout_pairs(pairs: pd.DataFrame, n: int, seed: int) -> pd.DataFrame:
     """The ``n`` held-out pairs (of the test scenes) drawn with ``seed``."""
-    return _sample(pairs[pairs["split"] == "test"], n, (seed, 1))
-
-
-def run(params: Any, progress: bool = True) -> list[str]:
-    """Build every stale ``selfflow[<mode>]`` node when ``selfflow_build`` is on (``make
-    selfflow``); otherwise build nothing. Returns the modes whose weights are current."""
-    from flowmod import dag
-
-    for mode in params.selfflow_modes if params.selfflow_build else ():
-        b = dag.begin(params, dag.Node("selfflow", None, mode))
-        if not b.up_to_date:
-            _build(b, mode, progress)
-    return built(params)
-
-
-def _build(b: Any, mode: str, progress: bool) -> None:
-    """Train, evaluate and publish one ``selfflow[<mode>]`` node (``b``: its
-    :class:`flowmod.dag.Build`): ``weights.pt`` (a FastFlowNet state_dict), ``history.csv``
-    and ``eval.json`` (held-out metrics of the network and of the baselines)."""
-    import functools
-    import shutil
-
-    from flowmod import dag, world
-
-    q = b.params
-    root = q.dataroot_path
-    synthetic = world.is_synthetic(root, q.version)
-    if mode == "supervised" and not synthetic:
-        raise SelfFlowError(
-            f"selfflow_modes has 'supervised', but {root} ({q.version}) is not a generated "
-            "world: there is no exact flow to supervise with; use selfflow_modes=[photometric]")
-    sel = b.input_dir(dag.Node("select"))
-    pairs = pd.read_parquet(sel / "pairs.parquet")
-    train = _sample(pairs[pairs["split"].isin(["train", "val"])], q.selfflow_pairs, (q.seed, 0))
-    test = heldout_pairs(pairs, q.selfflow_eval_pairs, q.seed)
-    if train.empty or test.empty:
-        raise SelfFlowError(f"no training ({len(train)}) or held-out ({len(test)}) pair in "
-                            "chapter 02's selection: run chapter 02 first")
-    work = b.start(fresh=q.force)
-    gt_files = (cache_gt(train, root, q.version, q.flow_scale, work / "gt", progress)
-                if mode == "supervised" else None)
-    data = FramePairs([(root / r.path_1, root / r.path_2) for r in train.itertuples()],
-                      q.flow_scale, gt_files)
-    heldout = held_out(test, pd.read_parquet(sel / "objects.parquet"), root, q.version,
-                       synthetic)
-    model, hist = train_flow(
-        data, mode, work, iters=q.selfflow_iters, batch=q.selfflow_batch, lr=q.selfflow_lr,
-        crop=q.selfflow_crop, smooth=q.selfflow_smooth, seed=q.seed,
-        evaluate=functools.partial(score_model, data=heldout, scale=q.flow_scale),
-        eval_every=q.selfflow_eval_every, progress=progress,
-        desc=f"train fastflownet ({mode})", device=q.device)
-    _save({k: v.cpu() for k, v in model.state_dict().items()}, work / "weights.pt")
-    with atomic_path(work / "history.csv") as tmp:
-        hist.to_csv(tmp, index=False)
-    final = {k[len("heldout_"):]: v for k, v in hist.iloc[-1].items() if k.startswith("heldout_")}
-    write_json(work / "eval.json", {
-        "mode": mode, "steps": int(hist["step"].iloc[-1]),
-        "seconds_per_step": float(hist["seconds"].median()),
-        "train_pairs": len(train), "heldout_pairs": len(test),
-        "fastflownet": final, "baselines": baselines(heldout, q.flow_scale)})
-    shutil.rmtree(work / "gt", ignore_errors=True)
-    (work / "last.pt").unlink(missing_ok=True)
-    b.publish(mode=mode, steps=int(hist["step"].iloc[-1]))
-
-
-def built(params: Any) -> list[str]:
-    """The modes of ``selfflow_modes`` whose published weights are current."""
-    from flowmod import dag
-
-    return [m for m in params.selfflow_modes if dag.current(params, dag.Node("selfflow", None, m))]
-
-
-# --- the chapter's tables and figures ---------------------------------------------------------
-
-def results(params: Any, mode: str) -> tuple[pd.DataFrame, dict[str, Any]]:
-    """The published history and ``eval.json`` of ``selfflow[<mode>]``."""
-    import json
-
-    from flowmod import dag
-
-    folder = dag.published(params, dag.Node("selfflow", None, mode))
-    return (pd.read_csv(folder / "history.csv"),
-            json.loads((folder / "eval.json").read_text()))
-
-
-def weights_path(params: Any, mode: str) -> Path:
-    """The published FastFlowNet checkpoint of ``mode`` (a ``fastflownet_weights`` value)."""
-    from flowmod import dag
-
-    return dag.published(params, dag.Node("selfflow", None, mode)) / "weights.pt"
-
-
-def epe_table(params: Any, done: list[str]) -> pd.DataFrame:
-    """Held-out end-point error and Fl-all, overall and inside the target vehicles' boxes, of
-    the baselines and of each trained network (one row each), with seconds per pair on this
-    machine (the baselines of the first mode's evaluation: the same pairs for every mode)."""
-    rows = []
-    for k, mode in enumerate(done):
-        _, ev = results(params, mode)
-        base = ev["baselines"]
-        order = ("zero flow", "farneback", f"dis ({DIS_PRESET})")
-        named = ({n: base[n] for n in order} if k == 0 else {}) | {
-            f"fastflownet ({mode})": ev["fastflownet"]}
-        for name, m in named.items():
-            rows.append({"method": name, "EPE (px)": round(m["epe"], 2),
-                         "EPE in boxes (px)": round(m["epe_boxes"], 2),
-                         "Fl-all (%)": round(m["fl_all"], 1),
-                         "Fl-all in boxes (%)": round(m["fl_all_boxes"], 1),
-                         "s / pair": round(m["seconds_per_pair"], 2)})
-    return pd.DataFrame(rows)
-
-
-def budget_table(params: Any, done: list[str]) -> pd.DataFrame:
-    """What the CPU budget bought per mode: steps, pairs seen, seconds per step (median) and
-    the training time."""
-    rows = []
-    for mode in done:
-        hist, ev = results(params, mode)
-        rows.append({"mode": mode, "steps": ev["steps"],
-                     "pairs seen": ev["steps"] * params.selfflow_batch,
-                     "training pairs": ev["train_pairs"],
-                     "s / step": round(ev["seconds_per_step"], 2),
-                     "training (min)": round(float(hist["seconds"].sum()) / 60, 1)})
-    return pd.DataFrame(rows)
-
-
-def beats_dis(params: Any, done: list[str]) -> list[str]:
-    """The modes whose network has a lower held-out EPE than DIS."""
-    out = []
-    for mode in done:
-        _, ev = results(params, mode)
-        if ev["fastflownet"]["epe"] < ev["baselines"][f"dis ({DIS_PRESET})"]["epe"]:
-            out.append(mode)
-    return out
-
-
-def table3_note(params: Any, done: list[str]) -> str:
-    """Whether a trained network becomes Table 3's ``fastflownet`` row, and how."""
-    if not done:
-        return "No network is trained yet, so Table 3 has no `fastflownet` row from here."
-    better = beats_dis(params, done)
-    if not better:
-        return ("No trained network beats DIS on the held-out end-point error, so Table 3 "
-                "keeps its rows: a `fastflownet` row from these weights would only show a "
-                "flow worse than the classical baseline's.")
-    path = weights_path(params, better[0])
-    return (f"The {better[0]} network beats DIS on the held-out end-point error: Table 3 gains "
-            f"its `fastflownet` row with `make book SET=\"flow_networks=[fastflownet] "
-            f"fastflownet_weights={path}\"`.")
-
-
-def headline(params: Any, done: list[str]) -> str:
-    """One sentence for the landing page: held-out EPE of each trained network against DIS,
-    or how to build them."""
-    if not params.selfflow_modes:
-        return "not part of this profile (selfflow_modes is empty)"
-    if not done:
-        return ("not trained in this run (make selfflow trains FastFlowNet from scratch: "
-                f"{len(params.selfflow_modes)} x {params.selfflow_iters} steps)")
-    parts, dis = [], None
-    for mode in done:
-        hist, ev = results(params, mode)
-        dis = ev["baselines"][f"dis ({DIS_PRESET})"]["epe"]
-        parts.append(f"{ev['fastflownet']['epe']:.1f} px ({mode}, {ev['steps']} steps)")
-    return (f"FastFlowNet trained from scratch on this machine reaches a held-out end-point "
-            f"error of {' and '.join(parts)} against DIS's {dis:.1f} px")
-
-
-def example(params: Any, done: list[str], k: int = 0
-            ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None]:
-    """Held-out pair ``k``: frame 1 (BGR), the flows of the exact flow (where there is one),
-    DIS and each trained network at full size, and the valid mask, for
-    :func:`flowmod.report.viz.flow_figure`."""
-    from flowmod import dag, world
-
-    sel = dag.published(params, dag.Node("select"))
-    pairs = pd.read_parquet(sel / "pairs.parquet")
-    test = heldout_pairs(pairs, params.selfflow_eval_pairs, params.seed).iloc[[k]]
-    synthetic = world.is_synthetic(params.dataroot_path, params.version)
-    h = held_out(test, pd.read_parquet(sel / "objects.parquet"), params.dataroot_path,
-                 params.version, synthetic)
-    flows = {"exact": h.gt[0]} if h.gt else {}
-    flows[f"dis ({DIS_PRESET})"] = DISFlow(DIS_PRESET, scale=params.flow_scale).estimate(
-        h.img1[0], h.img2[0])
-    for mode in done:
-        est = FastFlowNetFlow(weights_path(params, mode), device="cpu", scale=params.flow_scale)
-        flows[f"fastflownet ({mode})"] = est.estimate(h.img1[0], h.img2[0])
-    return h.img1[0], flows, (h.valid[0] if h.valid else None)
-
-
-def built_note(params: Any, done: list[str]) -> str:
-    """A line for the chapter: which networks are trained, and how to train the others."""
-    if not params.selfflow_modes:
-        return ("This profile trains no flow network (`selfflow_modes` is empty). Set it (e.g. "
-                "`selfflow_modes=[photometric]`) and run `make selfflow`.")
-    from flowmod import dag
-
-    todo = [m for m in params.selfflow_modes if m not in done]
-    return dag.built_note("Networks trained", done, len(params.selfflow_modes),
-                          f"{', '.join(todo)}; {params.selfflow_iters} steps each",
-                          "selfflow_build")
+    return sample_pairs(pairs[pairs["split"] == "test"], n, (seed, 1))

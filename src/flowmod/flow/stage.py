@@ -5,12 +5,12 @@ Two levels of caching, both keyed so that nothing made from other inputs can eve
 * the **pool** of per-pair flow files, ``<run>/flow/<method>/pool/<options>/<pair key>.npy``:
   ``options`` is the fingerprint of the method, its code version, its options with their
   defaults, the storage dtype and scale; a pair's key is the fingerprint of the world (the
-  data's identity, :func:`flowmod.dag.world_fingerprint`), the pair's two sample_data tokens
+  data's identity, :func:`flowmod.world.world_fingerprint`), the pair's two sample_data tokens
   and its image files' names and sizes. Files are written atomically one by one, so a killed
   run resumes where it stopped; a forced recompute replaces each file only when its new flow
   is written; other options live side by side (switching back costs nothing).
-* the **nodes** ``flow[<method>/<part>]`` of :mod:`flowmod.dag` (parts ``keyframe``,
-  ``general``): ``index.parquet`` listing, for the part's pairs, their pool file and the
+* the **nodes** ``flow[<method>/<part>]`` (:data:`STAGE`; parts ``keyframe``, ``general``,
+  and chapter 11's ``wide``): ``index.parquet`` listing, for the part's pairs, their pool file and the
   estimation time, with the node's manifest.
 
 Images are checked (exist and decode) before any flow is computed; nothing is ever deleted
@@ -32,28 +32,29 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 import pandas as pd
+from joblib import Parallel, delayed
 
 from flowmod import dag
-from flowmod.artefacts import atomic_path, fingerprint
-from flowmod.flow.metrics import boxes_mask, epe, fl_all
+from flowmod.artefacts import atomic_path, fingerprint, read_manifest
 from flowmod.flow.networks import estimator_options
 from flowmod.flow.registry import (
-    _REGISTRY,
+    REGISTRY,
     FlowEstimator,
     ImageError,
-    _describe,
     available_methods,
+    describe_option,
     read_image,
 )
 from flowmod.flow.store import (
-    _npy_header,
-    _npy_ok,
     full_shape,
     load_stored_flow,
     load_stored_valid,
+    npy_header,
+    npy_ok,
     store_flow,
 )
 from flowmod.progress import bar
+from flowmod.select import PARTS, WIDE, objects_node
 
 if TYPE_CHECKING:
     from flowmod.params import Params
@@ -120,20 +121,20 @@ def options_config(method: str, dtype: str, store_scale: float,
                    options: Mapping[str, Any]) -> dict[str, Any]:
     """What a method's flow files depend on besides the pair: method, its code version,
     its options with their defaults, the storage dtype and scale."""
-    if method not in _REGISTRY:
+    if method not in REGISTRY:
         raise ValueError(f"unknown flow method {method!r}; known: {', '.join(available_methods())}")
     if dtype not in ("float16", "float32"):
         raise ValueError(f"dtype={dtype!r}; allowed: float16, float32")
     if not 0.0 < store_scale <= 1.0:
         raise ValueError(f"store_scale={store_scale}; allowed: 0 < store_scale <= 1")
-    cls = _REGISTRY[method]
+    cls = REGISTRY[method]
     extra = {"dataroot": None, "version": None} if cls.inputs == "tokens" else {}
     try:
         bound = inspect.signature(cls).bind(**extra, **options)
     except TypeError as e:
         raise TypeError(f"flow method {cls.name!r}: {e}") from None
     bound.apply_defaults()
-    opts = {k: _describe(v) for k, v in sorted(bound.arguments.items()) if k not in _NOT_CONFIG}
+    opts = {k: describe_option(v) for k, v in sorted(bound.arguments.items()) if k not in _NOT_CONFIG}
     return {"method": method, "code_version": cls.code_version, "dtype": dtype,
             "store_scale": float(store_scale), "options": opts}
 
@@ -227,10 +228,10 @@ class FlowFiles:
         store_flow(out, flow, self.dtype, self.store_scale, valid=valid)
 
     def complete(self, out: Path) -> bool:
-        return _npy_ok(out, self.dtype)
+        return npy_ok(out, self.dtype)
 
     def shape(self, out: Path) -> list[int]:
-        stored = _npy_header(out)[0]
+        stored = npy_header(out)[0]
         return [*full_shape(stored, self.store_scale), *stored[2:]]
 
 
@@ -327,8 +328,39 @@ def compute_flow(
     computed (bool, this call).
     """
     writer = writer or FlowFiles(dtype, store_scale)
-    config = pool_config(method, dtype, store_scale, options, writer)
-    cls = _REGISTRY[method]
+    if executor not in ("local", "ray"):
+        raise ValueError(f"executor={executor!r}; allowed: local, ray")
+    cls = REGISTRY[method]
+    ids = _check_pairs(pairs, method)
+    pool, opts_fp = _open_pool(Path(pool_root), pool_config(method, dtype, store_scale, options,
+                                                            writer))
+    root = Path(dataroot)
+    keys = _keys(pairs, root, world, extras)
+    extra = [None] * len(ids) if extras is None else [extras[i] for i in ids]
+    todo = [i for i, k in enumerate(keys) if force or not writer.complete(pool / f"{k}.npy")]
+    rows = pairs.iloc[todo]
+    if len(rows) and cls.inputs == "images":
+        check_images([root / p for p in (*rows["path_1"], *rows["path_2"])], n_jobs=n_jobs)
+    computed: set[str] = set()
+    if len(rows):
+        calls = [(keys[i], *((r.sd_token_1, r.sd_token_2) if cls.inputs == "tokens" else
+                             (str(root / r.path_1), str(root / r.path_2))),
+                  pool / f"{keys[i]}.npy", extra[i])
+                 for i, r in zip(todo, rows.itertuples(index=False), strict=True)]
+        results = _results(cls, calls, writer, options, dataroot=dataroot, version=version,
+                           n_jobs=n_jobs, executor=executor, ray_address=ray_address)
+        computed = _log_results(results, pool, len(rows), label or f"flow {method}", progress)
+    timings = read_timings(pool)
+    shapes = [writer.shape(pool / f"{k}.npy") for k in keys]
+    return pd.DataFrame({
+        "pair_id": ids, "key": keys, "file": [f"{opts_fp}/{k}.npy" for k in keys],
+        "seconds": [timings.get(k, float("nan")) for k in keys], "shape": shapes,
+        "computed": [k in computed for k in keys],
+    })
+
+
+def _check_pairs(pairs: pd.DataFrame, method: str) -> list[str]:
+    """The pairs' ids; ValueError for a missing column or a duplicate id."""
     need = ["pair_id", "sd_token_1", "sd_token_2", "path_1", "path_2"]
     missing_cols = [c for c in need if c not in pairs.columns]
     if missing_cols:
@@ -337,8 +369,14 @@ def compute_flow(
     dup = pd.Series(ids)[pd.Series(ids).duplicated()].unique().tolist()
     if dup:
         raise ValueError(f"duplicate pair_id in pairs: {dup[:5]}")
+    return ids
+
+
+def _open_pool(pool_root: Path, config: dict[str, Any]) -> tuple[Path, str]:
+    """The options folder of the pool (created, with its ``config.json``; temporary files
+    of a killed run removed) and its name (the options' fingerprint)."""
     opts_fp = fingerprint(config)
-    pool = Path(pool_root) / opts_fp
+    pool = pool_root / opts_fp
     pool.mkdir(parents=True, exist_ok=True)
     cfg_file = pool / "config.json"
     if not cfg_file.is_file():
@@ -346,63 +384,51 @@ def compute_flow(
             tmp.write_text(json.dumps(config, indent=2, sort_keys=True) + "\n")
     for tmp in pool.glob(".*.tmp*"):  # left by a killed run
         tmp.unlink(missing_ok=True)
-    root = Path(dataroot)
-    keys = _keys(pairs, root, world, extras)
-    extra = [None] * len(ids) if extras is None else [extras[i] for i in ids]
-    todo = [i for i, k in enumerate(keys) if force or not writer.complete(pool / f"{k}.npy")]
-    rows = pairs.iloc[todo]
-    if len(rows) and cls.inputs == "images":
-        check_images([root / p for p in (*rows["path_1"], *rows["path_2"])], n_jobs=n_jobs)
+    return pool, opts_fp
 
-    if executor not in ("local", "ray"):
-        raise ValueError(f"executor={executor!r}; allowed: local, ray")
+
+def _results(cls: type[FlowEstimator], calls: list[tuple], writer: FlowFiles,
+             options: Mapping[str, Any], *, dataroot: str | os.PathLike[str], version: str,
+             n_jobs: int, executor: str, ray_address: str) -> Iterator[Result]:
+    """The pairs of ``calls`` ((key, input 1, input 2, out, extra)) computed where the
+    executor says: Ray, local processes (CPU methods), sequentially, or in batches
+    (networks). Yields (key, seconds, shape) as pairs finish."""
+    # built here also to fail early (weights, data); Ray's network actors build their own
+    local_opts = ({**options, "device": "cpu"} if executor == "ray" and not cls.cpu_bound
+                  else options)
+    est = (cls(dataroot=dataroot, version=version, **local_opts)  # type: ignore[call-arg]
+           if cls.inputs == "tokens" else cls(**local_opts))
+    parallel = est.cpu_bound and n_jobs > 1 and len(calls) > 1
+    fn = _one_token_pair if cls.inputs == "tokens" else _one_image_pair
+    args = [(est, *c[:4], writer, c[4], 1 if parallel else 0) for c in calls]
+    if executor == "ray":
+        from flowmod.flow.distributed import ray_results  # lazy: ray is heavy, rarely used
+
+        return ray_results(
+            fn, args, cls=cls, options=options, cpu_bound=est.cpu_bound, writer=writer,
+            batched=_batched, batch_size=getattr(est, "batch_size", 1), address=ray_address,
+            n_jobs=n_jobs)
+    if parallel:
+        return Parallel(n_jobs=n_jobs, return_as="generator_unordered")(
+            delayed(fn)(*a) for a in args)
+    if est.cpu_bound:
+        return (fn(*a) for a in args)
+    return _batched(est, list(calls), writer)
+
+
+def _log_results(results: Iterator[Result], pool: Path, total: int, label: str,
+                 progress: bool) -> set[str]:
+    """Consume ``results``, logging each pair's estimation seconds to the pool's
+    :data:`TIMINGS` as it finishes; returns the keys computed."""
     computed: set[str] = set()
-    if len(rows):
-        # built here also to fail early (weights, data); Ray's network actors build their own
-        local_opts = ({**options, "device": "cpu"} if executor == "ray" and not cls.cpu_bound
-                      else options)
-        est = (cls(dataroot=dataroot, version=version, **local_opts)  # type: ignore[call-arg]
-               if cls.inputs == "tokens" else cls(**local_opts))
-        parallel = est.cpu_bound and n_jobs > 1 and len(rows) > 1
-        threads = 1 if parallel else 0
-        fn = _one_token_pair if cls.inputs == "tokens" else _one_image_pair
-        calls = [
-            (est, keys[i], *((r.sd_token_1, r.sd_token_2) if cls.inputs == "tokens" else
-                             (str(root / r.path_1), str(root / r.path_2))),
-             pool / f"{keys[i]}.npy", writer, extra[i], threads)
-            for i, r in zip(todo, rows.itertuples(index=False), strict=True)
-        ]
-        results: Iterator[Result] | Any
-        if executor == "ray":
-            from flowmod.flow.distributed import ray_results
-
-            results = ray_results(
-                fn, calls, cls=cls, options=options, cpu_bound=est.cpu_bound,
-                writer=writer, batched=_batched, batch_size=getattr(est, "batch_size", 1),
-                address=ray_address, n_jobs=n_jobs)
-        elif parallel:
-            from joblib import Parallel, delayed
-
-            results = Parallel(n_jobs=n_jobs, return_as="generator_unordered")(
-                delayed(fn)(*args) for args in calls)
-        elif est.cpu_bound:
-            results = (fn(*args) for args in calls)
-        else:
-            results = _batched(est, [(a[1], a[2], a[3], a[4], a[6]) for a in calls], writer)
-        with (bar(total=len(rows), desc=label or f"flow {method}", unit="pair",
-                  disable=not progress) as pbar, open(pool / TIMINGS, "a") as log_f):
-            for key, seconds, _shape in results:
-                log_f.write(json.dumps({"key": key, "seconds": round(seconds, 6)}) + "\n")
-                log_f.flush()
-                computed.add(key)
-                pbar.update(1)
-    timings = read_timings(pool)
-    shapes = [writer.shape(pool / f"{k}.npy") for k in keys]
-    return pd.DataFrame({
-        "pair_id": ids, "key": keys, "file": [f"{opts_fp}/{k}.npy" for k in keys],
-        "seconds": [timings.get(k, float("nan")) for k in keys], "shape": shapes,
-        "computed": [k in computed for k in keys],
-    })
+    with (bar(total=total, desc=label, unit="pair", disable=not progress) as pbar,
+          open(pool / TIMINGS, "a") as log_f):
+        for key, seconds, _shape in results:
+            log_f.write(json.dumps({"key": key, "seconds": round(seconds, 6)}) + "\n")
+            log_f.flush()
+            computed.add(key)
+            pbar.update(1)
+    return computed
 
 
 # --- the stage ------------------------------------------------------------------------------
@@ -443,64 +469,56 @@ def kept_pairs(pairs: pd.DataFrame, objects: pd.DataFrame, part: str, n: int,
     return pairs[pairs["pair_id"].isin(shown | set(drawn))]
 
 
-def run(params: Params, progress: bool = True, parts: Sequence[str] = dag.PARTS,
-        methods: Sequence[str] | None = None) -> dict[str, dict[str, pd.DataFrame]]:
-    """Build every ``flow[<method>/<part>]`` node of the profile (:mod:`flowmod.dag`) of
-    ``parts`` and ``methods`` (default: flow_methods): recomputed only when stale, from the
-    pool where possible. Returns ``{method: {part: index}}`` of the published nodes."""
-    out: dict[str, dict[str, pd.DataFrame]] = {}
-    for method in (params.flow_methods if methods is None else methods):
-        for part in parts:
-            b = dag.begin(params, dag.Node("flow", method, part))
-            if not b.up_to_date:
-                q = b.params
-                pairs_file = b.input_dir(dag.objects_node(part)) / "pairs.parquet"
-                pairs = pd.read_parquet(pairs_file)
-                if q.flow_store == "crops":  # the crops stage computes the rest itself
-                    objects = pd.read_parquet(pairs_file.with_name("objects.parquet"))
-                    pairs = kept_pairs(pairs, objects, part, q.flow_keep_pairs, q.seed,
-                                       clip=method == q.clip_method)
-                idx = compute_flow(
-                    pairs, method, flow_root(q) / method / "pool", dataroot=q.dataroot_path,
-                    version=q.version, world=b.inputs["world"]["fingerprint"],
-                    dtype=q.flow_dtype, n_jobs=q.n_jobs, progress=progress, force=q.force,
-                    store_scale=q.flow_scale, label=f"flow {method}/{part}",
-                    executor=q.executor, ray_address=q.ray_address,
-                    **estimator_options(q, method))
-                with atomic_path(b.start(fresh=True) / "index.parquet") as tmp:
-                    idx.drop(columns="computed").to_parquet(tmp, index=False)
-                b.publish(pairs=len(idx), computed=int(idx["computed"].sum()),
-                          store_scale=q.flow_scale, dtype=q.flow_dtype, kept=q.flow_store)
-            out.setdefault(method, {})[part] = FlowReader(params, method, part).index
+def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:
+    """Build one ``flow[<method>/<part>]`` node: the flow of the part's pairs (in crops mode
+    only those :func:`kept_pairs` keeps), from the pool where possible; ``index.parquet``."""
+    q, method, part = b.params, b.node.method, b.node.part
+    pairs_file = b.input_dir(objects_node(part)) / "pairs.parquet"
+    pairs = pd.read_parquet(pairs_file)
+    if q.flow_store == "crops":  # the crops stage computes the rest itself
+        objects = pd.read_parquet(pairs_file.with_name("objects.parquet"))
+        pairs = kept_pairs(pairs, objects, part, q.flow_keep_pairs, q.seed,
+                           clip=method == q.clip_method)
+    idx = compute_flow(
+        pairs, method, flow_root(q) / method / "pool", dataroot=q.dataroot_path,
+        version=q.version, world=b.inputs["world"]["fingerprint"],
+        dtype=q.flow_dtype, n_jobs=q.n_jobs, progress=progress, force=q.force,
+        store_scale=q.flow_scale, label=f"flow {method}/{part}",
+        executor=q.executor, ray_address=q.ray_address,
+        **estimator_options(q, method))
+    with atomic_path(b.start(fresh=True) / "index.parquet") as tmp:
+        idx.drop(columns="computed").to_parquet(tmp, index=False)
+    return {"pairs": len(idx), "computed": int(idx["computed"].sum()),
+            "store_scale": q.flow_scale, "dtype": q.flow_dtype, "kept": q.flow_store}
+
+
+def _nodes(p: Params) -> list[dag.Node]:
+    """The paper's two parts of every flow method; chapter 11's part of its methods (in
+    pairs mode: in crops mode its crops compute their flow)."""
+    out = [dag.Node("flow", m, part) for m in p.flow_methods for part in PARTS]
+    if p.flow_store == "pairs":
+        out += [dag.Node("flow", m, WIDE) for m in p.wide_methods]
     return out
 
 
-def readers(params: Params) -> dict[str, dict[str, FlowReader]]:
-    """``{method: {part: FlowReader}}`` of every published flow node of the profile."""
-    return {m: {part: FlowReader(params, m, part) for part in dag.PARTS}
-            for m in params.flow_methods}
-
-
-def run_summary(indexes: Mapping[str, Mapping[str, pd.DataFrame]]) -> pd.DataFrame:
-    """One row per method and part: pairs, median estimation seconds per pair."""
-    return pd.DataFrame([
-        {"method": m, "part": part, "pairs": len(idx),
-         "median s / pair": float(idx["seconds"].median()) if len(idx) else float("nan")}
-        for m, parts in indexes.items() for part, idx in parts.items()])
+#: The flow stage (chapter 03; chapter 11's part with extension_build).
+STAGE = dag.Stage("flow", 2, "03", "flow/{method}/{part}", "optical flow of every pair",
+                  nodes=_nodes, inputs=lambda n, p: (dag.Node("world"), objects_node(n.part)),
+                  build=build, parts={WIDE: ("11", "extension_build")})
 
 
 class FlowReader:
     """The published flow of one node: ``reader.load(pair_id)`` -> (H, W, 2) float32, pixels
     of the full image, frame 1 -> 2."""
 
-    def __init__(self, params: Params, method: str, part: str = "keyframe") -> None:
-        node = dag.Node("flow", method, part)
-        folder = dag.published(params, node)
+    def __init__(self, folder: Path, pool: Path, method: str, part: str = "keyframe") -> None:
+        """``folder``: the published ``flow[<method>/<part>]`` node; ``pool``: the method's
+        pool of per-pair files (:func:`flow_root` / method / pool)."""
         self.method, self.part = method, part
         self.index = pd.read_parquet(folder / "index.parquet")
-        rec = dag.recorded(params, node) or {}
+        rec = read_manifest(folder / "manifest.json") or {}
         self.store_scale = float(rec.get("store_scale", 1.0))
-        self.pool = flow_root(params) / method / "pool"
+        self.pool = pool
         self._files = dict(zip(self.index["pair_id"], self.index["file"], strict=True))
 
     def __contains__(self, pair_id: str) -> bool:
@@ -522,70 +540,3 @@ class FlowReader:
     def load_valid(self, pair_id: str) -> np.ndarray | None:
         """The stored valid mask (H, W) bool (``gt`` only), or None."""
         return load_stored_valid(self.path(pair_id), self.store_scale)
-
-
-# --- what the flow shows (chapter 03) -------------------------------------------------------
-
-def accuracy_table(params: Params, pairs: pd.DataFrame, objects: pd.DataFrame,
-                   readers: Mapping[str, Mapping[str, FlowReader]], n_pairs: int = 20,
-                   seed: int = 0) -> pd.DataFrame:
-    """EPE / Fl-all against the world's exact flow, overall and inside far (keyframe set,
-    min-max distance) and near (generalisation set, < min_distance) vehicle boxes, with the
-    median seconds per pair; on ``n_pairs`` random pairs of each set whose flow every reader
-    stores (synthetic world only).
-    ``readers``: ``{method: {part: FlowReader}}``."""
-    from flowmod import world
-
-    rng = np.random.default_rng(seed)
-    rows = []
-    for kind, dmin, dmax in (("keyframe", params.min_distance, params.max_distance),
-                             ("general", 0.0, params.min_distance)):
-        ids = pairs.loc[pairs["set"] == kind, "pair_id"].to_numpy()
-        ids = np.array([i for i in ids if all(i in parts[kind] for parts in readers.values())])
-        if len(ids) == 0:
-            continue
-        pick = rng.choice(ids, size=min(n_pairs, len(ids)), replace=False)
-        sub = pairs.set_index("pair_id").loc[pick]
-        gts = {pid: world.gt_flow(params.dataroot_path, params.version, r.sd_token_1,
-                                  r.sd_token_2) for pid, r in sub.iterrows()}
-        for method, parts in readers.items():
-            reader = parts[kind]
-            acc: dict[str, list[float]] = {"epe": [], "fl": [], "epe_box": [], "fl_box": []}
-            for pid, (gt, valid) in gts.items():
-                est = reader.load(pid)
-                obj = objects[(objects["pair_id"] == pid) & objects["distance"].between(dmin, dmax)]
-                mask = boxes_mask(obj[["xmin", "ymin", "xmax", "ymax"]].to_numpy(), gt.shape)
-                acc["epe"].append(epe(est, gt, valid))
-                acc["fl"].append(fl_all(est, gt, valid))
-                if (mask & valid).any():
-                    acc["epe_box"].append(epe(est, gt, valid, mask))
-                    acc["fl_box"].append(fl_all(est, gt, valid, mask))
-            secs = reader.index["seconds"]
-            rows.append({
-                "set": kind, "vehicles": f"{dmin:g}-{dmax:g} m", "method": method,
-                "EPE all (px)": np.mean(acc["epe"]), "Fl-all (%)": np.mean(acc["fl"]),
-                "EPE boxes (px)": np.mean(acc["epe_box"]) if acc["epe_box"] else np.nan,
-                "Fl-all boxes (%)": np.mean(acc["fl_box"]) if acc["fl_box"] else np.nan,
-                "s / pair": float(np.nanmedian(secs)) if secs.notna().any() else np.nan,
-                "pairs": len(gts),
-            })
-    return pd.DataFrame(rows)
-
-
-def box_flow_magnitude(objects: pd.DataFrame, load: Any, inner: float = 0.6) -> np.ndarray:
-    """Median flow magnitude (px) over the central ``inner`` fraction of each object's box.
-
-    ``load(pair_id) -> (H, W, 2)``; each pair's flow is read once.
-    """
-    out = np.full(len(objects), np.nan)
-    for pid, idx in objects.groupby("pair_id", sort=False).indices.items():
-        f = load(pid)
-        mag = np.linalg.norm(f.astype(np.float32), axis=-1)
-        for i in idx:
-            o = objects.iloc[i]
-            cx, cy = (o.xmin + o.xmax) / 2, (o.ymin + o.ymax) / 2
-            hw, hh = (o.xmax - o.xmin) * inner / 2, (o.ymax - o.ymin) * inner / 2
-            y0, y1 = int(max(cy - hh, 0)), int(min(cy + hh, mag.shape[0] - 1)) + 1
-            x0, x1 = int(max(cx - hw, 0)), int(min(cx + hw, mag.shape[1] - 1)) + 1
-            out[i] = float(np.median(mag[y0:y1, x0:x1]))
-    return out

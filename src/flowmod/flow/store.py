@@ -16,14 +16,14 @@ from flowmod.flow.registry import FlowFileError
 FLO_MAGIC = 202021.25
 
 
-def _check_flow(flow: np.ndarray, what: str = "flow") -> None:
+def check_flow(flow: np.ndarray, what: str = "flow") -> None:
     if not (isinstance(flow, np.ndarray) and flow.ndim == 3 and flow.shape[2] == 2):
         raise ValueError(f"{what} must be an (H, W, 2) array, got {getattr(flow, 'shape', flow)}")
 
 
 def write_flo(path: str | os.PathLike[str], flow: np.ndarray) -> None:
     """Write (H, W, 2) flow in the Middlebury .flo format (little-endian float32), atomically."""
-    _check_flow(flow)
+    check_flow(flow)
     h, w = flow.shape[:2]
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.array([FLO_MAGIC], "<f4").tofile(f)
@@ -51,7 +51,7 @@ def save_flow_npy(path: str | os.PathLike[str], flow: np.ndarray, dtype: str = "
     For float16, values beyond its range (+-65504 px: only invalid pixels, e.g. points that
     pass behind the camera) are clipped instead of becoming inf.
     """
-    _check_flow(flow)
+    check_flow(flow)
     with atomic_path(path) as tmp:
         np.save(tmp, as_stored(flow, dtype), allow_pickle=False)
 
@@ -71,7 +71,7 @@ def load_flow_npy(path: str | os.PathLike[str]) -> np.ndarray:
     return arr.astype(np.float32)
 
 
-def _npy_header(path: Path) -> tuple[tuple[int, ...], bool, np.dtype, int]:
+def npy_header(path: Path) -> tuple[tuple[int, ...], bool, np.dtype, int]:
     """(shape, fortran_order, dtype, data offset) from a .npy header, without reading data."""
     fmt = np.lib.format
     with open(path, "rb") as f:
@@ -85,11 +85,11 @@ def _npy_header(path: Path) -> tuple[tuple[int, ...], bool, np.dtype, int]:
         return tuple(shape), bool(fortran), np.dtype(dt), f.tell()
 
 
-def _npy_ok(path: Path, dtype: str, like: tuple[int | None, ...] = (None, None, 2)) -> bool:
+def npy_ok(path: Path, dtype: str, like: tuple[int | None, ...] = (None, None, 2)) -> bool:
     """True if ``path`` is a complete .npy of a ``dtype`` array shaped ``like`` (None: any
     length; default an (H, W, 2) flow), checked from its header and file size."""
     try:
-        shape, fortran, dt, offset = _npy_header(path)
+        shape, fortran, dt, offset = npy_header(path)
         size = path.stat().st_size
     except Exception:  # noqa: BLE001 - anything unreadable is simply not done
         return False

@@ -41,6 +41,7 @@ from playwright.sync_api import Error as PlaywrightError
 from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
 from flowmod.artefacts import atomic_path
+from flowmod.paths import repo_root
 
 __all__ = ["BookReport", "BrowserError", "ChromiumNotFound", "Problem", "assert_book_ok",
            "check_book", "find_chromium", "in_ci", "main"]
@@ -448,8 +449,6 @@ def assert_book_ok(html_dir: str | os.PathLike[str],
 
 def main(argv: list[str] | None = None) -> int:
     """CLI: 0 if the book is fine, 1 with the list of problems, 2 if it cannot be checked."""
-    from flowmod.paths import repo_root
-
     ap = argparse.ArgumentParser(prog="python -m flowmod.report.browser",
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("html_dir", type=Path, nargs="?", default=repo_root() / "build" / "html",

@@ -11,6 +11,11 @@ import numpy as np
 import pandas as pd
 from matplotlib.patches import FancyArrowPatch, FancyBboxPatch
 
+from flowmod.crops import crop_image
+from flowmod.flow import flow_to_color
+from flowmod.metrics import metrics, pr_curve
+from flowmod.report.video import side_by_side
+
 #: The pipeline stages in data-flow order: (chapter, label, artefact).
 PIPELINE = [
     ("01", "world /\nnuScenes", "dataroot"),
@@ -125,8 +130,6 @@ def object_thumbnails(dataroot: str | Path, pairs: pd.DataFrame, objects: pd.Dat
     """For each object row: the frame-1 image cropped like the classifier's input
     (:func:`flowmod.crops.crop_image`: square, ``scale`` x the box's longer side,
     edge-padded), box drawn in its label colour, resized to ``size`` px."""
-    from flowmod.crops import crop_image
-
     paths = pairs.set_index("pair_id")["path_1"]
     out = []
     for row in objects.itertuples():
@@ -200,8 +203,6 @@ def crop_gallery(x: np.ndarray, labels: np.ndarray, n: int = 8, seed: int = 0,
 
     x: (N, 2, S, S) crops, px. Colours share one magnitude scale per crop.
     """
-    from flowmod.flow import flow_to_color
-
     rng = np.random.default_rng(seed)
     labels = np.asarray(labels)
     fig, axes = plt.subplots(2, n, figsize=(1.6 * n, 3.6), squeeze=False)
@@ -228,8 +229,6 @@ def input_gallery(images: np.ndarray, flow: np.ndarray, static: np.ndarray,
     or of the residual's, whichever is larger (larger vectors saturate).
 
     images: (N, 6, S, S) uint8 (frame 1 = channels 0-2); flow, static: (N, 2, S, S) px."""
-    from flowmod.flow import flow_to_color
-
     rng = np.random.default_rng(seed)
     labels = np.asarray(labels)
     keys = np.arange(len(labels)) if instances is None else np.asarray(instances)
@@ -349,8 +348,6 @@ def prediction_frames(dataroot: str | Path, pairs: pd.DataFrame, preds: pd.DataF
 
 def confusion_and_pr(results: dict[str, pd.DataFrame], threshold: float = 0.5) -> plt.Figure:
     """Confusion matrix per method and all precision-recall curves (prob vs label)."""
-    from flowmod.metrics import metrics, pr_curve
-
     n = len(results)
     fig, axes = plt.subplots(1, n + 1, figsize=(3.2 * (n + 1), 3.2))
     for ax, (name, df) in zip(axes[:n], results.items(), strict=True):
@@ -418,9 +415,6 @@ def scene_clip(dataroot: str | Path, pairs: pd.DataFrame, preds: pd.DataFrame, l
                width: int = 800, threshold: float = 0.5) -> list[np.ndarray]:
     """Frames of a clip: each pair's frame 1 with boxes coloured by the prediction (blue
     still, red moving), beside its flow; pairs in time order, ``width`` px per half."""
-    from flowmod.flow import flow_to_color
-    from flowmod.report.video import side_by_side
-
     frames = []
     for row in pairs.sort_values("timestamp_1").itertuples():
         img = cv2.imread(str(Path(dataroot) / row.path_1))
@@ -461,8 +455,6 @@ def example_frames(sel: Any, dataroot: str | Path, n: int = 4, seed: int = 0,
 def color_wheel(size: int = 101) -> np.ndarray:
     """(size, size, 3) uint8 RGB legend of the flow colour code: the colour of a flow
     vector pointing from the centre to each pixel, full saturation at the rim."""
-    from flowmod.flow import flow_to_color
-
     r = np.linspace(-1.0, 1.0, size, dtype=np.float32)
     u, v = np.meshgrid(r, r)
     inside = np.hypot(u, v) <= 1.0
@@ -478,8 +470,6 @@ def flow_figure(image: np.ndarray, flows: dict[str, np.ndarray], valid: np.ndarr
     where the flow is defined and visible (``valid``, from the exact flow, else all), pooled
     over methods, so that one method's outliers do not wash out the others. Returns the
     figure and the scale (px at full saturation)."""
-    from flowmod.flow import flow_to_color
-
     sel = valid if valid is not None else np.ones(image.shape[:2], bool)
     mags = np.concatenate([np.hypot(f[..., 0], f[..., 1])[sel] for f in flows.values()])
     vmax = float(max(np.percentile(mags, percentile), 1e-3))

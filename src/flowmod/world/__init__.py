@@ -10,11 +10,12 @@ Modules, from the bottom up: :mod:`~flowmod.world.scene` (trajectories, roads, w
 :mod:`~flowmod.world.truth` (reading a world back: :func:`is_synthetic`, exact
 :func:`gt_flow` and :func:`true_velocity`), :mod:`~flowmod.world.records` (the nuScenes
 records of one scene) and :mod:`~flowmod.world.dataset` (writing the tables and JPEGs:
-:func:`generate_world`, :func:`ensure_world`). ``python -m flowmod.world --profile demo`` builds
-a profile's world.
+:func:`generate_world`) and :mod:`~flowmod.world.source` (the world as the study's source
+stage: :func:`ensure_world`). ``python -m flowmod.world --profile demo`` builds a profile's world.
 """
 
-from flowmod.world.dataset import GENERATOR_VERSION, ensure_world, generate_world
+from flowmod.world.dataset import GENERATOR_VERSION, generate_world
+from flowmod.world.source import ensure_world, is_generated_world, world_fingerprint
 from flowmod.world.truth import (
     WORLD_FILE,
     WorldError,
@@ -34,8 +35,10 @@ __all__ = [
     "flow_between",
     "generate_world",
     "gt_flow",
+    "is_generated_world",
     "is_synthetic",
     "scene_of",
     "true_velocity",
+    "world_fingerprint",
     "world_params",
 ]

@@ -27,10 +27,10 @@ JSON beside the tables (``<dataroot>/<version>/synth_world.json``): :func:`gt_fl
 the depth / surface-id maps of two frames and moves every pixel's 3D point with its surface's
 rigid motion; :func:`true_velocity` differentiates the analytic trajectories.
 
-Public API: :func:`generate_world`, :func:`ensure_world`, :func:`is_synthetic`,
-:func:`gt_flow`, :func:`true_velocity`, and the notebook helpers in
-:mod:`flowmod.world_report` (re-exported here: ``naive_rule_report``, ``counts_table``,
-``distant_objects``, ``gt_flow_figure``).
+Public API: :func:`generate_world` (:func:`flowmod.world.source.ensure_world` makes a
+profile's world), :func:`is_synthetic`,
+:func:`gt_flow`, :func:`true_velocity` (chapter 01's tables and figures are in
+:mod:`flowmod.chapters.ch01_world`, the naive rule in :mod:`flowmod.difficulty`).
 """
 
 from __future__ import annotations
@@ -39,12 +39,9 @@ import json
 import os
 import shutil
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from flowmod import dag
-from flowmod.artefacts import read_manifest, write_manifest
 from flowmod.progress import bar
 from flowmod.world.records import (
     CHANNEL,
@@ -55,10 +52,10 @@ from flowmod.world.records import (
     _write_bytes,
     _write_json,
 )
-from flowmod.world.truth import WORLD_FILE, WorldError, is_synthetic, load_world, world_params
+from flowmod.world.truth import WORLD_FILE, WorldError, load_world
 
 #: The world stage's code version (bump when the generator changes what it writes).
-GENERATOR_VERSION = dag.STAGES["world"].version
+GENERATOR_VERSION = 1
 
 def _check_dataroot(root: Path, version: str) -> None:
     """Refuse to write into a dataroot that holds real (non-synthetic) nuScenes tables."""
@@ -214,48 +211,3 @@ def _run_jobs(args: list[tuple], n_jobs: int, progress: bool) -> list[dict]:
     finally:
         pbar.close()
     return out
-
-
-def ensure_world(params: Any, *, progress: bool = True) -> Path:
-    """Make sure the profile's dataroot holds its nuScenes-format data; return the dataroot.
-
-    * a real (non-generated) version folder: used as it is (its identity is its tables'
-      content, :func:`flowmod.dag.world_fingerprint`);
-    * synthetic, and a generated world with this profile's fingerprint (sizes, seed,
-      generator version) present: reused; absent or made with other parameters: generated
-      (in a temporary folder, swapped in when complete), then its manifest is written;
-    * not synthetic and missing: :class:`WorldError` naming the path and the fix.
-    """
-    node = dag.Node("world")
-    q = dag.StageParams(params, node)
-    root, version = q.dataroot_path, q.version
-    vdir = root / version
-    fp = dag.world_fingerprint(params)
-    if fp is None:
-        raise WorldError(
-            f"nuScenes tables not found: {vdir} does not exist (or has no scene.json). Set "
-            f"dataroot to the folder that holds {version}/, samples/ and sweeps/ (e.g. "
-            f"DATAROOT=/data/sets/nuscenes), or set synthetic: true to generate a synthetic "
-            f"world there."
-        )
-    if not dag.is_generated_world(params) or not q.synthetic:
-        return root
-    manifest = vdir / dag.WORLD_MANIFEST
-    rec = read_manifest(manifest)
-    if rec is not None and rec["fingerprint"] == fp and is_synthetic(root, version):
-        return root
-    sizes = {
-        "n_scenes": q.world_scenes,
-        "n_keyframes": q.world_keyframes,
-        "n_sweep_scenes": q.world_sweep_scenes,
-        "vehicles_per_scene": q.world_vehicles,
-        "seed": q.seed,
-    }
-    have = world_params(root, version) if is_synthetic(root, version) else {}
-    same = all(have.get(k) == v for k, v in sizes.items()) and (
-        have.get("generator_version") == GENERATOR_VERSION)
-    if not same:  # a world from an earlier version of this code needs only its manifest
-        manifest.unlink(missing_ok=True)
-        generate_world(root, version, **sizes, n_jobs=q.n_jobs, progress=progress)
-    write_manifest(manifest, {**dag.payload(params, node, {}), "fingerprint": fp})
-    return root

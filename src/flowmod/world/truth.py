@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from flowmod.dag import WORLD_FILE
+#: File of a generated world (in ``<dataroot>/<version>/``) that real nuScenes lacks.
+WORLD_FILE = "synth_world.json"
 
 
 class WorldError(RuntimeError):

@@ -1,26 +1,4 @@
-"""Beyond the paper (chapter 11): the classifier trained without the paper's strict filtering.
-
-The paper trains on keyframe pairs with vehicles 30-70 m away and then meets near vehicles
-and non-keyframe pairs only at test time (Table 4); its section V expects that "the
-performance might dramatically enhance if the model is trained with" them. Here the same
-ResNet18, with the same Table 2 settings, is trained on every vehicle of the training scenes
-from ``general_min_distance`` to ``general_max_distance`` (the generalisation range) and on
-the non-keyframe pairs of those scenes where they have sweeps, then applied to the same
-held-out generalisation set as Table 4 and to the paper's keyframe test split.
-
-Stages (:mod:`flowmod.dag`, chapter 11):
-
-- ``wide``: the training set (:func:`flowmod.select.select_wide`) of the train and val
-  scenes: ``pairs.parquet``, ``objects.parquet`` (``set`` keyframe or sweep);
-- ``flow[<method>/wide]`` (``flow_store: pairs`` only) and ``crops[<method>/wide]``: the
-  flow and crops stages on it (splits train and val);
-- ``wtrain[<method>/s<k>]``: one training seed, epoch chosen on the wide validation split;
-- ``wgeneralise[<method>]``: every seed on the generalisation set (``general.parquet``) and
-  the keyframe test split (``test.parquet``), ``prob_s<k>`` per seed.
-
-The selection is always built (seconds); flow, crops, models and predictions only with
-``extension_build`` (``make extensions``): they do not fit the cold book's time budget.
-"""
+"""Chapter 11's backend: the classifier trained on all distances, against the paper's."""
 
 from __future__ import annotations
 
@@ -29,93 +7,30 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from flowmod.evaluate import breakdown, paired, predict_seeds, scored, seed_probs
-from flowmod.evaluate import results as paper_results
-from flowmod.evaluate import table4 as paper_table4
-from flowmod.metrics import comparison_table
+from flowmod import pipeline
+from flowmod.chapters import common
+from flowmod.chapters.common import results
+from flowmod.dag import Node
+from flowmod.evaluate import breakdown, paired, scored, seed_probs
+from flowmod.evaluate import table4 as evaluate_table4
+from flowmod.metrics import comparison_table, metrics
+from flowmod.params import Params
 
 #: Distance bins of the chapter's breakdowns (m): Table 4's range and beyond it.
 EDGES = (0, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100.01)
 
 
-# --- the stages -------------------------------------------------------------------------------
-
-def run(params: Any, progress: bool = True) -> list[str]:
-    """Build chapter 11's stale training selection, and with ``extension_build`` its flow,
-    crops, every seed of every method of ``wide_methods`` and their predictions. Returns the
-    methods whose predictions are current (:func:`built`)."""
-    from flowmod import crops, dag, flow, select, train
-
-    if not params.wide_methods:
-        return []
-    b = dag.begin(params, dag.Node("wide"))
-    if not b.up_to_date:
-        scenes = pd.read_parquet(b.input_dir(dag.Node("select")) / "scenes.parquet")
-        pairs, objects = select.select_wide(b.params, scenes, progress=progress)
-        select.write_tables(b.start(fresh=True), {"pairs": pairs, "objects": objects})
-        b.publish(rows=len(objects), pairs=len(pairs),
-                  sweep_pairs=int((pairs["set"] == "sweep").sum()))
-    if not params.extension_build:
-        return built(params)
-    methods = list(params.wide_methods)
-    if params.flow_store == "pairs":
-        flow.run(params, progress=progress, parts=(dag.WIDE,), methods=methods)
-    crops.run(params, progress=progress, parts=crops.WIDE_SPLITS, methods=methods)
-    for m in methods:
-        for k, part in enumerate(dag.seed_parts(params)):
-            b = dag.begin(params, dag.Node("wtrain", m, part))
-            if b.up_to_date:
-                continue
-            folder = b.input_dir(dag.Node("crops", m, dag.WIDE))
-            (tx, tdf), (vx, vdf) = (crops.read_crops(folder, s) for s in ("train", "val"))
-            q = b.params
-            h = train.train_node(b, tx, tdf, vx, vdf, k,
-                                 f"train {m} all distances seed {q.seed + k}", progress)
-            b.publish(best_epoch=int(h.attrs["best_epoch"]), best_f1=float(h.attrs["best_f1"]),
-                      seed=q.seed + k, amp=q.amp, recipe=train.recipe(params, m))
-        _generalise(params, m)
-    return built(params)
+def built(params: Params) -> list[str]:
+    """The methods of ``wide_methods`` whose predictions, models, crops and selection are
+    current (:meth:`flowmod.dag.Graph.built`)."""
+    return [m for m in params.wide_methods if pipeline.built(params, Node("wgeneralise", m))]
 
 
-def _generalise(params: Any, method: str) -> None:
-    """Build ``wgeneralise[<method>]``: every seed on the generalisation crops and on the
-    keyframe test split."""
-    from flowmod import dag
-    from flowmod.evaluate import _write, models_of
-
-    b = dag.begin(params, dag.Node("wgeneralise", method))
-    if b.up_to_date:
-        return
-    models = models_of(b, "wtrain", method)
-    frames = {split: predict_seeds(models, b.input_dir(dag.Node("crops", method, part)), split,
-                                   b.params.device)
-              for split, part in (("general", "general"), ("test", "keyframe"))}
-    _write(b.start(fresh=True), frames, {})
-    b.publish(seeds=len(models), general=len(frames["general"]), test=len(frames["test"]))
-
-
-def built(params: Any) -> list[str]:
-    """The methods of ``wide_methods`` whose predictions, models and crops are current
-    (:func:`flowmod.dag.current`: made from what is published now, with ``params``)."""
-    from flowmod import dag
-
-    def ok(node: Any) -> bool:
-        return dag.current(params, node) and all(
-            ok(i) for i in dag.inputs(node, params)
-            if i.stage in ("wtrain", "wide") or i.part == dag.WIDE)
-
-    return [m for m in params.wide_methods if ok(dag.Node("wgeneralise", m))]
-
-
-# --- the chapter's tables and figures ---------------------------------------------------------
-
-def training_summary(params: Any) -> pd.DataFrame:
+def training_summary(params: Params) -> pd.DataFrame:
     """One row per training set and split: pairs, objects, moving share, distance range."""
-    from flowmod import dag
-
     rows = []
     for name, node in (("paper: 30-70 m keyframes", "select"), ("all distances", "wide")):
-        d = dag.published(params, dag.Node(node))
+        d = pipeline.published(params, Node(node))
         pairs, obj = (pd.read_parquet(d / f"{k}.parquet") for k in ("pairs", "objects"))
         for split in ("train", "val"):
             o, pp = obj[obj["split"] == split], pairs[pairs["split"] == split]
@@ -127,18 +42,16 @@ def training_summary(params: Any) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def near_counts(params: Any) -> dict[str, float]:
+def near_counts(params: Params) -> dict[str, float]:
     """How many vehicles nearer than ``min_distance`` (and of them moving) the all-distances
     training set (train and val) and Table 4's set hold: what removing the filter can teach
     and where it is tested. NaN without chapter 11 (``wide_methods`` empty)."""
-    from flowmod import dag
-
     keys = ("train", "train_moving", "general", "general_moving")
     if not params.wide_methods:
         return {f"wide_near_{k}": float("nan") for k in keys}
     out = {}
     for name, node in (("train", "wide"), ("general", "general")):
-        obj = pd.read_parquet(dag.published(params, dag.Node(node)) / "objects.parquet")
+        obj = pd.read_parquet(pipeline.published(params, Node(node)) / "objects.parquet")
         near = obj[(obj["distance"] < params.min_distance)
                    & (obj["distance"] <= params.general_max_distance)]
         out[f"wide_near_{name}"] = float(len(near))
@@ -146,15 +59,13 @@ def near_counts(params: Any) -> dict[str, float]:
     return out
 
 
-def predictions(params: Any, method: str, split: str, wide: bool) -> pd.DataFrame:
+def predictions(params: Params, method: str, split: str, wide: bool) -> pd.DataFrame:
     """Published predictions (``prob_s<k>`` per seed) of ``method``'s classifiers on
     ``split`` (``general`` or ``test``): trained on all distances (``wide``) or the paper's
     (chapters 07 and 08)."""
-    from flowmod import dag
-
     if not wide:
-        return paper_results(params, method, split)[0]
-    folder = dag.published(params, dag.Node("wgeneralise", method))
+        return results(params, method, split)[0]
+    folder = pipeline.published(params, Node("wgeneralise", method))
     return pd.read_parquet(folder / f"{split}.parquet")
 
 
@@ -163,17 +74,17 @@ def label(method: str, wide: bool) -> str:
     return f"{method} ({'all distances' if wide else '30-70 m'})"
 
 
-def table4(params: Any, done: list[str]) -> pd.DataFrame:
+def table4(params: Params, done: list[str]) -> pd.DataFrame:
     """Table 4 of every method of ``wide_methods``, with a row per method of ``done``
     trained on all distances beside the paper's (:func:`flowmod.evaluate.table4`: the
     paper's range scored against the paper's label and the true one, and the vehicles beyond
     it apart)."""
     preds = {label(m, w): predictions(params, m, "general", w)
              for m in params.wide_methods for w in (False, True) if not w or m in done}
-    return paper_table4(preds, params.general_max_distance)
+    return evaluate_table4(preds, params.general_max_distance)
 
 
-def comparisons(params: Any, methods: list[str], split: str = "general") -> pd.DataFrame:
+def comparisons(params: Params, methods: list[str], split: str = "general") -> pd.DataFrame:
     """Trained on all distances minus the paper's training, per method, paired on the same
     objects (``general``: Table 4's range; ``test``: the keyframe test split), with the
     per-seed differences and the interval over scenes
@@ -187,19 +98,17 @@ def comparisons(params: Any, methods: list[str], split: str = "general") -> pd.D
     return comparison_table(rows)
 
 
-def by_distance(params: Any, methods: list[str]) -> dict[str, pd.DataFrame]:
+def by_distance(params: Params, methods: list[str]) -> dict[str, pd.DataFrame]:
     """F1 per distance bin (:data:`EDGES`) on the generalisation set of both classifiers of
     every method (:func:`flowmod.evaluate.breakdown`), for one plot."""
     return {label(m, w): breakdown(predictions(params, m, "general", w), "distance", list(EDGES))
             for m in methods for w in (False, True)}
 
 
-def near_far(params: Any, methods: list[str], near: float = 30.0) -> pd.DataFrame:
+def near_far(params: Params, methods: list[str], near: float = 30.0) -> pd.DataFrame:
     """F1 and the share of still vehicles called moving (false alarms), means over seeds, of
     both classifiers on the generalisation set's near vehicles (< ``near`` m) and those from
     ``near`` m to Table 4's end, with the object and mover counts."""
-    from flowmod.metrics import metrics
-
     rows = []
     for m in methods:
         for w in (False, True):
@@ -223,20 +132,19 @@ def near_far(params: Any, methods: list[str], near: float = 30.0) -> pd.DataFram
     return pd.DataFrame(rows)
 
 
-def built_note(params: Any, done: list[str]) -> str:
+def built_note(params: Params, done: list[str]) -> str:
     """A line for the chapter: which methods are built, and how to build the others."""
     if not params.wide_methods:
         return ("This profile trains no classifier on all distances (`wide_methods` is "
                 "empty). Set it (e.g. `wide_methods=[dis]`) and run `make extensions`.")
-    from flowmod import dag
-
     todo = [m for m in params.wide_methods if m not in done]
-    return dag.built_note("Methods trained on all distances", done, len(params.wide_methods),
-                          f"{', '.join(todo)}; {len(todo) * params.seeds} models",
-                          "extension_build")
+    return common.built_note("Methods trained on all distances", done,
+                             len(params.wide_methods),
+                             f"{', '.join(todo)}; {len(todo) * params.seeds} models",
+                             "extension_build")
 
 
-def headline(params: Any, table: pd.DataFrame, done: list[str]) -> str:
+def headline(params: Params, table: pd.DataFrame, done: list[str]) -> str:
     """One sentence for the landing page: Table 4's F1 of the main method trained on all
     distances against the paper's training (from :func:`table4`), or how to build it."""
     if not params.wide_methods:

@@ -12,7 +12,7 @@ crops: the static-world flow of its crop window and the two camera images of tha
 * ``<split>.parquet``: the objects' rows, in array order (that of the flow crops:
   :func:`flowmod.crops.split_objects`).
 
-The stage is ``context[<part>]`` (:mod:`flowmod.dag`), one node per part (keyframe splits,
+The stage is ``context[<part>]`` (:data:`STAGE`), one node per part (keyframe splits,
 generalisation set); it reads no flow, so every flow method shares it.
 """
 
@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
+from flowmod import dag
 from flowmod.artefacts import atomic_path
 from flowmod.crops import (
     PART_SPLITS,
@@ -36,6 +37,7 @@ from flowmod.crops import (
     static_crops,
 )
 from flowmod.progress import bar
+from flowmod.select import PARTS, frame_boxes_3d, objects_node, open_nuscenes
 
 #: Files of one split: static-world flow crops, image crops, index.
 STATIC, IMAGES = "static", "images"
@@ -113,31 +115,27 @@ def read_context(folder: str | os.PathLike[str], split: str
     return static, images, df
 
 
-def run(params: Any, progress: bool = True) -> dict[str, Path]:
-    """Build every stale ``context[<part>]`` node: static-world flow and image crops of the
-    part's objects, the occluders from the devkit's boxes of each pair's first frame.
-    Returns ``{part: published folder}``."""
-    from flowmod import dag
-    from flowmod.select import frame_boxes_3d, open_nuscenes
+def build(b: dag.Build, progress: bool) -> dict[str, Any]:
+    """Build one ``context[<part>]`` node: static-world flow and image crops of the part's
+    objects, the occluders from the devkit's boxes of each pair's first frame."""
+    q, part = b.params, b.node.part
+    sel = b.input_dir(objects_node(part))
+    objects = part_objects(sel, part)
+    pairs = pd.read_parquet(sel / "pairs.parquet")
+    pairs = pairs[pairs["pair_id"].isin(set(objects["pair_id"]))]
+    nusc = open_nuscenes(q.dataroot_path, q.version)
+    boxes = {str(r.pair_id): frame_boxes_3d(nusc, r.sd_token_1)
+             for r in bar(pairs.itertuples(), total=len(pairs), desc="annotated boxes",
+                          unit="pair", disable=not progress)}
+    work = b.start(fresh=True)
+    rows = {s: build_split(objects, pairs, q.dataroot_path, work, s, q.crop_size, q.crop_scale,
+                           boxes, progress) for s in PART_SPLITS[part]}
+    return {"rows": rows, "boxes": sum(len(v) for v in boxes.values())}
 
-    out: dict[str, Path] = {}
-    nusc = None
-    for part, splits in PART_SPLITS.items():
-        b = dag.begin(params, dag.Node("context", None, part))
-        if not b.up_to_date:
-            q = b.params
-            sel = b.input_dir(dag.Node("select") if part == "keyframe" else dag.Node("general"))
-            objects = part_objects(sel, part)
-            pairs = pd.read_parquet(sel / "pairs.parquet")
-            pairs = pairs[pairs["pair_id"].isin(set(objects["pair_id"]))]
-            if nusc is None:
-                nusc = open_nuscenes(q.dataroot_path, q.version)
-            boxes = {str(r.pair_id): frame_boxes_3d(nusc, r.sd_token_1)
-                     for r in bar(pairs.itertuples(), total=len(pairs), desc="annotated boxes",
-                                  unit="pair", disable=not progress)}
-            work = b.start(fresh=True)
-            rows = {s: build_split(objects, pairs, q.dataroot_path, work, s, q.crop_size,
-                                   q.crop_scale, boxes, progress) for s in splits}
-            b.publish(rows=rows, boxes=sum(len(v) for v in boxes.values()))
-        out[part] = b.final
-    return out
+
+#: Chapter 10's static-world flow and image crops, one node per part (no flow method).
+STAGE = dag.Stage("context", 1, "10", "extensions/context/{part}",
+                  "static-world flow and image crops of every object",
+                  nodes=lambda p: ([dag.Node("context", None, part) for part in PARTS]
+                                   if p.extension_inputs else []),
+                  inputs=lambda n, p: (dag.Node("world"), objects_node(n.part)), build=build)

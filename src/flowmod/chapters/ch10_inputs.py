@@ -1,0 +1,158 @@
+"""Chapter 10's backend: the classifier on other inputs, against the paper's raw flow."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from flowmod import pipeline
+from flowmod.chapters import common
+from flowmod.chapters.common import results
+from flowmod.dag import Node
+from flowmod.evaluate import paired, scored, seed_probs
+from flowmod.extensions.context import read_context
+from flowmod.extensions.inputs import VARIANTS, chains
+from flowmod.metrics import comparison_table, seed_summary
+from flowmod.params import Params
+
+
+def built(params: Params) -> list[tuple[str | None, str]]:
+    """The chains whose predictions, models and context crops are current
+    (:meth:`flowmod.dag.Graph.built`: made from what is published now, with ``params``)."""
+    return [c for c in chains(params) if pipeline.built(params, Node("xevaluate", *c))]
+
+
+def predictions(params: Params, method: str | None, variant: str, split: str) -> pd.DataFrame:
+    """Published predictions (``prob_s<k>`` per seed) of one chain on ``test`` or
+    ``general``; ``variant`` ``flow`` reads the paper's models (chapters 07 and 08)."""
+    if variant == "flow":
+        return results(params, method, "test" if split == "test" else "general")[0]
+    folder = pipeline.published(params, Node("xevaluate", method, variant))
+    return pd.read_parquet(folder / f"{split}.parquet")
+
+
+def rows(params: Params) -> list[tuple[str | None, str]]:
+    """Rows of the chapter's table: per extension method the raw flow (the paper's models)
+    and its built inputs, then the image-only input."""
+    done = built(params)
+    rows: list[tuple[str | None, str]] = []
+    for m in params.extension_methods:
+        rows += [(m, "flow")] + [(mm, v) for mm, v in done if mm == m]
+    return rows + [(mm, v) for mm, v in done if mm is None]
+
+
+def table(params: Params, rows_of: list[tuple[str | None, str]] | None = None,
+          split: str = "test") -> pd.DataFrame:
+    """Method x input x F1 on the keyframe test split (``split="test"``) or on the
+    generalisation set within Table 4's range (``"general"``): mean over training seeds,
+    their range, the scene-level 95 % interval of the mean, precision and recall.
+    ``rows_of``: the chains (default :func:`rows`)."""
+    out = []
+    for m, v in (rows(params) if rows_of is None else rows_of):
+        d = scored(predictions(params, m, v, split), split, params.general_max_distance)
+        s = seed_summary(d["label"].to_numpy(), seed_probs(d), d["scene"].to_numpy(),
+                         seed=params.seed)
+        out.append({"flow method": m or "-", "input": v, "channels": VARIANTS[v].channels,
+                     "F1 (%)": round(100 * s["f1"], 1),
+                     "seeds (%)": f"{100 * s['f1_min']:.1f}-{100 * s['f1_max']:.1f}",
+                     "95% CI, scenes (%)": f"{100 * s['ci'][0]:.1f}-{100 * s['ci'][1]:.1f}",
+                     "P (%)": round(100 * s["precision"], 1),
+                     "R (%)": round(100 * s["recall"], 1)})
+    return pd.DataFrame(out)
+
+
+def comparisons(params: Params, split: str = "test",
+                rows_of: list[tuple[str | None, str]] | None = None) -> pd.DataFrame:
+    """Each input minus the raw flow of the same method (the image-only input: minus the raw
+    flow of the first extension method), paired on the same objects and scenes, with the
+    per-seed differences (:func:`flowmod.metrics.paired_comparison`)."""
+    out = {}
+    for m, v in (rows(params) if rows_of is None else rows_of):
+        if v == "flow":
+            continue
+        ref = m or params.extension_methods[0]
+        a = scored(predictions(params, m, v, split), split, params.general_max_distance)
+        b = scored(predictions(params, ref, "flow", split), split, params.general_max_distance)
+        out[f"{m + ': ' if m else ''}{v} - {ref}: flow"] = paired(
+            a, b, f"{m}/{v} and {ref}/flow", params.seed)
+    return comparison_table(out)
+
+
+def inputs_table() -> pd.DataFrame:
+    """The classifier inputs: name, channels, what they hold, channels a flip negates."""
+    return pd.DataFrame([{"input": v.name, "channels": v.channels, "holds": v.doc,
+                          "negated by a flip": ", ".join(map(str, v.negate)) or "-"}
+                         for v in VARIANTS.values()])
+
+
+def context_split(params: Params, split: str) -> tuple[np.ndarray, np.ndarray, pd.DataFrame]:
+    """The published context crops of one split: (static, images, index)."""
+    part = "general" if split == "general" else "keyframe"
+    return read_context(pipeline.published(params, Node("context", None, part)), split)
+
+
+def static_explains(flow: np.ndarray, static: np.ndarray, labels: np.ndarray) -> pd.DataFrame:
+    """How much of the flow at the vehicles the static world explains: per class (still,
+    moving), the median over objects of the median flow magnitude in the box's square (the
+    middle third of the crop, which is three times the box), of the residual's (flow minus
+    static-world flow) there, and their ratio. flow, static: (N, 2, S, S) px; labels (N,)
+    0/1."""
+    s = np.asarray(flow).shape[-1]
+    a, b = s // 3, s - s // 3
+    f = np.asarray(flow[..., a:b, a:b], np.float32)
+    r = f - np.asarray(static[..., a:b, a:b], np.float32)
+    mag = np.median(np.linalg.norm(f, axis=1).reshape(len(f), -1), axis=1)
+    res = np.median(np.linalg.norm(r, axis=1).reshape(len(r), -1), axis=1)
+    rows = []
+    for lab, name in ((0, "still"), (1, "moving")):
+        k = np.asarray(labels) == lab
+        rows.append({"vehicles": name, "objects": int(k.sum()),
+                     "flow at the box (px)": float(np.median(mag[k])) if k.any() else np.nan,
+                     "residual (px)": float(np.median(res[k])) if k.any() else np.nan,
+                     "residual / flow": float(np.median(res[k] / np.maximum(mag[k], 1e-6)))
+                     if k.any() else np.nan})
+    return pd.DataFrame(rows)
+
+
+def built_note(params: Params, done: list[tuple[str | None, str]]) -> str:
+    """A line for the chapter: which chains are built, and how to build the others."""
+    if not params.extension_inputs:
+        return ("This profile trains no other input (`extension_inputs` is empty): the "
+                "tables below hold the paper's raw-flow models only. Set it (e.g. "
+                "`extension_inputs=[residual]`) and run `make extensions`.")
+    todo = [c for c in chains(params) if c not in done]
+    return common.built_note("Chains built", [f"{m or 'no flow'}/{v}" for m, v in done],
+                             len(chains(params)), f"{len(todo) * params.seeds} models",
+                             "extension_build")
+
+
+def headline(params: Params, test: pd.DataFrame, general: pd.DataFrame) -> str:
+    """One sentence for the landing page: the best input of the main method against its
+    raw flow on the test split (:func:`table`), or how to build the chapter."""
+    main = next((m for m in params.extension_methods if m != "gt"), None) or (
+        params.extension_methods[0] if params.extension_methods else None)
+
+    def of(t: pd.DataFrame, v: str | None = None) -> pd.DataFrame:
+        if not len(t):
+            return t
+        k = t["flow method"] == main
+        return t[k & (t["input"] != "flow")] if v is None else t[k & (t["input"] == v)]
+
+    rows = of(test)
+    if not len(rows):
+        return ("not built in this run (make extensions trains them: "
+                f"{len(chains(params)) * params.seeds} models)" if params.extension_inputs else
+                "not part of this profile (extension_inputs is empty)")
+    best = rows.loc[rows["F1 (%)"].idxmax()]
+    raw, raw_g = of(test, "flow").iloc[0], of(general, "flow").iloc[0]
+    best_g = of(general, best["input"]).iloc[0]
+    return (f"on {main} flow, the best other input ({best['input']}) reaches test F1 "
+            f"{best['F1 (%)']:.1f} % against {raw['F1 (%)']:.1f} % on raw flow, "
+            f"and {best_g['F1 (%)']:.1f} % against {raw_g['F1 (%)']:.1f} % on the "
+            "generalisation set")
+
+
+def glue_key(method: str | None, variant: str) -> str:
+    """The name chapter 10 glues a chain's numbers under: ``dis_flow_static``,
+    ``none_images``."""
+    return f"{method or 'none'}_{variant.replace('+', '_')}"

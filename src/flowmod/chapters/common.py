@@ -1,0 +1,100 @@
+"""What several chapters read from the published artefacts: the selection, the flow, the
+crops, the classifiers' predictions and scores, and the line that says what a gate built."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from flowmod import pipeline
+from flowmod.crops import part_of, read_crops
+from flowmod.dag import Node
+from flowmod.flow import FlowReader, flow_root
+from flowmod.params import Params
+from flowmod.select import PARTS, SPLITS, Selection, read_selection
+
+
+def selection(p: Params) -> Selection:
+    """The published selection (both sets, ``set`` column). :class:`flowmod.dag.MissingInput`
+    names chapter 02 if it never ran."""
+    return read_selection(pipeline.published(p, Node("select")),
+                          pipeline.published(p, Node("general")))
+
+
+def made_with(p: Params) -> dict[str, Any]:
+    """The parameters that made the keyframe set (its manifest's)."""
+    return (pipeline.recorded(p, Node("select")) or {})["params"]
+
+
+def flow_reader(p: Params, method: str, part: str = "keyframe") -> FlowReader:
+    """The published flow of ``flow[<method>/<part>]``."""
+    folder = pipeline.published(p, Node("flow", method, part))
+    return FlowReader(folder, flow_root(p) / method / "pool", method, part)
+
+
+def flow_readers(p: Params) -> dict[str, dict[str, FlowReader]]:
+    """``{method: {part: FlowReader}}`` of every published flow node of the profile."""
+    return {m: {part: flow_reader(p, m, part) for part in PARTS} for m in p.flow_methods}
+
+
+def open_crops(p: Params, method: str, split: str) -> tuple[np.memmap, pd.DataFrame]:
+    """The published crops of one split of ``method``: ``(x (N, 2, S, S) float16, index)``."""
+    return read_crops(pipeline.published(p, Node("crops", method, part_of(split))), split)
+
+
+def results(p: Params, method: str, name: str = "test") -> tuple[pd.DataFrame, dict[str, Any]]:
+    """Published predictions and scores of the paper's classifiers: ``name`` = ``test`` (the
+    models on the test split), ``baseline`` (the geometric baseline) or ``general`` (scores
+    empty)."""
+    node = Node("generalise" if name == "general" else "evaluate", method)
+    folder = pipeline.published(p, node)
+    preds = pd.read_parquet(folder / f"{name}.parquet")
+    js = folder / ("scores.json" if name == "test" else f"{name}.json")
+    return preds, (json.loads(js.read_text()) if js.is_file() else {})
+
+
+def read_json(p: Params, node: Node, name: str) -> dict[str, Any]:
+    """A JSON file of a published node."""
+    return json.loads((pipeline.published(p, node) / name).read_text())
+
+
+def model_path(p: Params, method: str, part: str = "s0") -> Path:
+    """The published ``best.pt`` of one training seed of ``method`` (state_dict of the best
+    validation epoch, float16 weights)."""
+    return pipeline.published(p, Node("train", method, part)) / "best.pt"
+
+
+def built_note(what: str, done: list[str], planned: int, others: str, flag: str) -> str:
+    """A chapter's line on what its gate (``flag``) has built: ``{what} with these
+    parameters: **d of n** (names).`` and, while some are missing, ``The other k
+    ({others}) are trained by `make ...` (or this chapter with `flag=true`).``"""
+    out = (f"{what} with these parameters: **{len(done)} of {planned}** "
+           f"({', '.join(done) or 'none'}).")
+    if len(done) < planned:
+        out += (f" The other {planned - len(done)} ({others}) are trained by "
+                f"`{pipeline.GATE_TARGETS[flag]}` (or this chapter with `{flag}=true`).")
+    return out
+
+
+def headline_method(p: Params) -> str:
+    """The method the book's headlines quote: the first estimated flow of the profile."""
+    return next((m for m in p.flow_methods if m != "gt"), p.flow_methods[0])
+
+
+def split_sizes(sel: Selection, kind: str = "keyframe") -> pd.DataFrame:
+    """Scenes, pairs, objects, moving and still objects per split."""
+    pairs = sel.pairs[sel.pairs["set"] == kind]
+    obj = sel.objects[sel.objects["set"] == kind]
+    out = pd.DataFrame({
+        "scenes": pairs.groupby("split")["scene"].nunique(),
+        "pairs": pairs.groupby("split").size(),
+        "objects": obj.groupby("split").size(),
+        "moving": obj.groupby("split")["label"].sum(),
+    }).reindex([s for s in SPLITS if s in set(pairs["split"])]).fillna(0).astype(int)
+    out["still"] = out["objects"] - out["moving"]
+    out["moving %"] = (100 * out["moving"] / out["objects"].clip(lower=1)).round(1)
+    return out

@@ -1,0 +1,84 @@
+"""Beyond the paper (chapter 12): FastFlowNet trained here from scratch, as a stage.
+
+The training itself (losses, batches, held-out scoring) is :mod:`flowmod.flow.selftrain`;
+this module declares the ``selfflow[<mode>]`` nodes (``selfflow_modes``: ``photometric``
+and/or ``supervised``), built only with ``selfflow_build`` (``make selfflow``). The
+chapter's tables are in :mod:`flowmod.chapters.ch12_self_trained_flow`.
+"""
+
+from __future__ import annotations
+
+import functools
+import shutil
+from typing import Any
+
+import pandas as pd
+
+from flowmod import dag, world
+from flowmod.artefacts import atomic_path, write_json
+from flowmod.flow.selftrain import (
+    FramePairs,
+    SelfFlowError,
+    baselines,
+    cache_gt,
+    held_out,
+    heldout_pairs,
+    sample_pairs,
+    save_state,
+    score_model,
+    train_flow,
+)
+
+
+def build(b: dag.Build, progress: bool) -> dict[str, Any]:
+    """Build one ``selfflow[<mode>]`` node: FastFlowNet trained and evaluated,
+    ``weights.pt`` (a FastFlowNet state_dict), ``history.csv`` and ``eval.json`` (held-out
+    metrics of the network and of the baselines)."""
+    q, mode = b.params, str(b.node.part)
+    root = q.dataroot_path
+    synthetic = world.is_synthetic(root, q.version)
+    if mode == "supervised" and not synthetic:
+        raise SelfFlowError(
+            f"selfflow_modes has 'supervised', but {root} ({q.version}) is not a generated "
+            "world: there is no exact flow to supervise with; use selfflow_modes=[photometric]")
+    sel = b.input_dir(dag.Node("select"))
+    pairs = pd.read_parquet(sel / "pairs.parquet")
+    train = sample_pairs(pairs[pairs["split"].isin(["train", "val"])], q.selfflow_pairs,
+                         (q.seed, 0))
+    test = heldout_pairs(pairs, q.selfflow_eval_pairs, q.seed)
+    if train.empty or test.empty:
+        raise SelfFlowError(f"no training ({len(train)}) or held-out ({len(test)}) pair in "
+                            "chapter 02's selection: run chapter 02 first")
+    work = b.start(fresh=q.force)
+    gt_files = (cache_gt(train, root, q.version, q.flow_scale, work / "gt", progress)
+                if mode == "supervised" else None)
+    data = FramePairs([(root / r.path_1, root / r.path_2) for r in train.itertuples()],
+                      q.flow_scale, gt_files)
+    heldout = held_out(test, pd.read_parquet(sel / "objects.parquet"), root, q.version,
+                       synthetic)
+    model, hist = train_flow(
+        data, mode, work, iters=q.selfflow_iters, batch=q.selfflow_batch, lr=q.selfflow_lr,
+        crop=q.selfflow_crop, smooth=q.selfflow_smooth, seed=q.seed,
+        evaluate=functools.partial(score_model, data=heldout, scale=q.flow_scale),
+        eval_every=q.selfflow_eval_every, progress=progress,
+        desc=f"train fastflownet ({mode})", device=q.device)
+    save_state({k: v.cpu() for k, v in model.state_dict().items()}, work / "weights.pt")
+    with atomic_path(work / "history.csv") as tmp:
+        hist.to_csv(tmp, index=False)
+    final = {k[len("heldout_"):]: v for k, v in hist.iloc[-1].items() if k.startswith("heldout_")}
+    write_json(work / "eval.json", {
+        "mode": mode, "steps": int(hist["step"].iloc[-1]),
+        "seconds_per_step": float(hist["seconds"].median()),
+        "train_pairs": len(train), "heldout_pairs": len(test),
+        "fastflownet": final, "baselines": baselines(heldout, q.flow_scale)})
+    shutil.rmtree(work / "gt", ignore_errors=True)
+    (work / "last.pt").unlink(missing_ok=True)
+    return {"mode": mode, "steps": int(hist["step"].iloc[-1])}
+
+
+#: Chapter 12: FastFlowNet trained from scratch (``make selfflow``).
+STAGE = dag.Stage("selfflow", 1, "12", "selfflow/{part}",
+                  "FastFlowNet trained from scratch, held-out end-point error",
+                  nodes=lambda p: [dag.Node("selfflow", None, mode) for mode in p.selfflow_modes],
+                  inputs=lambda n, p: (dag.Node("world"), dag.Node("select")), build=build,
+                  gate="selfflow_build")
