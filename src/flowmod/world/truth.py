@@ -16,6 +16,10 @@ from typing import Any
 
 import numpy as np
 
+from flowmod.world import geometry as wg
+from flowmod.world import render as wr
+from flowmod.world import scene as ws
+
 #: File of a generated world (in ``<dataroot>/<version>/``) that real nuScenes lacks.
 WORLD_FILE = "synth_world.json"
 
@@ -71,8 +75,6 @@ def load_world(path: str, mtime: float) -> dict:
 
 @lru_cache(maxsize=4)
 def _geometry(path: str, mtime: float, scene_index: int):
-    from flowmod.world import geometry as wg
-
     return wg.SceneGeometry(load_world(path, mtime)["scenes"][scene_index])
 
 
@@ -120,9 +122,6 @@ def gt_flow(
 
 def flow_between(geo: Any, t1: float, t2: float) -> tuple[np.ndarray, np.ndarray]:
     """GT flow between scene times t1 and t2 (s) of a :class:`SceneGeometry` (see gt_flow)."""
-    from flowmod.world import geometry as wg
-    from flowmod.world import render as wr
-
     f1 = wr.render(geo, t1, textured=False)
     f2 = wr.render(geo, t2, textured=False)
     H, W = wg.H_IMG, wg.W_IMG
@@ -192,6 +191,8 @@ def fill_undefined(flow: np.ndarray, defined: np.ndarray) -> np.ndarray:
         return flow.astype(np.float32)
     if not defined.any():
         return np.zeros(flow.shape, np.float32)
+    # here, not at the top: scipy.ndimage takes ~0.3 s to import and only frames with
+    # undefined flow need it
     from scipy.ndimage import distance_transform_edt
 
     iy, ix = distance_transform_edt(~defined, return_distances=False, return_indices=True)
@@ -202,8 +203,6 @@ def true_velocity(
     dataroot: str | os.PathLike[str], version: str, instance_token: str, timestamp_us: int
 ) -> np.ndarray:
     """The world's exact instantaneous velocity of an instance: (3,) m/s, global frame."""
-    from flowmod.world import scene as ws
-
     world = load_world(*_world_key(dataroot, version))
     if instance_token not in world["_inst"]:
         raise WorldError(f"instance token {instance_token!r} is not an agent of this world")
