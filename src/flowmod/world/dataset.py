@@ -46,11 +46,11 @@ from flowmod.progress import bar
 from flowmod.world.records import (
     CHANNEL,
     TABLES,
-    _scene_job,
-    _static_tables,
-    _token,
-    _write_bytes,
-    _write_json,
+    scene_job,
+    static_tables,
+    token,
+    write_bytes,
+    write_json,
 )
 from flowmod.world.truth import WORLD_FILE, WorldError, load_world
 
@@ -128,8 +128,8 @@ def generate_world(
         for n in tables:
             tables[n].extend(res["rows"][n])
         scenes.append(res["scene"])
-    map_filename = f"maps/synth-{_token(seed, 'map')}.png"
-    tables.update(_static_tables(seed, n_scenes, map_filename))
+    map_filename = f"maps/synth-{token(seed, 'map')}.png"
+    tables.update(static_tables(seed, n_scenes, map_filename))
     _write_map(root / map_filename)
 
     params = {
@@ -155,8 +155,8 @@ def generate_world(
         shutil.rmtree(tmp)
     tmp.mkdir()
     for n in TABLES:
-        _write_json(tmp / f"{n}.json", tables[n])
-    _write_json(tmp / WORLD_FILE, world, indent=None)
+        write_json(tmp / f"{n}.json", tables[n])
+    write_json(tmp / WORLD_FILE, world, indent=None)
     old_files: set[str] = set()
     if final.exists():
         if not (final / WORLD_FILE).is_file():
@@ -188,7 +188,7 @@ def _write_map(path: Path) -> None:
 
     img = np.full((64, 64), 255, np.uint8)
     ok, buf = cv2.imencode(".png", img)
-    _write_bytes(path, buf.tobytes())
+    write_bytes(path, buf.tobytes())
 
 
 def _run_jobs(args: list[tuple], n_jobs: int, progress: bool) -> list[dict]:
@@ -197,13 +197,13 @@ def _run_jobs(args: list[tuple], n_jobs: int, progress: bool) -> list[dict]:
     try:
         if n_jobs <= 1 or len(args) == 1:
             for a in args:
-                out.append(_scene_job(*a))
+                out.append(scene_job(*a))
                 pbar.update(1)
         else:
             from joblib import Parallel, delayed
 
             gen = Parallel(n_jobs=n_jobs, return_as="generator")(
-                delayed(_scene_job)(*a) for a in args
+                delayed(scene_job)(*a) for a in args
             )
             for res in gen:
                 out.append(res)

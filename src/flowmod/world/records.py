@@ -88,7 +88,7 @@ VISIBILITY = [
 # --------------------------------------------------------------------------------------------
 
 
-def _token(seed: int, *parts: Any) -> str:
+def token(seed: int, *parts: Any) -> str:
     """A deterministic 32-hex nuScenes-style token."""
     key = "/".join(str(p) for p in ("flowmod-synth", seed, *parts))
     return hashlib.md5(key.encode()).hexdigest()
@@ -110,12 +110,14 @@ def visibility_token(fraction: float) -> str:
     return "1"
 
 
-def _write_bytes(path: Path, data: bytes) -> None:
+def write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically."""
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
 
 
-def _write_json(path: Path, obj: Any, indent: int | None = 1) -> None:
+def write_json(path: Path, obj: Any, indent: int | None = 1) -> None:
+    """Write ``obj`` as JSON (and a newline) to ``path`` atomically."""
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(obj, indent=indent) + "\n")
 
@@ -172,14 +174,14 @@ def _scene_description(
 
     scene = wa.sample_scene(seed, index, n_keyframes, vehicles, weather, with_sweeps)
     scene["name"] = f"synth-{index:04d}"
-    scene["token"] = _token(seed, "scene", index)
+    scene["token"] = token(seed, "scene", index)
     scene["t0_us"] = BASE_US + index * 3_600_000_000
     frames = frame_times(seed, index, n_keyframes, with_sweeps, scene["t0_us"])
     for j, f in enumerate(frames):
-        f["sd_token"] = _token(seed, "sample_data", index, j)
+        f["sd_token"] = token(seed, "sample_data", index, j)
     scene["frames"] = frames
     for i, a in enumerate(scene["agents"]):
-        a["instance_token"] = _token(seed, "instance", index, i)
+        a["instance_token"] = token(seed, "instance", index, i)
     return ws.json_ready(scene)
 
 
@@ -199,7 +201,7 @@ def _attribute(agent: dict, speed: float) -> str:
     return "vehicle.parked" if agent["role"] == "parked" else "vehicle.stopped"
 
 
-def _scene_job(*args: Any) -> dict:
+def scene_job(*args: Any) -> dict:
     """Worker entry: :func:`_render_scene` with OpenCV single-threaded (restored after)."""
     import cv2
 
@@ -232,8 +234,8 @@ def _render_scene(
     geo = wg.SceneGeometry(scene)
     root = Path(dataroot)
     t0 = scene["t0_us"]
-    cs_token = _token(seed, "calibrated_sensor", index)
-    sample_tokens = [_token(seed, "sample", index, k) for k in range(n_keyframes)]
+    cs_token = token(seed, "calibrated_sensor", index)
+    sample_tokens = [token(seed, "sample", index, k) for k in range(n_keyframes)]
     frames = scene["frames"]
     times = np.array([(f["ts"] - t0) / 1e6 for f in frames])
     expo = _exposures(seed, index, times)
@@ -260,7 +262,7 @@ def _render_scene(
             raise WorldError(f"JPEG encoding failed for scene {scene['name']} frame {j}")
         folder = "samples" if f["key"] else "sweeps"
         filename = f"{folder}/{CHANNEL}/{scene['name']}__{CHANNEL}__{f['ts']}.jpg"
-        _write_bytes(root / filename, buf.tobytes())
+        write_bytes(root / filename, buf.tobytes())
         ego = ws.traj_state(scene["ego"], t)
         gx, gy, gh = ws.scene_to_global(scene, ego["x"], ego["y"], ego["h"])
         rows["ego_pose"].append(
@@ -326,11 +328,11 @@ def _render_scene(
             w, length, h = a["size"]
             lidar = int(round(frac * 2500.0 * (w * h + length * h) / max(dist, 1.0) ** 2))
             ann = {
-                "token": _token(seed, "sample_annotation", index, i, k),
+                "token": token(seed, "sample_annotation", index, i, k),
                 "sample_token": sample_tokens[k],
                 "instance_token": a["instance_token"],
                 "visibility_token": visibility_token(frac),
-                "attribute_tokens": [_token(seed, "attribute", _attribute(a, speed))],
+                "attribute_tokens": [token(seed, "attribute", _attribute(a, speed))],
                 "translation": [float(st["x"]), float(st["y"]), float(st["z"])],
                 "size": [float(w), float(length), float(h)],
                 "rotation": yaw_quaternion(float(ws.wrap_angle(st["yaw"]))),
@@ -349,7 +351,7 @@ def _render_scene(
         rows["instance"].append(
             {
                 "token": a["instance_token"],
-                "category_token": _token(seed, "category", a["category"]),
+                "category_token": token(seed, "category", a["category"]),
                 "nbr_annotations": len(anns),
                 "first_annotation_token": anns[0]["token"],
                 "last_annotation_token": anns[-1]["token"],
@@ -364,7 +366,7 @@ def _render_scene(
     rows["calibrated_sensor"] = [
         {
             "token": cs_token,
-            "sensor_token": _token(seed, "sensor", CHANNEL),
+            "sensor_token": token(seed, "sensor", CHANNEL),
             "translation": calib["translation"],
             "rotation": calib["rotation"],
             "camera_intrinsic": calib["K"],
@@ -373,7 +375,7 @@ def _render_scene(
     rows["scene"] = [
         {
             "token": scene["token"],
-            "log_token": _token(seed, "log", index // 4),
+            "log_token": token(seed, "log", index // 4),
             "nbr_samples": n_keyframes,
             "first_sample_token": sample_tokens[0],
             "last_sample_token": sample_tokens[-1],
@@ -389,11 +391,13 @@ def _render_scene(
 # --------------------------------------------------------------------------------------------
 
 
-def _static_tables(seed: int, n_scenes: int, map_filename: str) -> dict[str, list]:
+def static_tables(seed: int, n_scenes: int, map_filename: str) -> dict[str, list]:
+    """The tables shared by all scenes: category, attribute, visibility, sensor, log (one per
+    4 scenes) and map (``map_filename``, relative to the dataroot)."""
     n_logs = (n_scenes + 3) // 4
     logs = [
         {
-            "token": _token(seed, "log", li),
+            "token": token(seed, "log", li),
             "logfile": f"synth-log-{li:04d}",
             "vehicle": "synth-ego",
             "date_captured": time.strftime("%Y-%m-%d", time.gmtime(BASE_US / 1e6 + li * 86400)),
@@ -403,21 +407,21 @@ def _static_tables(seed: int, n_scenes: int, map_filename: str) -> dict[str, lis
     ]
     return {
         "category": [
-            {"token": _token(seed, "category", n), "name": n, "description": d}
+            {"token": token(seed, "category", n), "name": n, "description": d}
             for n, d in CATEGORIES
         ],
         "attribute": [
-            {"token": _token(seed, "attribute", n), "name": n, "description": d}
+            {"token": token(seed, "attribute", n), "name": n, "description": d}
             for n, d in ATTRIBUTES
         ],
         "visibility": [{"token": t, "level": lv, "description": d} for t, lv, d in VISIBILITY],
         "sensor": [
-            {"token": _token(seed, "sensor", CHANNEL), "channel": CHANNEL, "modality": "camera"}
+            {"token": token(seed, "sensor", CHANNEL), "channel": CHANNEL, "modality": "camera"}
         ],
         "log": logs,
         "map": [
             {
-                "token": _token(seed, "map"),
+                "token": token(seed, "map"),
                 "log_tokens": [lg["token"] for lg in logs],
                 "category": "semantic_prior",
                 "filename": map_filename,
