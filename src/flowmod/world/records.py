@@ -12,9 +12,15 @@ import time
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from flowmod.artefacts import atomic_path
+from flowmod.world import agents as wa
+from flowmod.world import geometry as wg
+from flowmod.world import render as wr
+from flowmod.world import scene as ws
+from flowmod.world.shading import finish
 from flowmod.world.truth import WorldError
 
 CHANNEL = "CAM_FRONT"
@@ -169,9 +175,6 @@ def _exposures(seed: int, index: int, times: np.ndarray) -> np.ndarray:
 def _scene_description(
     seed: int, index: int, n_keyframes: int, vehicles: int, weather: str, with_sweeps: bool
 ) -> dict:
-    from flowmod.world import agents as wa
-    from flowmod.world import scene as ws
-
     scene = wa.sample_scene(seed, index, n_keyframes, vehicles, weather, with_sweeps)
     scene["name"] = f"synth-{index:04d}"
     scene["token"] = token(seed, "scene", index)
@@ -186,10 +189,8 @@ def _scene_description(
 
 
 def _attribute(agent: dict, speed: float) -> str:
-    from flowmod.world.scene import NEAR_ZERO_SPEED
-
     cat = agent["category"]
-    moving = speed > NEAR_ZERO_SPEED
+    moving = speed > ws.NEAR_ZERO_SPEED
     if cat.startswith("human"):
         return "pedestrian.moving" if moving else "pedestrian.standing"
     if cat in ("vehicle.bicycle", "vehicle.motorcycle"):
@@ -203,8 +204,6 @@ def _attribute(agent: dict, speed: float) -> str:
 
 def scene_job(*args: Any) -> dict:
     """Worker entry: :func:`_render_scene` with OpenCV single-threaded (restored after)."""
-    import cv2
-
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     try:
@@ -223,13 +222,6 @@ def _render_scene(
     with_sweeps: bool,
 ) -> dict:
     """Render one scene's frames to ``dataroot`` and return its table rows and description."""
-    import cv2
-
-    from flowmod.world import geometry as wg
-    from flowmod.world import render as wr
-    from flowmod.world import scene as ws
-    from flowmod.world.shading import finish
-
     scene = _scene_description(seed, index, n_keyframes, vehicles, weather, with_sweeps)
     geo = wg.SceneGeometry(scene)
     root = Path(dataroot)
