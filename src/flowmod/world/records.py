@@ -231,7 +231,6 @@ def _render_scene(
     frames = scene["frames"]
     times = np.array([(f["ts"] - t0) / 1e6 for f in frames])
     expo = _exposures(seed, index, times)
-    look = scene["look"]
     rows: dict[str, list] = {
         "sample": [],
         "sample_data": [],
@@ -240,107 +239,210 @@ def _render_scene(
         "instance": [],
     }
     ann_by_agent: dict[int, list[dict]] = {}
-    statics_occ = [
+    statics_occ = _static_occluders(scene)
+    for j, f in enumerate(frames):
+        t = float(times[j])
+        fr = wr.render(geo, t, textured=True)
+        filename = _write_frame(root, scene, fr, j, (seed, index, j, 505), float(expo[j]))
+        ego = ws.traj_state(scene["ego"], t)
+        rows["ego_pose"].append(_ego_pose_row(scene, f, ego))
+        rows["sample_data"].append(_sample_data_row(frames, j, filename, sample_tokens, cs_token))
+        if not f["key"]:
+            continue
+        rows["sample"].append(_sample_row(scene, f, sample_tokens))
+        posed = _posed_agents(scene, geo, t)
+        for i, ann in _keyframe_annotations(
+            seed, index, scene, fr, t, f["k"], sample_tokens, ego, posed, statics_occ
+        ):
+            ann_by_agent.setdefault(i, []).append(ann)
+    rows["instance"] = _link_annotations(seed, scene, ann_by_agent)
+    rows["sample_annotation"] = _in_sample_order(ann_by_agent, sample_tokens)
+    rows["calibrated_sensor"] = [_calibrated_sensor_row(seed, scene, cs_token)]
+    rows["scene"] = [_scene_row(seed, index, scene, sample_tokens)]
+    return {"rows": rows, "scene": scene}
+
+
+def _static_occluders(scene: dict) -> list[tuple]:
+    """The static boxes that can hide an agent outside the image: (centre (3,) m, yaw rad,
+    (w, l, h) m) of the buildings, hedges and walls."""
+    return [
         (np.array(o["c"]), o["yaw"], tuple(o["size"]))
         for o in scene["statics"]
         if o["kind"] in ("building", "hedge", "wall")
     ]
-    for j, f in enumerate(frames):
-        t = float(times[j])
-        fr = wr.render(geo, t, textured=True)
-        img = finish(fr, look, (seed, index, j, 505), float(expo[j]))
-        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(look["jpeg_quality"])])
-        if not ok:
-            raise WorldError(f"JPEG encoding failed for scene {scene['name']} frame {j}")
-        folder = "samples" if f["key"] else "sweeps"
-        filename = f"{folder}/{CHANNEL}/{scene['name']}__{CHANNEL}__{f['ts']}.jpg"
-        write_bytes(root / filename, buf.tobytes())
-        ego = ws.traj_state(scene["ego"], t)
-        gx, gy, gh = ws.scene_to_global(scene, ego["x"], ego["y"], ego["h"])
-        rows["ego_pose"].append(
-            {
-                "token": f["sd_token"],
-                "timestamp": f["ts"],
-                "rotation": yaw_quaternion(float(gh)),
-                "translation": [float(gx), float(gy), 0.0],
-            }
-        )
-        rows["sample_data"].append(
-            {
-                "token": f["sd_token"],
-                "sample_token": sample_tokens[f["k"]],
-                "ego_pose_token": f["sd_token"],
-                "calibrated_sensor_token": cs_token,
-                "timestamp": f["ts"],
-                "fileformat": "jpg",
-                "is_key_frame": bool(f["key"]),
-                "height": wg.H_IMG,
-                "width": wg.W_IMG,
-                "filename": filename,
-                "prev": frames[j - 1]["sd_token"] if j > 0 else "",
-                "next": frames[j + 1]["sd_token"] if j + 1 < len(frames) else "",
-            }
-        )
-        if not f["key"]:
+
+
+def _write_frame(
+    root: Path, scene: dict, fr: wg.Frame, j: int, frame_seed: tuple[int, ...], exposure: float
+) -> str:
+    """Finish frame ``j`` of the scene (camera model, ``exposure`` gain), write it as a JPEG
+    under ``root`` and return its filename relative to ``root``."""
+    look = scene["look"]
+    f = scene["frames"][j]
+    img = finish(fr, look, frame_seed, exposure)
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(look["jpeg_quality"])])
+    if not ok:
+        raise WorldError(f"JPEG encoding failed for scene {scene['name']} frame {j}")
+    folder = "samples" if f["key"] else "sweeps"
+    filename = f"{folder}/{CHANNEL}/{scene['name']}__{CHANNEL}__{f['ts']}.jpg"
+    write_bytes(root / filename, buf.tobytes())
+    return filename
+
+
+def _ego_pose_row(scene: dict, f: dict, ego: dict) -> dict:
+    """The ego_pose record of frame ``f``: the ego's scene-frame state ``ego`` in the global
+    frame (m, quaternion)."""
+    gx, gy, gh = ws.scene_to_global(scene, ego["x"], ego["y"], ego["h"])
+    return {
+        "token": f["sd_token"],
+        "timestamp": f["ts"],
+        "rotation": yaw_quaternion(float(gh)),
+        "translation": [float(gx), float(gy), 0.0],
+    }
+
+
+def _sample_data_row(
+    frames: list[dict], j: int, filename: str, sample_tokens: list[str], cs_token: str
+) -> dict:
+    """The sample_data record of frame ``j`` (linked to its neighbours and its sample)."""
+    f = frames[j]
+    return {
+        "token": f["sd_token"],
+        "sample_token": sample_tokens[f["k"]],
+        "ego_pose_token": f["sd_token"],
+        "calibrated_sensor_token": cs_token,
+        "timestamp": f["ts"],
+        "fileformat": "jpg",
+        "is_key_frame": bool(f["key"]),
+        "height": wg.H_IMG,
+        "width": wg.W_IMG,
+        "filename": filename,
+        "prev": frames[j - 1]["sd_token"] if j > 0 else "",
+        "next": frames[j + 1]["sd_token"] if j + 1 < len(frames) else "",
+    }
+
+
+def _sample_row(scene: dict, f: dict, sample_tokens: list[str]) -> dict:
+    """The sample record of keyframe ``f`` (linked to its neighbours)."""
+    k = f["k"]
+    return {
+        "token": sample_tokens[k],
+        "timestamp": f["ts"],
+        "prev": sample_tokens[k - 1] if k > 0 else "",
+        "next": sample_tokens[k + 1] if k + 1 < len(sample_tokens) else "",
+        "scene_token": scene["token"],
+    }
+
+
+def _posed_agents(scene: dict, geo: wg.SceneGeometry, t: float) -> list[tuple]:
+    """Every agent at time ``t`` (s): (index, agent, box centre (3,) m, yaw rad), scene frame."""
+    posed = []
+    for i, a in enumerate(scene["agents"]):
+        R, ctr = geo.agent_pose(i, t)
+        posed.append((i, a, ctr, math.atan2(R[1, 0], R[0, 0])))
+    return posed
+
+
+def _keyframe_annotations(
+    seed: int,
+    index: int,
+    scene: dict,
+    fr: wg.Frame,
+    t: float,
+    k: int,
+    sample_tokens: list[str],
+    ego: dict,
+    posed: list[tuple],
+    statics_occ: list[tuple],
+) -> list[tuple[int, dict]]:
+    """The sample_annotation records of keyframe ``k`` (rendered as ``fr`` at ``t`` s): one
+    per agent within :data:`ANNOTATION_RANGE` of the ego, as (agent index, record)."""
+    ego_xyz = np.array([float(ego["x"]), float(ego["y"]), 0.0])
+    out = []
+    for i, a, ctr, yaw in posed:
+        dist = float(np.linalg.norm(ctr - ego_xyz))
+        if dist > ANNOTATION_RANGE:
             continue
-        k = f["k"]
-        rows["sample"].append(
-            {
-                "token": sample_tokens[k],
-                "timestamp": f["ts"],
-                "prev": sample_tokens[k - 1] if k > 0 else "",
-                "next": sample_tokens[k + 1] if k + 1 < n_keyframes else "",
-                "scene_token": scene["token"],
-            }
-        )
-        ego_xyz = np.array([float(ego["x"]), float(ego["y"]), 0.0])
-        posed = []
-        for i, a in enumerate(scene["agents"]):
-            R, ctr = geo.agent_pose(i, t)
-            posed.append((i, a, ctr, math.atan2(R[1, 0], R[0, 0])))
-        for i, a, ctr, yaw in posed:
-            dist = float(np.linalg.norm(ctr - ego_xyz))
-            if dist > ANNOTATION_RANGE:
-                continue
-            corners = wr.box_corners(ctr, yaw, tuple(a["size"]))
-            frac, _px = wr.silhouette_fraction(fr, corners, wg.SID_AGENT0 + i)
-            if not np.isfinite(frac):
-                pts = np.vstack([ctr[None], ctr + 0.85 * (corners - ctr)])
-                occ = [
-                    (c2, y2, tuple(a2["size"]))
-                    for i2, a2, c2, y2 in posed
-                    if i2 != i and np.linalg.norm(c2 - ego_xyz) < dist + 10
-                ]
-                occ += [
-                    o for o in statics_occ if np.linalg.norm(o[0][:2] - ego_xyz[:2]) < dist + 40
-                ]
-                frac = wr.ray_visibility(fr.c, pts, occ)
-            st = ws.agent_state_global(scene, a, t)
-            speed = float(st["speed"])
-            w, length, h = a["size"]
-            lidar = int(round(frac * 2500.0 * (w * h + length * h) / max(dist, 1.0) ** 2))
-            ann = {
-                "token": token(seed, "sample_annotation", index, i, k),
-                "sample_token": sample_tokens[k],
-                "instance_token": a["instance_token"],
-                "visibility_token": visibility_token(frac),
-                "attribute_tokens": [token(seed, "attribute", _attribute(a, speed))],
-                "translation": [float(st["x"]), float(st["y"]), float(st["z"])],
-                "size": [float(w), float(length), float(h)],
-                "rotation": yaw_quaternion(float(ws.wrap_angle(st["yaw"]))),
-                "prev": "",
-                "next": "",
-                "num_lidar_pts": lidar,
-                "num_radar_pts": int(a["kind"] == "vehicle" and dist < 70 and frac > 0.3) * 3,
-            }
-            ann_by_agent.setdefault(i, []).append(ann)
+        frac = _visible_fraction(fr, i, a, ctr, yaw, dist, posed, ego_xyz, statics_occ)
+        ann = _annotation(seed, index, scene, a, i, k, t, sample_tokens[k], frac, dist)
+        out.append((i, ann))
+    return out
+
+
+def _visible_fraction(
+    fr: wg.Frame,
+    i: int,
+    a: dict,
+    ctr: np.ndarray,
+    yaw: float,
+    dist: float,
+    posed: list[tuple],
+    ego_xyz: np.ndarray,
+    statics_occ: list[tuple],
+) -> float:
+    """Visible fraction of agent ``i``'s box (centre ``ctr`` m, ``yaw`` rad, ``dist`` m from
+    the ego): from the rendered silhouette, or for a box outside the image from rays past the
+    nearby agents and static boxes."""
+    corners = wr.box_corners(ctr, yaw, tuple(a["size"]))
+    frac, _px = wr.silhouette_fraction(fr, corners, wg.SID_AGENT0 + i)
+    if not np.isfinite(frac):
+        pts = np.vstack([ctr[None], ctr + 0.85 * (corners - ctr)])
+        occ = [
+            (c2, y2, tuple(a2["size"]))
+            for i2, a2, c2, y2 in posed
+            if i2 != i and np.linalg.norm(c2 - ego_xyz) < dist + 10
+        ]
+        occ += [o for o in statics_occ if np.linalg.norm(o[0][:2] - ego_xyz[:2]) < dist + 40]
+        frac = wr.ray_visibility(fr.c, pts, occ)
+    return frac
+
+
+def _annotation(
+    seed: int,
+    index: int,
+    scene: dict,
+    a: dict,
+    i: int,
+    k: int,
+    t: float,
+    sample_token: str,
+    frac: float,
+    dist: float,
+) -> dict:
+    """The sample_annotation record of agent ``a`` (index ``i``) at keyframe ``k`` (``t`` s):
+    global box, attribute, visibility bin of ``frac``, lidar and radar points at ``dist`` m
+    (prev/next linked later)."""
+    st = ws.agent_state_global(scene, a, t)
+    speed = float(st["speed"])
+    w, length, h = a["size"]
+    lidar = int(round(frac * 2500.0 * (w * h + length * h) / max(dist, 1.0) ** 2))
+    return {
+        "token": token(seed, "sample_annotation", index, i, k),
+        "sample_token": sample_token,
+        "instance_token": a["instance_token"],
+        "visibility_token": visibility_token(frac),
+        "attribute_tokens": [token(seed, "attribute", _attribute(a, speed))],
+        "translation": [float(st["x"]), float(st["y"]), float(st["z"])],
+        "size": [float(w), float(length), float(h)],
+        "rotation": yaw_quaternion(float(ws.wrap_angle(st["yaw"]))),
+        "prev": "",
+        "next": "",
+        "num_lidar_pts": lidar,
+        "num_radar_pts": int(a["kind"] == "vehicle" and dist < 70 and frac > 0.3) * 3,
+    }
+
+
+def _link_annotations(seed: int, scene: dict, ann_by_agent: dict[int, list[dict]]) -> list[dict]:
+    """Link each annotated agent's annotations (prev/next, in place) and return the instance
+    records, in agent order."""
+    instances = []
     for i in sorted(ann_by_agent):
         anns = ann_by_agent[i]
         for n, ann in enumerate(anns):
             ann["prev"] = anns[n - 1]["token"] if n > 0 else ""
             ann["next"] = anns[n + 1]["token"] if n + 1 < len(anns) else ""
         a = scene["agents"][i]
-        rows["instance"].append(
+        instances.append(
             {
                 "token": a["instance_token"],
                 "category_token": token(seed, "category", a["category"]),
@@ -349,33 +451,40 @@ def _render_scene(
                 "last_annotation_token": anns[-1]["token"],
             }
         )
-    # annotations in sample order (like nuScenes: grouped by sample)
+    return instances
+
+
+def _in_sample_order(ann_by_agent: dict[int, list[dict]], sample_tokens: list[str]) -> list[dict]:
+    """All annotations in sample order (like nuScenes: grouped by sample), then by token."""
     all_anns = [a for i in sorted(ann_by_agent) for a in ann_by_agent[i]]
     order = {tok: n for n, tok in enumerate(sample_tokens)}
     all_anns.sort(key=lambda a: (order[a["sample_token"]], a["token"]))
-    rows["sample_annotation"] = all_anns
+    return all_anns
+
+
+def _calibrated_sensor_row(seed: int, scene: dict, cs_token: str) -> dict:
+    """The scene's CAM_FRONT calibrated_sensor record."""
     calib = scene["calib"]
-    rows["calibrated_sensor"] = [
-        {
-            "token": cs_token,
-            "sensor_token": token(seed, "sensor", CHANNEL),
-            "translation": calib["translation"],
-            "rotation": calib["rotation"],
-            "camera_intrinsic": calib["K"],
-        }
-    ]
-    rows["scene"] = [
-        {
-            "token": scene["token"],
-            "log_token": token(seed, "log", index // 4),
-            "nbr_samples": n_keyframes,
-            "first_sample_token": sample_tokens[0],
-            "last_sample_token": sample_tokens[-1],
-            "name": scene["name"],
-            "description": scene["description"],
-        }
-    ]
-    return {"rows": rows, "scene": scene}
+    return {
+        "token": cs_token,
+        "sensor_token": token(seed, "sensor", CHANNEL),
+        "translation": calib["translation"],
+        "rotation": calib["rotation"],
+        "camera_intrinsic": calib["K"],
+    }
+
+
+def _scene_row(seed: int, index: int, scene: dict, sample_tokens: list[str]) -> dict:
+    """The scene record (4 scenes per log)."""
+    return {
+        "token": scene["token"],
+        "log_token": token(seed, "log", index // 4),
+        "nbr_samples": len(sample_tokens),
+        "first_sample_token": sample_tokens[0],
+        "last_sample_token": sample_tokens[-1],
+        "name": scene["name"],
+        "description": scene["description"],
+    }
 
 
 # --------------------------------------------------------------------------------------------
