@@ -40,9 +40,11 @@ import os
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from flowmod.progress import bar
+from flowmod.world import scene as ws
 from flowmod.world.records import (
     CHANNEL,
     TABLES,
@@ -89,8 +91,6 @@ def generate_world(
     synthetic version folder is replaced; a real one is never touched (:class:`WorldError`).
     Returns the dataroot. Deterministic: same seed and sizes give byte-identical files.
     """
-    from flowmod.world import scene as ws
-
     for name, v, lo in (
         ("n_scenes", n_scenes, 1),
         ("n_keyframes", n_keyframes, 2),
@@ -184,14 +184,15 @@ def generate_world(
 
 
 def _write_map(path: Path) -> None:
-    import cv2
-
+    """A blank 64 x 64 PNG as the map image the map table names."""
     img = np.full((64, 64), 255, np.uint8)
     ok, buf = cv2.imencode(".png", img)
     write_bytes(path, buf.tobytes())
 
 
 def _run_jobs(args: list[tuple], n_jobs: int, progress: bool) -> list[dict]:
+    """:func:`scene_job` of every argument tuple, in order: in this process or ``n_jobs``
+    worker processes."""
     pbar = bar(total=len(args), desc="synthetic world", unit="scene", disable=not progress)
     out = []
     try:
@@ -200,6 +201,8 @@ def _run_jobs(args: list[tuple], n_jobs: int, progress: bool) -> list[dict]:
                 out.append(scene_job(*a))
                 pbar.update(1)
         else:
+            # here, not at the top: joblib takes ~0.1 s to import and only parallel
+            # generation needs it
             from joblib import Parallel, delayed
 
             gen = Parallel(n_jobs=n_jobs, return_as="generator")(
