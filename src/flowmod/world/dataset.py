@@ -91,16 +91,7 @@ def generate_world(
     synthetic version folder is replaced; a real one is never touched (:class:`WorldError`).
     Returns the dataroot. Deterministic: same seed and sizes give byte-identical files.
     """
-    for name, v, lo in (
-        ("n_scenes", n_scenes, 1),
-        ("n_keyframes", n_keyframes, 2),
-        ("vehicles_per_scene", vehicles_per_scene, 1),
-        ("n_sweep_scenes", n_sweep_scenes, 0),
-    ):
-        if int(v) < lo:
-            raise WorldError(f"{name}={v} must be >= {lo}")
-    if n_sweep_scenes > n_scenes:
-        raise WorldError(f"n_sweep_scenes={n_sweep_scenes} must be <= n_scenes={n_scenes}")
+    _check_sizes(n_scenes, n_keyframes, n_sweep_scenes, vehicles_per_scene)
     root = Path(dataroot).expanduser().resolve()
     _check_dataroot(root, version)
     root.mkdir(parents=True, exist_ok=True)
@@ -111,23 +102,7 @@ def generate_world(
     ]
     results = _run_jobs(args, n_jobs, progress)
 
-    tables: dict[str, list] = {
-        n: []
-        for n in (
-            "scene",
-            "sample",
-            "sample_data",
-            "ego_pose",
-            "sample_annotation",
-            "instance",
-            "calibrated_sensor",
-        )
-    }
-    scenes = []
-    for res in results:
-        for n in tables:
-            tables[n].extend(res["rows"][n])
-        scenes.append(res["scene"])
+    tables, scenes = _scene_tables(results)
     map_filename = f"maps/synth-{token(seed, 'map')}.png"
     tables.update(static_tables(seed, n_scenes, map_filename))
     _write_map(root / map_filename)
@@ -149,6 +124,54 @@ def generate_world(
         "complete": True,
         "scenes": scenes,
     }
+    old_files = _install_tables(root, version, tables, world)
+    _remove_stale_frames(root, old_files, tables["sample_data"])
+    load_world.cache_clear()
+    return root
+
+
+def _check_sizes(
+    n_scenes: int, n_keyframes: int, n_sweep_scenes: int, vehicles_per_scene: int
+) -> None:
+    """Refuse sizes the world cannot have (:class:`WorldError`)."""
+    for name, v, lo in (
+        ("n_scenes", n_scenes, 1),
+        ("n_keyframes", n_keyframes, 2),
+        ("vehicles_per_scene", vehicles_per_scene, 1),
+        ("n_sweep_scenes", n_sweep_scenes, 0),
+    ):
+        if int(v) < lo:
+            raise WorldError(f"{name}={v} must be >= {lo}")
+    if n_sweep_scenes > n_scenes:
+        raise WorldError(f"n_sweep_scenes={n_sweep_scenes} must be <= n_scenes={n_scenes}")
+
+
+def _scene_tables(results: list[dict]) -> tuple[dict[str, list], list[dict]]:
+    """The per-scene tables (rows of every scene, in scene order) and the scene descriptions
+    of the scene jobs' ``results``."""
+    tables: dict[str, list] = {
+        n: []
+        for n in (
+            "scene",
+            "sample",
+            "sample_data",
+            "ego_pose",
+            "sample_annotation",
+            "instance",
+            "calibrated_sensor",
+        )
+    }
+    scenes = []
+    for res in results:
+        for n in tables:
+            tables[n].extend(res["rows"][n])
+        scenes.append(res["scene"])
+    return tables, scenes
+
+
+def _install_tables(root: Path, version: str, tables: dict[str, list], world: dict) -> set[str]:
+    """Write the tables and the world description to a hidden folder and swap it in as
+    ``<root>/<version>``; return the frame filenames of the synthetic world it replaced."""
     final = root / version
     tmp = root / f".{version}.partial-{os.getpid()}"
     if tmp.exists():
@@ -174,13 +197,17 @@ def generate_world(
         shutil.rmtree(aside, ignore_errors=True)
     else:
         os.replace(tmp, final)
-    new_files = {r["filename"] for r in tables["sample_data"]}
+    return old_files
+
+
+def _remove_stale_frames(root: Path, old_files: set[str], sample_data: list[dict]) -> None:
+    """Delete the replaced world's frames (``old_files``, relative to ``root``) that the new
+    world's ``sample_data`` does not name."""
+    new_files = {r["filename"] for r in sample_data}
     for stale in sorted(old_files - new_files):
         p = root / stale
         if p.is_file() and p.name.startswith("synth-"):
             p.unlink()
-    load_world.cache_clear()
-    return root
 
 
 def _write_map(path: Path) -> None:
