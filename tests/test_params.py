@@ -94,9 +94,14 @@ def test_from_notebook_takes_only_param_names():
 
 
 def test_paths_resolve_against_repo_root():
-    p = validate({"run_dir": "runs/x", "dataroot": "/abs/data"})
+    p = validate({"run_dir": "runs/x", "dataroot": "/abs/data", "synthetic": False})
     assert p.run_path == repo_root() / "runs" / "x"
     assert str(p.dataroot_path) == "/abs/data"
+    # a generated world lives in a folder of its own, named by its generation parameters
+    g = validate({"dataroot": "data/demo"})
+    assert g.dataroot_path == repo_root() / "data" / "demo" / "worlds" / g.world_id
+    assert validate({"dataroot": "data/demo", "seed": 1}).world_id != g.world_id
+    assert validate({"dataroot": "data/demo", "epochs": 1}).world_id == g.world_id
 
 
 def test_cli_rejects_a_bad_profile_before_work(tmp_path):
@@ -110,3 +115,51 @@ def test_cli_rejects_a_bad_profile_before_work(tmp_path):
     assert proc.returncode == 2
     assert "min_distance=90.0 must be < max_distance=70.0" in proc.stderr
     assert not out.exists(), "a bad profile must be rejected before any notebook runs"
+
+
+def _runner(*args, cwd=None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "flowmod.runner", *map(str, args)],
+                          capture_output=True, text=True, cwd=cwd or repo_root())
+
+
+def test_cli_bad_yaml_gives_one_line_naming_the_file(tmp_path):
+    bad = tmp_path / "broken.yaml"
+    bad.write_text("profile: broken\nepochs: [1\nseed: 2\n")
+    proc = _runner("--profile", bad, "--status")
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert str(bad) in proc.stderr and "not valid YAML at line 3" in proc.stderr
+    proc = _runner("--profile", "smoke", "--status", "--set", "flow_methods=[nope")
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert "--set 'flow_methods=[nope'" in proc.stderr and "not a YAML value" in proc.stderr
+
+
+def test_a_second_run_on_one_folder_stops_with_one_line_and_a_killed_holder_frees_it(tmp_path):
+    """An OS file lock per run folder: a second runner names the process that holds it and
+    stops before any work; kill -9 of the holder releases it (the kernel closes its file)."""
+    import os
+    import signal
+    import time
+
+    run_dir = tmp_path / "runs"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from flowmod.lock import folder_lock\n"
+         f"with folder_lock({str(run_dir)!r}, 'a test holder'):\n"
+         "    print('held', flush=True); time.sleep(60)"],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        out = tmp_path / "executed"
+        proc = _runner("--profile", "smoke", "--only", "00", "--out", out,
+                       "--set", f"run_dir={run_dir}")
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+        assert f"in use by pid {holder.pid} (a test holder" in lines[0]
+        assert not out.exists(), "nothing ran"
+    finally:
+        os.kill(holder.pid, signal.SIGKILL)
+        holder.wait()
+    from flowmod.lock import folder_lock
+
+    t0 = time.monotonic()
+    with folder_lock(run_dir, "after the kill"):
+        assert time.monotonic() - t0 < 1.0

@@ -196,7 +196,7 @@ def snapshot(run: Path) -> dict[Path, tuple[int, int]]:
     """Every artefact file with its (mtime, inode); kept variants, building folders and the
     append-only timing logs of the flow pools are not artefacts of a node."""
     return {f: (f.stat().st_mtime_ns, f.stat().st_ino) for f in run.rglob("*")
-            if f.is_file() and f.name not in (".digests.json", "seconds.jsonl")
+            if f.is_file() and f.name not in (".digests.json", "seconds.jsonl", ".flowmod.lock")
             and not any(".variant-" in x or ".building-" in x for x in f.parts)}
 
 

@@ -27,6 +27,7 @@ from flowmod import crops, dag, difficulty, evaluate, select, train
 from flowmod.extensions import context, inputs, selfflow, wide
 from flowmod.flow import stage as flow_stage
 from flowmod.flow.store import valid_path
+from flowmod.lock import folder_lock
 from flowmod.params import Params
 from flowmod.world import source as world_source
 
@@ -110,7 +111,8 @@ def build(p: Params, chapters: Iterable[str] | None = None, progress: bool = Fal
     unknown = (wanted or set()) - set(CHAPTERS)
     if unknown:
         raise ValueError(f"no stages in chapter(s) {sorted(unknown)}; known: {list(CHAPTERS)}")
-    return GRAPH.build(p, wanted, progress)
+    with folder_lock(p.run_path, "pipeline.build"):  # one build per run folder at a time
+        return GRAPH.build(p, wanted, progress)
 
 
 # --- status -------------------------------------------------------------------------------------

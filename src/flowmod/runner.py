@@ -39,10 +39,12 @@ from jupyter_client.manager import AsyncKernelManager
 from flowmod import environment, pipeline, progress
 from flowmod.artefacts import atomic_path, fingerprint, write_json
 from flowmod.flow.networks import planned_methods
+from flowmod.lock import FolderBusy, folder_lock
 from flowmod.params import Params, ProfileError, load_profile, parse_overrides, profile_path
 from flowmod.paths import repo_root
 from flowmod.report.book import check_executed
 from flowmod.select import SelectionError, check_dataroot
+from flowmod.world import source as world_source
 
 
 class NotebookFailed(RuntimeError):
@@ -282,13 +284,24 @@ def run(
     only: list[str] | None = None,
     kernel: str = "python3",
     notebooks_dir: Path | None = None,
+    wait: bool = False,
 ) -> dict[str, Any]:
     """Validate the profile, then execute the notebooks; returns the run record.
 
-    Raises :class:`ProfileError` for a bad profile (before any notebook runs) and
-    :class:`NotebookFailed` at the first notebook that fails.
+    Raises :class:`ProfileError` for a bad profile (before any notebook runs),
+    :class:`flowmod.lock.FolderBusy` when another run holds the run folder or the folder of
+    executed notebooks (``wait``: wait for it), and :class:`NotebookFailed` at the first
+    notebook that fails.
     """
     plan = preflight(profile, overrides, out_dir, only, notebooks_dir)
+    command = f"runner --profile {profile}"
+    with folder_lock(plan.p.run_path, command, wait), folder_lock(plan.out_dir, command, wait):
+        return _execute_all(plan, profile, overrides, only, kernel)
+
+
+def _execute_all(plan: Plan, profile: str | Path, overrides: dict[str, Any] | None,
+                 only: list[str] | None, kernel: str) -> dict[str, Any]:
+    """Execute the plan's notebooks in order, keeping ``run_info.json`` current."""
     plan.out_dir.mkdir(parents=True, exist_ok=True)
     record = _record(plan, profile, overrides, partial=bool(only))
     info_path = plan.out_dir / "run_info.json"
@@ -335,6 +348,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", action="append", default=None, metavar="NN",
                     help="run only notebooks whose name starts with this, repeatable")
     ap.add_argument("--out", type=Path, default=None, help="folder for executed notebooks")
+    ap.add_argument("--wait", action="store_true",
+                    help="if another run holds the run folder, wait for it instead of stopping")
     ap.add_argument("--status", action="store_true",
                     help="print, per stage, whether its artefacts are up to date and why not; "
                          "run nothing")
