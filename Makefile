@@ -44,7 +44,7 @@ $(MATHJAX):
 	npm install --silent --no-audit --no-fund --prefix build/vendor mathjax@3.2.2
 	@test -f $@
 
-data: env  ## build the synthetic world of PROFILE (demo: data/demo)
+data: env  ## build the synthetic world of PROFILE (demo: data/demo/worlds/<id>)
 	$(PY) -m flowmod.world --profile $(PROFILE) $(RUN_SET)
 
 run: env  ## execute notebooks/NN_*.ipynb in order with params/$(PROFILE).yaml into build/executed
@@ -53,8 +53,8 @@ run: env  ## execute notebooks/NN_*.ipynb in order with params/$(PROFILE).yaml i
 status: env  ## per stage of PROFILE (+SET): up to date or stale, and why; runs nothing
 	$(PY) -m flowmod.runner --profile $(PROFILE) --status $(RUN_SET)
 
-gc: env  ## remove per-pair cache files no node of PROFILE (+SET) reads (other worlds, options, crop geometries)
-	$(PY) -m flowmod.runner --profile $(PROFILE) --gc $(RUN_SET)
+gc: env  ## remove per-pair cache files no node of PROFILE (+SET) reads (other options, crop geometries; GC=--worlds: other generated worlds too)
+	$(PY) -m flowmod.runner --profile $(PROFILE) --gc $(GC) $(RUN_SET)
 
 book: run browser  ## run, then render the book into build/html (and check it in Chromium)
 	$(PY) -m flowmod.report.book --executed $(EXECUTED) --out $(HTML)

@@ -19,10 +19,10 @@ def smoke_world(tmp_path_factory) -> tuple[Path, str]:
     (with its manifest); a few seconds."""
     from flowmod.world import ensure_world
 
-    root = tmp_path_factory.mktemp("smoke_world")
-    ensure_world(load_profile("smoke", dataroot=str(root), version=SMOKE_VERSION, n_jobs=1),
-                 progress=False)
-    return root, SMOKE_VERSION
+    p = load_profile("smoke", dataroot=str(tmp_path_factory.mktemp("smoke_world")),
+                     version=SMOKE_VERSION, n_jobs=1)
+    ensure_world(p, progress=False)
+    return p.dataroot_path, SMOKE_VERSION
 
 
 @pytest.fixture(scope="session")
@@ -41,7 +41,22 @@ def smoke_built(smoke_world, tmp_path_factory):
     from flowmod import pipeline
 
     root, version = smoke_world
-    p = load_profile("smoke", dataroot=str(root), version=version,
+    # the dataroot the world was generated under (<dataroot>/worlds/<id>): a profile with
+    # other world parameters then reads (or makes) another world beside it
+    p = load_profile("smoke", dataroot=str(root.parents[1]), version=version,
                      run_dir=str(tmp_path_factory.mktemp("built") / "runs"))
+    assert p.dataroot_path == root
     pipeline.build(p)
     return p
+
+
+#: Fixtures that generate or build on the smoke world (seconds to minutes each session).
+WORLD_FIXTURES = {"smoke_world", "smoke_nusc", "smoke_built"}
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark every test that needs the smoke world ``world``, so that quick runs (mutation
+    testing: ``-m "not slow and not world"``) can leave them out."""
+    for item in items:
+        if WORLD_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.world)

@@ -8,6 +8,7 @@ Farneback are checked for accuracy on textured synthetic pairs with known flow.
 from __future__ import annotations
 
 import os
+import shutil
 import sys
 import types
 from pathlib import Path
@@ -461,6 +462,11 @@ def test_pair_keys_follow_the_data_not_the_pair_id(tmp_path):
     keys = fl.stage.pair_keys(pairs, root, "world-A")
     assert len(set(keys)) == 2
     assert fl.stage.pair_keys(pairs, root, "world-B") != keys, "another world"
+    # the same files and version name, another world's content: other keys
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    assert fl.stage.pair_keys(pairs, copy, "world-A") == keys, "a copy of the same world"
+    assert fl.stage.pair_keys(pairs, copy, "world-C") != keys
     other_tokens = pairs.assign(sd_token_1=["x", "y"])
     assert fl.stage.pair_keys(other_tokens, root, "world-A") != keys, "other frames"
     img = root / pairs.path_2[0]

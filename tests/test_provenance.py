@@ -32,7 +32,6 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
                   "selfflow"}, ()),
     "device": ("cpu", set(), ()),
     "force": (True, set(), ()),
-    "synthetic": (False, set(), ()),
     "world_scenes": (5, {"world"}, ()),
     "world_keyframes": (5, {"world"}, ()),
     "world_sweep_scenes": (2, {"world"}, ()),
@@ -90,7 +89,7 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "selfflow_eval_every": (3, {"selfflow"}, ()),
 }
 #: Parameters whose change is not "some stages read another value" (checked on their own).
-SPECIAL = {"run_dir", "dataroot", "version", "flow_methods", "seeds", "extension_inputs",
+SPECIAL = {"run_dir", "dataroot", "synthetic", "version", "flow_methods", "seeds", "extension_inputs",
            "extension_methods", "wide_methods", "selfflow_modes"}
 
 
@@ -133,12 +132,27 @@ def test_every_parameter_makes_exactly_its_readers_and_downstream_stale(finished
 
 def test_special_parameters(finished, tmp_path):
     nodes = set(pipeline.nodes(finished))
-    # another place for the data (not there yet): only the world is missing; what was built
-    # from an identical world stays valid, since the world's identity is its content
+    # another place for the data (not there yet): the world is missing, and nothing below it
+    # can be trusted until it is there; once generated it is the same content (the world's
+    # identity), so what was built from it is valid again
     for name, value in (("dataroot", str(tmp_path / "elsewhere")), ("version", "v1.0-other")):
-        st = {s.node: s for s in pipeline.status(finished.model_copy(update={name: value}))}
+        moved = finished.model_copy(update={name: value})
+        st = {s.node: s for s in pipeline.status(moved)}
         assert st[dag.Node("world")].state == "missing"
-        assert {n for n, s in st.items() if s.state != "up to date"} == {dag.Node("world")}
+        assert {n for n, s in st.items() if s.state == "up to date"} == set()
+        assert "input world is missing" in st[dag.Node("select")].why
+    # synthetic: false says the dataroot itself is the data (real nuScenes): at the parent of
+    # the generated worlds there is none; pointed at the world's own folder, nothing changes
+    real = finished.model_copy(update={"synthetic": False})
+    assert real.dataroot_path == Path(finished.dataroot).resolve() != finished.dataroot_path
+    assert {s.node: s.state for s in pipeline.status(real)}[dag.Node("world")] == "missing"
+    in_place = finished.model_copy(update={"synthetic": False,
+                                           "dataroot": str(finished.dataroot_path)})
+    assert in_place.dataroot_path == finished.dataroot_path and not_up_to_date(in_place) == set()
+    elsewhere = finished.model_copy(update={"dataroot": str(tmp_path / "elsewhere")})
+    pipeline.build(elsewhere, ["01"])
+    assert elsewhere.dataroot_path != finished.dataroot_path
+    assert not_up_to_date(elsewhere) == set()
     # another run folder: nothing built there yet
     fresh = finished.model_copy(update={"run_dir": str(tmp_path / "runs")})
     assert not_up_to_date(fresh) == nodes - {dag.Node("world")}
@@ -303,7 +317,9 @@ def test_failed_forced_rerun_loses_nothing(finished, tmp_path):
     with pytest.raises(ImageError, match=str(victim.name)):
         pipeline.build(forced, ["03"])
     assert snapshot(run) == before, "nothing was removed or rewritten"
-    assert not_up_to_date(p) == set(), "and everything is still up to date"
+    # the cut image is an edit of the world: everything below it is stale, nothing is lost
+    assert not_up_to_date(p) == set(pipeline.nodes(p)) - {dag.Node("world")}
+    assert "1 image(s)" in next(s.why for s in pipeline.status(p) if s.node.stage == "world")
     n_files = [f for f in before if f.suffix == ".npy" and "pool" in f.parts]
     assert n_files and all(f.is_file() for f in n_files)
 
@@ -393,3 +409,79 @@ def test_gc_removes_only_what_no_node_reads(finished, tmp_path):
     assert n == 1 + len(files[select.WIDE]), "the wide node's medium variant and its files"
     assert len([d for d in pool.iterdir() if d.is_dir()]) == 1, "emptied option folder removed"
     assert pipeline.collect_garbage(fast) == (0, 0)
+
+
+def test_edited_world_makes_its_readers_stale_and_recomputes_flow(finished, tmp_path):
+    """One annotation moved by 2 m (a still vehicle now drives 4 m/s): the world says what
+    was edited, its readers are stale, and a rebuild relabels the vehicle and computes flow
+    again (a pool key is the world's content, never its version name)."""
+    run, data = tmp_path / "runs", tmp_path / "data"
+    shutil.copytree(finished.run_path, run, symlinks=True)
+    shutil.copytree(finished.dataroot_path, data)
+    p = finished.model_copy(update={"run_dir": str(run), "dataroot": str(data)})
+    assert not_up_to_date(p) == set()
+    objects = pd.read_parquet(pipeline.node_dir(p, dag.Node("select")) / "objects.parquet")
+    pairs = pd.read_parquet(pipeline.node_dir(p, dag.Node("select")) / "pairs.parquet")
+    still = objects[objects["label"] == 0].iloc[0]
+    sample_2 = pairs.set_index("pair_id").loc[still["pair_id"], "sample_token_2"]
+    table = data / p.version / "sample_annotation.json"
+    anns = json.loads(table.read_text())
+    ann = next(a for a in anns if a["instance_token"] == still["instance_token"]
+               and a["sample_token"] == sample_2)
+    ann["translation"][0] += 2.0
+    table.write_text(json.dumps(anns))
+    st = {s.node: s for s in pipeline.status(p)}
+    assert st[dag.Node("world")].state == "up to date"
+    assert "sample_annotation.json" in st[dag.Node("world")].why
+    readers = {n for n in pipeline.nodes(p) if dag.Node("world") in pipeline.inputs(n, p)}
+    assert {dag.Node("select"), dag.Node("flow", "dis", "keyframe")} <= readers
+    assert all(st[n].why.startswith("input world changed") for n in readers), readers
+    assert not_up_to_date(p) == downstream(p, readers)
+    pipeline.build(p, ["01", "02", "03"])
+    again = pd.read_parquet(pipeline.node_dir(p, dag.Node("select")) / "objects.parquet")
+    row = again[(again["ann_token"] == still["ann_token"])].iloc[0]
+    assert row["label"] == 1 and row["speed"] == pytest.approx(4.0, abs=0.1)
+    for m in p.flow_methods:
+        rec = pipeline.recorded(p, dag.Node("flow", m, "keyframe"))
+        assert rec["computed"] == rec["pairs"] > 0, "no flow of the unedited world reused"
+
+
+def test_train_stage_chooses_the_epoch_on_validation(finished, tmp_path, monkeypatch):
+    """The train stage hands train_model the train split to learn from, the val split to
+    choose the epoch on, and the test split only as unscored record."""
+    from flowmod import crops, train
+
+    run = tmp_path / "runs"
+    shutil.copytree(finished.run_path, run, symlinks=True)
+    p = finished.model_copy(update={"run_dir": str(run), "force": True})
+    seen, real = {}, train.train_model
+
+    def spy(train_x, train_df, val_x, val_df, out_dir, *args, **kw):
+        seen.update(train=set(train_df["split"]), val=set(val_df["split"]),
+                    record=len(kw["record"]))
+        return real(train_x, train_df, val_x, val_df, out_dir, *args, **kw)
+
+    monkeypatch.setattr(train, "train_model", spy)
+    pipeline.GRAPH.build_node(p, dag.Node("train", "dis", "s0"))
+    folder = pipeline.node_dir(p, dag.Node("crops", "dis", "keyframe"))
+    assert seen == {"train": {"train"}, "val": {"val"},
+                    "record": len(crops.read_crops(folder, "test")[1])}
+
+
+def test_gc_knows_the_other_generated_worlds(finished, tmp_path, capsys):
+    """Worlds of other parameters live beside this profile's under the dataroot: --gc says
+    so, --gc --worlds removes them and never this profile's."""
+    from flowmod import runner
+
+    data = tmp_path / "data"
+    shutil.copytree(finished.path(finished.dataroot), data)
+    other = data / "worlds" / "0123456789abcdef"
+    (other / "v1.0-synth").mkdir(parents=True)
+    (other / "v1.0-synth" / "scene.json").write_text("[]")
+    args = ["--profile", "smoke", "--gc", "--set", f"run_dir={finished.run_dir}",
+            "--set", f"dataroot={data}"]
+    assert runner.main(args) == 0
+    assert "1 other generated world(s)" in capsys.readouterr().out and other.is_dir()
+    assert runner.main([*args, "--worlds"]) == 0
+    own = finished.model_copy(update={"dataroot": str(data)}).dataroot_path
+    assert not other.exists() and (own / "v1.0-synth" / "scene.json").is_file()

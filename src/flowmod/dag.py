@@ -90,8 +90,9 @@ class Source(Protocol):
     def record(self, p: Params) -> dict[str, Any] | None:
         """The data's manifest: ``fingerprint`` and what made it (None: not there)."""
 
-    def why(self, p: Params, record: dict[str, Any] | None) -> tuple[str, str]:
-        """(state, reason) when ``record`` does not carry :meth:`fingerprint`."""
+    def status(self, p: Params) -> tuple[str, str]:
+        """(state, note): ``up to date`` (with a note, e.g. what was edited) or ``missing``
+        and why."""
 
     def ensure(self, p: Params, progress: bool) -> None:
         """Make the data present (generate it), or explain in one line why it cannot be."""
@@ -440,10 +441,10 @@ class Graph:
         out: dict[Node, NodeStatus] = {}
         for node in exp:
             path, rec, fp = self.node_dir(p, node), self.recorded(p, node), exp[node]
-            if rec is not None and fp is not None and rec["fingerprint"] == fp:
+            if self.stage(node).source is not None:
+                state, why = self.stage(node).source.status(p)
+            elif rec is not None and fp is not None and rec["fingerprint"] == fp:
                 state, why = "up to date", ""
-            elif self.stage(node).source is not None:
-                state, why = self.stage(node).source.why(p, rec)
             else:
                 waiting = [i for i in self.inputs(node, p) if out[i].state != "up to date"]
                 state, why = self._stale(p, node, rec, fp, exp, waiting)
@@ -460,7 +461,8 @@ class Graph:
         if rec.get("version") != version:
             reasons.append(f"code version {rec.get('version')} -> {version}")
         reasons += diff(rec.get("params", {}), values(p, node))
-        changed = [f"input {i} " + ("is stale" if i in waiting else "changed")
+        changed = [f"input {i} " + ("changed" if i not in waiting else "is missing"
+                                    if exp[i] is None and self.stage(i).source else "is stale")
                    for i in self.inputs(node, p) if rec.get("inputs", {}).get(str(i)) != exp[i]]
         reasons += changed[:1] + ([f"(+{len(changed) - 1} more inputs)"] if len(changed) > 1
                                   else [])

@@ -11,6 +11,9 @@ Errors name the key, the value given and what is allowed, e.g.::
 
 from __future__ import annotations
 
+import hashlib
+import json
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, Literal
 
@@ -32,6 +35,13 @@ TABLE1_CATEGORIES = [
 ]
 
 FLOW_METHODS = ("gt", "dis", "farneback", "raft", "raft_small", "fastflownet")
+#: Version of the synthetic world's generator (:mod:`flowmod.world`): bump when it changes
+#: what it writes. With the generation parameters it names the folder a world is made in.
+GENERATOR_VERSION = 1
+#: A generated world's table written by the generator (real nuScenes has none).
+WORLD_FILE = "synth_world.json"
+#: A generated world's manifest, beside its tables (``flowmod.world.source``).
+WORLD_MANIFEST = "flowmod.manifest.json"
 
 
 class ProfileError(ValueError):
@@ -353,10 +363,61 @@ class Params(BaseModel):
     def run_path(self) -> Path:
         return self.path(self.run_dir)
 
+    def world_generation(self) -> dict[str, Any]:
+        """What a world generated from these parameters is made from: the generator's
+        version and the values of the parameters the world stage reads."""
+        out: dict[str, Any] = {"generator_version": GENERATOR_VERSION}
+        out.update({n: getattr(self, n) for n, f in Params.model_fields.items()
+                    if "world" in f.json_schema_extra["read_by"]})  # type: ignore[index]
+        return out
+
+    @property
+    def world_id(self) -> str:
+        """16 hex digits naming the world generated from these parameters."""
+        blob = json.dumps(self.world_generation(), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
     @property
     def dataroot_path(self) -> Path:
+        """The nuScenes root the stages read. ``dataroot`` itself for real data (or with
+        ``synthetic: false``), for a world's own folder (``.../worlds/<world_id>``, which
+        the runner hands the notebooks) and for a world generated at the dataroot with these
+        parameters; otherwise, for a world generated from the profile, its own folder
+        ``<dataroot>/worlds/<world_id>``, so that the worlds of other parameters, and the
+        runs reading them, never overwrite each other."""
         assert self.dataroot  # checked by the validator
-        return self.path(self.dataroot)
+        root = self.path(self.dataroot)
+        vdir = root / self.version
+        if not self.synthetic or root.parent.name == "worlds":
+            return root
+        if (vdir / "scene.json").is_file() and (
+                not (vdir / WORLD_FILE).is_file()
+                or _generation_at(vdir) in (None, self.world_generation())):
+            return root  # real data, or a world made here (for these parameters)
+        return root / "worlds" / self.world_id
+
+
+def _generation_at(vdir: Path) -> dict[str, Any] | None:
+    """What the world at ``vdir`` was generated from, as its manifest records it
+    (:meth:`Params.world_generation`); None without a manifest."""
+    m = vdir / WORLD_MANIFEST
+    try:
+        st = m.stat()
+    except OSError:
+        return None
+    return _read_generation(str(m), st.st_mtime_ns, st.st_size)
+
+
+@lru_cache(maxsize=16)
+def _read_generation(path: str, mtime_ns: int, size: int) -> dict[str, Any] | None:
+    try:
+        rec = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    if "generation" in rec:
+        return rec["generation"]
+    old = rec.get("params")  # a manifest of an earlier layout: generated in place
+    return {"generator_version": rec.get("version"), **old} if isinstance(old, dict) else None
 
 
 def _format_error(err: ValidationError, source: str) -> str:

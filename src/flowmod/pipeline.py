@@ -169,7 +169,7 @@ def _unreferenced_flow(p: Params, variants: bool) -> list[Path]:
     return out
 
 
-def unreferenced(p: Params, variants: bool = False) -> list[Path]:
+def unreferenced(p: Params, variants: bool = False, worlds: bool = False) -> list[Path]:
     """Files of the run folder's per-pair caches that no node of ``p`` can read any more:
     flow pool files listed by no flow index (published or kept variant) and crops pool
     folders of other options than ``p``'s (another geometry, flow option or dtype; the
@@ -177,8 +177,9 @@ def unreferenced(p: Params, variants: bool = False) -> list[Path]:
     read). ``variants``: also every kept variant (``.variant-`` folder: an earlier result
     that switching back would restore), and the flow files only they listed. A method with
     a build in progress (a ``.building-`` folder) keeps its files: they are its resume
-    point."""
+    point. ``worlds``: also the generated worlds under the dataroot other than ``p``'s."""
     out: list[Path] = sorted(p.run_path.rglob(".*.variant-*")) if variants else []
+    out += world_source.other_worlds(p) if worlds else []
     out += _unreferenced_flow(p, variants)
     for pool_root in sorted((p.run_path / "crops").glob("*/pool")):
         m = pool_root.parent.name
@@ -190,16 +191,20 @@ def unreferenced(p: Params, variants: bool = False) -> list[Path]:
     return out
 
 
-def collect_garbage(p: Params, dry_run: bool = False,
-                    variants: bool = False) -> tuple[int, int]:
+def collect_garbage(p: Params, dry_run: bool = False, variants: bool = False,
+                    worlds: bool = False) -> tuple[int, int]:
     """Remove :func:`unreferenced` files and folders (``dry_run``: only count them); then
     option folders left without flow files. Returns (items, bytes)."""
-    items = unreferenced(p, variants)
+    items = unreferenced(p, variants, worlds)
     size = sum(f.stat().st_size for i in items
                for f in ([i] if i.is_file() else list(i.rglob("*"))) if f.is_file())
     if not dry_run:
+        others = set(world_source.other_worlds(p))
         for i in items:
-            shutil.rmtree(i) if i.is_dir() else i.unlink()
+            if i in others:
+                world_source.remove_world(i)  # not while a run generates it
+            else:
+                shutil.rmtree(i) if i.is_dir() else i.unlink()
         for folder in (p.run_path / "flow").glob("*/pool/*"):
             if folder.is_dir() and not any(folder.glob("*.npy")):
                 shutil.rmtree(folder)

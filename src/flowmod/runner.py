@@ -81,6 +81,8 @@ def notebook_parameters(nb: Path, p: Params) -> dict[str, Any]:
             "add them to flowmod.params.Params"
         )
     values = p.model_dump()
+    if p.dataroot:  # the notebooks read the data where the run put it (a world's own folder)
+        values["dataroot"] = str(p.dataroot_path)
     return {k: values[k] for k in declared}
 
 
@@ -338,7 +340,7 @@ def resolve_profile(profile: str | Path, overrides: dict[str, Any] | None = None
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="python -m flowmod.runner", description=__doc__.split("\n\n")[0]
     )
@@ -360,22 +362,38 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--variants", action="store_true",
                     help="with --gc: also drop kept earlier results (switching back to their "
                          "parameters then recomputes) and the cache files only they read")
-    args = ap.parse_args(argv)
+    ap.add_argument("--worlds", action="store_true",
+                    help="with --gc: also remove the generated worlds under the dataroot "
+                         "other than this profile's (another run may still want them)")
+    return ap
+
+
+def _gc(args: argparse.Namespace) -> None:
+    p = resolve_profile(args.profile, parse_overrides(args.overrides))
+    with folder_lock(p.run_path, "runner --gc", wait=args.wait):
+        n, size = pipeline.collect_garbage(p, dry_run=args.dry_run, variants=args.variants,
+                                           worlds=args.worlds)
+    verb = "would free" if args.dry_run else "freed"
+    print(f"{p.run_path}: {n} cache files/folders no node reads; {verb} {size / 1e6:.1f} MB")
+    others = world_source.other_worlds(p)
+    if others and not args.worlds:
+        print(f"{len(others)} other generated world(s) under {others[0].parent} "
+              "(--gc --worlds removes them)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
     try:
         if args.gc:
-            p = resolve_profile(args.profile, parse_overrides(args.overrides))
-            n, size = pipeline.collect_garbage(p, dry_run=args.dry_run, variants=args.variants)
-            verb = "would free" if args.dry_run else "freed"
-            print(f"{p.run_path}: {n} cache files/folders no node reads; {verb} "
-                  f"{size / 1e6:.1f} MB")
-            return 0
-        if args.status:
+            _gc(args)
+        elif args.status:
             print(pipeline.format_status(resolve_profile(args.profile,
                                                          parse_overrides(args.overrides))))
-            return 0
-        run(args.profile, parse_overrides(args.overrides), out_dir=args.out, only=args.only)
-    except ProfileError as e:
-        print(f"ProfileError: {e}", file=sys.stderr)
+        else:
+            run(args.profile, parse_overrides(args.overrides), out_dir=args.out,
+                only=args.only, wait=args.wait)
+    except (ProfileError, FolderBusy) as e:
+        print(f"{type(e).__name__}: {e}", file=sys.stderr)
         return 2
     except NotebookFailed as e:
         print(f"NotebookFailed: {e}", file=sys.stderr)

@@ -43,6 +43,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from flowmod.params import GENERATOR_VERSION
 from flowmod.progress import bar
 from flowmod.world import scene as ws
 from flowmod.world.records import (
@@ -56,8 +57,6 @@ from flowmod.world.records import (
 )
 from flowmod.world.truth import WORLD_FILE, WorldError, load_world
 
-#: The world stage's code version (bump when the generator changes what it writes).
-GENERATOR_VERSION = 1
 
 def _check_dataroot(root: Path, version: str) -> None:
     """Refuse to write into a dataroot that holds real (non-synthetic) nuScenes tables."""

@@ -1,64 +1,99 @@
 """The world as the study's source stage: where the data is, its identity, and making it.
 
 The ``world`` node is the data every other node reads: a world generated from the profile
-(``synthetic: true`` and no real tables at the dataroot) or a nuScenes-format data set
-(real nuScenes, or a generated world used as it is). Its fingerprint is that of its
-generation parameters for a world generated from this profile and that of its tables'
-content for any other data, so the identity of the data (another seed, another dataroot
-holding other data) reaches every node below it.
+(``synthetic: true``), in its own folder ``<dataroot>/worlds/<world_id>`` (so that the worlds
+of other parameters never overwrite each other), or a nuScenes-format data set (real
+nuScenes, ``synthetic: false``). Its fingerprint is its **content**, for both: the tables'
+digests and, for a generated world, its images (names, sizes, JPEG end markers). Any edit of
+the data (an annotation moved, an image cut short) therefore makes exactly the nodes that
+read it stale; nothing is known below a world that is not there yet. Digests are cached by
+(size, mtime), so a status costs a few stat calls.
 """
 
 from __future__ import annotations
 
+import contextlib
+import shutil
 from pathlib import Path
 from typing import Any
 
 from flowmod import dag
 from flowmod.artefacts import file_digest, fingerprint, read_manifest, write_manifest
-from flowmod.params import Params
-from flowmod.world.dataset import GENERATOR_VERSION, generate_world
-from flowmod.world.truth import WORLD_FILE, WorldError, is_synthetic, world_params
+from flowmod.lock import file_lock
+from flowmod.params import WORLD_FILE, WORLD_MANIFEST, Params
+from flowmod.world.dataset import generate_world
+from flowmod.world.truth import WorldError, is_synthetic
 
-#: The world's manifest, beside its tables (written by :func:`ensure_world`).
-WORLD_MANIFEST = "flowmod.manifest.json"
 NODE = dag.Node("world")
+_JPEG_EOI = b"\xff\xd9"
 
 
 def is_generated_world(p: Params) -> bool:
     """True if the profile's data is (or will be made as) a generated world."""
     vdir = p.dataroot_path / p.version
-    if (vdir / WORLD_FILE).is_file():
-        return True
-    return p.synthetic and not (vdir / "scene.json").is_file()
+    return (vdir / WORLD_FILE).is_file() or (p.synthetic and not (vdir / "scene.json").is_file())
 
 
-def tables_digest(p: Params) -> str:
-    """sha256 over the content of every ``*.json`` table of ``<dataroot>/<version>``."""
+def table_digests(p: Params) -> dict[str, str]:
+    """sha256 of every ``*.json`` table of ``<dataroot>/<version>`` (cached by stat)."""
     vdir = p.dataroot_path / p.version
-    files = sorted(f for f in vdir.glob("*.json") if f.name != WORLD_MANIFEST)
-    return fingerprint([(f.name, file_digest(f, dag.digest_cache(p))) for f in files], n=64)
+    return {f.name: file_digest(f, dag.digest_cache(p))
+            for f in sorted(vdir.glob("*.json")) if f.name != WORLD_MANIFEST}
 
 
-def generation_payload(p: Params) -> dict[str, Any]:
-    """What a world generated from ``p`` is the fingerprint of: its generation parameters."""
-    return dag.payload(p, NODE, GENERATOR_VERSION, {})
+def image_inventory(root: Path) -> dict[str, list[Any]]:
+    """``{relative path: [size, ends with the JPEG end marker]}`` of a generated world's
+    camera images (``samples/``, ``sweeps/``): what a truncated or replaced frame changes."""
+    out: dict[str, list[Any]] = {}
+    for sub in ("samples", "sweeps"):
+        for f in sorted((root / sub).rglob("*.jpg")):
+            size = f.stat().st_size
+            with open(f, "rb") as fh:
+                fh.seek(max(size - 2, 0))
+                out[str(f.relative_to(root))] = [size, fh.read(2) == _JPEG_EOI]
+    return out
+
+
+def content(p: Params) -> dict[str, Any]:
+    """What the world's fingerprint is the hash of: its tables' digests and, for a
+    generated world, its image inventory's."""
+    out: dict[str, Any] = {"tables": table_digests(p)}
+    if (p.dataroot_path / p.version / WORLD_FILE).is_file():
+        out["images"] = fingerprint(image_inventory(p.dataroot_path), n=64)
+    return out
 
 
 def world_fingerprint(p: Params) -> str | None:
-    """The world node's fingerprint now: generation parameters for a world generated (or
-    about to be) from this profile, content of the tables for any other data; None when the
-    data is missing."""
-    vdir = p.dataroot_path / p.version
-    generated = (vdir / WORLD_FILE).is_file()
-    if (vdir / "scene.json").is_file() and not generated:
-        return fingerprint({"stage": "world", "tables": tables_digest(p)})
-    if p.synthetic:
-        return fingerprint(generation_payload(p))
-    if generated:  # someone's generated world, used as it is
-        rec = read_manifest(vdir / WORLD_MANIFEST)
-        return rec["fingerprint"] if rec else fingerprint({"stage": "world",
-                                                            "tables": tables_digest(p)})
-    return None
+    """The world node's fingerprint now: its content's (None when the data is missing).
+    Real data keeps the fingerprint of its tables alone."""
+    if not (p.dataroot_path / p.version / "scene.json").is_file():
+        return None
+    c = content(p)
+    if "images" not in c:
+        return fingerprint({"stage": "world", "tables": fingerprint(
+            sorted(c["tables"].items()), n=64)})
+    return fingerprint({"stage": "world", **c})
+
+
+def edits(p: Params) -> str:
+    """What changed in a generated world since it was generated (tables and images named),
+    or ``""``."""
+    rec = read_manifest(p.dataroot_path / p.version / WORLD_MANIFEST)
+    if not rec or "tables" not in rec:
+        return ""
+    now = table_digests(p)
+    tables = sorted(k for k in set(rec["tables"]) | set(now) if rec["tables"].get(k) != now.get(k))
+    images = []
+    if rec.get("inventory"):
+        inv = image_inventory(p.dataroot_path)
+        images = sorted(k for k in set(rec["inventory"]) | set(inv)
+                        if rec["inventory"].get(k) != inv.get(k))
+    if not tables and not images:
+        return ""
+    what = ([f"tables {', '.join(tables)}"] if tables else []) + (
+        [f"{len(images)} image(s), e.g. {images[0]}"] if images else [])
+    return (f"edited since it was generated ({'; '.join(what)}): its readers rebuild from "
+            f"the edited data; remove {p.dataroot_path} to generate it again")
 
 
 class WorldSource:
@@ -71,67 +106,82 @@ class WorldSource:
         return world_fingerprint(p)
 
     def record(self, p: Params) -> dict[str, Any] | None:
-        """The world's manifest; real data has none: its record is its content fingerprint."""
-        rec = read_manifest(self.location(p) / WORLD_MANIFEST)
-        if rec is None and not (p.synthetic and is_generated_world(p)):
-            fp = world_fingerprint(p)
-            return {"fingerprint": fp, "node": "world"} if fp else None
-        return rec
+        fp = world_fingerprint(p)
+        return {"fingerprint": fp, "node": "world"} if fp else None
 
-    def why(self, p: Params, record: dict[str, Any] | None) -> tuple[str, str]:
+    def status(self, p: Params) -> tuple[str, str]:
+        if world_fingerprint(p) is not None:
+            return "up to date", edits(p) if is_generated_world(p) else ""
         path = self.location(p)
-        if world_fingerprint(p) is None:
-            return "missing", f"no data at {path}"
-        if record is None:
+        if is_generated_world(p):
             return "missing", f"not generated yet at {path}"
-        return "stale", "generated with other parameters: " + "; ".join(
-            dag.diff(record.get("params", {}), dag.values(p, NODE)))
+        return "missing", f"no data at {path}"
 
     def ensure(self, p: Params, progress: bool) -> None:
         ensure_world(p, progress=progress)
 
 
 def ensure_world(params: Params, *, progress: bool = True) -> Path:
-    """Make sure the profile's dataroot holds its nuScenes-format data; return the dataroot.
+    """Make sure the profile's data is there; return its root (``params.dataroot_path``).
 
-    * a real (non-generated) version folder: used as it is (its identity is its tables'
-      content, :func:`world_fingerprint`);
-    * synthetic, and a generated world with this profile's fingerprint (sizes, seed,
-      generator version) present: reused; absent or made with other parameters: generated
-      (in a temporary folder, swapped in when complete), then its manifest is written;
-    * not synthetic and missing: :class:`WorldError` naming the path and the fix.
+    * real data (``synthetic: false``, or real tables at the dataroot): used as it is;
+      missing: :class:`WorldError` naming the path and the fix;
+    * a generated world: made in its own folder unless there (under a lock, so two runs
+      never generate the same world at once), then its manifest records what was generated
+      (:func:`edits` compares the data with it). A world present is used as it is, edits
+      included: its content is its identity.
     """
     q = dag.StageParams(params, NODE)
     root, version = q.dataroot_path, q.version
-    vdir = root / version
-    fp = world_fingerprint(params)
-    if fp is None:
-        raise WorldError(
-            f"nuScenes tables not found: {vdir} does not exist (or has no scene.json). Set "
-            f"dataroot to the folder that holds {version}/, samples/ and sweeps/ (e.g. "
-            f"DATAROOT=/data/sets/nuscenes), or set synthetic: true to generate a synthetic "
-            f"world there."
-        )
-    if not is_generated_world(params) or not q.synthetic:
+    if not is_generated_world(params):
+        if not (root / version / "scene.json").is_file():
+            raise WorldError(
+                f"nuScenes tables not found: {root / version} does not exist (or has no "
+                f"scene.json). Set dataroot to the folder that holds {version}/, samples/ and "
+                "sweeps/ (e.g. DATAROOT=/data/sets/nuscenes), or set synthetic: true to "
+                "generate a synthetic world there.")
         return root
-    manifest = vdir / WORLD_MANIFEST
-    rec = read_manifest(manifest)
-    if rec is not None and rec["fingerprint"] == fp and is_synthetic(root, version):
+    if is_synthetic(root, version):
         return root
-    sizes = {"n_scenes": q.world_scenes, "n_keyframes": q.world_keyframes,
-             "n_sweep_scenes": q.world_sweep_scenes, "vehicles_per_scene": q.world_vehicles,
-             "seed": q.seed}
-    have = world_params(root, version) if is_synthetic(root, version) else {}
-    same = all(have.get(k) == v for k, v in sizes.items()) and (
-        have.get("generator_version") == GENERATOR_VERSION)
-    if not same:  # a world from an earlier version of this code needs only its manifest
-        manifest.unlink(missing_ok=True)
-        generate_world(root, version, **sizes, n_jobs=q.n_jobs, progress=progress)
-    write_manifest(manifest, {**generation_payload(params), "fingerprint": fp})
+    with _world_lock(root, "generating it"):
+        if not is_synthetic(root, version):  # another run may have made it meanwhile
+            _generate(params, root, version, progress)
     return root
 
 
+def _generate(p: Params, root: Path, version: str, progress: bool) -> None:
+    """Generate the world of ``p`` into ``root`` and write its manifest."""
+    g = p.world_generation()
+    generate_world(root, version, n_scenes=g["world_scenes"], n_keyframes=g["world_keyframes"],
+                   n_sweep_scenes=g["world_sweep_scenes"],
+                   vehicles_per_scene=g["world_vehicles"], seed=g["seed"], n_jobs=p.n_jobs,
+                   progress=progress)
+    write_manifest(root / version / WORLD_MANIFEST, {
+        "node": "world", "world_id": p.world_id, "generation": g,
+        "tables": table_digests(p), "inventory": image_inventory(root),
+        "fingerprint": world_fingerprint(p)})
+
+
+def other_worlds(p: Params) -> list[Path]:
+    """The generated worlds under ``p``'s dataroot other than ``p``'s own
+    (``<dataroot>/worlds/<id>``)."""
+    base = p.path(p.dataroot) / "worlds"
+    own = p.dataroot_path
+    return sorted(d for d in base.iterdir() if d.is_dir() and d != own) if base.is_dir() else []
+
+
+def _world_lock(root: Path, doing: str) -> contextlib.AbstractContextManager[None]:
+    """The lock of a generated world's folder (a file beside it, never inside)."""
+    return file_lock(root.parent / f".{root.name}.lock", f"world {root.name}: {doing}",
+                     what=root)
+
+
+def remove_world(folder: Path) -> None:
+    """Remove a generated world's folder, unless a run holds it (generating it)."""
+    with _world_lock(folder, "removing it"):
+        shutil.rmtree(folder)
+
+
 #: The world stage (chapter 01): the data itself.
-STAGE = dag.Stage("world", GENERATOR_VERSION, "01", "",
-                  "the data: a generated world or nuScenes tables",
+STAGE = dag.Stage("world", 1, "01", "", "the data: a generated world or nuScenes tables",
                   nodes=lambda p: [NODE], source=WorldSource())

@@ -16,12 +16,10 @@ from typing import Any
 
 import numpy as np
 
+from flowmod.params import WORLD_FILE
 from flowmod.world import geometry as wg
 from flowmod.world import render as wr
 from flowmod.world import scene as ws
-
-#: File of a generated world (in ``<dataroot>/<version>/``) that real nuScenes lacks.
-WORLD_FILE = "synth_world.json"
 
 
 class WorldError(RuntimeError):
