@@ -86,3 +86,38 @@ def test_cli_errors_name_the_problem(case):
     gt_model = pipeline.node_dir(case["params"], dag.Node("train", "gt", "s0")) / "best.pt"
     proc = run(case["f1"], case["f2"], "--boxes", case["boxes"], "--model", gt_model)
     assert proc.returncode == 2 and "exact flow (gt)" in proc.stderr
+
+
+def one_line(proc: subprocess.CompletedProcess) -> str:
+    """The error a CLI printed, asserting it is one line (no traceback) and exit code 2."""
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    return lines[0]
+
+
+def test_cli_damaged_inputs_give_one_line(case):
+    """A model file cut short, a box that is not a number, a CSV without rows and a JPEG
+    cut short: one line naming the file (or row and column), never a traceback, and a cut
+    frame is refused as the pipeline refuses it."""
+    t = case["tmp"]
+    cut_model = t / "cut" / "best.pt"
+    cut_model.parent.mkdir()
+    data = case["model"].read_bytes()
+    cut_model.write_bytes(data[: len(data) // 2])
+    (cut_model.parent / "manifest.json").write_bytes(
+        (case["model"].parent / "manifest.json").read_bytes())
+    line = one_line(run(case["f1"], case["f2"], "--boxes", case["boxes"], "--model", cut_model))
+    assert "CheckpointError" in line and str(cut_model) in line
+    text = t / "text.csv"
+    text.write_text("xmin,ymin,xmax,ymax\n10,10,50,50\n10,ten,50,50\n")
+    line = one_line(run(case["f1"], case["f2"], "--boxes", text, "--model", case["model"]))
+    assert "row 1, column ymin: 'ten' is not a number" in line
+    header = t / "header.csv"
+    header.write_text("xmin,ymin,xmax,ymax\n")
+    line = one_line(run(case["f1"], case["f2"], "--boxes", header, "--model", case["model"]))
+    assert "no boxes" in line and str(header) in line
+    cut = t / "cut.jpg"
+    jpg = case["f2"].read_bytes()
+    cut.write_bytes(jpg[: len(jpg) * 2 // 3])
+    line = one_line(run(case["f1"], cut, "--boxes", case["boxes"], "--model", case["model"]))
+    assert "truncated JPEG" in line and str(cut) in line

@@ -81,12 +81,18 @@ def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu",
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"model checkpoint not found: {path}")
-    obj = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - torch raises many kinds for a damaged file
+        raise CheckpointError(
+            f"{path}: not a readable checkpoint ({type(e).__name__}: {str(e).splitlines()[0]}); "
+            "the file may be cut short or not a model: copy it again or retrain") from None
     state = _state_dict_of(obj, path)
+    conv1 = state.get("conv1.weight")
+    shaped = conv1 is not None and conv1.ndim == 4
     if in_channels is None:
-        conv1 = state.get("conv1.weight")
-        in_channels = int(conv1.shape[1]) if conv1 is not None and conv1.ndim == 4 else 2
-    model = motion_resnet18(in_channels)
+        in_channels = int(conv1.shape[1]) if shaped else 2
+    model = motion_resnet18(in_channels, int(conv1.shape[0]) if shaped else 64)
     check_state_dict(state, model, str(path))
     model.load_state_dict(state)
     return model.to(resolve_device(device)).eval()

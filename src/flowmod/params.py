@@ -460,7 +460,13 @@ def read_profile(name_or_path: str | Path) -> dict[str, Any]:
     if not p.is_file():
         known = ", ".join(sorted(x.stem for x in (repo_root() / "params").glob("*.yaml")))
         raise ProfileError(f"profile {str(name_or_path)!r} not found at {p}; known: {known}")
-    data = yaml.safe_load(p.read_text()) or {}
+    try:
+        data = yaml.safe_load(p.read_text()) or {}
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ProfileError(f"{p}: not valid YAML{where} ({getattr(e, 'problem', None) or e}); "
+                           "fix the file (a profile is a flat mapping key: value)") from None
     if not isinstance(data, dict):
         raise ProfileError(f"{p}: a profile must be a mapping of parameter names to values")
     return data
@@ -486,7 +492,12 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
         key, sep, raw = item.partition("=")
         if not sep or not key:
             raise ProfileError(f"override {item!r} must look like key=value")
-        out[key.strip()] = yaml.safe_load(raw) if raw.strip() else None
+        try:
+            out[key.strip()] = yaml.safe_load(raw) if raw.strip() else None
+        except yaml.YAMLError as e:
+            raise ProfileError(
+                f"--set {item!r}: {raw!r} is not a YAML value ({getattr(e, 'problem', None) or e}); "
+                "e.g. key=2, key=[dis,gt] or key='text'") from None
     return out
 
 

@@ -26,7 +26,13 @@ import pandas as pd
 
 from flowmod.artefacts import CheckpointError
 from flowmod.crops import pair_crops
-from flowmod.flow import ImageError, MissingWeightsError, get_estimator, read_image
+from flowmod.flow import (
+    ImageError,
+    MissingWeightsError,
+    check_images,
+    get_estimator,
+    read_image,
+)
 from flowmod.flow.networks import estimator_options
 from flowmod.flow.store import roundtrip
 from flowmod.model import load_model, predict
@@ -65,9 +71,17 @@ def read_boxes(path: Path, width: int, height: int) -> pd.DataFrame:
         raise PredictError(f"{path}: cannot read the boxes CSV ({e})") from None
     cols = ["xmin", "ymin", "xmax", "ymax"]
     missing = [c for c in cols if c not in df.columns]
-    if missing or df.empty:
-        raise PredictError(f"{path}: needs rows with columns {cols} (missing {missing})")
-    b = df[cols].to_numpy(dtype=float)
+    if missing:
+        raise PredictError(f"{path}: needs columns {cols} (missing {missing})")
+    if df.empty:
+        raise PredictError(f"{path}: no boxes (only a header): give one row per box")
+    numbers = df[cols].apply(pd.to_numeric, errors="coerce")
+    text = numbers.isna() & df[cols].notna()
+    if text.any(axis=None):
+        row, col = next((r, c) for r in range(len(df)) for c in cols if text.iloc[r][c])
+        raise PredictError(f"{path}: row {row}, column {col}: {df[col].iloc[row]!r} is not a "
+                           "number (pixel coordinates of FRAME1)")
+    b = numbers.to_numpy(dtype=float)
     bad = ~np.isfinite(b).all(axis=1) | (b[:, 2] <= b[:, 0]) | (b[:, 3] <= b[:, 1])
     outside = (b[:, 0] < 0) | (b[:, 1] < 0) | (b[:, 2] > width - 1) | (b[:, 3] > height - 1)
     if bad.any():
@@ -122,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.method and args.method != recipe["method"]:
             raise PredictError(f"--method {args.method} but {args.model} was trained on "
                                f"{recipe['method']} flow: its crops would not mean the same")
+        check_images([args.frame1, args.frame2])  # as the pipeline does: whole, decodable
         f1, f2 = read_image(args.frame1), read_image(args.frame2)
         if f1.shape != f2.shape:
             raise PredictError(f"frames differ in size: {f1.shape[1]}x{f1.shape[0]} "
