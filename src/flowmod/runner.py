@@ -190,6 +190,13 @@ def _kernel_manager(folder: Path) -> type:
             kw.setdefault("ip", str(folder / "kernel"))
             super().__init__(**kw)
 
+        async def _async_interrupt_kernel(self) -> None:
+            # jupyter_client interrupts a kernel before shutting it down; after a finished
+            # notebook there is nothing to interrupt, and the kernel would log
+            # "KeyboardInterrupt caught in kernel" into a successful run's output
+            if not self.shutting_down:
+                await super()._async_interrupt_kernel()
+
     return IPCKernelManager
 
 

@@ -14,6 +14,7 @@ raises :class:`VideoUnavailable` and the caller shows the strip alone.
 
 from __future__ import annotations
 
+import hashlib
 import html
 import os
 import subprocess
@@ -195,9 +196,13 @@ def _write_png(path: str | os.PathLike[str], image: np.ndarray) -> Path:
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise ValueError(f"{path}: give a path ending in .png")
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), image):
-            raise OSError(f"OpenCV could not write {path}")
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise OSError(f"OpenCV could not encode {path}")
+    data = buf.tobytes()
+    if not (path.is_file() and path.read_bytes() == data):  # the same picture: left alone
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(data)
     return path
 
 
@@ -245,8 +250,15 @@ def publish(frames: Sequence[np.ndarray], media_dir: str | os.PathLike[str], nam
     media_dir = Path(media_dir)
     poster(frames, media_dir / f"{name}-poster.png")
     frame_strip(frames, media_dir / f"{name}-strip.png")
-    try:
-        write_mp4(frames, media_dir / f"{name}.mp4", fps=fps)
-    except VideoUnavailable:
-        return f'<img src="media/{name}-strip.png" alt="frames of {html.escape(name)}">'
+    mp4, stamp = media_dir / f"{name}.mp4", media_dir / f".{name}.mp4.sha256"
+    digest = hashlib.sha256(str(fps).encode())
+    for fr in frames:
+        digest.update(np.ascontiguousarray(fr).tobytes())
+    if not (mp4.is_file() and stamp.is_file() and stamp.read_text() == digest.hexdigest()):
+        try:  # the same frames: the video is left alone
+            write_mp4(frames, mp4, fps=fps)
+        except VideoUnavailable:
+            return f'<img src="media/{name}-strip.png" alt="frames of {html.escape(name)}">'
+        with atomic_path(stamp) as tmp:
+            tmp.write_text(digest.hexdigest())
     return video_html(f"media/{name}.mp4", f"media/{name}-poster.png", f"media/{name}-strip.png")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Any
 
@@ -9,8 +10,10 @@ import cv2
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
+from IPython.display import Image, display
 from matplotlib.patches import FancyArrowPatch, FancyBboxPatch
 
+from flowmod.artefacts import atomic_path
 from flowmod.crops import crop_image
 from flowmod.flow import flow_to_color
 from flowmod.metrics import metrics, pr_curve
@@ -35,13 +38,24 @@ def show(fig: plt.Figure, path: str | Path, dpi: int = 110) -> None:
 
     Figures enter the book as files (``runs/<profile>/figures/``), shown once.
     """
-    from IPython.display import Image, display
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi, bbox_inches="tight")
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
     plt.close(fig)
+    write_if_changed(path, buf.getvalue())
     display(Image(filename=str(path)))
+
+
+def write_if_changed(path: Path, data: bytes) -> bool:
+    """Write ``data`` to ``path`` (atomically) unless the file already holds exactly it, so
+    a rerun that draws the same figure leaves the file, its time and its readers alone.
+    Returns True if it wrote."""
+    if path.is_file() and path.stat().st_size == len(data) and path.read_bytes() == data:
+        return False
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return True
 
 
 def pipeline_figure() -> plt.Figure:
