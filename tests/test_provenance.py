@@ -68,6 +68,7 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "step_size": (5, {"train", "xtrain", "wtrain"}, ()),
     "gamma": (0.4, {"train", "xtrain", "wtrain"}, ()),
     "hflip_p": (0.3, {"train", "xtrain", "wtrain"}, ()),
+    "model_width": (24, {"train", "xtrain", "wtrain"}, ()),
     "amp": ("bf16", {"train", "xtrain", "wtrain"}, ()),
     "general_beyond_distance": (80.0, {"general"}, ()),
     "raft_iters": (12, {"flow", "crops"}, ("raft", "raft_small")),

@@ -3,6 +3,8 @@
 torchvision ``resnet18(weights=None)`` (trained from scratch) with ``conv1`` taking the two
 flow channels (u, v) and ``fc`` giving one logit; ``sigmoid(logit) > 0.5`` means moving.
 The new ``conv1`` and ``fc`` keep PyTorch's default initialisation, as in the original code.
+``width`` narrows every stage (64: the paper's; the demo trains a narrower one, see the
+differences page).
 The extensions of chapter 10 use the same network with other input channels
 (``in_channels``: flow + static-world flow, image crops, ...); :func:`load_model` reads the
 channel count from the checkpoint.
@@ -18,6 +20,8 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
+from torchvision.models import resnet18
+from torchvision.models.resnet import BasicBlock
 
 from flowmod.artefacts import CheckpointError, state_dict_mismatch
 from flowmod.environment import resolve_device
@@ -27,16 +31,41 @@ from flowmod.metrics import sigmoid
 RESNET18_PARAMS = 11_689_512
 
 
-def motion_resnet18(in_channels: int = 2) -> nn.Module:
-    """ResNet18 for (B, C, S, S) crops -> (B, 1) logits (any S >= 32; C = 2: flow u, v)."""
-    from torchvision.models import resnet18
+def motion_resnet18(in_channels: int = 2, width: int = 64) -> nn.Module:
+    """ResNet18 for (B, C, S, S) crops -> (B, 1) logits (any S >= 32; C = 2: flow u, v).
 
-    if in_channels < 1:
-        raise ValueError(f"in_channels must be >= 1, got {in_channels}")
+    ``width``: channels of the first stage (64: the paper's network; its stages have
+    width, 2, 4 and 8 x width channels). Depth, blocks and strides are ResNet18's."""
+    if in_channels < 1 or width < 1:
+        raise ValueError(f"in_channels and width must be >= 1, got {in_channels}, {width}")
     m = resnet18(weights=None)
-    m.conv1 = nn.Conv2d(in_channels, 64, kernel_size=7, stride=2, padding=3, bias=False)
+    if width != 64:
+        _narrow(m, width)
+    m.conv1 = nn.Conv2d(in_channels, width, kernel_size=7, stride=2, padding=3, bias=False)
     m.fc = nn.Linear(m.fc.in_features, 1)
     return m
+
+
+def _narrow(m: nn.Module, width: int) -> None:
+    """Give ResNet18 ``m`` stages of width, 2, 4, 8 x ``width`` channels (the layout and
+    initialisation of torchvision's, whose state_dict keys it keeps)."""
+    m.bn1 = nn.BatchNorm2d(width)
+    planes = [width, 2 * width, 4 * width, 8 * width]
+    inplanes = width
+    for k, p in enumerate(planes, start=1):
+        stride = 1 if k == 1 else 2
+        down = None if stride == 1 and inplanes == p else nn.Sequential(
+            nn.Conv2d(inplanes, p, kernel_size=1, stride=stride, bias=False), nn.BatchNorm2d(p))
+        setattr(m, f"layer{k}", nn.Sequential(BasicBlock(inplanes, p, stride, down),
+                                              BasicBlock(p, p)))
+        inplanes = p
+    m.fc = nn.Linear(8 * width, 1000)
+    for mod in m.modules():
+        if isinstance(mod, nn.Conv2d):
+            nn.init.kaiming_normal_(mod.weight, mode="fan_out", nonlinearity="relu")
+        elif isinstance(mod, nn.BatchNorm2d):
+            nn.init.ones_(mod.weight)
+            nn.init.zeros_(mod.bias)
 
 
 def count_parameters(model: nn.Module) -> int:

@@ -221,6 +221,9 @@ class Params(BaseModel):
     gamma: float = _field(0.5, gt=0.0, le=1.0, read_by=_TRAIN, description="StepLR factor")
     hflip_p: float = _field(0.5, ge=0.0, le=1.0, read_by=_TRAIN,
                             description="training-only horizontal flip")
+    model_width: int = _field(64, ge=4, le=256, read_by=_TRAIN,
+                              description="channels of the ResNet18's first stage (64: the "
+                                          "paper's; stages have 1, 2, 4, 8 x this)")
     seeds: int = _field(3, ge=1, le=20, role="plan",
                         description="training runs per flow method, seeds seed .. seed+seeds-1")
     amp: Literal["off", "bf16", "fp16"] = _field(

@@ -250,6 +250,8 @@ class TrainSettings:
     num_workers: int = 0
     device: str | torch.device = "auto"
     eval_batch_size: int = 256
+    #: channels of the network's first stage (64: the paper's ResNet18)
+    width: int = 64
 
     @classmethod
     def of(cls, q: StageParams | Params) -> TrainSettings:
@@ -257,7 +259,7 @@ class TrainSettings:
         return cls(epochs=q.epochs, batch_size=q.batch_size, lr=q.lr, momentum=q.momentum,
                    weight_decay=q.weight_decay, step_size=q.step_size, gamma=q.gamma,
                    hflip_p=q.hflip_p, amp=None if q.amp == "off" else q.amp,
-                   num_workers=q.num_workers, device=q.device)
+                   num_workers=q.num_workers, device=q.device, width=q.model_width)
 
 
 @dataclass
@@ -278,7 +280,7 @@ class _Run:
 def _new_run(s: TrainSettings, channels: int, seed: int, dev: torch.device,
              amp_mode: str | None) -> _Run:
     torch.manual_seed(seed)
-    model = motion_resnet18(channels).to(dev, memory_format=torch.channels_last)
+    model = motion_resnet18(channels, s.width).to(dev, memory_format=torch.channels_last)
     opt = torch.optim.SGD(model.parameters(), lr=s.lr, momentum=s.momentum,
                           weight_decay=s.weight_decay)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=s.step_size, gamma=s.gamma)
@@ -374,6 +376,8 @@ def _config(s: TrainSettings, seed: int, amp_mode: str | None, train_x: Any, y_t
     }
     if channels != 2 or tuple(flip_negate) != (0,):  # the paper's input keeps its old config
         config.update(channels=channels, flip_negate=[int(c) for c in flip_negate])
+    if s.width != 64:  # as the paper's network's config
+        config.update(width=int(s.width))
     return config
 
 

@@ -42,6 +42,7 @@ def table2(params: Params) -> pd.DataFrame:
         ("Training", "Seeds per flow method", params.seeds),
         ("Training", "Mixed precision", params.amp),
         ("Input", "Crop size (px)", params.crop_size),
+        ("Network", "ResNet18 first-stage channels", params.model_width),
     ], columns=["Function", "Hyperparameter", "Setting"])
 
 
