@@ -162,4 +162,4 @@ def test_selfflow_nodes_parameters_and_gate(smoke_built, tmp_path):
     assert "make selfflow" in ch12.headline(more, [])
     info = json.loads((pipeline.node_dir(smoke_built, dag.Node("selfflow", None, "photometric"))
                        / "manifest.json").read_text())
-    assert info["params"]["selfflow_iters"] == 2 and info["params"]["flow_scale"] == 0.25
+    assert info["params"]["selfflow_iters"] == 2 and info["params"]["flow_scale"] == 0.5
