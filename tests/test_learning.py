@@ -331,8 +331,8 @@ def test_training_batches_are_flipped_with_u_negated(data, tmp_path, monkeypatch
     tx, tdf, vx, vdf = data
     seen: list[torch.Tensor] = []
 
-    def recording_model(in_channels=2):
-        model = motion_resnet18(in_channels)
+    def recording_model(in_channels=2, width=64):
+        model = motion_resnet18(in_channels, width)
         model.register_forward_pre_hook(
             lambda mod, args: seen.append(args[0].detach().clone()) if mod.training else None)
         return model
@@ -405,3 +405,45 @@ def test_published_weights_in_float16_predict_as_the_float32_ones(data, run_a, t
     assert np.abs(p32 - p16).max() < 5e-3
     assert ((p32 > 0.5) == (p16 > 0.5)).all()
     assert not np.array_equal(p32, p16)  # really rounded
+
+
+# --- guards: each test below fails on one realistic one-line bug ----------------------------
+
+def test_precision_and_recall_are_not_swapped() -> None:
+    """tp 2, fp 1, fn 2: precision 2/3, recall 1/2 (a set where the two differ)."""
+    y = np.array([1, 1, 1, 1, 0])
+    p = np.array([0.9, 0.9, 0.1, 0.1, 0.9])
+    m = ev.metrics(y, p)
+    assert (m["precision"], m["recall"]) == pytest.approx((2 / 3, 1 / 2))
+    assert m["f1"] == pytest.approx(2 * 2 / (2 * 2 + 1 + 2))
+    s = ev.seed_summary(y, p[None], np.zeros(5))
+    assert (s["precision"], s["recall"]) == pytest.approx((2 / 3, 1 / 2))
+
+
+def test_interval_level_is_the_central_share() -> None:
+    """A 90 % interval of 0..1000 spans the 5th to the 95th percentile, a 95 % one more."""
+    reps = np.arange(1001, dtype=float)
+    assert ev.interval(reps, 0.90) == pytest.approx((50.0, 950.0))
+    assert ev.interval(reps, 0.95) == pytest.approx((25.0, 975.0))
+    assert ev.interval(reps) == ev.interval(reps, 0.95)
+
+
+def test_paired_comparison_draws_the_same_scenes_for_both() -> None:
+    """B is A with one more wrong object in every scene: on any resample of whole scenes the
+    difference stays near its value (paired); drawing B's scenes independently would spread
+    it across the whole range of A's and B's F1."""
+    rng = np.random.default_rng(3)
+    scenes = np.repeat(np.arange(12), 10)
+    y = (rng.random(len(scenes)) < 0.5).astype(int)
+    good = np.where(rng.random(len(y)) < 0.3, 1 - y, y).astype(float)  # 70 % right
+    worse = good.copy()
+    for s in range(12):  # one more error per scene
+        i = np.flatnonzero((scenes == s) & (good == y))[0]
+        worse[i] = 1 - y[i]
+    d = ev.paired_comparison(y, good, worse, scenes, n=2000, seed=0)
+    lo, hi = d["ci"]
+    assert 0 < lo <= d["delta_f1"] <= hi
+    assert hi - lo < 0.06, f"paired: the difference barely moves, got {lo:.3f}-{hi:.3f}"
+    a = ev.scene_bootstrap(y, good, scenes, n=2000, seed=0)
+    b = ev.scene_bootstrap(y, worse, scenes, n=2000, seed=1)  # unpaired draws
+    assert np.subtract(*ev.interval(a - b)[::-1]) > 2 * (hi - lo)

@@ -177,6 +177,30 @@ def test_special_parameters(finished, tmp_path):
     off = finished.model_copy(update={"wide_methods": []})
     assert not_up_to_date(off) == set()
     assert set(nodes) - set(pipeline.nodes(off)) == {n for n in nodes if pipeline.chapter(n) == "11"}
+    # chapter 12's plan: one mode fewer drops its network, nothing else
+    one = finished.model_copy(update={"selfflow_modes": ["photometric"]})
+    assert not_up_to_date(one) == set()
+    assert set(nodes) - set(pipeline.nodes(one)) == {dag.Node("selfflow", None, "supervised")}
+
+
+#: Parameters read only by the flow networks' nodes, which a CPU profile does not have.
+NETWORK_PARAMETERS = ("raft_weights", "raft_small_weights", "fastflownet_weights", "raft_iters")
+
+
+@pytest.mark.parametrize("name", NETWORK_PARAMETERS)
+def test_network_parameters_change_exactly_their_methods_fingerprints(finished, name):
+    """On a parameter set whose plan has every network (status only: nothing is built),
+    another value changes the expected fingerprints of exactly the nodes its methods'
+    flow and crops feed, and no other."""
+    value, stages, methods = SPEC[name]
+    nets = finished.model_copy(update={
+        "flow_methods": [*finished.flow_methods, "raft", "raft_small", "fastflownet"]})
+    other = nets.model_copy(update={name: value})
+    direct = {n for n in pipeline.nodes(nets) if n.stage in stages and n.method in methods}
+    assert direct, "the plan has nodes that read it"
+    before, after = pipeline.expected(nets), pipeline.expected(other)
+    changed = {n for n in before if before[n] != after[n]}
+    assert changed == downstream(nets, direct)
 
 
 def test_status_explains_in_one_line(finished):

@@ -39,6 +39,10 @@ def test_split_is_by_scene_seeded_and_prefers_sweep_scenes_for_test():
 def test_velocity_is_equation_one():
     v = labels.velocity([0, 0, 0], [1.0, 0.5, 0], 1_000_000, 1_500_000)
     np.testing.assert_allclose(v, [2.0, 1.0, 0.0])
+    # the speed is the norm of all three components (a vehicle on a ramp climbs too)
+    climbing = labels.velocity([0, 0, 0], [0.6, 0.0, 0.8], 0, 500_000)
+    np.testing.assert_allclose(labels.speed(climbing), 2.0)
+    assert labels.motion_label(np.array([labels.speed(climbing)]), 2.0)[0] == 1
     assert list(labels.motion_label(np.array([1.99, 2.0, 5.0, np.nan]), 2.0)) == [0, 1, 1, -1]
     with pytest.raises(ValueError, match="timestamps must increase"):
         labels.velocity([0, 0, 0], [1, 0, 0], 10, 10)

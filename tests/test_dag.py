@@ -1,0 +1,232 @@
+"""The engine on a toy study (no world, no devkit): declarations, fingerprints, status, the
+driver, kept variants, gates. Seconds; the real stages are checked in test_provenance."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from flowmod import dag
+from flowmod.params import Params, validate
+
+# Toy stages borrow real stage names, so that they read the parameters ``read_by`` declares
+# for those names: "select" reads min_distance, "train" reads epochs, "xtrain" is gated.
+
+
+class Data:
+    """A toy source: a file whose content is the data's identity."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def location(self, p: Params) -> Path:
+        return self.path.parent
+
+    def fingerprint(self, p: Params) -> str | None:
+        return self.path.read_text() if self.path.is_file() else None
+
+    def record(self, p: Params) -> dict[str, Any] | None:
+        fp = self.fingerprint(p)
+        return {"fingerprint": fp} if fp else None
+
+    def status(self, p: Params) -> tuple[str, str]:
+        return ("up to date", "") if self.path.is_file() else ("missing", "no data")
+
+    def ensure(self, p: Params, progress: bool) -> None:
+        if not self.path.is_file():
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.path.write_text("v1")
+
+
+CALLS: list[str] = []
+
+
+def build_select(b: dag.Build, progress: bool) -> dict[str, Any]:
+    CALLS.append(str(b.node))
+    data = (b.input_dir(dag.Node("world")) / "data.txt").read_text()
+    (b.start(fresh=True) / "out.json").write_text(json.dumps(
+        {"data": data, "min_distance": b.params.min_distance}))
+    return {"rows": 1}
+
+
+def build_train(b: dag.Build, progress: bool) -> dict[str, Any]:
+    CALLS.append(str(b.node))
+    src = json.loads((b.input_dir(dag.Node("select")) / "out.json").read_text())
+    (b.start(fresh=True) / "model.json").write_text(json.dumps({**src, "epochs": b.params.epochs,
+                                                                "k": b.node.part}))
+    return {}
+
+
+def build_x(b: dag.Build, progress: bool) -> dict[str, Any]:
+    CALLS.append(str(b.node))
+    (b.start(fresh=True) / "x.json").write_text(
+        (b.input_dir(dag.Node("train", None, "s0")) / "model.json").read_text())
+    return {}
+
+
+def build_reads_too_much(b: dag.Build, progress: bool) -> dict[str, Any]:
+    return {"lr": b.params.lr}  # "select" does not declare lr
+
+
+def graph(tmp: Path, select_build=build_select) -> dag.Graph:
+    return dag.Graph([
+        dag.Stage("world", 1, "01", "", "the toy data", nodes=lambda p: [dag.Node("world")],
+                  source=Data(tmp / "data" / "data.txt")),
+        dag.Stage("train", 1, "06", "models/{part}", "one model per seed",
+                  nodes=lambda p: [dag.Node("train", None, f"s{k}") for k in range(p.seeds)],
+                  inputs=lambda n, p: (dag.Node("select"),), build=build_train),
+        dag.Stage("select", 1, "02", "select", "the selection",
+                  nodes=lambda p: [dag.Node("select")],
+                  inputs=lambda n, p: (dag.Node("world"),), build=select_build),
+        dag.Stage("xtrain", 1, "10", "extra", "a gated model", gate="extension_build",
+                  nodes=lambda p: [dag.Node("xtrain")],
+                  inputs=lambda n, p: (dag.Node("train", None, "s0"),), build=build_x),
+    ], {"extension_build": "make extensions"})
+
+
+@pytest.fixture
+def toy(tmp_path: Path) -> tuple[dag.Graph, Params]:
+    CALLS.clear()
+    p = validate({"run_dir": str(tmp_path / "runs"), "dataroot": str(tmp_path / "data"),
+                  "seeds": 2, "synthetic": False})
+    return graph(tmp_path), p
+
+
+def states(g: dag.Graph, p: Params) -> dict[str, str]:
+    return {str(s.node): s.state for s in g.status(p)}
+
+
+def test_nodes_come_by_chapter_each_after_its_inputs(toy):
+    g, p = toy
+    # "train" is declared before "select": the order follows the data, not the declaration
+    assert [str(n) for n in g.nodes(p)] == ["world", "select", "train[s0]", "train[s1]",
+                                             "xtrain"]
+    assert [str(n) for n in g.nodes(p, ["06"])] == ["train[s0]", "train[s1]"]
+    assert g.chapter(dag.Node("xtrain")) == "10" and g.gate(dag.Node("xtrain")) == "extension_build"
+
+
+def test_build_then_nothing_stale_then_exactly_the_readers_of_a_change(toy, tmp_path):
+    g, p = toy
+    assert states(g, p)["world"] == "missing"
+    assert states(g, p)["select"] == "missing"
+    g.build(p)
+    assert CALLS == ["select", "train[s0]", "train[s1]"], "the gated node is not built"
+    assert set(states(g, p).values()) == {"up to date", "missing"}
+    assert states(g, p)["xtrain"] == "missing"
+    CALLS.clear()
+    g.build(p)
+    assert CALLS == [], "nothing is rebuilt when nothing changed"
+    # a parameter: its reader and what reads it
+    q = p.model_copy(update={"min_distance": 25.0})
+    st = {str(s.node): s for s in g.status(q)}
+    assert st["select"].state == "stale" and "min_distance: 30.0 -> 25.0" in st["select"].why
+    assert st["train[s0]"].why == "input select is stale"
+    # a parameter nobody reads here (run settings are free): nothing
+    assert states(g, p.model_copy(update={"n_jobs": 7})) == states(g, p)
+    # another training parameter: only the models
+    e = p.model_copy(update={"epochs": 3})
+    assert {k for k, v in states(g, e).items() if v == "stale"} == {"train[s0]", "train[s1]"}
+    # the data: everything below it
+    (tmp_path / "data" / "data.txt").write_text("v2")
+    st = {str(s.node): s for s in g.status(p)}
+    assert st["select"].why == "input world changed"
+    assert {k for k, s in st.items() if s.state == "stale"} == {"select", "train[s0]",
+                                                                  "train[s1]"}
+
+
+def test_switching_back_restores_a_kept_variant_without_building(toy):
+    g, p = toy
+    g.build(p)
+    q = p.model_copy(update={"min_distance": 25.0})
+    g.build(q)
+    out = json.loads((g.node_dir(p, dag.Node("select")) / "out.json").read_text())
+    assert out["min_distance"] == 25.0
+    CALLS.clear()
+    assert any("will be restored" in s.why for s in g.status(p))
+    g.build(p)
+    assert CALLS == [], "restored, not recomputed"
+    out = json.loads((g.node_dir(p, dag.Node("select")) / "out.json").read_text())
+    assert out["min_distance"] == 30.0
+    # at most KEEP_VARIANTS earlier results are kept per node
+    for d in (26.0, 27.0, 28.0, 29.0):
+        g.build(p.model_copy(update={"min_distance": d}))
+    kept = list(g.node_dir(p, dag.Node("select")).parent.glob(".select.variant-*"))
+    assert len(kept) == dag.KEEP_VARIANTS
+
+
+def test_a_failed_build_keeps_the_published_result_and_its_fingerprint(toy, tmp_path):
+    g, p = toy
+    g.build(p)
+    before = (g.node_dir(p, dag.Node("select")) / "out.json").read_text()
+
+    def failing(b: dag.Build, progress: bool) -> dict[str, Any]:
+        (b.start() / "half.json").write_text("{")
+        raise RuntimeError("disk full")
+
+    bad = graph(tmp_path, select_build=failing)
+    q = p.model_copy(update={"min_distance": 25.0})
+    with pytest.raises(RuntimeError, match="disk full"):
+        bad.build(q)
+    assert (g.node_dir(p, dag.Node("select")) / "out.json").read_text() == before
+    assert states(g, p)["select"] == "up to date", "the old result is still the published one"
+    building = list(g.node_dir(p, dag.Node("select")).parent.glob(".select.building-*"))
+    assert len(building) == 1 and (building[0] / "half.json").is_file(), "kept to resume"
+
+
+def test_force_rebuilds_and_a_missing_input_names_the_chapter(toy):
+    g, p = toy
+    with pytest.raises(dag.MissingInput, match=r"train\[s0\] reads select.*chapter 02"):
+        g.build(p, ["06"])
+    g.build(p)
+    CALLS.clear()
+    g.build(p.model_copy(update={"force": True}), ["06"])
+    assert CALLS == ["train[s0]", "train[s1]"]
+    with pytest.raises(dag.MissingInput, match="extension_build=true.*make extensions"):
+        g.published(p, dag.Node("xtrain"))
+    g.build(p.model_copy(update={"extension_build": True}))
+    assert CALLS[-1] == "xtrain"
+
+
+def test_fingerprints_hash_stage_version_node_parameters_and_inputs(toy):
+    g, p = toy
+    g.build(p)
+    rec = g.recorded(p, dag.Node("train", None, "s1"))
+    assert rec["stage"] == "train" and rec["node"] == "train[s1]" and rec["version"] == 1
+    assert rec["params"]["epochs"] == p.epochs and "min_distance" not in rec["params"]
+    assert rec["inputs"] == {"select": g.recorded(p, dag.Node("select"))["fingerprint"]}
+    assert rec["fingerprint"] == g.expected(p)[dag.Node("train", None, "s1")]
+    assert g.current(p, dag.Node("train", None, "s1")) and g.built(p, dag.Node("train", None, "s1"))
+    # another seed's node differs, the same node of another run folder does not
+    assert rec["fingerprint"] != g.recorded(p, dag.Node("train", None, "s0"))["fingerprint"]
+    v2 = dag.Graph([dataclass_replace(s, version=2) if s.name == "train" else s
+                    for s in g.stages.values()], g.gate_targets)
+    assert "code version 1 -> 2" in {str(s.node): s.why for s in v2.status(p)}["train[s0]"]
+
+
+def dataclass_replace(stage: dag.Stage, **kw: Any) -> dag.Stage:
+    from dataclasses import replace
+
+    return replace(stage, **kw)
+
+
+def test_a_stage_reading_an_undeclared_parameter_fails(toy, tmp_path):
+    g, p = toy
+    bad = graph(tmp_path, select_build=build_reads_too_much)
+    with pytest.raises(dag.UndeclaredParameter, match="read_by of Params.lr"):
+        bad.build(p)
+
+
+def test_after_publish_runs_once_the_result_is_in_place(toy, tmp_path):
+    seen = []
+
+    def build(b: dag.Build, progress: bool) -> dict[str, Any]:
+        (b.start() / "out.json").write_text("{}")
+        b.after_publish(lambda: seen.append((b.final / "out.json").is_file()))
+        return {}
+
+    g, p = toy
+    graph(tmp_path, select_build=build).build(p, ["01", "02"])
+    assert seen == [True]

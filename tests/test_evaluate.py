@@ -1,0 +1,113 @@
+"""The scoring of predictions tables (flowmod.evaluate): which objects a split is scored on,
+the seeds' scores, paired comparisons, the original protocol, Table 4, failure reasons.
+Hand-made tables; seconds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from flowmod import evaluate
+from flowmod import metrics as ev
+
+
+def table(n_scenes: int = 4, per: int = 6, seed: int = 0) -> pd.DataFrame:
+    """A predictions table: objects of ``n_scenes`` scenes, two seeds' probabilities."""
+    rng = np.random.default_rng(seed)
+    n = n_scenes * per
+    y = (np.arange(n) % 3 == 0).astype(int)
+    s0 = np.where(rng.random(n) < 0.8, y, 1 - y) * 0.8 + 0.1
+    s1 = np.where(rng.random(n) < 0.6, y, 1 - y) * 0.8 + 0.1
+    return pd.DataFrame({
+        "ann_token": [f"a{i}" for i in range(n)], "instance_token": [f"i{i // 2}" for i in range(n)],
+        "scene": np.repeat([f"sc{k}" for k in range(n_scenes)], per), "label": y,
+        "true_label": y, "distance": np.linspace(5, 95, n), "prob_s0": s0, "prob_s1": s1,
+        "prob": s0})
+
+
+def test_seed_columns_and_probabilities_in_seed_order():
+    df = table().assign(prob_s10=0.5)
+    assert evaluate.seed_columns(df) == ["prob_s0", "prob_s1", "prob_s10"]
+    np.testing.assert_array_equal(evaluate.seed_probs(df)[1], df["prob_s1"])
+    assert evaluate.seed_probs(df.drop(columns=["prob_s0", "prob_s1", "prob_s10"])).shape == (
+        1, len(df)), "without seed columns: the one model's"
+
+
+def test_scored_objects_are_the_whole_test_split_and_table_4s_range():
+    df = table()
+    assert evaluate.scored(df, "test", 50.0) is df
+    g = evaluate.scored(df, "general", 50.0)
+    assert len(g) == (df["distance"] <= 50.0).sum() and g["distance"].max() <= 50.0
+    exact = df.assign(distance=[50.0] * len(df))
+    assert len(evaluate.scored(exact, "general", 50.0)) == len(df), "<= keeps the boundary"
+
+
+def test_score_is_the_seed_summary_of_the_label_column():
+    df = table()
+    s = evaluate.score(df, seed=3)
+    want = ev.seed_summary(df["label"], np.stack([df["prob_s0"], df["prob_s1"]]), df["scene"],
+                           instances=df["instance_token"], seed=3)
+    assert s == want
+    assert s["n_instances"] == df["instance_token"].nunique()
+    flipped = evaluate.score(df.assign(true_label=1 - df["label"]), "true_label")
+    assert flipped["f1"] != s["f1"], "the label column is the one given"
+
+
+def test_paired_needs_the_same_objects_and_pairs_the_seeds():
+    a, b = table(seed=1), table(seed=2)
+    d = evaluate.paired(a, b, "a and b", seed=5)
+    want = ev.paired_comparison(a["label"].to_numpy(), evaluate.seed_probs(a),
+                                evaluate.seed_probs(b), a["scene"].to_numpy(), seed=5)
+    assert d == want
+    with pytest.raises(ValueError, match="a and c were scored on different objects"):
+        evaluate.paired(a, b.iloc[::-1], "a and c")
+
+
+def test_original_protocol_thins_stills_batches_and_picks_the_best_epoch():
+    df = table()
+    y = df["label"].to_numpy()
+    good = np.where(y == 1, 0.9, 0.1)
+    bad = 1 - good
+    # seed 0: epoch 2 is perfect; seed 1: only the worst epoch
+    epochs = [np.stack([bad, good]), np.stack([bad, bad])]
+    r = evaluate.original_protocol(df, epochs, batch_size=4)
+    keep = ev.thin_still(y)
+    assert r["per_seed_original"] == [1.0, ev.paper_protocol_f1(y[keep], bad[keep], 4)]
+    assert r["per_seed_clean"] == [ev.metrics(y, df["prob_s0"])["f1"],
+                                   ev.metrics(y, df["prob_s1"])["f1"]]
+    assert r["original_minus_clean"] == pytest.approx(r["original"] - r["clean"])
+    assert r["clean"] == pytest.approx(np.mean(r["per_seed_clean"]))
+
+
+def test_table4_scores_the_papers_range_and_beyond_apart():
+    df = table()
+    t = evaluate.table4({"dis": df}, 50.0)
+    inside = df[df["distance"] <= 50.0]
+    row = t[(t["vehicles"] == "0-50 m (Table 4)")
+            & (t["scored against"] == "paper rule (previous keyframe)")].iloc[0]
+    s = ev.seed_summary(inside["label"], evaluate.seed_probs(inside), inside["scene"])
+    assert row["objects"] == len(inside) and row["F1 (%)"] == round(100 * s["f1"], 1)
+    assert (row["P (%)"], row["R (%)"]) == (round(100 * s["precision"], 1),
+                                           round(100 * s["recall"], 1))
+    assert set(t["vehicles"]) == {"0-50 m (Table 4)", "beyond 50 m"}
+    assert len(t) == 4, "both labels for both ranges"
+    unknown = evaluate.table4({"dis": df.assign(true_label=-1)}, 50.0)
+    assert set(unknown["scored against"]) == {"paper rule (previous keyframe)"}
+
+
+def test_failure_reasons_tag_remote_slow_and_crowded():
+    df = pd.DataFrame({
+        "pair_id": ["p", "p", "q"], "instance_token": ["a", "b", "c"],
+        "xmin": [100.0, 130.0, 600.0], "ymin": [100.0, 100.0, 100.0],
+        "xmax": [120.0, 150.0, 620.0], "ymax": [120.0, 120.0, 120.0],
+        "label": [1, 0, 0], "prob": [0.2, 0.3, 0.9], "distance": [60.0, 20.0, 20.0],
+        "speed": [5.0, 0.0, 2.5]})
+    boxes = df[["pair_id", "instance_token", "xmin", "ymin", "xmax", "ymax"]]
+    t = evaluate.failure_reasons(df, boxes, speed_threshold=2.0, scale=3.0)
+    assert t["wrong"].tolist() == [True, False, True]
+    assert t["unclear_flow"].tolist() == [True, False, True]  # 60 m; 2.5 m/s is near 2
+    assert t["crowded"].tolist() == [True, True, False]  # a's window holds b and back
+    shares = evaluate.failure_shares(t).set_index("reason")
+    assert shares.loc["remote or slow", "wrong predictions (%)"] == 100.0
+    assert shares.loc["other objects in the crop", "all objects (%)"] == pytest.approx(66.7)
