@@ -1,0 +1,104 @@
+"""The book's tables cell by cell, and the label equations on exact inputs.
+
+The tables are what a reader sees: a renamed column, a lost rounding or a swapped field is a
+wrong book even when every number upstream is right. Each test builds one table from inputs
+whose fields all differ and compares the whole frame."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from flowmod import labels
+from flowmod import metrics as ev
+
+
+def test_table3_every_cell():
+    rows = [
+        {"method": "dis", "f1": 0.81234, "f1_min": 0.7512, "f1_max": 0.8466, "seeds": 3,
+         "precision": 0.9049, "recall": 0.7351, "ci": (0.6049, 0.9151), "n_scenes": 6,
+         "n": 409, "n_instances": 47},
+        {"method": "one seed", "f1": 0.5, "f1_min": 0.5, "f1_max": 0.5, "seeds": 1,
+         "precision": 0.25, "recall": 1.0},
+        {"method": "bare", "f1": 0.125, "precision": 0.0666, "recall": 0.95},
+    ]
+    want = pd.DataFrame({
+        "Method": ["dis", "one seed", "bare"],
+        "F1 (%)": [81.2, 50.0, 12.5],
+        "seed range (%)": ["75.1-84.7", "", ""],
+        "seeds": [3, 1, ""],
+        "P (%)": [90.5, 25.0, 6.7],
+        "R (%)": [73.5, 100.0, 95.0],
+        "F1 95% CI, scenes (%)": ["60.5-91.5", "", ""],
+        "scenes": [6, "", ""],
+        "objects": [409, "", ""],
+        "vehicles": [47, "", ""],
+    })
+    pd.testing.assert_frame_equal(ev.table3(rows), want)
+    by_name = ev.table3({r["method"]: {k: v for k, v in r.items() if k != "method"}
+                         for r in rows})
+    pd.testing.assert_frame_equal(by_name, want)
+    assert list(ev.table3([]).columns) == ["Method"]
+
+
+def test_comparison_table_every_cell():
+    rows = {"gt - dis": {"delta_f1": 0.0312, "ci": (-0.0149, 0.0851),
+                         "per_seed": [0.02, -0.011, 0.05], "p_not_better": 0.1234,
+                         "n_scenes": 5, "n": 409}}
+    want = pd.DataFrame({
+        "comparison": ["gt - dis"], "ΔF1 (points)": [3.1],
+        "95% CI over scenes (points)": ["-1.5 to 8.5"],
+        "per seed (points)": ["+2.0, -1.1, +5.0"],
+        "replicates with A <= B (%)": [12.3], "scenes": [5], "objects": [409],
+    })
+    pd.testing.assert_frame_equal(ev.comparison_table(rows), want)
+
+
+def test_protocol_comparison_every_cell():
+    # 6 objects: moving, still, still, moving, still, still; batch 2.
+    y = np.array([1, 0, 0, 1, 0, 0])
+    p = np.array([0.9, 0.6, 0.2, 0.4, 0.1, 0.7])
+    t = ev.protocol_comparison(y, p, batch_size=2)
+    assert list(t.columns) == ["protocol", "n", "precision", "recall", "f1"]
+    assert t["protocol"].tolist() == [
+        "clean: whole set", "per-batch F1, all objects", "stills thinned 1 of 2, whole set",
+        "paper protocol: thinned + per-batch"]
+    # thinned: every moving object and the 1st, 3rd still: y, p at [0, 1, 3, 4].
+    assert t["n"].tolist() == [6, 6, 4, 4]
+    # clean: tp 1 fp 2 fn 1 -> P 1/3, R 1/2, F1 0.4.
+    np.testing.assert_allclose(t.loc[0, ["precision", "recall", "f1"]].astype(float),
+                               [1 / 3, 0.5, 0.4])
+    # per batch [1,0|0,1|0,0] with yhat [1,1|0,0|0,1]: P (0.5, 0, 0), R (1, 0, 0).
+    np.testing.assert_allclose(t.loc[1, ["precision", "recall", "f1"]].astype(float),
+                               [0.5 / 3, 1 / 3, (2 / 3) / 3])
+    # thinned whole set: y [1,0,1,0], yhat [1,1,0,0]: tp 1 fp 1 fn 1.
+    np.testing.assert_allclose(t.loc[2, ["precision", "recall", "f1"]].astype(float),
+                               [0.5, 0.5, 0.5])
+    # thinned per batch [1,0|1,0] yhat [1,1|0,0]: P (0.5, 0), R (1, 0), F1 (2/3, 0).
+    np.testing.assert_allclose(t.loc[3, ["precision", "recall", "f1"]].astype(float),
+                               [0.25, 0.5, 1 / 3])
+
+
+def test_thin_still_keeps_movers_and_the_first_of_every_group():
+    y = np.array([0, 0, 1, 0, 0, 0, 1, 0])
+    np.testing.assert_array_equal(ev.thin_still(y), [1, 0, 1, 1, 0, 1, 1, 0])
+    np.testing.assert_array_equal(ev.thin_still(y, keep=3, every=5), [1, 1, 1, 1, 0, 0, 1, 1])
+    with pytest.raises(ValueError, match="need 0 < keep <= every"):
+        ev.thin_still(y, keep=0)
+    with pytest.raises(ValueError, match="keep=3, every=2"):
+        ev.thin_still(y, keep=3, every=2)
+
+
+def test_velocity_speed_label_on_exact_values():
+    p1 = np.array([[0.0, 0.0, 0.0], [10.0, 5.0, 1.0]])
+    p2 = np.array([[1.0, 0.0, 0.0], [10.0, 5.0, 2.0]])
+    v = labels.velocity(p1, p2, np.array([0, 1_000_000]), np.array([500_000, 1_250_000]))
+    np.testing.assert_allclose(v, [[2.0, 0.0, 0.0], [0.0, 0.0, 4.0]])
+    np.testing.assert_allclose(labels.velocity(p1[1], p2[1], 0, 2_000_000), [0, 0, 0.5])
+    np.testing.assert_allclose(labels.speed(np.array([[3, 4, 12], [0, 0, 0]])), [13.0, 0.0])
+    out = labels.motion_label(np.array([1.99, 2.0, np.nan, 7.0]))
+    assert out.dtype == np.int8 and out.tolist() == [0, 1, -1, 1]
+    assert labels.motion_label(np.array([2.5]), threshold=3.0).tolist() == [0]
+    with pytest.raises(ValueError, match=r"timestamps must increase from frame 1 to frame 2"):
+        labels.velocity(p1, p2, 5, 5)
