@@ -17,10 +17,12 @@ HTML       ?= build/html
 MATHJAX    := build/vendor/node_modules/mathjax/es5/tex-chtml.js
 STAMP      := $(VENV)/.flowmod-env-stamp
 PYTEST_ARGS ?=
+GC         ?=
+LAB_PORT   ?= 8888
 
 RUN_SET    := $(if $(DATAROOT),--set dataroot=$(DATAROOT)) $(foreach s,$(SET),--set $(s))
 
-.PHONY: help env data run status gc book extensions selfflow test bench lint clean browser weights
+.PHONY: help env data run status gc book extensions selfflow test bench lint clean browser weights lab mutation flownet
 
 help:  ## list the targets
 	@echo "flowmod: optical-flow motion detection, reproduced"
@@ -89,6 +91,17 @@ browser:  ## install headless Chromium for the browser check of the book (apt-ge
 
 weights: env  ## download RAFT's checkpoints (needs internet; never run by other targets)
 	$(PY) -m flowmod.weights
+
+lab: env  ## JupyterLab on notebooks/ with the venv's kernel: run a chapter cell by cell (LAB_PORT=8888)
+	@$(PY) -m ipykernel install --sys-prefix --name python3 --display-name 'Python 3 (flowmod)' >/dev/null  # argv: this venv's python
+	$(VENV)/bin/jupyter lab --notebook-dir=notebooks --no-browser --ip=127.0.0.1 --port=$(LAB_PORT) \
+	  $(if $(filter 0,$(shell id -u)),--allow-root)
+
+mutation: env  ## mutation testing of the modules whose numbers reach the book (mutmut; ~1 h, not part of make test)
+	$(PY) benchmarks/mutation.py
+
+flownet: env  ## train the shipped FastFlowNet weights from scratch (weights/fastflownet_synth; hours on a CPU, resumable)
+	$(PY) -m flowmod.flow.pretrain $(if $(STEPS),--steps $(STEPS))
 
 bench: env  ## throughput and memory figures into benchmarks/results/ (never asserted)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b; done

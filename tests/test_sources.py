@@ -175,3 +175,51 @@ def test_every_chapter_ends_with_try_it(nb_path):
     for cmd in cmds:
         assert "--profile demo" in cmd and ("--only" in cmd or "--status" in cmd), cmd
         assert "--set" in cmd, f"{cmd}: a 'Try it' changes one parameter"
+
+
+def test_make_lab_serves_the_notebooks_with_the_venvs_kernel(tmp_path):
+    """``make lab`` starts JupyterLab on notebooks/ whose python3 kernel is this venv's."""
+    import json
+    import os
+    import re
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+    import urllib.request
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "JUPYTER_RUNTIME_DIR": str(tmp_path / "rt")}
+    proc = subprocess.Popen(["make", "--no-print-directory", "lab", f"LAB_PORT={port}"],
+                            cwd=repo_root(), env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        token, lines, t0 = None, [], time.monotonic()
+        while token is None and time.monotonic() - t0 < 120:
+            line = proc.stdout.readline()
+            lines.append(line)
+            m = re.search(rf"127\.0\.0\.1:{port}/lab\?token=(\w+)", line)
+            token = m.group(1) if m else None
+        assert token, "".join(lines[-20:])
+
+        def get(path: str) -> dict:
+            url = f"http://127.0.0.1:{port}{path}?token={token}"
+            for attempt in range(10):  # the URL is printed as the server starts listening
+                try:
+                    return json.loads(urllib.request.urlopen(url, timeout=30).read())
+                except urllib.error.URLError:
+                    if attempt == 9:
+                        raise
+                    time.sleep(1)
+            raise AssertionError("unreachable")
+
+        spec = get("/api/kernelspecs")["kernelspecs"]["python3"]["spec"]
+        assert spec["argv"][0] == sys.executable, spec["argv"]  # the venv's interpreter
+        names = {c["name"] for c in get("/api/contents/")["content"]}
+        assert {nb.name for nb in notebooks()} <= names
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(timeout=30)
