@@ -29,9 +29,10 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import shutil
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +48,7 @@ from flowmod.flow.estimators import GTFlow
 from flowmod.flow.nets import FFN_DIV_FLOW, FastFlowNet, fastflownet_inputs
 from flowmod.flow.registry import read_image, resize_flow
 from flowmod.flow.selftrain import HeldOut, baselines, held_out, score_model
-from flowmod.params import validate
+from flowmod.params import Params, load_profile, validate
 from flowmod.paths import repo_root
 from flowmod.progress import bar
 from flowmod.select import (
@@ -220,12 +221,12 @@ class PairCache:
         return img
 
     def _flow(self, i: int, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-        f = self.folder / "flow" / f"{i:06d}.npz"
+        r = self.pairs.iloc[i]
+        f = self.folder / "flow" / f"{r.sd_token_1}_{r.sd_token_2}.npz"
         if f.is_file():
             z = np.load(f)
             return z["flow"].astype(np.float32), z["valid"]
         self._gt = self._gt or GTFlow(self.dataroot, self.version)
-        r = self.pairs.iloc[i]
         flow, valid = self._gt.estimate_tokens(r.sd_token_1, r.sd_token_2)
         small = resize_flow(flow, size)
         vsmall = cv2.resize(valid.astype(np.uint8), size[::-1],
@@ -398,6 +399,31 @@ def publish(recipe: Recipe, work: Path, out: Path, world_fp: str, heldout: HeldO
     return manifest
 
 
+#: Steps of the recipe the manifest's check repeats from scratch on the smoke world.
+CHECK_STEPS = 3
+#: Keyframe pairs of the smoke world on which the check scores the shipped weights.
+CHECK_PAIRS = 4
+
+
+def smoke_check(recipe: Recipe, weights: Path, smoke: Params, work: Path) -> dict[str, Any]:
+    """What a test repeats in seconds on the smoke world (every test session generates it):
+    the losses of the recipe's first :data:`CHECK_STEPS` steps from scratch on its pairs (so
+    a change of the recipe's code shows), and the shipped float16 weights' errors on
+    :data:`CHECK_PAIRS` of its keyframe pairs (so other weights show)."""
+    shutil.rmtree(work, ignore_errors=True)  # from scratch, every time
+    root = smoke.dataroot_path
+    frames = scene_frames(root, smoke.version)
+    every = {s: "train" for s in frames}
+    pairs = training_pairs(frames, every, recipe.max_gap, recipe.start_stride)
+    data = PairCache(pairs, root, smoke.version, recipe.scale, work / "cache")
+    _, rows = train(recipe, data, work / "train", CHECK_STEPS, None, progress=False)
+    held = validation_set(replace(recipe, eval_pairs=CHECK_PAIRS), root,
+                          {s: "val" for s in frames})
+    return {"world_id": smoke.world_id, "steps": CHECK_STEPS,
+            "first_losses": [r["loss"] for r in rows],
+            "weights": score_model(load_half(weights), held, recipe.scale)}
+
+
 def prepare(recipe: Recipe, dataroot: Path, work: Path, progress: bool = True
             ) -> tuple[str, PairCache, HeldOut]:
     """The world (generated if missing), its training pairs and the validation set."""
@@ -422,17 +448,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=repo_root() / WEIGHTS_DIR)
     ap.add_argument("--publish-only", action="store_true",
                     help="publish the last checkpoint as it is (its step) without training")
+    ap.add_argument("--check-only", action="store_true",
+                    help="only (re)compute the manifest's smoke-world check of the weights")
     args = ap.parse_args(argv)
     recipe, t0 = Recipe(), time.time()
     args.work.mkdir(parents=True, exist_ok=True)
-    world_fp, data, heldout = prepare(recipe, args.dataroot.resolve(), args.work)
-    print(f"[pretrain] {len(data.pairs)} training pairs, {len(heldout.img1)} validation pairs",
-          flush=True)
-    if not args.publish_only:
-        train(recipe, data, args.work, args.steps, heldout)
-    m = publish(recipe, args.work, args.out, world_fp, heldout, time.time() - t0)
-    print(f"[pretrain] published {args.out}/weights.pt: step {m['steps']}, validation "
-          f"EPE in far boxes {m['validation']['final_float16']['epe_boxes']:.2f} px", flush=True)
+    if not args.check_only:
+        world_fp, data, heldout = prepare(recipe, args.dataroot.resolve(), args.work)
+        print(f"[pretrain] {len(data.pairs)} training pairs, {len(heldout.img1)} validation "
+              "pairs", flush=True)
+        if not args.publish_only:
+            train(recipe, data, args.work, args.steps, heldout)
+        m = publish(recipe, args.work, args.out, world_fp, heldout, time.time() - t0)
+        print(f"[pretrain] published {args.out}/weights.pt: step {m['steps']}, validation EPE "
+              f"in far boxes {m['validation']['final_float16']['epe_boxes']:.2f} px", flush=True)
+    smoke = load_profile("smoke", n_jobs=2)
+    ensure_world_data(smoke)
+    manifest = json.loads((args.out / "manifest.json").read_text())
+    manifest["check"] = smoke_check(recipe, args.out / "weights.pt", smoke, args.work / "check")
+    write_json(args.out / "manifest.json", manifest)
+    print(f"[pretrain] smoke-world check: {manifest['check']}", flush=True)
     return 0
 
 

@@ -1,0 +1,100 @@
+"""FastFlowNet's pretraining recipe (flowmod.flow.pretrain): the multi-scale loss, the
+schedule, the batches. Hand-made tensors; seconds."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from flowmod.flow import pretrain as pt
+from flowmod.flow.nets import FastFlowNet, fastflownet_inputs
+
+
+def test_level_target_averages_valid_pixels_and_needs_half_of_a_cell():
+    gt = torch.zeros(1, 2, 8, 8)
+    gt[:, 0, :4, :4] = 4.0  # u = 4 px in the top-left 4 x 4 cell
+    valid = torch.ones(1, 1, 8, 8)
+    valid[:, :, :4, :4] = 0
+    valid[:, :, 0, 0] = 1  # 1 of 16 valid: that cell is invalid at level 2
+    flow, ok = pt.level_target(gt, valid, 2)
+    assert flow.shape == (1, 2, 2, 2) and ok.tolist() == [[[[0.0, 1.0], [1.0, 1.0]]]]
+    assert flow[0, 0, 0, 0] == pytest.approx(4.0), "the mean over the valid pixels"
+    assert flow[0, 0, 1, 1] == 0.0
+
+
+def test_pyramid_loss_is_zero_for_the_exact_flow_and_weights_the_levels():
+    h, w = 64, 64
+    gt = torch.zeros(1, 2, h, w)
+    gt[:, 0] = 3.0
+    gt[:, 1] = -4.0  # EPE of a zero prediction: 5 px everywhere
+    valid = torch.ones(1, 1, h, w)
+    exact = [torch.stack([torch.full((1, h >> k, w >> k), 3.0 / 20),
+                          torch.full((1, h >> k, w >> k), -4.0 / 20)], 1) for k in pt.LEVELS]
+    loss, parts = pt.pyramid_loss(exact, gt, valid, (1, 1, 1, 1, 1))
+    assert float(loss) == pytest.approx(0.0, abs=0.01) and parts["epe2"] < 0.01
+    zero = [torch.zeros_like(f) for f in exact]
+    loss, parts = pt.pyramid_loss(zero, gt, valid, (1.0, 0.5, 0.25, 0.25, 0.25))
+    assert parts["epe2"] == pytest.approx(5.0, abs=1e-4)
+    assert float(loss) == pytest.approx(5.0 * 2.25, abs=1e-3)
+
+
+def test_rate_halves_at_each_milestone():
+    r = pt.Recipe(lr=4e-4, milestones=(10, 20), gamma=0.5)
+    assert [pt.learning_rate(r, s) for s in (0, 9, 10, 19, 20, 99)] == pytest.approx(
+        [4e-4, 4e-4, 2e-4, 2e-4, 1e-4, 1e-4])
+
+
+class Pairs:
+    """Two hand-made pairs of 128 x 192 frames with a known flow (u = column index)."""
+
+    pairs = pd.DataFrame({"sd_token_1": ["a", "b"], "sd_token_2": ["c", "d"]})
+
+    def load(self, i: int):
+        h, w = 128, 192
+        img = np.zeros((h, w, 3), np.uint8)
+        img[..., 0] = np.arange(w, dtype=np.uint8)[None, :]
+        flow = np.zeros((h, w, 2), np.float32)
+        flow[..., 0] = np.arange(w)[None, :] + 1000 * i
+        flow[..., 1] = 7.0
+        return img, img.copy(), flow, np.ones((h, w), bool)
+
+
+def test_batches_are_drawn_from_seed_and_step_and_flips_negate_u():
+    r = pt.Recipe(batch=8, crop=(64, 128), flip_p=0.5, seed=3)
+    a, b = pt.draw_batch(Pairs(), r, 5), pt.draw_batch(Pairs(), r, 5)
+    assert all(torch.equal(a[k], b[k]) for k in a), "a function of (seed, step)"
+    assert not torch.equal(a["img1"], pt.draw_batch(Pairs(), r, 6)["img1"])
+    assert a["img1"].shape == (8, 3, 64, 128) and a["gt"].shape == (8, 2, 64, 128)
+    for k in range(8):
+        u, img = a["gt"][k, 0], a["img1"][k, 0]
+        flipped = bool(u[0, 0] > u[0, -1] or u[0, 0] < 0)
+        if flipped:  # mirrored: the image's columns run backwards and u changes sign
+            assert img[0, 0] > img[0, -1] and (u <= 0).all()
+        else:
+            assert img[0, 0] < img[0, -1] and (u >= 0).all()
+        assert (a["gt"][k, 1] == 7.0).all(), "v is kept"
+    flips = [bool(a["img1"][k, 0, 0, 0] > a["img1"][k, 0, 0, -1]) for k in range(8)]
+    assert any(flips) and not all(flips)
+    none = pt.draw_batch(Pairs(), replace(r, flip_p=0.0), 5)
+    assert all(none["img1"][k, 0, 0, 0] < none["img1"][k, 0, 0, -1] for k in range(8))
+
+
+def test_a_step_lowers_the_loss_on_its_batch_and_levels_match_forward():
+    torch.manual_seed(0)
+    model = FastFlowNet()
+    r = pt.Recipe(batch=2, crop=(64, 128), lr=1e-3)
+    batch = pt.draw_batch(Pairs(), r, 0)
+    x1, x2 = fastflownet_inputs(batch["img1"], batch["img2"])
+    with torch.no_grad():
+        levels = model.levels(x1, x2)
+        assert torch.equal(levels[0], model(x1, x2)), "forward is the finest level"
+        assert [lv.shape[-1] for lv in levels] == [32, 16, 8, 4, 2]
+    opt = torch.optim.Adam(model.parameters(), lr=r.lr)
+    first = pt.train_step(model, opt, batch, r, 0)["loss"]
+    for step in range(1, 6):
+        last = pt.train_step(model, opt, batch, r, step)["loss"]
+    assert last < first
