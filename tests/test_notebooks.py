@@ -329,32 +329,34 @@ def test_paper_profile_runs_on_a_devkit_dataset_by_parameters_only(smoke_world, 
     assert g12["selfflow_n_built"] == 0, "make selfflow trains; make book does not"
 
 
-def test_try_it_commands_run(smoke_run, tmp_path):
+def test_try_it_commands_run(smoke_run, tmp_path, capsys):
     """Every chapter's "Try it" command, as a reader would type it, on a copy of the smoke run
-    (``--profile demo`` becomes ``--profile smoke``), so that they never rot."""
+    (``--profile demo`` becomes ``--profile smoke``), so that they never rot. The commands
+    run through the runner's ``main`` in this process (the interpreter start is all that
+    differs from a shell); the world is the session's, read in place (no command makes one)."""
     import shlex
     import shutil
-    import subprocess
-    import sys
 
     from test_sources import try_it_commands
 
     base = smoke_run["base"]
     for name in ("runs", "executed"):
         shutil.copytree(base / name, tmp_path / name, symlinks=True)
-    shutil.copytree(smoke_run["data"], tmp_path / "data", symlinks=True)
+    prefix = [".venv/bin/python", "-m", "flowmod.runner"]
     for nb in runner.notebooks():
         for cmd in try_it_commands(nb):
-            args = [sys.executable if a == ".venv/bin/python" else "smoke" if a == "demo" else a
-                    for a in shlex.split(cmd)]
-            args += ["--set", f"run_dir={tmp_path / 'runs'}", "--set",
-                     f"dataroot={tmp_path / 'data'}", "--out", str(tmp_path / "executed")]
-            proc = subprocess.run(args, capture_output=True, text=True, timeout=900)
-            assert proc.returncode == 0, f"{cmd}\n{proc.stdout[-1500:]}\n{proc.stderr[-1500:]}"
+            argv = ["smoke" if a == "demo" else a for a in shlex.split(cmd)]
+            assert argv[:3] == prefix, cmd
+            argv = argv[3:] + ["--set", f"run_dir={tmp_path / 'runs'}", "--set",
+                               f"dataroot={smoke_run['data']}", "--out",
+                               str(tmp_path / "executed")]
+            rc = runner.main(argv)
+            out, err = capsys.readouterr()
+            assert rc == 0, f"{cmd}\n{out[-1500:]}\n{err[-1500:]}"
             if "--status" in cmd:
-                assert "stale" in proc.stdout or "missing" in proc.stdout, proc.stdout
+                assert "stale" in out or "missing" in out, out
             else:
-                assert " ok (" in proc.stdout, proc.stdout
+                assert " ok (" in out, out
 
 
 def test_output_tables_have_no_index_column(smoke_run):
