@@ -117,7 +117,7 @@ def worker(spec: dict) -> dict:
     if method in NETWORKS:  # torch only where needed: the classical figures stay torch-free
         import torch
 
-        from flowmod.flow import nets as fn
+        from flowmod.flow import architectures as fn
 
         if spec.get("threads"):
             torch.set_num_threads(spec["threads"])

@@ -23,7 +23,7 @@ import torch
 from flowmod.artefacts import write_json
 from flowmod.environment import resolve_device
 from flowmod.flow import selftrain
-from flowmod.flow.nets import FastFlowNet, fastflownet_flow
+from flowmod.flow.architectures import FastFlowNet, fastflownet_flow
 from flowmod.flow.networks import FastFlowNetFlow
 from flowmod.params import load_profile
 from flowmod.paths import repo_root

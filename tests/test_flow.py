@@ -1,4 +1,4 @@
-"""flowmod.flow and flowmod.flow.nets: estimators, networks' plumbing, the cached stage, metrics.
+"""flowmod.flow and flowmod.flow.architectures: estimators, networks' plumbing, the cached stage, metrics.
 
 No trained network weights exist here: the network tests check shapes, padding, scaling and
 key layouts with random or hand-set weights and never claim accuracy for them. DIS and
@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from flowmod import flow as fl
-from flowmod.flow import nets as fn
+from flowmod.flow import architectures as fn
 
 torch.set_num_threads(1)  # the test machine is shared
 

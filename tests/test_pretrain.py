@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from flowmod.flow import pretrain as pt
-from flowmod.flow.nets import FastFlowNet, fastflownet_inputs
+from flowmod.flow.architectures import FastFlowNet, fastflownet_inputs
 
 
 def test_level_target_averages_valid_pixels_and_needs_half_of_a_cell():

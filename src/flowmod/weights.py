@@ -22,7 +22,7 @@ from pathlib import Path
 
 from torchvision.models import optical_flow as of
 
-from flowmod.flow import nets
+from flowmod.flow import architectures as nets
 from flowmod.flow.networks import WEIGHTS_PARAM, cache_files
 
 #: The checkpoints downloaded for RAFT: the KITTI fine-tuned large model (the paper's choice of

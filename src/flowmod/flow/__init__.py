@@ -6,7 +6,7 @@
 
 Modules: :mod:`~flowmod.flow.registry` (base class, registry, image I/O),
 :mod:`~flowmod.flow.estimators` (gt, dis, farneback), :mod:`~flowmod.flow.networks` (raft,
-raft_small, fastflownet over :mod:`~flowmod.flow.nets`), :mod:`~flowmod.flow.store` (files),
+raft_small, fastflownet over :mod:`~flowmod.flow.architectures`), :mod:`~flowmod.flow.store` (files),
 :mod:`~flowmod.flow.metrics` (EPE, Fl-all, colour coding), :mod:`~flowmod.flow.stage` (the
 stage of chapter 03).
 """

@@ -1,5 +1,5 @@
 """Flow networks as estimators: RAFT (torchvision ``raft_large`` / ``raft_small``) and
-FastFlowNet (:mod:`flowmod.flow.nets`), always with trained weights.
+FastFlowNet (:mod:`flowmod.flow.architectures`), always with trained weights.
 
 Network methods never run from random weights: without a weights file they raise
 :class:`MissingWeightsError` saying which file to put where. torch is imported lazily.
@@ -31,9 +31,9 @@ if TYPE_CHECKING:
 
 
 def _nets() -> Any:
-    """:mod:`flowmod.flow.nets`, imported on first use: it imports torch, which the CPU
+    """:mod:`flowmod.flow.architectures`, imported on first use: it imports torch, which the CPU
     methods (and a Ray worker running them) never need."""
-    from flowmod.flow import nets  # lazy: torch is heavy (see the docstring)
+    from flowmod.flow import architectures as nets  # lazy: torch is heavy (see the docstring)
 
     return nets
 
@@ -208,7 +208,7 @@ class RAFTSmallFlow(RAFTFlow):
 
 @register_estimator
 class FastFlowNetFlow(_NetworkEstimator):
-    """FastFlowNet (:class:`flowmod.flow.nets.FastFlowNet`) with the official checkpoints.
+    """FastFlowNet (:class:`flowmod.flow.architectures.FastFlowNet`) with the official checkpoints.
 
     Weights: ``weights`` (path or state_dict), else one of the official file names
     (``fastflownet_ft_kitti.pth`` first) in the TORCH_HOME hub cache.

@@ -2,7 +2,7 @@
 
 The paper's flow networks were trained supervised on synthetic data (FlyingChairs, Things)
 before they met real frames. No such weights can be had offline, so this module makes the
-study's own: FastFlowNet (:class:`flowmod.flow.nets.FastFlowNet`) trained from scratch on
+study's own: FastFlowNet (:class:`flowmod.flow.architectures.FastFlowNet`) trained from scratch on
 the exact flow of a *pretraining world*, a generated world of its own seed and size that
 shares no scene with the book's worlds (the book's every scene can then be a test scene).
 
@@ -44,8 +44,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from flowmod.artefacts import atomic_path, file_digest, fingerprint, write_json
+from flowmod.flow.architectures import FFN_DIV_FLOW, FastFlowNet, fastflownet_inputs
 from flowmod.flow.estimators import GTFlow
-from flowmod.flow.nets import FFN_DIV_FLOW, FastFlowNet, fastflownet_inputs
 from flowmod.flow.registry import read_image, resize_flow
 from flowmod.flow.selftrain import HeldOut, baselines, held_out, score_model
 from flowmod.params import Params, load_profile, validate
@@ -378,7 +378,7 @@ def publish(recipe: Recipe, work: Path, out: Path, world_fp: str, heldout: HeldO
     rows = state["history"]
     final = score_model(load_half(out / "weights.pt"), heldout, recipe.scale)
     manifest = {
-        "network": "FastFlowNet (flowmod.flow.nets), trained from scratch here",
+        "network": "FastFlowNet (flowmod.flow.architectures), trained from scratch here",
         "recipe": asdict(recipe), "steps": int(state["step"]),
         "world": {"fingerprint": world_fp, "dataroot_params":
                   recipe.world_params("data/pretrain").model_dump(

@@ -1,7 +1,7 @@
 """FastFlowNet trained here, from scratch (chapter 12, the paper's second future-work item).
 
 No pretrained flow weights exist on this machine, so the project's FastFlowNet
-(:class:`flowmod.flow.nets.FastFlowNet`) is trained on the data set's own frames:
+(:class:`flowmod.flow.architectures.FastFlowNet`) is trained on the data set's own frames:
 
 - ``photometric`` (self-supervised, no labels; runs on real nuScenes unchanged): the second
   image warped back by the predicted flow should look like the first. Loss: the soft census
@@ -14,7 +14,7 @@ Both train on random ``selfflow_crop`` windows of consecutive keyframe pairs of 
 and val scenes at ``flow_scale``, with Adam, ``selfflow_iters`` steps of ``selfflow_batch``
 pairs; the batch of step ``i`` is drawn with ``(seed, i)`` so a resumed run (``last.pt``,
 written every few steps) sees the same batches as an uninterrupted one. The network's input
-and output go through :func:`flowmod.flow.nets.fastflownet_flow`, the function the
+and output go through :func:`flowmod.flow.architectures.fastflownet_flow`, the function the
 ``fastflownet`` estimator uses, so the published ``weights.pt`` is an ordinary FastFlowNet
 checkpoint (``fastflownet_weights``). Held-out evaluation: end-point error on pairs of the
 test scenes at full resolution, beside DIS (medium preset) and Farneback at the same
@@ -38,9 +38,9 @@ from torch import Tensor
 
 from flowmod.artefacts import atomic_path
 from flowmod.environment import resolve_device
+from flowmod.flow.architectures import FFN_DIV_SIZE, FastFlowNet, fastflownet_flow, warp
 from flowmod.flow.estimators import DISFlow, FarnebackFlow, GTFlow
 from flowmod.flow.metrics import flow_metrics
-from flowmod.flow.nets import FFN_DIV_SIZE, FastFlowNet, fastflownet_flow, warp
 from flowmod.flow.networks import FastFlowNetFlow
 from flowmod.flow.registry import read_image, resize_flow
 from flowmod.progress import bar
