@@ -140,7 +140,8 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
             f1s = [metrics(in_range[col], in_range[c])["f1"]
                    for c in evaluate.seed_columns(in_range)]
             assert g8[f"general_f1_{m}_{key}"] == round(100 * np.mean(f1s), 1)
-        assert (gen["distance"] > p.general_max_distance).any(), "70-100 m scored apart"
+        # (the smoke world's traffic ends before 70 m: the 70-100 m band is scored apart in
+        # tests/test_evaluate.py::test_table4_scores_the_papers_range_and_beyond_apart)
     assert g8["n_general"] == (common.results(p, "dis", "general")[0]["distance"]
                                <= p.general_max_distance).sum()
     assert g2["split_unit"] == "scene", "a generated world is split by scene"
