@@ -97,7 +97,7 @@ lab: env  ## JupyterLab on notebooks/ with the venv's kernel: run a chapter cell
 	$(VENV)/bin/jupyter lab --notebook-dir=notebooks --no-browser --ip=127.0.0.1 --port=$(LAB_PORT) \
 	  $(if $(filter 0,$(shell id -u)),--allow-root)
 
-mutation: env  ## mutation testing of the modules whose numbers reach the book (mutmut; ~1 h, not part of make test)
+mutation: env  ## mutation testing of the modules whose numbers reach the book (mutmut; not part of make test)
 	$(PY) benchmarks/mutation.py
 
 flownet: env  ## train the shipped FastFlowNet weights from scratch (weights/fastflownet_synth; hours on a CPU, resumable)
