@@ -17,6 +17,7 @@ HTML       ?= build/html
 MATHJAX    := build/vendor/node_modules/mathjax/es5/tex-chtml.js
 STAMP      := $(VENV)/.flowmod-env-stamp
 PYTEST_ARGS ?=
+TEST_WORKERS ?= 2
 GC         ?=
 LAB_PORT   ?= 8888
 
@@ -68,8 +69,8 @@ extensions: book  ## make book, training chapters 10 and 11's models first (demo
 selfflow: RUN_SET += --set selfflow_build=true
 selfflow: book  ## make book, training chapter 12's FastFlowNets first (demo: 2 x 600 steps, ~25 min more; resumable)
 
-test: env browser lint  ## lint, unit tests, notebooks on the smoke profile, the book build
-	$(PY) -m pytest $(PYTEST_ARGS)
+test: env browser lint  ## lint, unit tests, notebooks on the smoke profile, the book build (TEST_WORKERS=2)
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadgroup $(PYTEST_ARGS)
 
 browser:  ## install headless Chromium for the browser check of the book (apt-get; root or sudo)
 	@if [ -n "$${FLOWMOD_CHROMIUM:-}" ] || command -v chromium >/dev/null \

@@ -330,34 +330,32 @@ def test_paper_profile_runs_on_a_devkit_dataset_by_parameters_only(smoke_world, 
     assert g12["selfflow_n_built"] == 0, "make selfflow trains; make book does not"
 
 
-def test_try_it_commands_run(smoke_run, tmp_path, capsys):
-    """Every chapter's "Try it" command, as a reader would type it, on a copy of the smoke run
-    (``--profile demo`` becomes ``--profile smoke``), so that they never rot. The commands
-    run through the runner's ``main`` in this process (the interpreter start is all that
-    differs from a shell); the world is the session's, read in place (no command makes one)."""
+@pytest.mark.parametrize("nb_path", runner.notebooks(), ids=lambda p: p.stem)
+def test_try_it_commands_run(nb_path, smoke_built, tmp_path, capsys):
+    """A chapter's "Try it" commands, as a reader would type them, on a copy of the built
+    smoke run (``--profile demo`` becomes ``--profile smoke``), so that they never rot: each
+    builds what its parameter changes and executes its chapter. The commands run through
+    the runner's ``main`` in this process (the interpreter start is all that differs from a
+    shell); the world is the session's, read in place (no command makes one)."""
     import shlex
     import shutil
 
     from test_sources import try_it_commands
 
-    base = smoke_run["base"]
-    for name in ("runs", "executed"):
-        shutil.copytree(base / name, tmp_path / name, symlinks=True)
+    shutil.copytree(smoke_built.run_path, tmp_path / "runs", symlinks=True)
     prefix = [".venv/bin/python", "-m", "flowmod.runner"]
-    for nb in runner.notebooks():
-        for cmd in try_it_commands(nb):
-            argv = ["smoke" if a == "demo" else a for a in shlex.split(cmd)]
-            assert argv[:3] == prefix, cmd
-            argv = argv[3:] + ["--set", f"run_dir={tmp_path / 'runs'}", "--set",
-                               f"dataroot={smoke_run['data']}", "--out",
-                               str(tmp_path / "executed")]
-            rc = runner.main(argv)
-            out, err = capsys.readouterr()
-            assert rc == 0, f"{cmd}\n{out[-1500:]}\n{err[-1500:]}"
-            if "--status" in cmd:
-                assert "stale" in out or "missing" in out, out
-            else:
-                assert " ok (" in out, out
+    for cmd in try_it_commands(nb_path):
+        argv = ["smoke" if a == "demo" else a for a in shlex.split(cmd)]
+        assert argv[:3] == prefix, cmd
+        argv = argv[3:] + ["--set", f"run_dir={tmp_path / 'runs'}", "--set",
+                           f"dataroot={smoke_built.dataroot}", "--out", str(tmp_path / "executed")]
+        rc = runner.main(argv)
+        out, err = capsys.readouterr()
+        assert rc == 0, f"{cmd}\n{out[-1500:]}\n{err[-1500:]}"
+        if "--status" in cmd:
+            assert "stale" in out or "missing" in out, out
+        else:
+            assert " ok (" in out, out
 
 
 def test_output_tables_have_no_index_column(smoke_run):
