@@ -96,6 +96,54 @@ def test_table4_scores_the_papers_range_and_beyond_apart():
     assert set(unknown["scored against"]) == {"paper rule (previous keyframe)"}
 
 
+def test_table4_rows_format_each_ranges_seed_summary(tmp_path):
+    """Every row's numbers are its range's seed summary in percent (one decimal); the
+    boundary object is in the paper's range only; a range whose paper label is unknown
+    still gets its true-label row; an all-still range is scored (F1 undefined, not left out)."""
+    df = table(n_scenes=6).reset_index(drop=True)
+    df.loc[3, "distance"] = 50.0  # on the boundary: inside
+    df.loc[:2, "true_label"] = -1  # unknown at three frames: scored without them
+    far = df["distance"] > 50.0
+    df.loc[far, "label"] = -1  # beyond the range: the paper's label unknown
+    df.loc[far, "true_label"] = 0  # and every vehicle still
+    t = evaluate.table4({"dis": df}, 50.0)
+    assert list(t["scored against"]) == ["paper rule (previous keyframe)",
+                                         "true label at the frame", "true label at the frame"]
+    assert list(t["vehicles"]) == ["0-50 m (Table 4)"] * 2 + ["beyond 50 m"]
+    assert list(t.columns) == ["method", "vehicles", "scored against", "objects", "scenes",
+                               "F1 (%)", "seed range (%)", "P (%)", "R (%)",
+                               "F1 95% CI, scenes (%)"]
+    for row, d, col in ((t.iloc[0], df[~far], "label"), (t.iloc[1], df[~far].iloc[3:], "true_label"),
+                        (t.iloc[2], df[far], "true_label")):
+        s = ev.seed_summary(d[col], evaluate.seed_probs(d), d["scene"])
+        assert (row["method"], row["objects"], row["scenes"]) == ("dis", len(d), s["n_scenes"])
+        for key, name in (("f1", "F1 (%)"), ("precision", "P (%)"), ("recall", "R (%)")):
+            want = round(100 * s[key], 1)
+            assert row[name] == want or (np.isnan(want) and np.isnan(row[name])), name
+        assert row["seed range (%)"] == f"{100 * s['f1_min']:.1f}-{100 * s['f1_max']:.1f}"
+        assert row["F1 95% CI, scenes (%)"] == f"{100 * s['ci'][0]:.1f}-{100 * s['ci'][1]:.1f}"
+    assert all(t[c].dtype.kind == "f" for c in ("F1 (%)", "P (%)", "R (%)")), "one decimal"
+    assert t.iloc[0]["seed range (%)"] != t.iloc[0]["F1 95% CI, scenes (%)"]
+
+
+def test_defaults_are_the_documented_seed_and_batch_size():
+    """score and paired draw with seed 0 by default; the original protocol batches by 128
+    (enough scenes and objects that another seed or batch size gives other numbers)."""
+    a, b = table(n_scenes=30, per=10, seed=1), table(n_scenes=30, per=10, seed=2)
+    assert evaluate.score(a) == evaluate.score(a, seed=0) != evaluate.score(a, seed=1)
+    assert evaluate.paired(a, b, "x") == evaluate.paired(a, b, "x", seed=0) != evaluate.paired(
+        a, b, "x", seed=1)
+    y = a["label"].to_numpy()
+    half = np.where(np.arange(len(y)) % 4 == 0, 1 - y, y) * 0.8 + 0.1  # a quarter wrong
+    epochs = [np.stack([half])]
+    r = evaluate.original_protocol(a, epochs)
+    assert r == evaluate.original_protocol(a, epochs, batch_size=128)
+    assert r["per_seed_original"] != evaluate.original_protocol(a, epochs, 129)["per_seed_original"]
+    keep = ev.thin_still(y)
+    assert r["per_seed_original"] == [ev.paper_protocol_f1(y[keep], half[keep], 128)]
+    assert r["per_seed_original"] != [ev.paper_protocol_f1(y, half, 128)], "stills thinned"
+
+
 def test_failure_reasons_tag_remote_slow_and_crowded():
     df = pd.DataFrame({
         "pair_id": ["p", "p", "q"], "instance_token": ["a", "b", "c"],

@@ -213,8 +213,7 @@ def table4(preds: Mapping[str, pd.DataFrame], max_distance: float) -> pd.DataFra
                 if len(d0) == 0 or col not in d0 or (d0[col] < 0).all():
                     continue
                 d = d0[d0[col] >= 0]
-                s = seed_summary(d[col].to_numpy(), seed_probs(d), d["scene"].to_numpy(),
-                                 instances=d.get("instance_token"))
+                s = seed_summary(d[col].to_numpy(), seed_probs(d), d["scene"].to_numpy())
                 rows.append({"method": m, "vehicles": rng, "scored against": name,
                              "objects": s["n"], "scenes": s["n_scenes"],
                              "F1 (%)": round(100 * s["f1"], 1),
