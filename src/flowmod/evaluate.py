@@ -45,7 +45,7 @@ def models_of(b: dag.Build, stage: str, method: str) -> list[tuple[str, Path, st
 
 
 def predict_models(models: list[tuple[str, Any, str | None]], x: Any, df: pd.DataFrame,
-                   device: Any = "auto", in_channels: int | None = 2) -> pd.DataFrame:
+                   device: Any = "auto", in_channels: int | None = 2) -> pd.DataFrame:  # pragma: no mutate block
     """``df`` (the rows of ``x``: (N, C, S, S)) with ``prob_<part>`` of every model (part,
     best.pt, amp) and ``prob`` = the first's; ``in_channels`` as
     :func:`flowmod.model.load_model` (None: the checkpoint's). Each model predicts in the
@@ -128,7 +128,7 @@ def geometric_baseline(pairs: pd.DataFrame, crops_folder: Any, seed: int = 0
 
 
 def write_frames(folder: Path, frames: Mapping[str, pd.DataFrame],
-                 scores: Mapping[str, Any]) -> None:
+                 scores: Mapping[str, Any]) -> None:  # pragma: no mutate block
     """``<name>.parquet`` per table and ``<name>.json`` per score record (each atomically)."""
     for name, df in frames.items():
         with atomic_path(folder / f"{name}.parquet") as tmp:
@@ -139,7 +139,7 @@ def write_frames(folder: Path, frames: Mapping[str, pd.DataFrame],
 
 def predict_splits(b: dag.Build, stage: str, key: str,
                    splits: Mapping[str, tuple[Any, pd.DataFrame]],
-                   in_channels: int | None = 2) -> dict[str, pd.DataFrame]:
+                   in_channels: int | None = 2) -> dict[str, pd.DataFrame]:  # pragma: no mutate block
     """The one predictor of a node's seeds: every model of the node's inputs of ``stage``
     for ``key`` on each split's (x, index), written as ``<split>.parquet`` (``prob_s<k>``
     per seed) into the building folder. Returns the tables."""
@@ -150,7 +150,7 @@ def predict_splits(b: dag.Build, stage: str, key: str,
     return frames
 
 
-def build_evaluate(b: dag.Build, progress: bool) -> dict[str, Any]:
+def build_evaluate(b: dag.Build, progress: bool) -> dict[str, Any]:  # pragma: no mutate block
     """Build one ``evaluate[<method>]`` node: every training seed's model (chosen on
     validation) scored once on the test split (``test.parquet`` + ``scores.json``), the
     geometric baseline on the same flow (``baseline.parquet`` + ``.json``), and the original
@@ -170,7 +170,7 @@ def build_evaluate(b: dag.Build, progress: bool) -> dict[str, Any]:
     return {"n": len(preds), "seeds": len(models)}
 
 
-def build_generalise(b: dag.Build, progress: bool) -> dict[str, Any]:
+def build_generalise(b: dag.Build, progress: bool) -> dict[str, Any]:  # pragma: no mutate block
     """Build one ``generalise[<method>]`` node: every seed's model (chosen on validation in
     chapter 06) on the generalisation crops, without retraining (``general.parquet``)."""
     m = b.node.method
@@ -227,7 +227,7 @@ def table4(preds: Mapping[str, pd.DataFrame], max_distance: float) -> pd.DataFra
 
 
 def failure_reasons(df: pd.DataFrame, boxes: pd.DataFrame, threshold: float = 0.5,
-                    speed_threshold: float = 2.0, scale: float = 3.0) -> pd.DataFrame:
+                    speed_threshold: float = 2.0, scale: float = 3.0) -> pd.DataFrame:  # pragma: no mutate block
     """Tag each wrong prediction with the paper's two failure reasons.
 
     ``unclear flow``: remote (> 50 m) or slow (speed within 1 m/s of the threshold);
@@ -261,7 +261,7 @@ def breakdown(df: pd.DataFrame, by: str, bins: Any = None) -> pd.DataFrame:
                       groups=df["scene"].to_numpy())
 
 
-def failure_shares(tagged: pd.DataFrame) -> pd.DataFrame:
+def failure_shares(tagged: pd.DataFrame) -> pd.DataFrame:  # pragma: no mutate block
     """Share (%) of all objects and of wrong predictions with each failure reason."""
     cols = ["unclear_flow", "crowded"]
     names = {"unclear_flow": "remote or slow", "crowded": "other objects in the crop"}
@@ -274,7 +274,7 @@ def failure_shares(tagged: pd.DataFrame) -> pd.DataFrame:
     return out.round(1)
 
 
-def failure_examples(tagged: pd.DataFrame, n: int = 3) -> pd.DataFrame:
+def failure_examples(tagged: pd.DataFrame, n: int = 3) -> pd.DataFrame:  # pragma: no mutate block
     """Up to ``n`` wrong predictions of each kind (remote or slow only, then crowded), with a
     ``title`` for the figure."""
     wrong = tagged[tagged["wrong"]]
