@@ -411,3 +411,36 @@ def test_pair_crops_writer_resumes_and_refuses_mixed_splits(tmp_path) -> None:
                             "xmin": 1.0, "ymin": 1.0, "xmax": 5.0, "ymax": 5.0})
     with pytest.raises(CropsError, match=r"several splits: \['a'\]"):
         crops.pair_boxes(objects)
+
+
+@pytest.mark.parametrize("dtype", [object, "category"])
+def test_split_objects_keeps_each_pairs_rows_in_their_table_order(dtype) -> None:
+    """One split's objects are grouped by pair_id and, within a pair, stay in the table's
+    order (a stable sort), also for object or categorical (dictionary-read) pair ids, whose
+    default sort is not stable; the other split's rows are left out."""
+    rng = np.random.default_rng(0)
+    pair = rng.choice(["p0", "p1", "p2"], 40)
+    split = np.where(np.arange(40) % 7 == 3, "val", "train")
+    objects = pd.DataFrame({"pair_id": pd.Series(pair).astype(dtype), "split": split,
+                            "row": np.arange(40)})
+    got = crops.split_objects(objects, "train")
+    want = sorted((p, i) for i, (p, s) in enumerate(zip(pair, split, strict=True))
+                  if s == "train")
+    assert got["row"].tolist() == [i for _, i in want]
+    assert got.index.tolist() == list(range(len(want)))
+
+
+def test_pair_boxes_in_object_order_and_mixed_splits_named_five_at_most() -> None:
+    """Each pair's boxes in the objects' order, pairs in order of first appearance; pairs
+    spread over splits are refused, naming the first five of them."""
+    objects = pd.DataFrame({"pair_id": ["b", "a", "b"], "split": ["val", "train", "val"],
+                            "xmin": [1.0, 2.0, 3.0], "ymin": [4.0, 5.0, 6.0],
+                            "xmax": [7.0, 8.0, 9.0], "ymax": [10.0, 11.0, 12.0]})
+    got = crops.pair_boxes(objects)
+    assert list(got) == ["b", "a"]
+    assert got == {"b": [[1.0, 4.0, 7.0, 10.0], [3.0, 6.0, 9.0, 12.0]],
+                   "a": [[2.0, 5.0, 8.0, 11.0]]}
+    mixed = pd.DataFrame({"pair_id": list("abcdef") * 2, "split": ["train"] * 6 + ["val"] * 6,
+                          "xmin": 1.0, "ymin": 1.0, "xmax": 5.0, "ymax": 5.0})
+    with pytest.raises(CropsError, match=r"several splits: \['a', 'b', 'c', 'd', 'e'\]$"):
+        crops.pair_boxes(mixed)

@@ -19,26 +19,28 @@ from flowmod.params import Params, validate
 class Data:
     """A toy source: a file whose content is the data's identity."""
 
-    def __init__(self, path: Path) -> None:
-        self.path = path
+    def __init__(self, name: str) -> None:
+        self.name = name
 
     def location(self, p: Params) -> Path:
-        return self.path.parent
+        return Path(p.dataroot)
 
     def fingerprint(self, p: Params) -> str | None:
-        return self.path.read_text() if self.path.is_file() else None
+        f = self.location(p) / self.name
+        return f.read_text() if f.is_file() else None
 
     def record(self, p: Params) -> dict[str, Any] | None:
         fp = self.fingerprint(p)
         return {"fingerprint": fp} if fp else None
 
     def status(self, p: Params) -> tuple[str, str]:
-        return ("up to date", "") if self.path.is_file() else ("missing", "no data")
+        return ("up to date", "") if self.fingerprint(p) else ("missing", "no data")
 
     def ensure(self, p: Params, progress: bool) -> None:
-        if not self.path.is_file():
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.path.write_text("v1")
+        f = self.location(p) / self.name
+        if not f.is_file():
+            f.parent.mkdir(parents=True, exist_ok=True)
+            f.write_text("v1")
 
 
 CALLS: list[str] = []
@@ -74,7 +76,7 @@ def build_reads_too_much(b: dag.Build, progress: bool) -> dict[str, Any]:
 def graph(tmp: Path, select_build=build_select) -> dag.Graph:
     return dag.Graph([
         dag.Stage("world", 1, "01", "", "the toy data", nodes=lambda p: [dag.Node("world")],
-                  source=Data(tmp / "data" / "data.txt")),
+                  source=Data("data.txt")),
         dag.Stage("train", 1, "06", "models/{part}", "one model per seed",
                   nodes=lambda p: [dag.Node("train", None, f"s{k}") for k in range(p.seeds)],
                   inputs=lambda n, p: (dag.Node("select"),), build=build_train),
@@ -230,3 +232,82 @@ def test_after_publish_runs_once_the_result_is_in_place(toy, tmp_path):
     g, p = toy
     graph(tmp_path, select_build=build).build(p, ["01", "02"])
     assert seen == [True]
+
+
+def test_node_names_and_the_parameters_a_node_reads():
+    assert str(dag.Node("flow", "dis", "keyframe")) == "flow[dis/keyframe]"
+    assert str(dag.Node("train", None, "s0")) == "train[s0]" and str(dag.Node("select")) == "select"
+    # a method's own parameter is read by that method's nodes only
+    assert "dis_preset" in dag.reads(dag.Node("flow", "dis", "keyframe"))
+    assert "dis_preset" not in dag.reads(dag.Node("flow", "gt", "keyframe"))
+    assert "flow_dtype" in dag.reads(dag.Node("flow", "gt", "keyframe"))
+
+
+def test_diff_names_the_first_changed_keys_then_counts_the_rest():
+    old, new = {"a": 1, "b": 2, "c": 3, "d": 4, "e": 5}, {"a": 1, "b": 9, "c": 8, "d": 7, "e": 6}
+    assert dag.diff(old, new) == ["b: 2 -> 9", "c: 3 -> 8", "d: 4 -> 7", "(+1 more)"]
+    assert dag.diff(old, new, n=4) == ["b: 2 -> 9", "c: 3 -> 8", "d: 4 -> 7", "e: 5 -> 6"]
+    assert dag.diff(old, new, n=1) == ["b: 2 -> 9", "(+3 more)"]
+    # a key on one side only shows '-' on the other
+    assert dag.diff({"gone": 1, "same": 1}, {"new": "x", "same": 1}) == [
+        "gone: 1 -> '-'", "new: '-' -> 'x'"]
+    assert dag.diff({"k": "x" * 50}, {"k": 1}) == [f"k: '{'x' * 36}... -> 1"]
+
+
+def build_empty(b: dag.Build, progress: bool) -> dict[str, Any]:
+    b.start(fresh=True)
+    return {}
+
+
+def fan_in_graph(tmp: Path) -> dag.Graph:
+    """The toy graph plus a node reading every seed's model and a stage with a part that
+    belongs to another chapter (behind a gate)."""
+    g = graph(tmp)
+    return dag.Graph([*g.stages.values(),
+                      dag.Stage("evaluate", 1, "07", "eval", "reads every seed",
+                                nodes=lambda p: [dag.Node("evaluate")],
+                                inputs=lambda n, p: tuple(dag.Node("train", None, f"s{k}")
+                                                          for k in range(p.seeds)),
+                                build=build_empty),
+                      dag.Stage("wide", 1, "02", "wide/{part}", "a part elsewhere",
+                                nodes=lambda p: [dag.Node("wide", None, "near"),
+                                                 dag.Node("wide", None, "far")],
+                                parts={"far": ("11", "extension_build")}, build=build_empty)],
+                     g.gate_targets)
+
+
+def whys(g: dag.Graph, p: Params) -> dict[str, str]:
+    return {str(s.node): s.why for s in g.status(p)}
+
+
+def test_status_says_exactly_why_each_node_is_not_up_to_date(tmp_path):
+    p = validate({"run_dir": str(tmp_path / "runs"), "dataroot": str(tmp_path / "data"),
+                  "seeds": 2, "synthetic": False})
+    g = fan_in_graph(tmp_path)
+    assert g.chapter(dag.Node("wide", None, "far")) == "11" != g.chapter(
+        dag.Node("wide", None, "near")) == "02"
+    assert g.gate(dag.Node("wide", None, "far")) == "extension_build"
+    assert g.gate(dag.Node("wide", None, "near")) is None
+    assert whys(g, p)["select"] == "never built; waits for world"
+    assert g.expected(p)[dag.Node("select")] is None, "below missing data: no fingerprint"
+    g.build(p, ["01"])
+    assert whys(g, p)["select"] == "never built"
+    g.build(p, ["01", "02", "06", "07"])
+    # one parameter: its reader names it, nothing else
+    q = p.model_copy(update={"min_distance": 25.0})
+    assert whys(g, q)["select"] == "min_distance: 30.0 -> 25.0"
+    assert whys(g, q)["evaluate"] == "input train[s0] is stale; (+1 more inputs)"
+    # one step up only: the models still match the published selection
+    assert g.current(q, dag.Node("train", None, "s0")) and not g.current(q, dag.Node("select"))
+    # the data gone: its reader's input is missing, the rest below is stale
+    (tmp_path / "data" / "data.txt").unlink()
+    st = whys(g, p)
+    assert st["select"] == "input world is missing" and st["train[s0]"] == "input select is stale"
+
+
+def test_expected_of_chosen_nodes_reads_their_inputs_manifests(toy):
+    g, p = toy
+    s0 = dag.Node("train", None, "s0")
+    assert g.expected(p, [s0]) == {s0: None}, "an input never built: no fingerprint"
+    g.build(p)
+    assert g.expected(p, [s0]) == {s0: g.recorded(p, s0)["fingerprint"]}

@@ -1,5 +1,7 @@
 """The static-world flow prediction and the residual baseline, against hand-computed cases."""
 
+import warnings
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -78,6 +80,76 @@ def test_depth_where_the_ray_meets_the_3d_box_removes_the_parallax_of_a_near_obl
     assert centre_only > 3.0, centre_only
 
 
+def test_box_in_camera_undoes_the_camera_pose():
+    """A global box pose seen from a turned and displaced camera: the centre is the camera's
+    inverse rotation of (centre - camera position), the rotation the camera's inverse
+    quaternion times the box's (the devkit's translate-then-rotate, in quaternions)."""
+    from pyquaternion import Quaternion
+
+    q_cam = Quaternion(axis=[0.2, -0.5, 1.0], degrees=35.0)
+    cam2global = np.eye(4)
+    cam2global[:3, :3], cam2global[:3, 3] = q_cam.rotation_matrix, [410.0, 1180.5, 1.7]
+    centre, q_box = np.array([425.0, 1170.0, 0.9]), Quaternion(axis=[0, 0, 1], degrees=-70.0)
+    c, rot = geometry.box_in_camera(cam2global, centre, q_box.elements)
+    np.testing.assert_allclose(c, q_cam.inverse.rotate(centre - [410.0, 1180.5, 1.7]),
+                               atol=1e-9)
+    np.testing.assert_allclose(rot, (q_cam.inverse * q_box).rotation_matrix, atol=1e-12)
+
+
+def test_ray_box_depth_on_faces_edges_and_corners_without_warnings():
+    """The box is closed: a ray running along a face or an edge meets it where it enters the
+    remaining slab, and one that only touches a corner meets it there; rays parallel to a face
+    (a 0/0 or x/0 slab) raise no floating-point warning."""
+    eye = np.eye(3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        # principal ray (0, 0, 1) along the edge x = 0, y = 0 of the 2 m cube x in [-2, 0],
+        # y in [0, 2], z in [9, 11]
+        along_edge = geometry.ray_box_depth([[816.0, 491.0]], K, [-1.0, 1.0, 10.0],
+                                            np.array([2.0, 2.0, 2.0]), eye)
+        # ray (1, 0, 1) (focal length 1 px) through the corner (4, 0, 4) of x in [2, 4],
+        # z in [4, 6]: entering and leaving at the same depth
+        corner = geometry.ray_box_depth([[1.0, 0.0]], eye, [3.0, 0.0, 5.0],
+                                        np.array([2.0, 2.0, 2.0]), eye)
+    np.testing.assert_array_equal(along_edge, [9.0])
+    np.testing.assert_array_equal(corner, [4.0])
+
+
+def test_ray_box_depth_within_a_metre_of_the_camera_and_not_at_it():
+    """A 20 cm box half a metre ahead is met at 0.5 m (depths under 1 m are depths); a box
+    whose face lies in the camera's own plane (depth 0) or around the camera is not met."""
+    eye = np.eye(3)
+    near = geometry.ray_box_depth([[816.0, 491.0]], K, [0.0, 0.0, 0.6],
+                                  np.array([0.2, 0.2, 0.2]), eye)
+    np.testing.assert_allclose(near, [0.5])
+    at_camera = geometry.ray_box_depth([[816.0, 491.0], [816.0, 491.0]], K, [0.0, 0.0, 1.0],
+                                       np.array([2.0, 2.0, 2.0]), eye)
+    around = geometry.ray_box_depth([[816.0, 491.0]], K, [0.0, 0.0, 0.5],
+                                    np.array([2.0, 2.0, 2.0]), eye)
+    assert np.isnan(at_camera).all() and np.isnan(around).all()
+
+
+def test_box_geometry_is_float64_for_extended_precision_inputs():
+    """Box centres and sizes given as np.longdouble give exactly the float64 results of the
+    same values in float64 (which parquet and torch can hold; they have no wider float)."""
+    eye = np.eye(3)
+    centre, size = np.array([0.5, -0.25, 12.0]), np.array([1.5, 4.0, 2.0])
+    xy = np.array([[816.0, 491.0], [850.0, 480.0], [100.0, 100.0]])
+    want = geometry.ray_box_depth(xy, K, centre, size, eye)
+    assert np.isfinite(want[:2]).all() and np.isnan(want[2])
+    for c, s in [(centre.astype(np.longdouble), size), (centre, size.astype(np.longdouble))]:
+        got = geometry.ray_box_depth(xy, K, c, s, eye)
+        assert got.dtype == np.float64
+        np.testing.assert_array_equal(got, want)
+    cam2global = translation([1.0, 2.0, 0.5])
+    c64, _ = geometry.box_in_camera(cam2global, [3.0, 4.0, 1.0], [1.0, 0.0, 0.0, 0.0])
+    cld, _ = geometry.box_in_camera(cam2global, np.array([3.0, 4.0, 1.0], np.longdouble),
+                                    [1.0, 0.0, 0.0, 0.0])
+    assert cld.dtype == np.float64
+    np.testing.assert_array_equal(cld, c64)
+    np.testing.assert_array_equal(c64, [2.0, 2.0, 0.5])
+
+
 #: A camera 1.5 m above the ground (global z = 0), looking along global +x: camera x (right)
 #: is global -y, camera y (down) is global -z, camera z (forward) is global +x.
 FORWARD = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 1.5],
@@ -92,6 +164,20 @@ def test_ground_depth_below_the_horizon_and_none_above():
     assert np.isnan(d[2:]).all(), "above the horizon and on it the ray never meets the ground"
 
 
+def test_plane_depth_near_the_plane_and_from_on_it():
+    """The ground 0.3 m below the camera is met within a metre by a steep ray; a camera on
+    the plane itself (depth 0) meets it nowhere, and the rays parallel to it (0/0, x/0)
+    raise no floating-point warning."""
+    xy = np.array([[816.0, 491.0 + 633.0], [816.0, 491.0], [300.0, 600.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        below = geometry.plane_depth(xy, K, FORWARD, 1.2)
+        on_plane = geometry.plane_depth(xy, K, FORWARD, 1.5)
+    np.testing.assert_allclose(below[0], 0.3 * 1266.0 / 633.0)
+    assert np.isnan(below[1]) and below[2] == pytest.approx(0.3 * 1266.0 / 109.0)
+    assert np.isnan(on_plane).all()
+
+
 def test_scene_depth_takes_the_nearest_surface():
     """A 2 m tall box 20 m ahead hides the ground behind it; beside it the ground, above the
     horizon the far plane."""
@@ -102,6 +188,29 @@ def test_scene_depth_takes_the_nearest_surface():
                                                            rot)], 0.0, far=500.0)
     assert list(source) == [geometry.BOX, geometry.GROUND, geometry.FAR]
     np.testing.assert_allclose(depth, [18.0, 1.5 * 1266.0 / 40.0, 500.0])
+
+
+def test_scene_depth_keeps_the_nearer_of_two_boxes_in_either_order():
+    """Two boxes on the principal ray, 9 m and 19 m away: the nearer one hides the farther
+    one whichever is listed first."""
+    near = (np.array([0.0, 0.0, 10.0]), np.array([2.0, 2.0, 2.0]), np.eye(3))
+    far = (np.array([0.0, 0.0, 20.0]), np.array([2.0, 2.0, 2.0]), np.eye(3))
+    xy = np.array([[816.0, 491.0]])
+    for boxes in ([near, far], [far, near]):
+        depth, source = geometry.scene_depth(xy, K, FORWARD, boxes, 0.0)
+        np.testing.assert_array_equal(depth, [9.0])
+        assert source.tolist() == [geometry.BOX]
+
+
+def test_scene_depth_keeps_the_ground_where_a_box_is_no_nearer():
+    """A box resting on the ground with its front face 3 m ahead, and a ray (focal length
+    1 px) through its bottom front edge: box and ground are met at the same 3 m, and the
+    ray stays marked ground (a box replaces only a farther surface); sources are int8."""
+    box = (np.array([0.0, 1.0, 4.0]), np.array([1.0, 2.0, 2.0]), np.eye(3))  # y in [0.5, 1.5]
+    depth, source = geometry.scene_depth(np.array([[0.0, 0.5]]), np.eye(3), FORWARD, [box],
+                                         0.0)
+    np.testing.assert_array_equal(depth, [3.0])
+    assert source.dtype == np.int8 and source.tolist() == [geometry.GROUND]
 
 
 def test_window_lattice_is_where_the_crop_samples_the_frame():
@@ -141,6 +250,18 @@ def test_static_flow_crop_equals_the_crop_of_the_static_flow_field():
         assert got.shape == (2, 32, 32) and got.dtype == np.float32
         np.testing.assert_allclose(got, crop, atol=0.05)
         assert np.abs(crop).max() > 5.0, "the test needs flow worth the name"
+
+
+def test_static_flow_crop_puts_the_sky_at_the_given_far_depth():
+    """A crop of the sky (no box, above the horizon) as the camera drives 1 m forward: every
+    pixel gets the flow of a point at ``far`` = 50 m, (p - c) / (50 - 1) px."""
+    T2 = FORWARD.copy()
+    T2[0, 3] += 1.0  # global x is the camera's forward axis
+    win = np.array([700.0, 100.0, 64.0])
+    got = geometry.static_flow_crop(win, 8, K, FORWARD, T2, [], 0.0, far=50.0)
+    xy = geometry.window_lattice(win, 8)
+    want = ((xy - [816.0, 491.0]) / 49.0).reshape(8, 8, 2).transpose(2, 0, 1)
+    np.testing.assert_allclose(got, want, atol=1e-4)
 
 
 def test_static_crops_explain_the_exact_flow_of_still_vehicles(smoke_built):

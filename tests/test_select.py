@@ -48,6 +48,29 @@ def test_velocity_is_equation_one():
         labels.velocity([0, 0, 0], [1, 0, 0], 10, 10)
 
 
+def test_velocity_refusal_says_exactly_what_is_wrong():
+    """Equal or decreasing timestamps are refused with the whole message, nothing around it."""
+    with pytest.raises(ValueError) as err:
+        labels.velocity([0, 0, 0], [1, 0, 0], [0, 20], [10, 20])
+    assert str(err.value) == "timestamps must increase from frame 1 to frame 2 (microseconds)"
+
+
+def test_speeds_and_labels_are_computed_in_float64_whatever_the_input_precision():
+    """A float32 velocity's speed is the float64 norm of its values; a float32 speed of 0.7
+    is 0.699999988 m/s, below a 0.7 m/s threshold (the comparison is not made in float32);
+    extended-precision positions give float64 velocities (parquet has no wider float)."""
+    v32 = np.array([[0.1, 0.2, 0.3]], dtype=np.float32)
+    s = labels.speed(v32)
+    assert s.dtype == np.float64
+    np.testing.assert_array_equal(s, [np.sqrt(np.sum(v32.astype(np.float64) ** 2))])
+    assert labels.motion_label(np.array([0.7, 0.8], dtype=np.float32), 0.7).tolist() == [0, 1]
+    p1, p2 = np.array([1.0, 2.0, 0.5]), np.array([2.0, 2.5, 0.5])
+    for a, b in [(p1.astype(np.longdouble), p2), (p1, p2.astype(np.longdouble))]:
+        v = labels.velocity(a, b, 0, 500_000)
+        assert v.dtype == np.float64
+        np.testing.assert_array_equal(v, [2.0, 1.0, 0.0])
+
+
 # --- on the smoke world ------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
