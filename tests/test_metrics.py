@@ -1,0 +1,403 @@
+"""flowmod.metrics: defaults, thresholds passed through, input shapes and dtypes, table
+columns, and the threshold fit, on small hand-made sets with numbers worked out by hand."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from sklearn.metrics import precision_recall_fscore_support
+
+from flowmod import metrics as ev
+
+# 6 objects, 2 categories; at 0.5: truck tp 2 fp 1 fn 0, car tp 0 fp 1 fn 1;
+# at 0.3 the car at 0.4 becomes a true positive: car tp 1 fp 1 fn 0.
+CAT = ["truck", "car", "truck", "car", "truck", "car"]
+Y6 = np.array([1, 1, 0, 0, 1, 0])
+P6 = np.array([0.9, 0.4, 0.6, 0.2, 0.8, 0.7])
+G6 = np.array(["a", "b", "a", "b", "a", "b"])
+
+
+def _scenes(n_scenes: int = 40, seed: int = 7):
+    """(y, p, scenes) with scenes of 2-20 objects and noisy scores: bootstrap replicates that
+    take many distinct values, so their percentiles move with n and the seed."""
+    rng = np.random.default_rng(seed)
+    g = np.repeat(np.arange(n_scenes), rng.integers(2, 21, n_scenes))
+    y = rng.integers(0, 2, len(g))
+    p = np.clip(0.5 + 0.3 * (2 * y - 1) + rng.normal(0, 0.3, len(g)), 0, 1)
+    return y, p, g
+
+
+# --- threshold sweep, PR curve -----------------------------------------------------------
+
+
+def test_threshold_sweep_default_grid_is_005_to_095():
+    """Without thresholds: 19 rows at 0.05, 0.10, ..., 0.95 exactly, each scored at its own
+    threshold."""
+    sweep = ev.threshold_sweep(Y6, P6)
+    assert sweep["threshold"].tolist() == [round(0.05 * i, 2) for i in range(1, 20)]
+    assert list(sweep.columns) == ["threshold", "precision", "recall", "f1", "accuracy"]
+    for _, row in sweep.iterrows():
+        m = ev.metrics(Y6, P6, row["threshold"])
+        assert row["f1"] == m["f1"] and row["accuracy"] == m["accuracy"]
+    assert sweep.loc[0, "f1"] == pytest.approx(2 * 3 / (2 * 3 + 3))  # all moving
+    assert sweep.loc[18, "f1"] == 0.0  # nothing above 0.95
+
+
+def test_threshold_sweep_uses_each_given_threshold():
+    """Given thresholds are applied, not 0.5: car at 0.4 is moving at 0.3 only."""
+    sweep = ev.threshold_sweep(Y6, P6, [0.3, 0.5, 0.85])
+    # 0.3: tp 3 fp 2 fn 0; 0.5: tp 2 fp 2 fn 1; 0.85: tp 1 fp 0 fn 2
+    np.testing.assert_allclose(sweep["f1"], [6 / 8, 4 / 7, 2 / 4])
+    np.testing.assert_allclose(sweep["precision"], [3 / 5, 2 / 4, 1.0])
+
+
+def test_pr_curve_from_the_highest_threshold_down():
+    """Every distinct score as a threshold (prob >= t), highest first, index 0..n-1; AP as the
+    step sum of precision over recall gains."""
+    y = np.array([1, 0, 1, 1, 0])
+    p = np.array([0.9, 0.8, 0.6, 0.4, 0.2])
+    curve, ap = ev.pr_curve(y, p)
+    want = pd.DataFrame({"threshold": [0.9, 0.8, 0.6, 0.4, 0.2],
+                         "precision": [1.0, 1 / 2, 2 / 3, 3 / 4, 3 / 5],
+                         "recall": [1 / 3, 1 / 3, 2 / 3, 1.0, 1.0]})
+    pd.testing.assert_frame_equal(curve, want)
+    assert ap == pytest.approx(1 / 3 * 1 + 1 / 3 * 2 / 3 + 1 / 3 * 3 / 4)
+
+
+def test_pr_curve_thresholds_are_float64_for_float32_scores():
+    """float32 scores (as a model writes them) give float64 thresholds, the same values."""
+    y = np.array([1, 0, 1, 1, 0])
+    p32 = np.array([0.9, 0.8, 0.6, 0.4, 0.2], dtype=np.float32)
+    curve, ap = ev.pr_curve(y, p32)
+    want, want_ap = ev.pr_curve(y, p32.astype(np.float64))
+    pd.testing.assert_frame_equal(curve, want)
+    assert curve["threshold"].dtype == np.float64 and ap == want_ap
+
+
+# --- scene bootstrap and intervals --------------------------------------------------------
+
+
+def test_bootstrap_defaults_are_2000_replicates_with_seed_0():
+    """n=2000, seed=0 by default in every bootstrap entry point (and the data are such that
+    another n or seed gives another interval)."""
+    y, p, g = _scenes()
+    q = np.clip(p + 0.2, 0, 1)
+    reps = ev.scene_bootstrap(y, p, g)
+    np.testing.assert_array_equal(reps, ev.scene_bootstrap(y, p, g, n=2000, seed=0))
+    ci = ev.bootstrap_f1_ci(y, p, g)
+    assert ci == ev.bootstrap_f1_ci(y, p, g, n=2000, seed=0)
+    assert ci != ev.bootstrap_f1_ci(y, p, g, n=2000, seed=1)
+    assert ci != ev.bootstrap_f1_ci(y, p, g, n=2001, seed=0)
+    assert ev.seed_summary(y, p, g)["ci"] == ci
+    d = ev.paired_comparison(y, p, q, g)
+    assert d == ev.paired_comparison(y, p, q, g, n=2000, seed=0)
+    assert d["ci"] != ev.paired_comparison(y, p, q, g, n=2001, seed=0)["ci"]
+    assert d["ci"] != ev.paired_comparison(y, p, q, g, n=2000, seed=1)["ci"]
+
+
+def test_scene_bootstrap_of_one_object_and_of_none():
+    """One object: every replicate is its F1; no objects: n zeros."""
+    np.testing.assert_array_equal(ev.scene_bootstrap([1], [0.9], ["s"], n=5), np.ones(5))
+    np.testing.assert_array_equal(ev.scene_bootstrap([], [], [], n=4), np.zeros(4))
+
+
+@pytest.mark.filterwarnings("error")
+def test_scene_bootstrap_issues_no_warnings():
+    """Counting per scene uses no deprecated numpy call (warnings are errors here)."""
+    reps = ev.scene_bootstrap(Y6, P6, G6, n=50, seed=0)
+    assert reps.shape == (50,) and ((0 <= reps) & (reps <= 1)).all()
+
+
+def test_scene_bootstrap_compares_float32_scores_in_float64():
+    """A float32 score of 0.3 is above the threshold 0.3 (as in metrics), not equal to it."""
+    y = np.array([1, 0, 1, 0])
+    p32 = np.array([0.3, 0.3, 0.9, 0.1], dtype=np.float32)
+    f1 = ev.metrics(y, p32, 0.3)["f1"]
+    assert f1 == pytest.approx(4 / 5)  # tp 2 fp 1 fn 0
+    reps = ev.scene_bootstrap(y, p32, np.zeros(4), n=20, threshold=0.3)
+    np.testing.assert_allclose(reps, f1)
+
+
+def test_scene_bootstrap_flattens_labels_and_groups():
+    """Labels as a column (N, 1) and scenes as a row (1, N) count as N objects."""
+    y, p, g = _scenes(12)
+    flat = ev.scene_bootstrap(y, p, g, n=100, seed=4)
+    np.testing.assert_array_equal(ev.scene_bootstrap(y[:, None], p, g[None], n=100, seed=4),
+                                  flat)
+
+
+def test_interval_of_float32_replicates_is_computed_in_float64():
+    """float32 replicates are interpolated in float64, the same as their float64 copy."""
+    reps = np.array([0.1, 0.7, 0.3, 0.9, 0.45], dtype=np.float32)
+    assert ev.interval(reps, 0.7) == ev.interval(reps.astype(np.float64), 0.7)
+
+
+def test_bootstrap_f1_ci_passes_level_seed_and_threshold():
+    """The interval is interval(scene_bootstrap(..., n, seed, threshold), level)."""
+    y, p, g = _scenes(20)
+    reps = ev.scene_bootstrap(y, p, g, n=300, seed=3, threshold=0.3)
+    assert ev.bootstrap_f1_ci(y, p, g, n=300, seed=3, threshold=0.3, level=0.5) == \
+        ev.interval(reps, 0.5)
+    assert ev.interval(reps, 0.5) != ev.interval(reps)
+    assert ev.interval(reps) != ev.interval(ev.scene_bootstrap(y, p, g, n=300, seed=3))
+
+
+# --- seed summary, paired comparison ------------------------------------------------------
+
+
+def test_seed_summary_scores_each_seed_at_the_given_threshold():
+    """Per-seed counts and scores at threshold 0.3 (not 0.5), under the key per_seed."""
+    perfect = np.where(Y6 == 1, 0.9, 0.1)
+    s = ev.seed_summary(Y6, np.stack([P6, perfect]), G6, n=50, threshold=0.3)
+    assert s["per_seed"] == [  # P6 at 0.3: tp 3 fp 2 fn 0
+        {"f1": 0.75, "precision": 0.6, "recall": 1.0, "tp": 3, "fp": 2, "fn": 0},
+        {"f1": 1.0, "precision": 1.0, "recall": 1.0, "tp": 3, "fp": 0, "fn": 0}]
+    assert (s["f1"], s["f1_min"], s["f1_max"]) == pytest.approx((0.875, 0.75, 1.0))
+
+
+def test_seed_summary_interval_at_the_given_level():
+    """ci is the scene interval at the given level, and the level is reported."""
+    y, p, g = _scenes(20)
+    probs = np.stack([p, np.clip(p + 0.1, 0, 1)])
+    s = ev.seed_summary(y, probs, g, n=300, seed=2, threshold=0.3, level=0.5)
+    assert s["level"] == 0.5
+    assert s["ci"] == ev.bootstrap_f1_ci(y, probs, g, 300, 2, 0.3, 0.5)
+    assert s["ci"] != ev.bootstrap_f1_ci(y, probs, g, 300, 2, 0.3, 0.95)
+
+
+def test_paired_comparison_at_the_given_threshold_and_level():
+    """Point difference, interval and share all at threshold 0.3 and level 0.5."""
+    perfect = np.where(Y6 == 1, 0.9, 0.1)
+    d = ev.paired_comparison(Y6, P6, perfect, G6, n=50, threshold=0.3)
+    assert d["delta_f1"] == pytest.approx(0.75 - 1.0) and d["per_seed"] == [pytest.approx(-0.25)]
+    y, p, g = _scenes(20)
+    q = np.clip(p + 0.15, 0, 1)
+    d = ev.paired_comparison(y, p, q, g, n=300, seed=2, threshold=0.3, level=0.5)
+    diff = (ev.scene_bootstrap(y, p, g, 300, 2, 0.3) - ev.scene_bootstrap(y, q, g, 300, 2, 0.3))
+    assert d["ci"] == ev.interval(diff, 0.5) and d["ci"] != ev.interval(diff)
+    assert d["p_not_better"] == np.mean(diff <= 0)
+    assert d["delta_f1"] == pytest.approx(ev.metrics(y, p, 0.3)["f1"] - ev.metrics(y, q, 0.3)["f1"])
+
+
+def test_paired_comparison_per_seed_pairs_only_common_seeds():
+    """A with 2 seeds against B with 1: one per-seed difference (seed 0 against seed 0)."""
+    perfect = np.where(Y6 == 1, 0.9, 0.1)
+    d = ev.paired_comparison(Y6, np.stack([P6, perfect]), P6, G6, n=50)
+    assert d["per_seed"] == [0.0]
+    assert d["delta_f1"] == pytest.approx((4 / 7 + 1) / 2 - 4 / 7)
+
+
+# --- breakdown ------------------------------------------------------------------------------
+
+
+def _frame(name, keys, n, n_moving, prec, rec, f1, acc):
+    return pd.DataFrame({name: keys, "n": n, "n_moving": n_moving, "precision": prec,
+                         "recall": rec, "f1": f1, "accuracy": acc})
+
+
+def test_breakdown_by_category_by_default_in_sorted_order():
+    """Default by='category'; rows sorted by value (truck comes first in the data)."""
+    got = ev.breakdown(pd.DataFrame({"category": CAT}), Y6, P6)
+    # car: y [1,0,0] yhat [0,0,1]; truck: y [1,0,1] yhat [1,1,1]
+    want = _frame("category", ["car", "truck"], [3, 3], [1, 2], [0.0, 2 / 3], [0.0, 1.0],
+                  [0.0, 0.8], [1 / 3, 2 / 3])
+    pd.testing.assert_frame_equal(got, want)
+
+
+def test_breakdown_at_the_given_threshold():
+    """threshold=0.3 makes the car at 0.4 a true positive: car tp 1 fp 1 fn 0."""
+    got = ev.breakdown(pd.DataFrame({"category": CAT}), Y6, P6, threshold=0.3)
+    np.testing.assert_allclose(got["f1"], [2 / 3, 0.8])
+
+
+def test_breakdown_bins_are_left_closed_and_empty_bins_dropped():
+    """Default distance bins [a, b): 10.0 falls in [10, 20), 0.0 in [0, 10); bins without
+    objects give no row."""
+    df = pd.DataFrame({"distance": [0.0, 9.5, 10.0, 12.0, 35.0, 80.0]})
+    y = np.array([1, 0, 1, 1, 0, 1])
+    p = np.array([0.9, 0.1, 0.8, 0.2, 0.6, 0.9])
+    got = ev.breakdown(df, y, p, by="distance")
+    want = _frame("distance_bin", ["[0.0, 10.0)", "[10.0, 20.0)", "[30.0, 40.0)", "[70.0, inf)"],
+                  [2, 2, 1, 1], [1, 2, 0, 1], [1.0, 1.0, 0.0, 1.0], [1.0, 0.5, 0.0, 1.0],
+                  [1.0, 2 / 3, 0.0, 1.0], [1.0, 0.5, 0.0, 1.0])
+    pd.testing.assert_frame_equal(got, want)
+
+
+def test_breakdown_uses_the_given_bins():
+    """bins replace DISTANCE_BINS."""
+    df = pd.DataFrame({"distance": [0.0, 9.5, 10.0, 12.0, 35.0, 80.0]})
+    got = ev.breakdown(df, Y6, P6, by="distance", bins=[0, 20, 100])
+    assert got["distance_bin"].tolist() == ["[0, 20)", "[20, 100)"]
+    assert got["n"].tolist() == [4, 2]
+
+
+def test_breakdown_columns_and_scene_interval():
+    """With groups: ci_lo, ci_hi (the row's scene bootstrap with n_boot, seed, threshold)
+    and scenes; without: exactly the seven metric columns."""
+    df = pd.DataFrame({"category": CAT})
+    plain = ev.breakdown(df, Y6, P6)
+    assert list(plain.columns) == ["category", "n", "n_moving", "precision", "recall", "f1",
+                                   "accuracy"]
+    got = ev.breakdown(df, Y6, P6, groups=G6, n_boot=50, seed=2, threshold=0.3)
+    assert list(got.columns) == list(plain.columns) + ["ci_lo", "ci_hi", "scenes"]
+    for row, cat in zip(got.itertuples(), ["car", "truck"], strict=True):
+        i = np.flatnonzero(np.array(CAT) == cat)
+        assert (row.ci_lo, row.ci_hi) == ev.bootstrap_f1_ci(Y6[i], P6[i], G6[i], 50, 2, 0.3)
+        assert row.scenes == 1
+    pd.testing.assert_frame_equal(ev.breakdown(df, Y6, P6, groups=G6[None], n_boot=50, seed=2,
+                                               threshold=0.3), got)
+
+
+def test_breakdown_interval_defaults_are_1000_replicates_with_seed_0():
+    """n_boot=1000, seed=0 by default."""
+    y, p, g = _scenes()
+    df = pd.DataFrame({"category": np.where(np.arange(len(y)) % 3, "car", "truck")})
+    got = ev.breakdown(df, y, p, groups=g)
+    pd.testing.assert_frame_equal(got, ev.breakdown(df, y, p, groups=g, n_boot=1000, seed=0))
+    for other in ({"n_boot": 1001, "seed": 0}, {"n_boot": 1000, "seed": 1}):
+        assert not got.equals(ev.breakdown(df, y, p, groups=g, **other))
+
+
+def test_breakdown_of_nothing_keeps_the_columns():
+    """No objects: an empty table with all its columns."""
+    df = pd.DataFrame({"category": pd.Series([], dtype=object)})
+    assert list(ev.breakdown(df, [], []).columns) == [
+        "category", "n", "n_moving", "precision", "recall", "f1", "accuracy"]
+    got = ev.breakdown(df, [], [], groups=[])
+    assert len(got) == 0 and list(got.columns)[-3:] == ["ci_lo", "ci_hi", "scenes"]
+
+
+# --- tables ---------------------------------------------------------------------------------
+
+
+def test_table3_seed_range_needs_more_than_one_seed():
+    """f1_min/f1_max without a seed count (or with 1 seed) give no seed range."""
+    row = {"method": "m", "f1": 0.5, "precision": 0.4, "recall": 0.6, "f1_min": 0.45,
+           "f1_max": 0.55}
+    t = ev.table3([row, {**row, "seeds": 1}, {**row, "seeds": 2}])
+    assert t["seed range (%)"].tolist() == ["", "", "45.0-55.0"]
+    assert t["seeds"].tolist() == ["", 1, 2]
+
+
+def test_comparison_table_interval_in_points():
+    """The CI bounds are both multiplied by 100."""
+    r = {"delta_f1": 0.15, "ci": (0.1, 0.2), "per_seed": [0.15], "p_not_better": 0.0,
+         "n_scenes": 3, "n": 30}
+    t = ev.comparison_table({"A - B": r})
+    assert t.loc[0, "95% CI over scenes (points)"] == "10.0 to 20.0"
+
+
+# --- the original protocol ------------------------------------------------------------------
+
+# 130 moving objects, all found except the last: batches of 128 are [128 right | 1 right,
+# 1 missed], batches of 129 are [129 right | 1 missed].
+Y130 = np.ones(130, dtype=int)
+P130 = np.r_[np.full(129, 0.9), 0.1]
+
+# 6 objects for threshold 0.3: moving, still, ... alternating.
+YT = np.array([1, 0, 1, 0, 1, 0])
+PT = np.array([0.4, 0.4, 0.9, 0.2, 0.35, 0.1])
+
+
+def test_paper_protocol_defaults_are_batch_128_threshold_05():
+    """Default batch 128 and threshold 0.5: per-batch P (1, 1), R (1, 1/2), F1 (1, 2/3)."""
+    assert ev.paper_protocol_scores(Y130, P130) == pytest.approx(
+        {"precision": 1.0, "recall": 0.75, "f1": 5 / 6})
+    assert ev.paper_protocol_f1(Y130, P130) == pytest.approx(5 / 6)
+    assert ev.paper_protocol_f1(Y130, P130, 129) == pytest.approx(0.5)
+
+
+def test_paper_protocol_of_one_object_and_of_none():
+    """One object makes one batch of its own; no objects score 0."""
+    assert ev.paper_protocol_scores([1], [0.9]) == {"precision": 1.0, "recall": 1.0, "f1": 1.0}
+    assert ev.paper_protocol_scores([], []) == {"precision": 0.0, "recall": 0.0, "f1": 0.0}
+
+
+def test_paper_protocol_f1_at_the_given_threshold():
+    """Batches of 2 at 0.3: F1 (2/3, 1, 1), against (0, 1, 0) at 0.5."""
+    assert ev.paper_protocol_f1(YT, PT, 2, 0.3) == pytest.approx(8 / 9)
+    assert ev.paper_protocol_f1(YT, PT, 2) == pytest.approx(1 / 3)
+
+
+def test_thin_still_can_keep_every_still_object():
+    """keep == every keeps all; labels as a column give a flat (N,) mask."""
+    np.testing.assert_array_equal(ev.thin_still([0, 0, 1, 0], keep=2, every=2), [1, 1, 1, 1])
+    mask = ev.thin_still(np.array([[0], [0], [1], [0]]))
+    assert mask.shape == (4,)
+    np.testing.assert_array_equal(mask, [1, 0, 1, 1])
+
+
+def test_protocol_comparison_at_the_given_threshold():
+    """Every row scored at 0.3; inputs shaped (1, N) are flattened."""
+    t = ev.protocol_comparison(YT, PT, batch_size=2, threshold=0.3)
+    # thinned keeps objects 0, 1, 2, 4, 5 (stills 1 and 5: 1st of every 2)
+    assert t["n"].tolist() == [6, 6, 5, 5]
+    np.testing.assert_allclose(t["precision"], [3 / 4, 5 / 6, 3 / 4, 1 / 2])
+    np.testing.assert_allclose(t["recall"], [1.0, 1.0, 1.0, 2 / 3])
+    np.testing.assert_allclose(t["f1"], [6 / 7, 8 / 9, 6 / 7, 5 / 9])
+    pd.testing.assert_frame_equal(ev.protocol_comparison(YT[None], PT[None], 2, 0.3), t)
+
+
+def test_protocol_comparison_default_batch_is_128():
+    """Per-batch rows use batches of 128 by default."""
+    t = ev.protocol_comparison(Y130, P130)
+    np.testing.assert_allclose(t["f1"], [258 / 259, 5 / 6, 258 / 259, 5 / 6])
+
+
+# --- threshold fit --------------------------------------------------------------------------
+
+
+def test_fit_threshold_midpoints_and_the_ends():
+    """Midpoint below the lowest score called moving; 0.5 below the smallest score when all
+    are called moving; the maximum when nothing moves; one object works."""
+    assert ev.fit_threshold([1.0, 2.0, 3.0], [0, 0, 1]) == 2.5
+    assert ev.fit_threshold([1.0, 2.0, 3.0], [1, 1, 1]) == 0.5
+    assert ev.fit_threshold([1.0, 2.0, 3.0], [0, 0, 0]) == 3.0
+    assert ev.fit_threshold([2.0], [1]) == 1.5
+
+
+def test_fit_threshold_never_cuts_inside_a_tie():
+    """Scores 3, 2, 2, 1 (labels 1, 1, 0, 0): cutting between the two 2s is impossible, so the
+    best is both 2s (F1 4/5) against 3 alone (2/3): t = 1.5."""
+    assert ev.fit_threshold([3.0, 2.0, 2.0, 1.0], [1, 1, 0, 0]) == 1.5
+    assert ev.fit_threshold([2.0, 1.0, 3.0, 2.0], [0, 0, 1, 1]) == 1.5
+
+
+def test_fit_threshold_brute_force():
+    """Equals the first best of every cut between distinct scores, from the top."""
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        s = rng.integers(0, 6, 15).astype(float)
+        y = rng.integers(0, 2, 15)
+        if y.sum() == 0:
+            continue
+        cuts = np.r_[s.min() - 1, np.unique(s)][::-1]  # highest first
+        f1 = [precision_recall_fscore_support(y, (s > c).astype(int), average="binary",
+                                              zero_division=0)[2] for c in cuts]
+        best = cuts[int(np.argmax(f1))]
+        above = s[s > best]
+        assert ev.fit_threshold(s, y) == (best + above.min()) / 2
+
+
+def test_fit_threshold_accepts_unsigned_and_column_inputs():
+    """uint8 scores are ranked as numbers (not negated with wrap-around); (N, 1) columns are
+    flattened."""
+    assert ev.fit_threshold(np.array([0, 2, 4], dtype=np.uint8), [1, 0, 0]) == -0.5
+    assert ev.fit_threshold(np.array([[1.0], [2.0], [3.0]]), [0, 0, 1]) == 2.5
+    assert ev.fit_threshold([1.0, 2.0, 3.0], np.array([[0], [0], [1]])) == 2.5
+
+
+def test_fit_threshold_rejects_bad_input():
+    """Different lengths or no scores: a ValueError that says so."""
+    for scores, labels in (([1.0, 2.0, 3.0], [1, 0]), ([], [])):
+        with pytest.raises(ValueError, match="need equally long non-empty scores"):
+            ev.fit_threshold(scores, labels)
+
+
+def test_apply_threshold_is_strict_int_and_float64():
+    """1 where score > t (not >=), int64; a float32 0.3 is above 0.3."""
+    out = ev.apply_threshold([0.5, 0.6, 0.4], 0.5)
+    assert out.dtype == np.int64 and out.tolist() == [0, 1, 0]
+    p32 = np.array([0.3, 0.2], dtype=np.float32)
+    assert ev.apply_threshold(p32, 0.3).tolist() == [1, 0]
