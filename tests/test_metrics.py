@@ -401,3 +401,16 @@ def test_apply_threshold_is_strict_int_and_float64():
     assert out.dtype == np.int64 and out.tolist() == [0, 1, 0]
     p32 = np.array([0.3, 0.2], dtype=np.float32)
     assert ev.apply_threshold(p32, 0.3).tolist() == [1, 0]
+
+
+@pytest.mark.parametrize("fn", [
+    lambda y: ev.metrics(y, [0.8, 0.8, 0.1]), lambda y: ev.pr_curve(y, [0.8, 0.8, 0.1]),
+    lambda y: ev.fit_threshold([3.0, 2.0, 1.0], y), lambda y: ev.thin_still(y),
+    lambda y: ev.scene_bootstrap(y, [0.8, 0.8, 0.1], ["a", "a", "b"], n=5),
+    lambda y: ev.protocol_comparison(y, [0.8, 0.8, 0.1])])
+def test_labels_other_than_0_and_1_are_refused_not_truncated(fn):
+    """A label of 0.9 (or 2, or -1 for unknown) is an error, not a still object."""
+    fn([1, 1, 0])  # the same call with valid labels works
+    for bad in ([0.9, 1, 0], [2, 1, 0], [-1, 1, 0]):
+        with pytest.raises(ValueError, match="0 \\(still\\) / 1 \\(moving\\)"):
+            fn(bad)

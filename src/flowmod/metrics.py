@@ -30,13 +30,20 @@ def sigmoid(z: Any) -> np.ndarray:
 # --- metrics ---------------------------------------------------------------------------------
 
 
+def labels01(y_true: Any) -> np.ndarray:
+    """Labels (N,) int64 0 (still) / 1 (moving); any other value (0.5, 2, -1: unknown) is a
+    ValueError, checked before the cast so that 0.9 is not silently read as 0."""
+    y = np.asarray(y_true).reshape(-1)
+    if not np.isin(y, (0, 1)).all():
+        raise ValueError("y_true must hold 0 (still) / 1 (moving) only")
+    return y.astype(np.int64)
+
+
 def _binary(y_true: Any, y_prob: Any, threshold: float) -> tuple[np.ndarray, np.ndarray]:
-    y = np.asarray(y_true).astype(np.int64).reshape(-1)
+    y = labels01(y_true)
     p = np.asarray(y_prob, dtype=np.float64).reshape(-1)
     if y.shape != p.shape:
         raise ValueError(f"y_true has {y.size} values but y_prob has {p.size}")
-    if not np.isin(y, (0, 1)).all():
-        raise ValueError("y_true must hold 0 (still) / 1 (moving) only")
     return y, (p > threshold).astype(np.int64)
 
 
@@ -93,7 +100,7 @@ def pr_curve(y_true: Any, y_prob: Any) -> tuple[pd.DataFrame, float]:
     """
     from sklearn.metrics import average_precision_score, precision_recall_curve
 
-    y = np.asarray(y_true).astype(int)
+    y = labels01(y_true)
     p = np.asarray(y_prob, dtype=np.float64)
     prec, rec, thr = precision_recall_curve(y, p)
     df = pd.DataFrame({"threshold": thr, "precision": prec[:-1], "recall": rec[:-1]})
@@ -118,13 +125,11 @@ def _counts(y: np.ndarray, probs: np.ndarray, groups: np.ndarray, threshold: flo
 
 def _as_models(y_true: Any, y_prob: Any) -> tuple[np.ndarray, np.ndarray]:
     """(y (N,), probs (S, N)): one row per model (a training seed)."""
-    y = np.asarray(y_true).astype(np.int64).reshape(-1)
+    y = labels01(y_true)
     probs = np.asarray(y_prob, dtype=np.float64)
     probs = probs[None] if probs.ndim == 1 else probs
     if probs.shape[-1] != len(y):
         raise ValueError(f"y_true has {len(y)} values but y_prob has shape {probs.shape}")
-    if not np.isin(y, (0, 1)).all():
-        raise ValueError("y_true must hold 0 (still) / 1 (moving) only")
     return y, probs
 
 
@@ -332,7 +337,7 @@ def paper_protocol_f1(y_true: Any, y_prob: Any, batch_size: int = 128,
 def thin_still(y_true: Any, keep: int = 1, every: int = 2) -> np.ndarray:
     """Mask (N,) bool keeping all moving objects and the first ``keep`` of every ``every``
     still objects in order (the original: validation 1 of 2, training 3 of 5)."""
-    y = np.asarray(y_true).astype(np.int64).reshape(-1)
+    y = labels01(y_true)
     if not 0 < keep <= every:
         raise ValueError(f"need 0 < keep <= every, got keep={keep}, every={every}")
     still_rank = np.cumsum(y == 0) - 1  # 0-based rank among still objects
@@ -347,7 +352,7 @@ def protocol_comparison(
     Rows: clean (whole set, all objects), per-batch F1 (all objects), thinned stills (whole
     set), paper protocol (thinned + per-batch). Columns: protocol, n, precision, recall, f1.
     """
-    y = np.asarray(y_true).astype(np.int64).reshape(-1)
+    y = labels01(y_true)
     p = np.asarray(y_prob, dtype=np.float64).reshape(-1)
     keep = thin_still(y)
     rows = []
@@ -375,7 +380,7 @@ def fit_threshold(scores: Any, labels: Any) -> float:
     scores (or just below the smallest one); ties in F1 go to the higher threshold.
     """
     s = np.asarray(scores, dtype=np.float64).reshape(-1)
-    y = np.asarray(labels).astype(np.int64).reshape(-1)
+    y = labels01(labels)
     if s.shape != y.shape or s.size == 0:
         raise ValueError(f"need equally long non-empty scores and labels, got {s.size}, {y.size}")
     if not np.isfinite(s).all():
