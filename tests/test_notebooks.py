@@ -20,7 +20,7 @@ from flowmod.runner import NotebookFailed
 pytestmark = pytest.mark.slow
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def smoke_run(smoke_world, smoke_built, tmp_path_factory):
     """The whole study executed once on the smoke profile, in a temporary run folder, on the
     session's smoke world (its dataroot: the world is not generated again). The run folder
