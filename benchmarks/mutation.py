@@ -7,10 +7,11 @@ runs the quick tests that cover the changed function (``-m "not slow and not wor
 mutant that no test notices *survives*. This script runs mutmut, then writes
 
 * ``benchmarks/results/mutation.json``: every mutant's status, per module;
-* ``benchmarks/mutation.md``: the score per module and every surviving mutant with its
-  verdict from ``benchmarks/mutation_verdicts.json`` (``equivalent: why`` when no test can
-  tell the mutant from the code, e.g. a changed default nobody passes; or the test that was
-  added for it). A survivor without a verdict is listed as ``open``.
+* ``benchmarks/mutation.md``: the score per module and every surviving mutant, its change
+  and its verdict from ``benchmarks/mutation_verdicts.json`` (``equivalent: why`` when no
+  test can tell the mutant from the code). A verdict names the change it was given for
+  (mutmut numbers a function's mutants afresh when the function changes): a survivor
+  without one, or whose change is another now, is listed as ``open``.
 
 Goal: at least 90 % of the non-equivalent mutants killed. Not part of ``make test``; the
 report gives how long it took.
@@ -18,6 +19,8 @@ report gives how long it took.
 
 from __future__ import annotations
 
+import ast
+import difflib
 import json
 import subprocess
 import sys
@@ -44,11 +47,54 @@ def results() -> dict[str, str]:
     return rows
 
 
+def mutant_sources() -> dict[str, str]:
+    """``{function name: source}`` of every function in mutmut's copies of the modules
+    (``mutants/src``: the original of each function as ``<name>__mutmut_orig``, each mutant
+    as ``<name>__mutmut_<k>``)."""
+    out = {}
+    for m in MODULES:
+        path = ROOT / "mutants" / "src" / (m.replace(".", "/") + ".py")
+        if not path.is_file():
+            continue
+        text = path.read_text()
+        lines = text.splitlines()
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.FunctionDef) and "__mutmut_" in node.name:
+                body = lines[node.lineno - 1:node.end_lineno]
+                out[f"{m}.{node.name}"] = "\n".join(body)
+    return out
+
+
+def change(name: str, sources: dict[str, str]) -> str:
+    """The mutant's change as ``old line => new line`` (whitespace collapsed), or ''."""
+    base = name.rsplit("__mutmut_", 1)[0]
+    orig, mut = sources.get(base + "__mutmut_orig"), sources.get(name)
+    if orig is None or mut is None:
+        return ""
+    short = name.rsplit(".", 1)[-1]
+    mut = mut.replace(short, short.rsplit("__mutmut_", 1)[0] + "__mutmut_orig", 1)
+    diff = [ln for ln in difflib.unified_diff(orig.splitlines(), mut.splitlines(), lineterm="",
+                                              n=0) if ln[:1] in "-+" and ln[:3] not in ("---", "+++")]
+    old = " / ".join(" ".join(ln[1:].split()) for ln in diff if ln.startswith("-"))
+    new = " / ".join(" ".join(ln[1:].split()) for ln in diff if ln.startswith("+"))
+    return f"{old} => {new}"
+
+
+def verdict(name: str, verdicts: dict[str, dict[str, str]], sources: dict[str, str]) -> str:
+    """The recorded verdict if it was given for this very change, else ``open``."""
+    v = verdicts.get(name)
+    if v is None:
+        return "open"
+    if v.get("change") != change(name, sources):
+        return "open (the verdict was given for another change: recheck)"
+    return v["verdict"]
+
+
 def module_of(name: str) -> str:
     return next((m for m in MODULES if name.startswith(m + ".")), name.split(".x_")[0])
 
 
-def report(rows: dict[str, str], verdicts: dict[str, str], seconds: float) -> str:
+def report(rows: dict[str, str], verdicts: dict[str, dict[str, str]], seconds: float) -> str:
     """The markdown report: the score per module, then every survivor and its verdict."""
     lines = ["# Mutation testing", "",
              f"`make mutation` ({seconds / 60:.0f} min of this call): mutmut on the quick tests. "
@@ -56,21 +102,23 @@ def report(rows: dict[str, str], verdicts: dict[str, str], seconds: float) -> st
              "the code (the verdict says why).", "",
              "| module | mutants | killed | survived | equivalent | score (non-equivalent) |",
              "|---|---|---|---|---|---|"]
+    sources = mutant_sources()
+    given = {k: verdict(k, verdicts, sources) for k, v in rows.items() if v == "survived"}
     for m in MODULES:
         mine = {k: v for k, v in rows.items() if module_of(k) == m}
         c = Counter(mine.values())
         killed = c["killed"] + c["timeout"]
         survived = [k for k, v in mine.items() if v == "survived"]
-        equivalent = [k for k in survived if verdicts.get(k, "").startswith("equivalent")]
+        equivalent = [k for k in survived if given[k].startswith("equivalent")]
         denom = (len(mine) - len(equivalent) - c["skipped"] - c["no tests"]
                  - c["not checked"])
         score = f"{100 * killed / denom:.1f} %" if denom else "-"
         lines.append(f"| {m} | {len(mine)} | {killed} | {len(survived)} | {len(equivalent)} "
                      f"| {score} |")
-    lines += ["", "## Surviving mutants", "", "| mutant | verdict |", "|---|---|"]
-    for k, v in sorted(rows.items()):
-        if v == "survived":
-            lines.append(f"| `{k}` | {verdicts.get(k, 'open')} |")
+    lines += ["", "## Surviving mutants", "", "| mutant | change | verdict |", "|---|---|---|"]
+    for k in sorted(given):
+        what = change(k, sources).replace("|", "\\|")
+        lines.append(f"| `{k.removeprefix('flowmod.')}` | `{what}` | {given[k]} |")
     return "\n".join(lines) + "\n"
 
 
