@@ -97,22 +97,21 @@ def pytest_configure(config):
         cv2.setNumThreads(1)
 
 
-@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(config, items):
     """Mark every test that needs the smoke world ``world``, so that quick runs (mutation
-    testing: ``-m "not slow and not world"``) can leave them out; and keep the tests of the
-    executed smoke study (``smoke_run``, minutes to make) on one xdist worker, so that it is
-    made once (``--dist loadgroup``). Order: that group first (its worker starts on the
-    built study at once), the tests that need no built study next, those that do last
-    (by then it is built, so the other worker does not wait for it)."""
-    def rank(item) -> int:
-        names = set(getattr(item, "fixturenames", ()))
-        return 0 if "smoke_run" in names else 2 if "smoke_built" in names else 1
-
+    testing: ``-m "not slow and not world"``) can leave them out. Order the files for
+    pytest-xdist (``--dist loadfile``: a file's tests run on one worker): the executed smoke
+    study (test_notebooks.py) first, so that its worker starts building at once; then the
+    files that need no built study, which the other worker runs meanwhile; then the rest."""
+    needs: dict[str, set[str]] = {}
     for item in items:
         names = set(getattr(item, "fixturenames", ()))
         if WORLD_FIXTURES & names:
             item.add_marker(pytest.mark.world)
-        if "smoke_run" in names:
-            item.add_marker(pytest.mark.xdist_group("smoke_run"))
-    items.sort(key=rank)  # stable: file order within each rank
+        needs.setdefault(str(item.path), set()).update(names)
+
+    def rank(item) -> int:
+        names = needs[str(item.path)]
+        return 0 if "smoke_run" in names else 2 if "smoke_built" in names else 1
+
+    items.sort(key=rank)  # stable: file order within a rank
