@@ -70,7 +70,7 @@ selfflow: RUN_SET += --set selfflow_build=true
 selfflow: book  ## make book, training chapter 12's FastFlowNets first (demo: 2 x 600 steps, ~25 min more; resumable)
 
 test: env browser lint  ## lint, unit tests, notebooks on the smoke profile, the book build (TEST_WORKERS=2)
-	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --durations=20 $(PYTEST_ARGS)
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=20 $(PYTEST_ARGS)
 
 browser:  ## install headless Chromium for the browser check of the book (apt-get; root or sudo)
 	@if [ -n "$${FLOWMOD_CHROMIUM:-}" ] || command -v chromium >/dev/null \

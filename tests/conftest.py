@@ -97,12 +97,20 @@ def pytest_configure(config):
         cv2.setNumThreads(1)
 
 
+#: Files that take minutes: each runs first within its group (longest first balances the two
+#: workers; a file started last on one worker would keep the other idle).
+LONG_FILES = ("test_paper_profile.py", "test_provenance.py", "test_chapter_runs.py",
+              "test_crops.py", "test_distributed.py")
+
+
 def pytest_collection_modifyitems(config, items):
     """Mark every test that needs the smoke world ``world``, so that quick runs (mutation
     testing: ``-m "not slow and not world"``) can leave them out. Order the files for
-    pytest-xdist (``--dist loadfile``: a file's tests run on one worker): the executed smoke
-    study (test_notebooks.py) first, so that its worker starts building at once; then the
-    files that need no built study, which the other worker runs meanwhile; then the rest."""
+    pytest-xdist (``--dist loadfile --no-loadscope-reorder``: a file's tests run on one
+    worker, files in this order): the executed smoke study (test_notebooks.py) first, so
+    that its worker starts building the smoke study at once; then the files that need no
+    built study, which the other worker runs meanwhile; then the rest; long files first
+    within each group."""
     needs: dict[str, set[str]] = {}
     for item in items:
         names = set(getattr(item, "fixturenames", ()))
@@ -110,8 +118,10 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.world)
         needs.setdefault(str(item.path), set()).update(names)
 
-    def rank(item) -> int:
+    def rank(item) -> tuple[int, int]:
         names = needs[str(item.path)]
-        return 0 if "smoke_run" in names else 2 if "smoke_built" in names else 1
+        group = 0 if "smoke_run" in names else 2 if "smoke_built" in names else 1
+        name = item.path.name
+        return group, LONG_FILES.index(name) if name in LONG_FILES else len(LONG_FILES)
 
     items.sort(key=rank)  # stable: file order within a rank
