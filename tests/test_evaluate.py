@@ -120,8 +120,10 @@ def test_table4_rows_format_each_ranges_seed_summary(tmp_path):
         for key, name in (("f1", "F1 (%)"), ("precision", "P (%)"), ("recall", "R (%)")):
             want = round(100 * s[key], 1)
             assert row[name] == want or (np.isnan(want) and np.isnan(row[name])), name
-        assert row["seed range (%)"] == f"{100 * s['f1_min']:.1f}-{100 * s['f1_max']:.1f}"
-        assert row["F1 95% CI, scenes (%)"] == f"{100 * s['ci'][0]:.1f}-{100 * s['ci'][1]:.1f}"
+        assert row["seed range (%)"] == ev.span(s["f1_min"], s["f1_max"])
+        assert row["F1 95% CI, scenes (%)"] == ev.span(*s["ci"])
+    assert np.isnan(t.iloc[2]["F1 (%)"]) and t.iloc[2]["F1 95% CI, scenes (%)"] == "-", \
+        "all still: F1 undefined"
     assert all(t[c].dtype.kind == "f" for c in ("F1 (%)", "P (%)", "R (%)")), "one decimal"
     assert t.iloc[0]["seed range (%)"] != t.iloc[0]["F1 95% CI, scenes (%)"]
 

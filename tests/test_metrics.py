@@ -97,9 +97,10 @@ def test_bootstrap_defaults_are_2000_replicates_with_seed_0():
 
 
 def test_scene_bootstrap_of_one_object_and_of_none():
-    """One object: every replicate is its F1; no objects: n zeros."""
+    """One object: every replicate is its F1; no objects: n undefined replicates."""
     np.testing.assert_array_equal(ev.scene_bootstrap([1], [0.9], ["s"], n=5), np.ones(5))
-    np.testing.assert_array_equal(ev.scene_bootstrap([], [], [], n=4), np.zeros(4))
+    assert np.isnan(ev.scene_bootstrap([], [], [], n=4)).all()
+    assert len(ev.scene_bootstrap([], [], [], n=4)) == 4
 
 
 @pytest.mark.filterwarnings("error")
@@ -219,8 +220,8 @@ def test_breakdown_bins_are_left_closed_and_empty_bins_dropped():
     p = np.array([0.9, 0.1, 0.8, 0.2, 0.6, 0.9])
     got = ev.breakdown(df, y, p, by="distance")
     want = _frame("distance_bin", ["[0.0, 10.0)", "[10.0, 20.0)", "[30.0, 40.0)", "[70.0, inf)"],
-                  [2, 2, 1, 1], [1, 2, 0, 1], [1.0, 1.0, 0.0, 1.0], [1.0, 0.5, 0.0, 1.0],
-                  [1.0, 2 / 3, 0.0, 1.0], [1.0, 0.5, 0.0, 1.0])
+                  [2, 2, 1, 1], [1, 2, 0, 1], [1.0, 1.0, 0.0, 1.0], [1.0, 0.5, np.nan, 1.0],
+                  [1.0, 2 / 3, np.nan, 1.0], [1.0, 0.5, 0.0, 1.0])
     pd.testing.assert_frame_equal(got, want)
 
 
@@ -414,3 +415,65 @@ def test_labels_other_than_0_and_1_are_refused_not_truncated(fn):
     for bad in ([0.9, 1, 0], [2, 1, 0], [-1, 1, 0]):
         with pytest.raises(ValueError, match="0 \\(still\\) / 1 \\(moving\\)"):
             fn(bad)
+
+
+# --- undefined numbers: NaN, not 0 ---------------------------------------------------------
+
+
+def test_recall_and_f1_without_a_mover_are_undefined_not_0():
+    """Without a true mover recall and F1 are undefined (NaN), also when a still vehicle is
+    called moving; precision is undefined without a predicted mover; a missed mover gives a
+    defined F1 of 0."""
+    m = ev.metrics([0, 0, 0], [0.9, 0.1, 0.2])
+    assert m["precision"] == 0.0 and np.isnan(m["recall"]) and np.isnan(m["f1"])
+    m = ev.metrics([0, 0], [0.1, 0.2])
+    assert np.isnan(m["precision"]) and np.isnan(m["recall"]) and np.isnan(m["f1"])
+    assert m["accuracy"] == 1.0
+    m = ev.metrics([1, 0], [0.1, 0.2])
+    assert np.isnan(m["precision"]) and m["recall"] == 0.0 and m["f1"] == 0.0
+    assert np.isnan(ev.metrics([], [])["accuracy"])
+
+
+def test_bootstrap_replicates_without_a_mover_are_left_out_not_0():
+    """Scene a holds the one mover (found), scenes b and c still vehicles (called still): F1
+    is 1 wherever it is defined; the replicates that drew no a are undefined, not 0, and the
+    interval is over the defined ones."""
+    y, p, g = [1, 0, 0], [0.9, 0.1, 0.1], ["a", "b", "c"]
+    r = ev.scene_bootstrap(y, p, g, n=300, seed=0)
+    undefined = np.isnan(r)
+    assert 0.2 < undefined.mean() < 0.4  # (2/3)^3 = 0.30 of the draws miss scene a
+    assert (r[~undefined] == 1.0).all()
+    assert ev.interval(r) == (1.0, 1.0)
+    assert ev.bootstrap_f1_ci(y, p, g, n=300) == (1.0, 1.0)
+    assert all(np.isnan(ev.interval([np.nan, np.nan])))
+    # B calls b's still vehicle moving: never better than A where defined
+    d = ev.paired_comparison(y, p, [0.9, 0.9, 0.1], g, n=300, seed=0)
+    assert d["undefined_replicates"] == int(undefined.sum())
+    assert d["ci"][0] == 0.0 and d["ci"][1] > 0
+    draws = np.random.default_rng(0).multinomial(3, [1 / 3] * 3, size=300)
+    with_a = draws[:, 0] > 0
+    want = np.mean(draws[with_a, 1] == 0)  # A = B exactly where b is not drawn
+    assert d["p_not_better"] == pytest.approx(want)
+
+
+def test_undefined_numbers_are_shown_as_a_dash():
+    """Tables print "-" for an undefined F1, interval or seed range, never "nan" or 0."""
+    nan = float("nan")
+    t = ev.table3({"dis": {"f1": nan, "precision": 0.0, "recall": nan, "f1_min": nan,
+                           "f1_max": nan, "seeds": 2, "ci": (nan, nan)}})
+    assert t.loc[0, "seed range (%)"] == "-" and t.loc[0, "F1 95% CI, scenes (%)"] == "-"
+    assert np.isnan(t.loc[0, "F1 (%)"]) and t.loc[0, "P (%)"] == 0.0
+    c = ev.comparison_table({"a - b": {"delta_f1": 0.1, "ci": (nan, 0.2), "per_seed": [nan, 0.1],
+                                       "p_not_better": nan, "n_scenes": 1, "n": 3}})
+    assert c.loc[0, "95% CI over scenes (points)"] == "-"
+    assert c.loc[0, "per seed (points)"] == "-, +10.0"
+    assert ev.span(0.105, 0.2) == "10.5-20.0" and ev.points(0.5, "+.1f") == "+50.0"
+
+
+def test_book_tables_show_undefined_as_a_dash():
+    from flowmod.report import viz
+
+    html = viz.table(pd.DataFrame({"group": ["a", "b"], "F1 (%)": [50.0, float("nan")],
+                                   "note": ["x", None]})).to_html()
+    assert "nan" not in html.lower() and "none" not in html.lower()
+    assert html.count(">-</td>") == 2 and ">50.0</td>" in html

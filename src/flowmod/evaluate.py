@@ -21,6 +21,7 @@ from flowmod.metrics import (
     paired_comparison,
     paper_protocol_f1,
     seed_summary,
+    span,
     thin_still,
 )
 from flowmod.metrics import breakdown as metrics_breakdown
@@ -217,12 +218,10 @@ def table4(preds: Mapping[str, pd.DataFrame], max_distance: float) -> pd.DataFra
                 rows.append({"method": m, "vehicles": rng, "scored against": name,
                              "objects": s["n"], "scenes": s["n_scenes"],
                              "F1 (%)": round(100 * s["f1"], 1),
-                             "seed range (%)": f"{100 * s['f1_min']:.1f}-"
-                                               f"{100 * s['f1_max']:.1f}",
+                             "seed range (%)": span(s["f1_min"], s["f1_max"]),
                              "P (%)": round(100 * s["precision"], 1),
                              "R (%)": round(100 * s["recall"], 1),
-                             "F1 95% CI, scenes (%)": f"{100 * s['ci'][0]:.1f}-"
-                                                      f"{100 * s['ci'][1]:.1f}"})
+                             "F1 95% CI, scenes (%)": span(*s["ci"])})
     return pd.DataFrame(rows)
 
 

@@ -47,13 +47,15 @@ def _binary(y_true: Any, y_prob: Any, threshold: float) -> tuple[np.ndarray, np.
     return y, (p > threshold).astype(np.int64)
 
 
-def _prf(tp: Any, fp: Any, fn: Any) -> tuple[Any, Any, Any]:
-    """Precision, recall, F1 from counts (arrays ok); 0 where undefined (sklearn's 0 rule)."""
+def _prf(tp: Any, fp: Any, fn: Any, undefined: float = np.nan) -> tuple[Any, Any, Any]:
+    """Precision, recall, F1 of the moving class from counts (arrays ok). Where undefined
+    they are ``undefined`` (NaN; the original's sklearn code used 0): precision without a
+    predicted mover, recall and F1 without a true mover (F1 = 2PR / (P + R) needs R)."""
     tp, fp, fn = (np.asarray(v, dtype=np.float64) for v in (tp, fp, fn))
     with np.errstate(divide="ignore", invalid="ignore"):
-        prec = np.where(tp + fp > 0, tp / (tp + fp), 0.0)
-        rec = np.where(tp + fn > 0, tp / (tp + fn), 0.0)
-        f1 = np.where(2 * tp + fp + fn > 0, 2 * tp / (2 * tp + fp + fn), 0.0)
+        prec = np.where(tp + fp > 0, tp / (tp + fp), undefined)
+        rec = np.where(tp + fn > 0, tp / (tp + fn), undefined)
+        f1 = np.where(tp + fn > 0, 2 * tp / (2 * tp + fp + fn), undefined)
     return prec, rec, f1
 
 
@@ -62,7 +64,8 @@ def metrics(y_true: Any, y_prob: Any, threshold: float = 0.5) -> dict[str, Any]:
 
     y_true: (N,) 0/1; y_prob: (N,) probabilities (or 0/1 predictions). Returns a dict with
     precision, recall, f1, accuracy (fractions), tp, fp, tn, fn, n, n_moving, n_still,
-    confusion ([[tn, fp], [fn, tp]], sklearn's layout) and threshold. Undefined ratios are 0.
+    confusion ([[tn, fp], [fn, tp]], sklearn's layout) and threshold. Undefined ratios are NaN
+    (recall and F1 without a mover, precision without a predicted mover, accuracy of none).
     """
     y, yhat = _binary(y_true, y_prob, threshold)
     tp = int(((yhat == 1) & (y == 1)).sum())
@@ -73,7 +76,7 @@ def metrics(y_true: Any, y_prob: Any, threshold: float = 0.5) -> dict[str, Any]:
     n = len(y)
     return {
         "precision": prec, "recall": rec, "f1": f1,
-        "accuracy": (tp + tn) / n if n else 0.0,
+        "accuracy": (tp + tn) / n if n else float("nan"),
         "tp": tp, "fp": fp, "tn": tn, "fn": fn,
         "n": n, "n_moving": int(y.sum()), "n_still": int(n - y.sum()),
         "confusion": [[tn, fp], [fn, tp]], "threshold": float(threshold),
@@ -141,15 +144,15 @@ def scene_bootstrap(y_true: Any, y_prob: Any, groups: Any, n: int = 2000, seed: 
     pairs; a scene shares its light, traffic and ego motion), so the unit resampled is the
     scene: each replicate draws as many scenes as there are, with replacement, and keeps all
     their objects. y_prob: (N,) or (S, N) for S models (training seeds) scored on the same
-    objects; a replicate's value is the mean over models of their F1 on the drawn scenes.
-    Returns (n,) replicates.
+    objects; a replicate's value is the mean over models of their F1 on the drawn scenes,
+    NaN where the drawn scenes hold no mover (F1 undefined; not 0). Returns (n,) replicates.
     """
     y, probs = _as_models(y_true, y_prob)
     g = np.asarray(groups).reshape(-1)
     if len(g) != len(y):
         raise ValueError(f"groups has {len(g)} values but y_true has {len(y)}")
     if len(y) == 0:
-        return np.zeros(n)
+        return np.full(n, np.nan)
     tp, fp, fn = _counts(y, probs, g, threshold)
     rng = np.random.default_rng(seed)
     k = tp.shape[1]
@@ -159,9 +162,14 @@ def scene_bootstrap(y_true: Any, y_prob: Any, groups: Any, n: int = 2000, seed: 
 
 
 def interval(replicates: Any, level: float = 0.95) -> tuple[float, float]:
-    """Percentile interval of bootstrap replicates."""
+    """Percentile interval of bootstrap replicates, over the defined (non-NaN) ones; (NaN,
+    NaN) when none is defined."""
+    r = np.asarray(replicates, dtype=np.float64).reshape(-1)
+    r = r[~np.isnan(r)]
+    if r.size == 0:
+        return float("nan"), float("nan")
     alpha = (1 - level) / 2
-    lo, hi = np.quantile(np.asarray(replicates, dtype=np.float64), [alpha, 1 - alpha])
+    lo, hi = np.quantile(r, [alpha, 1 - alpha])
     return float(lo), float(hi)
 
 
@@ -200,8 +208,9 @@ def paired_comparison(y_true: Any, prob_a: Any, prob_b: Any, groups: Any, n: int
                       ) -> dict[str, Any]:
     """Method A minus method B on the same objects: the difference of their seed-mean F1,
     its scene-level interval (the same resampled scenes for both methods, so what they share
-    cancels), the per-seed differences (seed k of A against seed k of B) and the share of
-    replicates in which A is not better."""
+    cancels), the per-seed differences (seed k of A against seed k of B), the share of
+    replicates in which A is not better and the number of replicates left out because their
+    scenes hold no mover (F1 undefined for both)."""
     y, pa = _as_models(y_true, prob_a)
     _, pb = _as_models(y_true, prob_b)
     ra = scene_bootstrap(y, pa, groups, n, seed, threshold)
@@ -209,8 +218,12 @@ def paired_comparison(y_true: Any, prob_a: Any, prob_b: Any, groups: Any, n: int
     fa = np.array([metrics(y, p, threshold)["f1"] for p in pa])
     fb = np.array([metrics(y, p, threshold)["f1"] for p in pb])
     k = min(len(fa), len(fb))
-    return {"delta_f1": float(fa.mean() - fb.mean()), "ci": interval(ra - rb, level),
-            "per_seed": (fa[:k] - fb[:k]).tolist(), "p_not_better": float(np.mean(ra - rb <= 0)),
+    d = ra - rb
+    defined = d[~np.isnan(d)]
+    return {"delta_f1": float(fa.mean() - fb.mean()), "ci": interval(d, level),
+            "per_seed": (fa[:k] - fb[:k]).tolist(),
+            "p_not_better": float(np.mean(defined <= 0)) if defined.size else float("nan"),
+            "undefined_replicates": int(d.size - defined.size),
             "n": len(y), "n_scenes": int(len(np.unique(groups)))}
 
 
@@ -258,6 +271,17 @@ def breakdown(
     return pd.DataFrame(rows, columns=cols)
 
 
+def points(x: Any, fmt: str = ".1f") -> str:
+    """A fraction as percentage points for a table cell; "-" where undefined (NaN)."""
+    x = float(x)
+    return "-" if np.isnan(x) else format(100 * x, fmt)
+
+
+def span(lo: Any, hi: Any, sep: str = "-") -> str:
+    """An interval of fractions as "lo-hi" in percentage points; "-" where undefined."""
+    return "-" if np.isnan(float(lo)) or np.isnan(float(hi)) else f"{points(lo)}{sep}{points(hi)}"
+
+
 def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
     """The paper's Table 3 from per-method results (:func:`seed_summary` dicts, or any dict
     with f1, precision, recall and optionally f1_min/f1_max, seeds, ci, n, n_scenes,
@@ -276,13 +300,13 @@ def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) 
         out.append({
             "Method": r["method"],
             "F1 (%)": round(100 * float(r["f1"]), 1),
-            "seed range (%)": (f"{100 * lo:.1f}-{100 * hi:.1f}"
+            "seed range (%)": (span(lo, hi)
                                if lo is not None and r.get("seeds", 1) > 1 else ""),
             "seeds": r.get("seeds", ""),
             "P (%)": round(100 * float(r["precision"]), 1),
             "R (%)": round(100 * float(r["recall"]), 1),
             "F1 95% CI, scenes (%)": (
-                f"{100 * ci[0]:.1f}-{100 * ci[1]:.1f}" if ci is not None else ""),
+                span(*ci) if ci is not None else ""),
             "scenes": r.get("n_scenes", ""),
             "objects": r.get("n", ""),
             "vehicles": r.get("n_instances", ""),
@@ -297,8 +321,8 @@ def comparison_table(rows: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
         out.append({
             "comparison": name,
             "ΔF1 (points)": round(100 * r["delta_f1"], 1),
-            "95% CI over scenes (points)": f"{100 * r['ci'][0]:.1f} to {100 * r['ci'][1]:.1f}",
-            "per seed (points)": ", ".join(f"{100 * d:+.1f}" for d in r["per_seed"]),
+            "95% CI over scenes (points)": span(*r["ci"], sep=" to "),
+            "per seed (points)": ", ".join(points(d, "+.1f") for d in r["per_seed"]),
             "replicates with A <= B (%)": round(100 * r["p_not_better"], 1),
             "scenes": r["n_scenes"], "objects": r["n"],
         })
@@ -314,7 +338,8 @@ def paper_protocol_scores(
     """Precision, recall, F1 averaged over consecutive batches (the original's bug).
 
     The original scored each validation batch (in order, batch 128) with sklearn and
-    averaged the per-batch values; a batch without positives contributes 0.
+    averaged the per-batch values; a batch without positives contributes 0 (sklearn's
+    ``zero_division`` default, kept here because this reproduces the original's number).
     """
     y, yhat = _binary(y_true, y_prob, threshold)
     if len(y) == 0:
@@ -323,7 +348,7 @@ def paper_protocol_scores(
     tp = np.add.reduceat(((yhat == 1) & (y == 1)).astype(np.int64), starts)
     fp = np.add.reduceat(((yhat == 1) & (y == 0)).astype(np.int64), starts)
     fn = np.add.reduceat(((yhat == 0) & (y == 1)).astype(np.int64), starts)
-    prec, rec, f1 = _prf(tp, fp, fn)
+    prec, rec, f1 = _prf(tp, fp, fn, undefined=0.0)
     return {"precision": float(prec.mean()), "recall": float(rec.mean()), "f1": float(f1.mean())}
 
 

@@ -12,7 +12,7 @@ from flowmod.dag import Node
 from flowmod.evaluate import paired, scored, seed_probs
 from flowmod.extensions.context import read_context
 from flowmod.extensions.inputs import VARIANTS, chains
-from flowmod.metrics import comparison_table, seed_summary
+from flowmod.metrics import comparison_table, seed_summary, span
 from flowmod.params import Params
 
 
@@ -54,8 +54,8 @@ def table(params: Params, rows_of: list[tuple[str | None, str]] | None = None,
                          seed=params.seed)
         out.append({"flow method": m or "-", "input": v, "channels": VARIANTS[v].channels,
                      "F1 (%)": round(100 * s["f1"], 1),
-                     "seeds (%)": f"{100 * s['f1_min']:.1f}-{100 * s['f1_max']:.1f}",
-                     "95% CI, scenes (%)": f"{100 * s['ci'][0]:.1f}-{100 * s['ci'][1]:.1f}",
+                     "seeds (%)": span(s["f1_min"], s["f1_max"]),
+                     "95% CI, scenes (%)": span(*s["ci"]),
                      "P (%)": round(100 * s["precision"], 1),
                      "R (%)": round(100 * s["recall"], 1)})
     return pd.DataFrame(out)

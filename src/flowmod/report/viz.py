@@ -415,13 +415,14 @@ def f1_by(tables: dict[str, pd.DataFrame], key: str, xlabel: str, min_n: int = 1
 
 def table(df: pd.DataFrame, precision: int = 1) -> Any:
     """A table as the book shows it: no index column, numbers right-aligned and rounded to
-    ``precision`` decimals (units belong in the column names)."""
+    ``precision`` decimals (units belong in the column names), "-" for an undefined (NaN)
+    value."""
     df = df.reset_index(drop=True)
     numeric = [c for c in df.columns if pd.api.types.is_numeric_dtype(df[c])
                and not pd.api.types.is_bool_dtype(df[c])]
     floats = [c for c in numeric if pd.api.types.is_float_dtype(df[c])]
-    return (df.style.hide(axis="index")
-            .format(precision=precision, subset=floats)
+    return (df.style.hide(axis="index").format(na_rep="-")
+            .format(precision=precision, subset=floats, na_rep="-")
             .set_properties(subset=numeric, **{"text-align": "right"}))
 
 
