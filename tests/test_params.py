@@ -104,31 +104,42 @@ def test_paths_resolve_against_repo_root():
     assert validate({"dataroot": "data/demo", "epochs": 1}).world_id == g.world_id
 
 
-def test_cli_rejects_a_bad_profile_before_work(tmp_path):
+def test_cli_rejects_a_bad_profile_before_work(tmp_path, capsys, monkeypatch):
     bad = tmp_path / "bad.yaml"
     bad.write_text(yaml.safe_dump({"profile": "bad", "min_distance": 90.0}))
     out = tmp_path / "executed"
-    proc = subprocess.run(
-        [sys.executable, "-m", "flowmod.runner", "--profile", str(bad), "--out", str(out)],
-        capture_output=True, text=True, cwd=repo_root(),
-    )
+    proc = _runner_here(capsys, monkeypatch, "--profile", bad, "--out", out)
     assert proc.returncode == 2
     assert "min_distance=90.0 must be < max_distance=70.0" in proc.stderr
     assert not out.exists(), "a bad profile must be rejected before any notebook runs"
 
 
 def _runner(*args, cwd=None) -> subprocess.CompletedProcess:
+    """The runner CLI in a process of its own, as a user runs it."""
     return subprocess.run([sys.executable, "-m", "flowmod.runner", *map(str, args)],
                           capture_output=True, text=True, cwd=cwd or repo_root())
 
 
-def test_cli_bad_yaml_gives_one_line_naming_the_file(tmp_path):
+def _runner_here(capsys, monkeypatch, *args) -> subprocess.CompletedProcess:
+    """The runner CLI's ``main`` in this process, from the repository root (error cases:
+    no torch import per call); an exception it lets through fails the test."""
+    from flowmod import runner
+
+    monkeypatch.chdir(repo_root())
+    capsys.readouterr()
+    rc = runner.main([str(a) for a in args])
+    out = capsys.readouterr()
+    return subprocess.CompletedProcess(args, rc, out.out, out.err)
+
+
+def test_cli_bad_yaml_gives_one_line_naming_the_file(tmp_path, capsys, monkeypatch):
     bad = tmp_path / "broken.yaml"
     bad.write_text("profile: broken\nepochs: [1\nseed: 2\n")
-    proc = _runner("--profile", bad, "--status")
+    proc = _runner_here(capsys, monkeypatch, "--profile", bad, "--status")
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert str(bad) in proc.stderr and "not valid YAML at line 3" in proc.stderr
-    proc = _runner("--profile", "smoke", "--status", "--set", "flow_methods=[nope")
+    proc = _runner_here(capsys, monkeypatch, "--profile", "smoke", "--status", "--set",
+                        "flow_methods=[nope")
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert "--set 'flow_methods=[nope'" in proc.stderr and "not a YAML value" in proc.stderr
 

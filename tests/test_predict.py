@@ -34,8 +34,18 @@ def case(smoke_built, tmp_path_factory):
 
 
 def run(*args):
+    """The CLI in a process of its own (as a user runs it)."""
     return subprocess.run([sys.executable, "-m", "flowmod.predict", *map(str, args)],
                           capture_output=True, text=True)
+
+
+def cli(capsys, *args) -> subprocess.CompletedProcess:
+    """The CLI's ``main`` in this process (the error cases: seconds instead of a torch
+    import each); an exception it lets through fails the test like a traceback would."""
+    capsys.readouterr()
+    rc = predict.main([str(a) for a in args])
+    out = capsys.readouterr()
+    return subprocess.CompletedProcess(args, rc, out.out, out.err)
 
 
 def test_predictions_equal_the_evaluation_of_the_same_model(case):
@@ -70,21 +80,21 @@ def test_cli_writes_the_annotated_frame_and_works_at_another_size(case):
     assert cv2.imread(str(out2)).shape == (450, 800, 3)
 
 
-def test_cli_errors_name_the_problem(case):
+def test_cli_errors_name_the_problem(case, capsys):
     bad = case["tmp"] / "outside.csv"
     pd.DataFrame({"xmin": [10], "ymin": [10], "xmax": [1700], "ymax": [50]}).to_csv(bad,
                                                                                      index=False)
-    proc = run(case["f1"], case["f2"], "--boxes", bad, "--model", case["model"])
+    proc = cli(capsys, case["f1"], case["f2"], "--boxes", bad, "--model", case["model"])
     assert proc.returncode == 2 and "rows [0] leave the 1600x900 image" in proc.stderr
-    proc = run(case["f1"], case["f2"], "--boxes", case["boxes"], "--model", case["model"],
+    proc = cli(capsys, case["f1"], case["f2"], "--boxes", case["boxes"], "--model", case["model"],
                "--method", "farneback")
     assert proc.returncode == 2 and "trained on dis flow" in proc.stderr
     broken = case["tmp"] / "broken.jpg"
     broken.write_bytes(b"not an image")
-    proc = run(broken, case["f2"], "--boxes", case["boxes"], "--model", case["model"])
+    proc = cli(capsys, broken, case["f2"], "--boxes", case["boxes"], "--model", case["model"])
     assert proc.returncode == 2 and "broken.jpg" in proc.stderr
     gt_model = pipeline.node_dir(case["params"], dag.Node("train", "gt", "s0")) / "best.pt"
-    proc = run(case["f1"], case["f2"], "--boxes", case["boxes"], "--model", gt_model)
+    proc = cli(capsys, case["f1"], case["f2"], "--boxes", case["boxes"], "--model", gt_model)
     assert proc.returncode == 2 and "exact flow (gt)" in proc.stderr
 
 
@@ -95,29 +105,33 @@ def one_line(proc: subprocess.CompletedProcess) -> str:
     return lines[0]
 
 
-def test_cli_damaged_inputs_give_one_line(case):
+def test_cli_damaged_inputs_give_one_line(case, capsys):
     """A model file cut short, a box that is not a number, a CSV without rows and a JPEG
     cut short: one line naming the file (or row and column), never a traceback, and a cut
     frame is refused as the pipeline refuses it."""
     t = case["tmp"]
+
+    def err(*args) -> str:
+        return one_line(cli(capsys, *args))
+
     cut_model = t / "cut" / "best.pt"
     cut_model.parent.mkdir()
     data = case["model"].read_bytes()
     cut_model.write_bytes(data[: len(data) // 2])
     (cut_model.parent / "manifest.json").write_bytes(
         (case["model"].parent / "manifest.json").read_bytes())
-    line = one_line(run(case["f1"], case["f2"], "--boxes", case["boxes"], "--model", cut_model))
+    line = err(case["f1"], case["f2"], "--boxes", case["boxes"], "--model", cut_model)
     assert "CheckpointError" in line and str(cut_model) in line
     text = t / "text.csv"
     text.write_text("xmin,ymin,xmax,ymax\n10,10,50,50\n10,ten,50,50\n")
-    line = one_line(run(case["f1"], case["f2"], "--boxes", text, "--model", case["model"]))
+    line = err(case["f1"], case["f2"], "--boxes", text, "--model", case["model"])
     assert "row 1, column ymin: 'ten' is not a number" in line
     header = t / "header.csv"
     header.write_text("xmin,ymin,xmax,ymax\n")
-    line = one_line(run(case["f1"], case["f2"], "--boxes", header, "--model", case["model"]))
+    line = err(case["f1"], case["f2"], "--boxes", header, "--model", case["model"])
     assert "no boxes" in line and str(header) in line
     cut = t / "cut.jpg"
     jpg = case["f2"].read_bytes()
     cut.write_bytes(jpg[: len(jpg) * 2 // 3])
-    line = one_line(run(case["f1"], cut, "--boxes", case["boxes"], "--model", case["model"]))
+    line = err(case["f1"], cut, "--boxes", case["boxes"], "--model", case["model"])
     assert "truncated JPEG" in line and str(cut) in line
