@@ -315,7 +315,8 @@ def test_another_world_in_the_same_run_folder_recomputes_flow(finished, tmp_path
     run = tmp_path / "runs"
     shutil.copytree(finished.run_path, run, symlinks=True)
     p = finished.model_copy(update={"run_dir": str(run)})
-    other = p.model_copy(update={"dataroot": str(tmp_path / "world2"), "world_vehicles": 12})
+    other = p.model_copy(update={"dataroot": str(tmp_path / "world2"), "world_vehicles": 12,
+                                 "world_scenes": 5, "world_keyframes": 4})  # small: quick
     st = {s.node: s for s in pipeline.status(other)}
     assert st[dag.Node("flow", "gt", "keyframe")].state == "stale"
     old = {m: set(pd.read_parquet(pipeline.node_dir(p, dag.Node("flow", m, "keyframe"))
