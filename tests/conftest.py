@@ -108,9 +108,10 @@ def pytest_collection_modifyitems(config, items):
     testing: ``-m "not slow and not world"``) can leave them out. Order the files for
     pytest-xdist (``--dist loadfile --no-loadscope-reorder``: a file's tests run on one
     worker, files in this order): the executed smoke study (test_notebooks.py) first, so
-    that its worker starts building the smoke study at once; then the files that need no
-    built study, which the other worker runs meanwhile; then the rest; long files first
-    within each group."""
+    that its worker starts making the world and the study at once; then the files that need
+    no world (the other worker runs them while the world is made, about a minute), then
+    those that need the world but no built study; then the rest; long files first within
+    each group."""
     needs: dict[str, set[str]] = {}
     for item in items:
         names = set(getattr(item, "fixturenames", ()))
@@ -120,7 +121,8 @@ def pytest_collection_modifyitems(config, items):
 
     def rank(item) -> tuple[int, int]:
         names = needs[str(item.path)]
-        group = 0 if "smoke_run" in names else 2 if "smoke_built" in names else 1
+        group = (0 if "smoke_run" in names else 3 if "smoke_built" in names
+                 else 2 if WORLD_FIXTURES & names else 1)
         name = item.path.name
         return group, LONG_FILES.index(name) if name in LONG_FILES else len(LONG_FILES)
 
