@@ -171,7 +171,12 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
             d = evaluate.scored(ch10.predictions(p, m, v, split), split, p.general_max_distance)
             f1 = np.mean([metrics(d["label"], d[c])["f1"] for c in evaluate.seed_columns(d)])
             assert g10[f"ext_{key}_f1_{ch10.glue_key(m, v)}"] == round(100 * f1, 1)
-    assert g10["ext_headline"].startswith("on dis flow, the best other input")
+    # the two questions, in the profile's order (not the best on test), paired, the
+    # box-depth input named as the oracle it is
+    head = g10["ext_headline"]
+    assert head.startswith("against the raw dis flow, paired on the test split: residual")
+    assert head.index("residual") < head.index("images")
+    assert ch10.ORACLE_NOTE in head and head.count("95 % interval over scenes") == 2
     assert g10["still_residual_px"] < 0.1 * g10["still_flow_px"]
     assert g10["moving_residual_px"] > g10["still_residual_px"]
     assert (smoke_run["base"] / "runs" / "figures" / "extension_inputs.png").stat().st_size > 5000

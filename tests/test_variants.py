@@ -201,8 +201,7 @@ def test_chapter10_shows_only_what_was_built_with_these_parameters(smoke_built):
     assert ch10.built(other) == []
     pipeline.build(other, ["10"])  # without extension_build: trains nothing
     assert ch10.built(other) == []
-    assert "make extensions" in ch10.headline(other, ch10.table(other),
-                                                  ch10.table(other, split="general"))
+    assert "make extensions" in ch10.headline(other, ch10.comparisons(other))
     # the same settings: everything is current
     assert ch10.built(p.model_copy(update={"extension_build": False})) == inputs.chains(p)
 
@@ -221,3 +220,25 @@ def test_a_chapter_that_shows_what_is_built_reruns_when_more_is_built(smoke_buil
     assert [n for n in pipeline.expected(elsewhere) if pipeline.expected(elsewhere)[n] is None] == []
     assert runner.notebook_fingerprint(nb, values, elsewhere, device) != built
     assert runner.notebook_fingerprint(nb, values, p, device) == built
+
+
+def test_chapter10_headline_asks_the_profiles_questions_in_order():
+    """The headline reports each input of ``extension_inputs`` in the profile's order (fixed
+    in advance, not the best by test F1) against the raw flow of the main method, with its
+    paired interval; the static-world input is named as the oracle it is."""
+    from flowmod.params import load_profile
+
+    p = load_profile("smoke")  # extension_inputs [residual, images], methods [gt, dis]
+    paired = pd.DataFrame({
+        "comparison": ["gt: residual - gt: flow", "dis: residual - dis: flow",
+                       "images - gt: flow"],
+        "ΔF1 (points)": [9.0, -1.0, 5.0],
+        "95% CI over scenes (points)": ["2.0 to 15.0", "-3.0 to 1.0", "1.0 to 9.0"]})
+    assert ch10.headline(p, paired) == (
+        "against the raw dis flow, paired on the test split: residual" + ch10.ORACLE_NOTE
+        + " -1.0 F1 points (95 % interval over scenes -3.0 to 1.0); images (no flow; "
+        "against gt flow) +5.0 F1 points (95 % interval over scenes 1.0 to 9.0)")
+    swapped = ch10.headline(p.model_copy(update={"extension_inputs": ["images", "residual"]}),
+                            paired)
+    assert swapped.index("images") < swapped.index("residual")
+    assert "make extensions" in ch10.headline(p, paired.iloc[:1])
