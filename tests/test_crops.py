@@ -444,3 +444,92 @@ def test_pair_boxes_in_object_order_and_mixed_splits_named_five_at_most() -> Non
                           "xmin": 1.0, "ymin": 1.0, "xmax": 5.0, "ymax": 5.0})
     with pytest.raises(CropsError, match=r"several splits: \['a', 'b', 'c', 'd', 'e'\]$"):
         crops.pair_boxes(mixed)
+
+
+# --- mutation-testing kills: windows at the frame's edges, checks and dtypes ---------------
+
+
+def _reference_crops(image: np.ndarray, boxes, size: int, scale: float = 3.0) -> np.ndarray:
+    """Each window gathered with clipped (edge-replicated) indices, resized bilinearly."""
+    out = []
+    for x, y, k in crop_windows(boxes, scale).tolist():
+        rows = np.clip(np.arange(y, y + k), 0, image.shape[0] - 1)
+        cols = np.clip(np.arange(x, x + k), 0, image.shape[1] - 1)
+        patch = image[np.ix_(rows, cols)]
+        out.append(cv2.resize(patch, (size, size), interpolation=cv2.INTER_LINEAR)
+                   .reshape(size, size, image.shape[2]))
+    return np.stack(out)
+
+
+@pytest.mark.parametrize("box", [[90.0, 20.0, 98.0, 28.0],   # leaves the right edge only
+                                 [20.0, 50.0, 28.0, 58.0],   # the bottom edge only
+                                 [1.0, 1.0, 9.0, 9.0],       # the top-left corner
+                                 [40.0, 25.0, 48.0, 33.0]])  # inside
+def test_crop_image_replicates_the_edge_on_every_side(box):
+    """A window leaving the frame on any side holds the edge pixels repeated (the padded
+    path, margin from the side it leaves), equal to a gather with clipped indices."""
+    yy, xx = np.mgrid[0:60, 0:100].astype(np.float32)
+    image = np.dstack([xx * 1.5 + yy, yy * 2.0 - xx])  # (60, 100, 2), no two pixels alike
+    got = crops.crop_image(image, np.array([box]), 12)
+    np.testing.assert_array_equal(got, _reference_crops(image, [box], 12))
+
+
+def test_crop_defaults_and_size_one():
+    """The default scale is the paper's 3; a 1 x 1 crop is allowed."""
+    rng = np.random.default_rng(0)
+    image = rng.normal(size=(50, 80, 2)).astype(np.float32)
+    box = np.array([[30.0, 20.0, 36.0, 26.0]])
+    np.testing.assert_array_equal(crops.crop_image(image, box, 8),
+                                  crops.crop_image(image, box, 8, 3.0))
+    np.testing.assert_array_equal(crop_windows(box), crop_windows(box, 3.0))
+    assert crops.crop_image(image, box, 1).shape == (1, 1, 1, 2)
+    assert crop_boxes(image.astype(np.float64), box, 4).dtype == np.float32
+
+
+def test_crop_windows_compute_in_float64_whatever_the_boxes_dtype():
+    """float32 boxes are widened first: in float32 this window would start a pixel off."""
+    b32 = np.array([[1.3, 154.5, 195.7, 191.0]], dtype=np.float32)
+    np.testing.assert_array_equal(crop_windows(b32), crop_windows(b32.astype(np.float64)))
+    assert crop_windows(b32)[0].tolist() == [-193, -118, 583]
+
+
+def test_crop_windows_name_exactly_the_bad_rows():
+    """NaN rows and inverted rows are named (the first five); an empty (zero-size) box is
+    not inverted."""
+    b = np.array([[0, 0, 10, 10]] * 9, dtype=np.float64)
+    b[[2, 4, 5, 6, 7, 8], 1] = np.nan
+    with pytest.raises(CropsError, match=r"NaN/inf \(rows \[2, 4, 5, 6, 7\]\.\.\.\)"):
+        crop_windows(b)
+    b = np.array([[0, 0, 0, 5], [0, 0, 5, 0], [6, 0, 5, 5], [0, 6, 5, 5], [0, 0, 5, 5]]
+                 + [[6, 6, 5, 5]] * 4, dtype=np.float64)
+    with pytest.raises(CropsError, match=r"ymax < ymin \(rows \[2, 3, 5, 6, 7\]\.\.\.\)"):
+        crop_windows(b)
+    assert crop_windows(b[[0, 1, 4]])[:, 2].tolist() == [15, 15, 15]
+
+
+def test_hflip_names_the_type_it_refuses():
+    with pytest.raises(TypeError, match="got list"):
+        hflip([[1.0]])
+
+
+def test_pair_crops_rescale_boxes_fix_non_finite_and_keep_dtypes():
+    """Flow at half resolution: boxes map onto its grid by pixel centres ((x + 0.5) s - 0.5,
+    also for integer boxes); NaN flow becomes 0; crops float16, samples float32; the given
+    scale is used; a height more than 1.5 px off a rescale is refused with the image size."""
+    rng = np.random.default_rng(1)
+    flow = rng.normal(size=(450, 800, 2)).astype(np.float32)
+    flow[100:110, 200:210] = np.nan
+    boxes = np.array([[400, 200, 440, 230], [100, 300, 160, 340]])  # int, full resolution
+    c, s, n_bad, hw = crops.pair_crops(flow, boxes, 8, 2.0)
+    assert (n_bad, hw) == (200, [450, 800])
+    assert c.dtype == np.float16 and s.dtype == np.float32
+    clean = np.nan_to_num(flow, nan=0.0)
+    half = (boxes.astype(np.float64) + 0.5) * 0.5 - 0.5
+    np.testing.assert_array_equal(c, crop_boxes(clean, half, 8, 2.0).astype(np.float16))
+    np.testing.assert_array_equal(s, crops.box_samples(clean, half).astype(np.float32))
+    assert np.isfinite(c).all()
+    # 8 x 6 px: a 1/200 rescale would have 4.5 rows, 6 is 1.5 off: still rounding
+    crops.pair_crops(np.zeros((6, 8, 2), np.float32), boxes, 4, 2.0)
+    crops.pair_crops(np.zeros((901, 1600, 2), np.float32), boxes, 8, 2.0)  # 1 px off
+    with pytest.raises(CropsError, match=r"is 1600x902 \(WxH\), not the 1600x900 image"):
+        crops.pair_crops(np.zeros((902, 1600, 2), np.float32), boxes, 8, 2.0)
