@@ -477,3 +477,11 @@ def test_book_tables_show_undefined_as_a_dash():
                                    "note": ["x", None]})).to_html()
     assert "nan" not in html.lower() and "none" not in html.lower()
     assert html.count(">-</td>") == 2 and ">50.0</td>" in html
+
+
+def test_false_alarm_rate_uses_the_strict_threshold_of_every_other_number():
+    """Still objects called moving: prob > 0.5 as in metrics (0.5 itself is still); NaN
+    without a still object."""
+    assert ev.false_alarm_rate([0, 0, 0, 0, 1], [0.5, 0.51, 0.2, 0.9, 0.1]) == 0.5
+    assert ev.false_alarm_rate([0, 0], [0.5, 0.3], threshold=0.4) == 0.5
+    assert np.isnan(ev.false_alarm_rate([1, 1], [0.9, 0.1]))

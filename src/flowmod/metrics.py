@@ -83,6 +83,13 @@ def metrics(y_true: Any, y_prob: Any, threshold: float = 0.5) -> dict[str, Any]:
     }
 
 
+def false_alarm_rate(y_true: Any, y_prob: Any, threshold: float = 0.5) -> float:
+    """Share of the still objects called moving (``prob > threshold``, the convention of
+    :func:`metrics`): fp / (fp + tn); NaN without a still object."""
+    m = metrics(y_true, y_prob, threshold)
+    return m["fp"] / m["n_still"] if m["n_still"] else float("nan")
+
+
 def threshold_sweep(y_true: Any, y_prob: Any, thresholds: Sequence[float] | None = None) -> pd.DataFrame:
     """Metrics at each threshold (default 0.05 .. 0.95): threshold, precision, recall, f1,
     accuracy."""

@@ -13,7 +13,7 @@ from flowmod.chapters.common import results
 from flowmod.dag import Node
 from flowmod.evaluate import breakdown, paired, scored, seed_probs
 from flowmod.evaluate import table4 as evaluate_table4
-from flowmod.metrics import comparison_table, metrics
+from flowmod.metrics import comparison_table, false_alarm_rate, metrics
 from flowmod.params import Params
 
 #: Distance bins of the chapter's breakdowns (m): Table 4's range and beyond it.
@@ -120,12 +120,10 @@ def near_far(params: Params, methods: list[str], near: float = 30.0) -> pd.DataF
                             (f"{near:g}-{params.general_max_distance:g} m",
                              d["distance"] >= near)):
                 k = k.to_numpy()
-                still = k & (y == 0)
                 row[f"F1 {name} (%)"] = round(100 * float(np.mean(
                     [metrics(y[k], p[k])["f1"] for p in seed_probs(d)])), 1)
                 row[f"still called moving {name} (%)"] = round(100 * float(np.mean(
-                    [(p[still] >= 0.5).mean() if still.any() else np.nan
-                     for p in seed_probs(d)])), 1)
+                    [false_alarm_rate(y[k], p[k]) for p in seed_probs(d)])), 1)
                 row[f"n {name}"] = int(k.sum())
                 row[f"moving {name}"] = int(y[k].sum())
             rows.append(row)
