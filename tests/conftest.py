@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
 from collections.abc import Callable
 from pathlib import Path
 
@@ -77,6 +78,22 @@ def smoke_built(smoke_world, tmp_path_factory):
     runs = made_once(tmp_path_factory, "smoke_built",
                      lambda out: pipeline.build(_smoke(data, run_dir=str(out / "runs"))))
     return _smoke(data, run_dir=str(runs / "runs"))
+
+
+@pytest.fixture
+def call_main(capsys):
+    """``call(main, *args)``: a CLI's ``main(argv)`` run in the test process, its exit code
+    and printed output as a ``CompletedProcess`` (the CLIs' error cases: no interpreter and
+    torch import per call; an exception ``main`` lets through fails the test as a traceback
+    would)."""
+
+    def call(main: Callable[[list[str]], int], *args) -> subprocess.CompletedProcess:
+        capsys.readouterr()
+        rc = main([str(a) for a in args])
+        out = capsys.readouterr()
+        return subprocess.CompletedProcess(args, rc, out.out, out.err)
+
+    return call
 
 
 #: Fixtures that generate or build on the smoke world (seconds to minutes each session).

@@ -104,11 +104,14 @@ def test_paths_resolve_against_repo_root():
     assert validate({"dataroot": "data/demo", "epochs": 1}).world_id == g.world_id
 
 
-def test_cli_rejects_a_bad_profile_before_work(tmp_path, capsys, monkeypatch):
+def test_cli_rejects_a_bad_profile_before_work(tmp_path, call_main, monkeypatch):
+    from flowmod import runner
+
+    monkeypatch.chdir(repo_root())
     bad = tmp_path / "bad.yaml"
     bad.write_text(yaml.safe_dump({"profile": "bad", "min_distance": 90.0}))
     out = tmp_path / "executed"
-    proc = _runner_here(capsys, monkeypatch, "--profile", bad, "--out", out)
+    proc = call_main(runner.main, "--profile", bad, "--out", out)
     assert proc.returncode == 2
     assert "min_distance=90.0 must be < max_distance=70.0" in proc.stderr
     assert not out.exists(), "a bad profile must be rejected before any notebook runs"
@@ -120,26 +123,17 @@ def _runner(*args, cwd=None) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, cwd=cwd or repo_root())
 
 
-def _runner_here(capsys, monkeypatch, *args) -> subprocess.CompletedProcess:
-    """The runner CLI's ``main`` in this process, from the repository root (error cases:
-    no torch import per call); an exception it lets through fails the test."""
+def test_cli_bad_yaml_gives_one_line_naming_the_file(tmp_path, call_main, monkeypatch):
     from flowmod import runner
 
     monkeypatch.chdir(repo_root())
-    capsys.readouterr()
-    rc = runner.main([str(a) for a in args])
-    out = capsys.readouterr()
-    return subprocess.CompletedProcess(args, rc, out.out, out.err)
-
-
-def test_cli_bad_yaml_gives_one_line_naming_the_file(tmp_path, capsys, monkeypatch):
     bad = tmp_path / "broken.yaml"
     bad.write_text("profile: broken\nepochs: [1\nseed: 2\n")
-    proc = _runner_here(capsys, monkeypatch, "--profile", bad, "--status")
+    proc = call_main(runner.main, "--profile", bad, "--status")
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert str(bad) in proc.stderr and "not valid YAML at line 3" in proc.stderr
-    proc = _runner_here(capsys, monkeypatch, "--profile", "smoke", "--status", "--set",
-                        "flow_methods=[nope")
+    proc = call_main(runner.main, "--profile", "smoke", "--status", "--set",
+                     "flow_methods=[nope")
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert "--set 'flow_methods=[nope'" in proc.stderr and "not a YAML value" in proc.stderr
 

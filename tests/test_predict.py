@@ -39,15 +39,6 @@ def run(*args):
                           capture_output=True, text=True)
 
 
-def cli(capsys, *args) -> subprocess.CompletedProcess:
-    """The CLI's ``main`` in this process (the error cases: seconds instead of a torch
-    import each); an exception it lets through fails the test like a traceback would."""
-    capsys.readouterr()
-    rc = predict.main([str(a) for a in args])
-    out = capsys.readouterr()
-    return subprocess.CompletedProcess(args, rc, out.out, out.err)
-
-
 def test_predictions_equal_the_evaluation_of_the_same_model(case):
     recipe = predict.read_recipe(case["model"])
     assert recipe["method"] == "dis" and recipe["crop_size"] == case["params"].crop_size
@@ -80,21 +71,24 @@ def test_cli_writes_the_annotated_frame_and_works_at_another_size(case):
     assert cv2.imread(str(out2)).shape == (450, 800, 3)
 
 
-def test_cli_errors_name_the_problem(case, capsys):
+def test_cli_errors_name_the_problem(case, call_main):
+    def cli(*args):
+        return call_main(predict.main, *args)
+
     bad = case["tmp"] / "outside.csv"
     pd.DataFrame({"xmin": [10], "ymin": [10], "xmax": [1700], "ymax": [50]}).to_csv(bad,
                                                                                      index=False)
-    proc = cli(capsys, case["f1"], case["f2"], "--boxes", bad, "--model", case["model"])
+    proc = cli(case["f1"], case["f2"], "--boxes", bad, "--model", case["model"])
     assert proc.returncode == 2 and "rows [0] leave the 1600x900 image" in proc.stderr
-    proc = cli(capsys, case["f1"], case["f2"], "--boxes", case["boxes"], "--model", case["model"],
+    proc = cli(case["f1"], case["f2"], "--boxes", case["boxes"], "--model", case["model"],
                "--method", "farneback")
     assert proc.returncode == 2 and "trained on dis flow" in proc.stderr
     broken = case["tmp"] / "broken.jpg"
     broken.write_bytes(b"not an image")
-    proc = cli(capsys, broken, case["f2"], "--boxes", case["boxes"], "--model", case["model"])
+    proc = cli(broken, case["f2"], "--boxes", case["boxes"], "--model", case["model"])
     assert proc.returncode == 2 and "broken.jpg" in proc.stderr
     gt_model = pipeline.node_dir(case["params"], dag.Node("train", "gt", "s0")) / "best.pt"
-    proc = cli(capsys, case["f1"], case["f2"], "--boxes", case["boxes"], "--model", gt_model)
+    proc = cli(case["f1"], case["f2"], "--boxes", case["boxes"], "--model", gt_model)
     assert proc.returncode == 2 and "exact flow (gt)" in proc.stderr
 
 
@@ -105,14 +99,14 @@ def one_line(proc: subprocess.CompletedProcess) -> str:
     return lines[0]
 
 
-def test_cli_damaged_inputs_give_one_line(case, capsys):
+def test_cli_damaged_inputs_give_one_line(case, call_main):
     """A model file cut short, a box that is not a number, a CSV without rows and a JPEG
     cut short: one line naming the file (or row and column), never a traceback, and a cut
     frame is refused as the pipeline refuses it."""
     t = case["tmp"]
 
     def err(*args) -> str:
-        return one_line(cli(capsys, *args))
+        return one_line(call_main(predict.main, *args))
 
     cut_model = t / "cut" / "best.pt"
     cut_model.parent.mkdir()
