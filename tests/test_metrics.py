@@ -287,6 +287,9 @@ def test_comparison_table_interval_in_points():
          "n_scenes": 3, "n": 30}
     t = ev.comparison_table({"A - B": r})
     assert t.loc[0, "95% CI over scenes (points)"] == "10.0 to 20.0"
+    assert list(t.columns) == ev.COMPARISON_COLUMNS
+    empty = ev.comparison_table({})
+    assert len(empty) == 0 and list(empty.columns) == ev.COMPARISON_COLUMNS, "columns kept"
 
 
 # --- the original protocol ------------------------------------------------------------------

@@ -286,7 +286,8 @@ def points(x: Any, fmt: str = ".1f") -> str:
 
 def span(lo: Any, hi: Any, sep: str = "-") -> str:
     """An interval of fractions as "lo-hi" in percentage points; "-" where undefined."""
-    return "-" if np.isnan(float(lo)) or np.isnan(float(hi)) else f"{points(lo)}{sep}{points(hi)}"
+    a, b = points(lo), points(hi)
+    return "-" if "-" in (a, b) else f"{a}{sep}{b}"
 
 
 def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
@@ -321,8 +322,14 @@ def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) 
     return pd.DataFrame(out, columns=list(out[0]) if out else ["Method"])
 
 
+#: Columns of :func:`comparison_table` (also when it has no row).
+COMPARISON_COLUMNS = ["comparison", "ΔF1 (points)", "95% CI over scenes (points)",
+                      "per seed (points)", "replicates with A <= B (%)", "scenes", "objects"]
+
+
 def comparison_table(rows: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
-    """Paired differences ``{"A - B": paired_comparison(...)}`` as a table (F1 points)."""
+    """Paired differences ``{"A - B": paired_comparison(...)}`` as a table (F1 points;
+    columns :data:`COMPARISON_COLUMNS`)."""
     out = []
     for name, r in rows.items():
         out.append({
@@ -333,7 +340,7 @@ def comparison_table(rows: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
             "replicates with A <= B (%)": round(100 * r["p_not_better"], 1),
             "scenes": r["n_scenes"], "objects": r["n"],
         })
-    return pd.DataFrame(out)
+    return pd.DataFrame(out, columns=COMPARISON_COLUMNS)
 
 
 # --- the original code's protocol, for comparison --------------------------------------------
