@@ -70,12 +70,24 @@ def comparisons(params: Params, split: str = "test",
     for m, v in (rows(params) if rows_of is None else rows_of):
         if v == "flow":
             continue
-        ref = m or params.extension_methods[0]
+        ref = reference(params, m)
         a = scored(predictions(params, m, v, split), split, params.general_max_distance)
         b = scored(predictions(params, ref, "flow", split), split, params.general_max_distance)
-        out[f"{m + ': ' if m else ''}{v} - {ref}: flow"] = paired(
-            a, b, f"{m}/{v} and {ref}/flow", params.seed)
+        out[comparison_name(params, m, v)] = paired(a, b, f"{m}/{v} and {ref}/flow",
+                                                    params.seed)
     return comparison_table(out)
+
+
+def reference(params: Params, method: str | None) -> str:
+    """The raw-flow classifier an input of ``method`` is compared with: the same method's,
+    or for an input without flow (``method`` None) the first extension method's."""
+    return method or params.extension_methods[0]
+
+
+def comparison_name(params: Params, method: str | None, variant: str) -> str:
+    """The row name of a chain in :func:`comparisons`: ``dis: residual - dis: flow``,
+    ``images - gt: flow``."""
+    return f"{method + ': ' if method else ''}{variant} - {reference(params, method)}: flow"
 
 
 def inputs_table() -> pd.DataFrame:
@@ -138,15 +150,14 @@ def headline(params: Params, paired_test: pd.DataFrame) -> str:
     :func:`comparisons` of the test split), or how to build the chapter."""
     main = next((m for m in params.extension_methods if m != "gt"), None) or (
         params.extension_methods[0] if params.extension_methods else None)
-    ref = params.extension_methods[0] if params.extension_methods else None
-    by_name = {} if not len(paired_test) else paired_test.set_index("comparison")
+    by_name = paired_test.set_index("comparison")
     parts = []
     for v in params.extension_inputs:
-        name = (f"{main}: {v} - {main}: flow" if VARIANTS[v].flow else f"{v} - {ref}: flow")
-        if name not in getattr(by_name, "index", ()):
+        m = main if VARIANTS[v].flow else None
+        if comparison_name(params, m, v) not in by_name.index:
             continue
-        r = by_name.loc[name]
-        on = "" if VARIANTS[v].flow else f" (no flow; against {ref} flow)"
+        r = by_name.loc[comparison_name(params, m, v)]
+        on = "" if m else f" (no flow; against {reference(params, m)} flow)"
         oracle = ORACLE_NOTE if VARIANTS[v].static else ""
         parts.append(f"{v}{oracle}{on} {r['ΔF1 (points)']:+.1f} F1 points (95 % interval "
                      f"over scenes {r['95% CI over scenes (points)']})")
