@@ -300,8 +300,8 @@ def test_crops_mode_gives_the_stored_flow_crops_and_keeps_few_pairs(smoke_built,
                                  "run_dir": str(tmp_path / "runs")})
     pipeline.build(p, chapters=CORE_CHAPTERS)
     for m in p.flow_methods:
-        for part, splits in crops.PART_SPLITS.items():
-            for split in splits:
+        for part in crops.PARTS:
+            for split in crops.part_splits(part, p.folds):
                 xa, ia = common.open_crops(local, m, split)
                 xb, ib = common.open_crops(p, m, split)
                 np.testing.assert_array_equal(xa, xb)
@@ -365,7 +365,7 @@ def test_crops_mode_gives_the_stored_flow_crops_and_keeps_few_pairs(smoke_built,
         assert rebuilt["fingerprint"] != old[m]
 
         def every_split(r, m=m):
-            parts = [common.open_crops(r, m, s) for s in crops.PART_SPLITS["keyframe"]]
+            parts = [common.open_crops(r, m, s) for s in crops.part_splits("keyframe", r.folds)]
             idx = pd.concat([i for _, i in parts], ignore_index=True)
             order = np.argsort(idx["pair_id"].to_numpy(), kind="stable")
             return np.concatenate([np.asarray(x) for x, _ in parts])[order], idx.iloc[order]

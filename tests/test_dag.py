@@ -93,7 +93,7 @@ def graph(tmp: Path, select_build=build_select) -> dag.Graph:
 def toy(tmp_path: Path) -> tuple[dag.Graph, Params]:
     CALLS.clear()
     p = validate({"run_dir": str(tmp_path / "runs"), "dataroot": str(tmp_path / "data"),
-                  "seeds": 2, "synthetic": False})
+                  "seeds": 2, "folds": 1, "synthetic": False})
     return graph(tmp_path), p
 
 
@@ -282,7 +282,7 @@ def whys(g: dag.Graph, p: Params) -> dict[str, str]:
 
 def test_status_says_exactly_why_each_node_is_not_up_to_date(tmp_path):
     p = validate({"run_dir": str(tmp_path / "runs"), "dataroot": str(tmp_path / "data"),
-                  "seeds": 2, "synthetic": False})
+                  "seeds": 2, "folds": 1, "synthetic": False})
     g = fan_in_graph(tmp_path)
     assert g.chapter(dag.Node("wide", None, "far")) == "11" != g.chapter(
         dag.Node("wide", None, "near")) == "02"

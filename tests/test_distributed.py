@@ -111,7 +111,7 @@ def test_smoke_study_on_ray_gives_the_local_metrics(smoke_built, ray_cluster, tm
             assert b.pair_ids and set(b.pair_ids) <= set(a.pair_ids)
             for pid in b.pair_ids:
                 assert a.path(pid).read_bytes() == b.path(pid).read_bytes(), (m, part, pid)
-            for split in crops.PART_SPLITS[part]:
+            for split in crops.part_splits(part, p.folds):
                 xa, _ = common.open_crops(local, m, split)
                 xb, _ = common.open_crops(p, m, split)
                 np.testing.assert_array_equal(xa, xb)

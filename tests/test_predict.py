@@ -18,7 +18,7 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def case(smoke_built, tmp_path_factory):
-    """A test pair of the smoke run, its objects as a boxes CSV, the dis model of seed 0."""
+    """A test pair of the smoke run, its objects as a boxes CSV, the dis model that scored it."""
     p = smoke_built
     sel, _ = (common.selection(p), common.made_with(p))
     preds = common.results(p, "dis", "test")[0]
@@ -28,7 +28,9 @@ def case(smoke_built, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("predict")
     boxes = tmp / "boxes.csv"
     objs[["xmin", "ymin", "xmax", "ymax"]].to_csv(boxes, index=False)
-    model = pipeline.node_dir(p, dag.Node("train", "dis", "s0")) / "best.pt"
+    # the model that scored this pair in chapter 07: its fold's
+    fold = f"f{int(objs['fold'].iloc[0])}"
+    model = pipeline.node_dir(p, dag.Node("train", "dis", fold)) / "best.pt"
     return {"f1": p.dataroot_path / pair.path_1, "f2": p.dataroot_path / pair.path_2,
             "boxes": boxes, "model": model, "objs": objs, "tmp": tmp, "params": p}
 
@@ -45,7 +47,7 @@ def test_predictions_equal_the_evaluation_of_the_same_model(case):
     f1, f2 = cv2.imread(str(case["f1"])), cv2.imread(str(case["f2"]))
     out = predict.predict_boxes(f1, f2, pd.read_csv(case["boxes"]), case["model"], recipe,
                                 device="cpu")
-    np.testing.assert_allclose(out["prob"], case["objs"]["prob_s0"], atol=1e-6)
+    np.testing.assert_allclose(out["prob"], case["objs"]["prob"], atol=1e-6)
 
 
 def test_cli_writes_the_annotated_frame_and_works_at_another_size(case):
@@ -87,7 +89,7 @@ def test_cli_errors_name_the_problem(case, call_main):
     broken.write_bytes(b"not an image")
     proc = cli(broken, case["f2"], "--boxes", case["boxes"], "--model", case["model"])
     assert proc.returncode == 2 and "broken.jpg" in proc.stderr
-    gt_model = pipeline.node_dir(case["params"], dag.Node("train", "gt", "s0")) / "best.pt"
+    gt_model = pipeline.node_dir(case["params"], dag.Node("train", "gt", "f0")) / "best.pt"
     proc = cli(case["f1"], case["f2"], "--boxes", case["boxes"], "--model", gt_model)
     assert proc.returncode == 2 and "exact flow (gt)" in proc.stderr
 

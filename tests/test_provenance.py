@@ -61,7 +61,7 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "crop_size": (48, {"crops", "context"}, ()),
     "crop_scale": (2.5, {"crops", "context"}, ()),
     "epochs": (2, {"train", "xtrain", "wtrain"}, ()),
-    "batch_size": (8, {"train", "xtrain", "wtrain"}, ()),
+    "batch_size": (4, {"train", "xtrain", "wtrain"}, ()),
     "lr": (0.02, {"train", "xtrain", "wtrain"}, ()),
     "momentum": (0.8, {"train", "xtrain", "wtrain"}, ()),
     "weight_decay": (0.02, {"train", "xtrain", "wtrain"}, ()),
@@ -90,7 +90,8 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "selfflow_eval_every": (3, {"selfflow"}, ()),
 }
 #: Parameters whose change is not "some stages read another value" (checked on their own).
-SPECIAL = {"run_dir", "dataroot", "synthetic", "version", "flow_methods", "seeds", "extension_inputs",
+SPECIAL = {"run_dir", "dataroot", "synthetic", "version", "flow_methods", "seeds", "folds",
+           "extension_inputs",
            "extension_methods", "wide_methods", "selfflow_modes"}
 
 
@@ -160,12 +161,14 @@ def test_special_parameters(finished, tmp_path):
     # one more flow method: its chain is missing, nothing else changes
     more = finished.model_copy(update={"flow_methods": [*finished.flow_methods, "farneback"]})
     assert not_up_to_date(more) == {n for n in pipeline.nodes(more) if n.method == "farneback"}
-    # one more training seed: its models are missing, and the scores that average over seeds
-    # are stale; the first seed's models are untouched
-    two = finished.model_copy(update={"seeds": 2})
-    assert not_up_to_date(two) == {n for n in pipeline.nodes(two) if (n.part or "").endswith(
-        "s1")} | {n for n in pipeline.nodes(two) if n.stage in ("evaluate", "generalise", "xevaluate",
-                                                            "wgeneralise")}
+    # another number of folds: a new split, so everything from the selection on is stale
+    # (the world and chapter 01's check on it are not), and a third model per chain exists
+    three = finished.model_copy(update={"folds": 3})
+    assert not_up_to_date(three) == set(pipeline.nodes(three)) - {
+        dag.Node("world"), dag.Node("difficulty")}
+    assert dag.Node("train", "dis", "f2") in pipeline.nodes(three)
+    assert dag.Node("train", "dis", "s0") in pipeline.nodes(
+        finished.model_copy(update={"folds": 1, "seeds": 2}))
     # chapter 10's plan: one input fewer drops its nodes and changes nothing else; one method
     # fewer drops its chains
     fewer = finished.model_copy(update={"extension_inputs": finished.extension_inputs[1:]})
@@ -210,13 +213,13 @@ def test_status_explains_in_one_line(finished):
     assert "stale" in line and "dis_preset: 'medium' -> 'fast'" in line
     assert "input flow[dis/keyframe] is stale" in next(
         ln for ln in text.splitlines() if "crops[dis/keyframe]" in ln)
-    # the dis chain of chapters 03-08 (7 nodes), chapter 10's dis residual (2 nodes) and
-    # chapter 11's dis chain (flow, crops, model, predictions)
-    assert text.splitlines()[-1] == ("20 of 33 up to date; 13 to build (make run, or python "
+    # the dis chain of chapters 03-08 (8 nodes: two fold models), chapter 10's dis residual
+    # (3 nodes) and chapter 11's dis chain (flow, crops, two models, predictions)
+    assert text.splitlines()[-1] == ("23 of 39 up to date; 16 to build (make run, or python "
                                      "-m flowmod.runner)")
     quiet = pipeline.format_status(p.model_copy(update={"extension_build": False}))
     assert quiet.splitlines()[-1].endswith(
-        "chapters 10 and 11's 6 (models, predictions, flow, crops) only with extension_build: "
+        "chapters 10 and 11's 8 (models, predictions, flow, crops) only with extension_build: "
         "make extensions")
     assert "11  crops[dis/wide]" in quiet
 
@@ -285,7 +288,7 @@ def test_reruns_recompute_exactly_what_changed_and_match_a_fresh_run(finished, t
         direct = {n for n in pipeline.nodes(p) if name in dag.reads(n)}
         assert rerun(p) == downstream(p, direct), name
     # the crop change retrained the models and chapter 07 scores the new ones
-    rec = pipeline.recorded(p, dag.Node("train", "dis", "s0"))
+    rec = pipeline.recorded(p, dag.Node("train", "dis", "f0"))
     assert rec["inputs"]["crops[dis/keyframe]"] == pipeline.recorded(
         p, dag.Node("crops", "dis", "keyframe"))["fingerprint"]
     # the same parameters from scratch (same world) give the same numbers
@@ -474,8 +477,9 @@ def test_edited_world_makes_its_readers_stale_and_recomputes_flow(finished, tmp_
 
 
 def test_train_stage_chooses_the_epoch_on_validation(finished, tmp_path, monkeypatch):
-    """The train stage hands train_model the train split to learn from, the val split to
-    choose the epoch on, and the test split only as unscored record."""
+    """The train stage of fold 0 hands train_model the other fold's training scenes to learn
+    from, its validation scenes to choose the epoch on, and fold 0's scenes only as unscored
+    record."""
     from flowmod import crops, train
 
     run = tmp_path / "runs"
@@ -484,15 +488,16 @@ def test_train_stage_chooses_the_epoch_on_validation(finished, tmp_path, monkeyp
     seen, real = {}, train.train_model
 
     def spy(train_x, train_df, val_x, val_df, out_dir, *args, **kw):
-        seen.update(train=set(train_df["split"]), val=set(val_df["split"]),
+        seen.update(train=set(zip(train_df["fold"], train_df["val_scene"], strict=True)),
+                    val=set(zip(val_df["fold"], val_df["val_scene"], strict=True)),
                     record=len(kw["record"]))
         return real(train_x, train_df, val_x, val_df, out_dir, *args, **kw)
 
     monkeypatch.setattr(train, "train_model", spy)
-    pipeline.GRAPH.build_node(p, dag.Node("train", "dis", "s0"))
+    pipeline.GRAPH.build_node(p, dag.Node("train", "dis", "f0"))
     folder = pipeline.node_dir(p, dag.Node("crops", "dis", "keyframe"))
-    assert seen == {"train": {"train"}, "val": {"val"},
-                    "record": len(crops.read_crops(folder, "test")[1])}
+    assert seen == {"train": {(1, False)}, "val": {(1, True)},
+                    "record": len(crops.read_crops(folder, "f0")[1])}
 
 
 def test_gc_knows_the_other_generated_worlds(finished, tmp_path, capsys):

@@ -185,10 +185,15 @@ def test_generalisation_manifest(selection, smoke_params):
     gen_pairs = selection.pairs[selection.pairs["set"] == "general"]
     gen = selection.objects[selection.objects["set"] == "general"]
     assert len(gen_pairs) > 0 and len(gen) > 0
-    assert set(gen_pairs["split"]) == {"test"}
+    # cross-validation: held-out scenes are every swept scene, each scored by its fold
+    assert set(gen_pairs["split"]) <= {"f0", "f1"} and (gen_pairs["split"] == "f" + gen_pairs[
+        "fold"].astype(str)).all()
     gap = (gen_pairs["timestamp_2"] - gen_pairs["timestamp_1"]) / 1e6
     assert gap.between(0.2, 0.6).all(), "4 camera frames at ~12 Hz is ~0.33 s"
-    assert (gen["distance"] < smoke_params.min_distance).any(), "near vehicles are included"
+    # the generalisation range, not Table 1's 30-70 m (the smoke world's swept scene happens
+    # to hold no vehicle nearer than 30 m; tests/test_wide.py selects near ones at 5 m)
+    assert gen["distance"].between(smoke_params.general_min_distance,
+                                   smoke_params.general_beyond_distance).all()
 
 
 def test_artefacts_are_skipped_when_up_to_date(smoke_params, selection):

@@ -72,7 +72,7 @@ def pairs_data(smoke_built):
     the smoke profile's flow_scale."""
     p = smoke_built
     sel = pd.read_parquet(pipeline.published(p, dag.Node("select")) / "pairs.parquet")
-    train = sel[sel["split"] == "train"].head(4)
+    train = selftrain.fold0_pairs(sel, p.folds, held_out=False).head(4)
     return p, train
 
 
@@ -128,7 +128,7 @@ def test_published_weights_are_a_fastflownet_checkpoint_with_the_recorded_error(
         est = FastFlowNetFlow(ch12.weights_path(p, mode), device="cpu", scale=p.flow_scale)
         sel = pipeline.published(p, dag.Node("select"))
         pairs = pd.read_parquet(sel / "pairs.parquet")
-        test = selftrain.heldout_pairs(pairs, p.selfflow_eval_pairs, p.seed)
+        test = selftrain.heldout_pairs(pairs, p.selfflow_eval_pairs, p.seed, p.folds)
         h = selftrain.held_out(test, pd.read_parquet(sel / "objects.parquet"),
                                p.dataroot_path, p.version, True)
         again = selftrain.score(est.estimate, h)

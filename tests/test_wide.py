@@ -29,15 +29,17 @@ def test_training_set_holds_every_distance_of_the_generalisation_range(smoke_sce
     paper = select.select_keyframes(p, smoke_nusc, progress=False).objects
     near = p.model_copy(update={"general_min_distance": 5.0, "general_max_distance": 50.0})
     pairs, obj = select.select_wide(near, scenes, smoke_nusc, progress=False)
-    assert set(obj["split"]) == {"train", "val"}, "the test split is never trained on"
+    # cross-validation: every kept scene trains the other folds' models (never its own)
+    assert set(obj["split"]) == {"f0", "f1"} and set(obj["scene"]) <= set(
+        scenes.loc[scenes["fold"] >= 0, "scene"])
     assert obj["distance"].between(5.0, 50.0).all()
-    assert set(obj["set"]) == {"keyframe"}, "the smoke world's sweeps are in its test scene"
+    assert set(obj["set"]) <= {"keyframe", "sweep"}
     assert set(obj["pair_id"]) <= set(pairs["pair_id"])
     # a range that holds the paper's: every paper train/val object is in it, labelled alike
     _, obj = select.select_wide(p.model_copy(update={"general_min_distance": 5.0}), scenes,
                                 smoke_nusc, progress=False)
     key = ["pair_id", "instance_token"]
-    mine = paper[paper["split"].isin(["train", "val"])]
+    mine = paper
     both = mine.merge(obj, on=key, suffixes=("", "_wide"))
     assert len(both) == len(mine) > 0
     assert (both["label"] == both["label_wide"]).all()
@@ -99,9 +101,9 @@ def test_chapter11_nodes_belong_to_chapter_11_and_need_extension_build():
     demo = load_profile("demo")
     eleven = [str(n) for n in pipeline.nodes(demo, ["11"])]
     # stage by stage in data order, each node after its inputs
-    assert eleven == ["wide", "crops[gt/wide]", "crops[dis/wide]", "wtrain[gt/s0]",
-                      "wtrain[gt/s1]", "wtrain[gt/s2]", "wtrain[dis/s0]", "wtrain[dis/s1]",
-                      "wtrain[dis/s2]", "wgeneralise[gt]", "wgeneralise[dis]"]
+    assert eleven == ["wide", "crops[gt/wide]", "crops[dis/wide]", "wtrain[gt/f0]",
+                      "wtrain[gt/f1]", "wtrain[gt/f2]", "wtrain[dis/f0]", "wtrain[dis/f1]",
+                      "wtrain[dis/f2]", "wgeneralise[gt]", "wgeneralise[dis]"]
     assert "crops[gt/wide]" not in [str(n) for n in pipeline.nodes(demo, ["05"])]
     smoke = load_profile("smoke")  # flow_store: pairs keeps the flow of the wide pairs too
     assert "flow[dis/wide]" in [str(n) for n in pipeline.nodes(smoke, ["11"])]
@@ -117,7 +119,7 @@ def test_chapter11_nodes_belong_to_chapter_11_and_need_extension_build():
 def test_a_missing_gated_node_says_how_to_build_it(tmp_path):
     p = load_profile("smoke", run_dir=str(tmp_path / "runs"))
     with pytest.raises(dag.MissingInput, match="extension_build=true.*make extensions"):
-        pipeline.published(p, dag.Node("wtrain", "dis", "s0"))
+        pipeline.published(p, dag.Node("wtrain", "dis", "f0"))
     with pytest.raises(dag.MissingInput, match=r"run chapter 11 first \(python"):
         pipeline.published(p, dag.Node("wide"))
 
@@ -125,7 +127,7 @@ def test_a_missing_gated_node_says_how_to_build_it(tmp_path):
 def test_wide_crops_are_the_keyframe_crops_of_the_same_vehicles(smoke_built):
     """A vehicle in both training sets has the same crop: the same flow, the same window."""
     p = smoke_built
-    for split in ("train", "val"):
+    for split in crops.part_splits("wide", p.folds):
         wx, wdf = crops.read_crops(pipeline.published(p, dag.Node("crops", "dis", "wide")), split)
         kx, kdf = common.open_crops(p, "dis", split)
         key = ["pair_id", "instance_token"]
@@ -174,6 +176,6 @@ def test_chapter11_shows_only_what_was_built_with_these_parameters(smoke_built):
     # the training set is rebuilt by make book (cheap); the models are not
     stride = p.model_copy(update={"wide_sweep_stride": 3})
     st = {s.node: s.state for s in pipeline.status(stride)}
-    assert st[dag.Node("wide")] == "stale" and st[dag.Node("wtrain", "dis", "s0")] != "up to date"
+    assert st[dag.Node("wide")] == "stale" and st[dag.Node("wtrain", "dis", "f0")] != "up to date"
     assert ch11.built(stride) == []
     assert "chapter 11's" in pipeline.format_status(stride).splitlines()[-1]

@@ -42,7 +42,7 @@ from flowmod.flow.store import npy_ok, roundtrip
 from flowmod.geometry import GRID, box_samples
 from flowmod.params import Params
 from flowmod.progress import bar
-from flowmod.select import WIDE, objects_node
+from flowmod.select import PARTS, WIDE, fold_roles, objects_node
 
 #: The nuScenes CAM_FRONT image size (width, height) in which object boxes are given.
 IMAGE_SIZE = (1600, 900)
@@ -632,10 +632,63 @@ def check_crops(
         )
 
 
-#: Splits of each part of the crops stage.
-PART_SPLITS = {"keyframe": ("train", "val", "test"), "general": ("general",)}
-#: Splits of chapter 11's part (``wide``: the training set at every distance).
-WIDE_SPLITS = {"wide": ("train", "val")}
+#: The parts of the crops stage (chapter 11's part ``wide``: the training set at every
+#: distance, with ``extension_build``).
+CROP_PARTS = ("keyframe", "general", WIDE)
+
+
+def part_splits(part: str, folds: int) -> tuple[str, ...]:
+    """The arrays a crops part is stored in: the generalisation set in one (``general``);
+    the keyframe and wide parts by split (``train``, ``val``, ``test``; the wide part has no
+    test) or, with cross-validation, by fold (``f0`` .. ``f<folds-1>``)."""
+    if part == "general":
+        return ("general",)
+    if folds > 1:
+        return tuple(f"f{k}" for k in range(folds))
+    return ("train", "val", "test") if part == "keyframe" else ("train", "val")
+
+
+#: Reads one stored array set: split -> (arrays aligned with the index (None: absent), index)
+SplitReader = Callable[[str], tuple[list[Any], pd.DataFrame]]
+
+
+def gather_fold(read: SplitReader, folds: int, fold: int, role: str, part: str = "keyframe"
+                ) -> tuple[list[Any], pd.DataFrame]:
+    """The rows of a node's arrays (stored by :func:`part_splits`, read by ``read``) that
+    play ``role`` (``train``, ``val``, ``test``) for the model of ``fold``
+    (:func:`flowmod.select.fold_roles`). One fold reads the split as it is (memmaps);
+    cross-validation gathers the rows of the other folds' arrays into memory (train, val) or
+    reads the fold's own (test). The generalisation part is one array set: ``test`` is its
+    rows of the fold's scenes."""
+    if part == "general" or (folds > 1 and role == "test"):
+        arrays, df = read("general" if part == "general" else f"f{fold}")
+        if folds == 1 or part != "general":
+            return arrays, df
+        keep = df["fold"].to_numpy() == fold
+        return [None if a is None else np.asarray(a[keep]) for a in arrays], \
+            df[keep].reset_index(drop=True)
+    if folds == 1:
+        return read(role)
+    parts, dfs = [], []
+    for k in range(folds):
+        if k != fold:
+            arrays, df = read(f"f{k}")
+            keep = fold_roles(df, fold, folds) == role
+            parts.append([None if a is None else np.asarray(a[keep]) for a in arrays])
+            dfs.append(df[keep])
+    return [None if cols[0] is None else np.concatenate(cols) for cols in zip(*parts, strict=True)], \
+        pd.concat(dfs, ignore_index=True)
+
+
+def fold_crops(folder: str | os.PathLike[str], folds: int, fold: int, role: str,
+               part: str = "keyframe") -> tuple[Any, pd.DataFrame]:
+    """``(x (N, 2, S, S), index)``: the flow crops of a crops node that play ``role`` for the
+    model of ``fold`` (:func:`gather_fold`)."""
+    def read(split: str) -> tuple[list[Any], pd.DataFrame]:
+        x, df = read_crops(folder, split)
+        return [x], df
+    arrays, df = gather_fold(read, folds, fold, role, part)
+    return arrays[0], df
 
 
 def part_of(split: str) -> str:
@@ -665,14 +718,14 @@ def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:
     if q.flow_store == "crops":
         pairs = pd.read_parquet(b.input_dir(objects_node(part)) / "pairs.parquet")
         # a pair of the same boxes may be in another part's node too
-        sources = [d for other in (*PART_SPLITS, *WIDE_SPLITS)
+        sources = [d for other in CROP_PARTS
                    for d in dag.results(b.other(dag.Node("crops", m, other)))]
         items, files, computed = _crops_from_flow(
             q, m, part, pairs, objects, b.inputs["world"]["fingerprint"], progress, sources)
     else:
         load = FlowReader(b.input_dir(dag.Node("flow", m, part)),
                           flow_root(q) / m / "pool", m, part).load
-    splits = {**PART_SPLITS, **WIDE_SPLITS}[part]
+    splits = part_splits(part, q.folds)
     info = build_crops(objects, load, work, pair_items=items, size=q.crop_size,
                        scale=q.crop_scale, splits=splits, progress=progress, label=f"crops {m}")
     if files:
@@ -692,7 +745,7 @@ def _inputs(node: dag.Node, p: Params) -> tuple[dag.Node, ...]:
 
 
 def _nodes(p: Params) -> list[dag.Node]:
-    return ([dag.Node("crops", m, part) for m in p.flow_methods for part in PART_SPLITS]
+    return ([dag.Node("crops", m, part) for m in p.flow_methods for part in PARTS]
             + [dag.Node("crops", m, WIDE) for m in p.wide_methods])
 
 

@@ -13,7 +13,7 @@ import pandas as pd
 
 from flowmod import dag, geometry
 from flowmod.artefacts import atomic_path, write_json
-from flowmod.crops import crop_windows, read_crops, read_samples
+from flowmod.crops import SplitReader, crop_windows, gather_fold, read_crops, read_samples
 from flowmod.metrics import (
     apply_threshold,
     fit_threshold,
@@ -27,7 +27,7 @@ from flowmod.metrics import (
 from flowmod.metrics import breakdown as metrics_breakdown
 from flowmod.model import load_model, predict, resolve_device
 from flowmod.params import Params
-from flowmod.train import EPOCH_PROBS, seed_parts
+from flowmod.train import EPOCH_PROBS, part_index, seed_parts
 
 # --- the stages (chapters 07 and 08) -------------------------------------------------------
 
@@ -46,17 +46,50 @@ def models_of(b: dag.Build, stage: str, method: str) -> list[tuple[str, Path, st
 
 
 def predict_models(models: list[tuple[str, Any, str | None]], x: Any, df: pd.DataFrame,
-                   device: Any = "auto", in_channels: int | None = 2) -> pd.DataFrame:  # pragma: no mutate block
-    """``df`` (the rows of ``x``: (N, C, S, S)) with ``prob_<part>`` of every model (part,
-    best.pt, amp) and ``prob`` = the first's; ``in_channels`` as
-    :func:`flowmod.model.load_model` (None: the checkpoint's). Each model predicts in the
-    precision it was trained and selected in; ``prob`` is the first seed's (the single model
-    the figures show)."""
+                   device: Any = "auto", in_channels: int | None = 2, folds: int = 1
+                   ) -> pd.DataFrame:  # pragma: no mutate block
+    """``df`` (the rows of ``x``: (N, C, S, S)) with the models' probabilities (models:
+    part, best.pt, amp); ``in_channels`` as :func:`flowmod.model.load_model` (None: the
+    checkpoint's). Each model predicts in the precision it was trained and selected in.
+    Seeds (one split): ``prob_<part>`` of every model on every row and ``prob`` = the
+    first's (the single model the figures show). Cross-validation (``folds`` > 1): ``prob``
+    only, each row predicted by the model of its fold (``df.fold``), which never saw it."""
+    if folds > 1:
+        prob = np.full(len(df), np.nan)
+        fold = df["fold"].to_numpy()
+        for part, path, amp in models:
+            rows = np.flatnonzero(fold == part_index(part))
+            if rows.size:
+                model = load_model(path, resolve_device(device), in_channels)
+                prob[rows] = predict(model, x[rows], device=device, amp=amp)
+        return df.assign(prob=prob)
     probs = {}
     for part, path, amp in models:
         model = load_model(path, resolve_device(device), in_channels)
         probs[f"prob_{part}"] = predict(model, x, device=device, amp=amp)
     return df.assign(**probs, prob=probs[f"prob_{models[0][0]}"])
+
+
+def scored_rows(read: SplitReader, folds: int, part: str = "keyframe"
+                ) -> tuple[list[Any], pd.DataFrame]:
+    """Every row a node's models are scored on, each fold's test rows in turn
+    (:func:`flowmod.crops.gather_fold`): the test split, or with cross-validation every
+    scene of the part, fold by fold."""
+    got = [gather_fold(read, folds, k, "test", part) for k in range(folds)]
+    if len(got) == 1:
+        return got[0]
+    arrays = [None if cols[0] is None else np.concatenate(cols)
+              for cols in zip(*(a for a, _ in got), strict=True)]
+    return arrays, pd.concat([df for _, df in got], ignore_index=True)
+
+
+def scored_crops(folder: Any, folds: int, part: str = "keyframe") -> tuple[Any, pd.DataFrame]:
+    """``(x, index)`` of :func:`scored_rows` for a crops node."""
+    def read(split: str) -> tuple[list[Any], pd.DataFrame]:
+        x, df = read_crops(folder, split)
+        return [x], df
+    arrays, df = scored_rows(read, folds, part)
+    return arrays[0], df
 
 
 def seed_columns(df: pd.DataFrame) -> list[str]:
@@ -83,49 +116,71 @@ def paired(a: pd.DataFrame, b: pd.DataFrame, what: str, seed: int = 0) -> dict[s
     if not a["ann_token"].reset_index(drop=True).equals(b["ann_token"].reset_index(drop=True)):
         raise ValueError(f"{what} were scored on different objects")
     return paired_comparison(a["label"].to_numpy(), seed_probs(a), seed_probs(b),
-                             a["scene"].to_numpy(), seed=seed)
+                             a["scene"].to_numpy(), seed=seed, folds=fold_of(a))
+
+
+def fold_of(df: pd.DataFrame) -> np.ndarray | None:
+    """The fold of each row of a cross-validated predictions table (None for seeds)."""
+    return df["fold"].to_numpy() if "fold" in df and not seed_columns(df) else None
 
 
 def score(df: pd.DataFrame, label_col: str = "label", seed: int = 0) -> dict[str, Any]:
-    """Scores of ``df``'s models against ``df[label_col]``: per seed, their mean and range,
-    the interval of the mean F1 with whole scenes resampled (:func:`seed_summary`)."""
+    """Scores of ``df``'s models against ``df[label_col]``: per seed (or per fold), their
+    mean (pooled over folds) and range, the interval of the F1 with whole scenes resampled
+    (:func:`seed_summary`)."""
     return seed_summary(df[label_col].to_numpy(), seed_probs(df), df["scene"].to_numpy(),
-                        instances=df.get("instance_token"), seed=seed)
+                        instances=df.get("instance_token"), seed=seed, folds=fold_of(df))
 
 
 def original_protocol(df: pd.DataFrame, epoch_probs: list[np.ndarray], batch_size: int = 128
                       ) -> dict[str, Any]:
-    """What the original code would report for each seed: the best over epochs (the epoch
-    chosen on the reported set) of F1 averaged per batch on the test split with still
-    objects thinned 1 of 2; beside the clean number (best validation epoch, whole split).
-    ``epoch_probs``: per seed, (epochs, N) probabilities saved during training."""
-    y = df["label"].to_numpy().astype(np.int64)
-    keep = thin_still(y)
-    clean = [metrics(y, p)["f1"] for p in seed_probs(df)]
-    original = [max(paper_protocol_f1(y[keep], e[keep], batch_size) for e in ep)
-                for ep in epoch_probs]
-    return {"clean": float(np.mean(clean)), "original": float(np.mean(original)),
-            "original_minus_clean": float(np.mean(original) - np.mean(clean)),
-            "per_seed_clean": clean, "per_seed_original": original}
+    """What the original code would report for each model: the best over epochs (the epoch
+    chosen on the reported set) of F1 averaged per batch on its test rows with still
+    objects thinned 1 of 2; beside the clean number (best validation epoch, whole set).
+    ``epoch_probs``: per model, (epochs, N) probabilities saved during training, on every
+    row of ``df`` (seeds) or on its fold's rows in order (cross-validation)."""
+    fold = fold_of(df)
+    y_all = df["label"].to_numpy().astype(np.int64)
+    if fold is None:  # every seed on every row
+        clean = [metrics(y_all, p)["f1"] for p in seed_probs(df)]
+        units = [(y_all, ep) for ep in epoch_probs]
+    else:  # each fold's model on its own rows
+        clean = [metrics(y_all[fold == k], df["prob"].to_numpy()[fold == k])["f1"]
+                 for k in range(len(epoch_probs))]
+        units = [(y_all[fold == k], ep) for k, ep in enumerate(epoch_probs)]
+    original = []
+    for y, ep in units:
+        keep = thin_still(y)
+        original.append(max(paper_protocol_f1(y[keep], e[keep], batch_size) for e in ep))
+    return {"clean": float(np.nanmean(clean)), "original": float(np.nanmean(original)),
+            "original_minus_clean": float(np.nanmean(original) - np.nanmean(clean)),
+            "per_seed_clean": clean, "per_seed_original": original,
+            "models": "folds" if fold is not None else "seeds"}
 
 
-def geometric_baseline(pairs: pd.DataFrame, crops_folder: Any, seed: int = 0
+def geometric_baseline(pairs: pd.DataFrame, crops_folder: Any, seed: int = 0, folds: int = 1
                        ) -> tuple[pd.DataFrame, dict[str, Any]]:
     """The residual baseline on one method's flow, from the flow samples stored with its
     crops (``crops_folder``: a published crops node of the keyframe part): threshold on the
-    static-world residual (m/s, :mod:`flowmod.geometry`) fitted on train, scored on test."""
-    frames, samples = [], []
-    for split in ("train", "test"):
-        frames.append(read_crops(crops_folder, split)[1])
-        samples.append(read_samples(crops_folder, split))
-    sub = pd.concat(frames, ignore_index=True)
-    res = geometry.residual_scores(sub, pairs, np.concatenate(samples))
-    sub = pd.concat([sub, res], axis=1)
-    train = sub[sub["split"] == "train"]
-    t = fit_threshold(train["residual_speed"], train["label"])
-    test = sub[sub["split"] == "test"].assign(
-        prob=lambda d: apply_threshold(d["residual_speed"], t).astype(float))
-    return test.reset_index(drop=True), {**score(test, seed=seed), "threshold_m_s": t}
+    static-world residual (m/s, :mod:`flowmod.geometry`) fitted on each fold's (or the
+    split's) training rows, scored on its test rows."""
+    def read(split: str) -> tuple[list[Any], pd.DataFrame]:
+        return [read_samples(crops_folder, split)], read_crops(crops_folder, split)[1]
+
+    tests, thresholds = [], []
+    for k in range(folds):
+        part = {}
+        for role in ("train", "test"):
+            (smp,), sub = gather_fold(read, folds, k, role)
+            sub = sub.reset_index(drop=True)
+            part[role] = pd.concat([sub, geometry.residual_scores(sub, pairs, smp)], axis=1)
+        t = fit_threshold(part["train"]["residual_speed"], part["train"]["label"])
+        thresholds.append(t)
+        tests.append(part["test"].assign(
+            prob=lambda d, t=t: apply_threshold(d["residual_speed"], t).astype(float)))
+    test = pd.concat(tests, ignore_index=True)
+    return test, {**score(test, seed=seed), "threshold_m_s": float(np.mean(thresholds)),
+                  "thresholds_m_s": thresholds}
 
 
 def write_frames(folder: Path, frames: Mapping[str, pd.DataFrame],
@@ -141,27 +196,30 @@ def write_frames(folder: Path, frames: Mapping[str, pd.DataFrame],
 def predict_splits(b: dag.Build, stage: str, key: str,
                    splits: Mapping[str, tuple[Any, pd.DataFrame]],
                    in_channels: int | None = 2) -> dict[str, pd.DataFrame]:  # pragma: no mutate block
-    """The one predictor of a node's seeds: every model of the node's inputs of ``stage``
-    for ``key`` on each split's (x, index), written as ``<split>.parquet`` (``prob_s<k>``
-    per seed) into the building folder. Returns the tables."""
+    """The one predictor of a node's models: every model of the node's inputs of ``stage``
+    for ``key`` on each split's (x, index) (:func:`predict_models`: every seed on every row,
+    or each row by its fold's model), written as ``<split>.parquet`` into the building
+    folder. Returns the tables."""
     models = models_of(b, stage, key)
-    frames = {split: predict_models(models, x, df, b.params.device, in_channels)
+    frames = {split: predict_models(models, x, df, b.params.device, in_channels,
+                                    b.params.folds)
               for split, (x, df) in splits.items()}
     write_frames(b.start(fresh=True), frames, {})
     return frames
 
 
 def build_evaluate(b: dag.Build, progress: bool) -> dict[str, Any]:  # pragma: no mutate block
-    """Build one ``evaluate[<method>]`` node: every training seed's model (chosen on
-    validation) scored once on the test split (``test.parquet`` + ``scores.json``), the
-    geometric baseline on the same flow (``baseline.parquet`` + ``.json``), and the original
-    protocol from the probabilities saved during training (``original.json``)."""
+    """Build one ``evaluate[<method>]`` node: every model (chosen on validation) scored once
+    on its test rows (``test.parquet`` + ``scores.json``: the test split, or every scene by
+    its fold's model), the geometric baseline on the same flow (``baseline.parquet`` +
+    ``.json``), and the original protocol from the probabilities saved during training
+    (``original.json``)."""
     q, m = b.params, b.node.method
     crops_dir = b.input_dir(dag.Node("crops", m, "keyframe"))
-    preds = predict_splits(b, "train", m, {"test": read_crops(crops_dir, "test")})["test"]
+    preds = predict_splits(b, "train", m, {"test": scored_crops(crops_dir, q.folds)})["test"]
     base, base_s = geometric_baseline(
         pd.read_parquet(b.input_dir(dag.Node("select")) / "pairs.parquet"), crops_dir,
-        seed=q.seed)
+        seed=q.seed, folds=q.folds)
     models = models_of(b, "train", m)
     epochs = [np.load(path.parent / EPOCH_PROBS) for _, path, _ in models]
     batch = int(b.inputs[f"train[{m}/{models[0][0]}]"]["params"]["batch_size"])
@@ -172,11 +230,13 @@ def build_evaluate(b: dag.Build, progress: bool) -> dict[str, Any]:  # pragma: n
 
 
 def build_generalise(b: dag.Build, progress: bool) -> dict[str, Any]:  # pragma: no mutate block
-    """Build one ``generalise[<method>]`` node: every seed's model (chosen on validation in
-    chapter 06) on the generalisation crops, without retraining (``general.parquet``)."""
+    """Build one ``generalise[<method>]`` node: the models (chosen on validation in chapter
+    06) on the generalisation crops, without retraining (``general.parquet``; with
+    cross-validation each scene by its fold's model)."""
     m = b.node.method
     folder = b.input_dir(dag.Node("crops", m, "general"))
-    preds = predict_splits(b, "train", m, {"general": read_crops(folder, "general")})
+    preds = predict_splits(b, "train", m,
+                           {"general": scored_crops(folder, b.params.folds, "general")})
     return {"n": len(preds["general"])}
 
 
@@ -214,11 +274,12 @@ def table4(preds: Mapping[str, pd.DataFrame], max_distance: float) -> pd.DataFra
                 if len(d0) == 0 or col not in d0 or (d0[col] < 0).all():
                     continue
                 d = d0[d0[col] >= 0]
-                s = seed_summary(d[col].to_numpy(), seed_probs(d), d["scene"].to_numpy())
+                s = seed_summary(d[col].to_numpy(), seed_probs(d), d["scene"].to_numpy(),
+                                 folds=fold_of(d))
                 rows.append({"method": m, "vehicles": rng, "scored against": name,
                              "objects": s["n"], "scenes": s["n_scenes"],
                              "F1 (%)": round(100 * s["f1"], 1),
-                             "seed range (%)": span(s["f1_min"], s["f1_max"]),
+                             f"{s['unit']} range (%)": span(s["f1_min"], s["f1_max"]),
                              "P (%)": round(100 * s["precision"], 1),
                              "R (%)": round(100 * s["recall"], 1),
                              "F1 95% CI, scenes (%)": span(*s["ci"])})

@@ -187,19 +187,36 @@ def bootstrap_f1_ci(y_true: Any, y_prob: Any, groups: Any, n: int = 2000, seed: 
     return interval(scene_bootstrap(y_true, y_prob, groups, n, seed, threshold), level)
 
 
+def _per_fold(y: np.ndarray, p: np.ndarray, folds: np.ndarray, threshold: float
+              ) -> list[dict[str, Any]]:
+    """:func:`metrics` of each fold's rows (cross-validation: each fold by its own model)."""
+    return [metrics(y[folds == k], p[folds == k], threshold) for k in np.unique(folds)]
+
+
 def seed_summary(y_true: Any, y_prob: Any, groups: Any, instances: Any = None, n: int = 2000,
-                 seed: int = 0, threshold: float = 0.5, level: float = 0.95) -> dict[str, Any]:
+                 seed: int = 0, threshold: float = 0.5, level: float = 0.95,
+                 folds: Any = None) -> dict[str, Any]:
     """Scores of S models (training seeds) on the same objects: per-seed precision, recall
     and F1; their mean, min and max; the scene-level interval of the mean F1; and what the
-    interval resamples: number of scenes, objects and (if given) vehicle instances."""
+    interval resamples: number of scenes, objects and (if given) vehicle instances.
+
+    With ``folds`` (the fold of each object; y_prob one row: each object predicted by its
+    fold's model), F1, precision and recall are pooled over every object and the per-seed
+    entries, min and max are the folds' (each fold's F1 on its own objects)."""
     y, probs = _as_models(y_true, y_prob)
     per = [metrics(y, p, threshold) for p in probs]
-    f1 = np.array([m["f1"] for m in per])
+    pooled = per
+    if folds is not None:
+        per = _per_fold(y, probs[0], np.asarray(folds), threshold)
+    f1 = np.array([m["f1"] for m in per], dtype=float)
+    defined = f1[~np.isnan(f1)]  # a fold without movers has no F1
     out: dict[str, Any] = {
-        "seeds": len(per), "f1": float(f1.mean()), "f1_min": float(f1.min()),
-        "f1_max": float(f1.max()),
-        "precision": float(np.mean([m["precision"] for m in per])),
-        "recall": float(np.mean([m["recall"] for m in per])),
+        "seeds": len(per), "unit": "fold" if folds is not None else "seed",
+        "f1": float(np.mean([m["f1"] for m in pooled])),
+        "f1_min": float(defined.min()) if defined.size else float("nan"),
+        "f1_max": float(defined.max()) if defined.size else float("nan"),
+        "precision": float(np.mean([m["precision"] for m in pooled])),
+        "recall": float(np.mean([m["recall"] for m in pooled])),
         "per_seed": [{k: m[k] for k in ("f1", "precision", "recall", "tp", "fp", "fn")}
                      for m in per],
         "ci": bootstrap_f1_ci(y, probs, groups, n, seed, threshold, level), "level": level,
@@ -211,26 +228,35 @@ def seed_summary(y_true: Any, y_prob: Any, groups: Any, instances: Any = None, n
 
 
 def paired_comparison(y_true: Any, prob_a: Any, prob_b: Any, groups: Any, n: int = 2000,
-                      seed: int = 0, threshold: float = 0.5, level: float = 0.95
-                      ) -> dict[str, Any]:
+                      seed: int = 0, threshold: float = 0.5, level: float = 0.95,
+                      folds: Any = None) -> dict[str, Any]:
     """Method A minus method B on the same objects: the difference of their seed-mean F1,
     its scene-level interval (the same resampled scenes for both methods, so what they share
-    cancels), the per-seed differences (seed k of A against seed k of B), the share of
-    replicates in which A is not better and the number of replicates left out because their
-    scenes hold no mover (F1 undefined for both)."""
+    cancels), the per-seed differences (seed k of A against seed k of B; with ``folds``, as
+    :func:`seed_summary`, fold k's), the share of replicates in which A is not better and
+    the number of replicates left out because their scenes hold no mover (F1 undefined for
+    both)."""
     y, pa = _as_models(y_true, prob_a)
     _, pb = _as_models(y_true, prob_b)
     ra = scene_bootstrap(y, pa, groups, n, seed, threshold)
     rb = scene_bootstrap(y, pb, groups, n, seed, threshold)  # same seed: same draws
     fa = np.array([metrics(y, p, threshold)["f1"] for p in pa])
     fb = np.array([metrics(y, p, threshold)["f1"] for p in pb])
-    k = min(len(fa), len(fb))
+    if folds is not None:
+        f = np.asarray(folds)
+        per = [a["f1"] - b["f1"] for a, b in zip(_per_fold(y, pa[0], f, threshold),
+                                                   _per_fold(y, pb[0], f, threshold),
+                                                   strict=True)]
+    else:
+        k = min(len(fa), len(fb))
+        per = (fa[:k] - fb[:k]).tolist()
     d = ra - rb
     defined = d[~np.isnan(d)]
     return {"delta_f1": float(fa.mean() - fb.mean()), "ci": interval(d, level),
-            "per_seed": (fa[:k] - fb[:k]).tolist(),
+            "per_seed": per,
             "p_not_better": float(np.mean(defined <= 0)) if defined.size else float("nan"),
             "undefined_replicates": int(d.size - defined.size),
+            "unit": "fold" if folds is not None else "seed",
             "n": len(y), "n_scenes": int(len(np.unique(groups)))}
 
 
@@ -297,10 +323,14 @@ def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) 
 
     Columns: Method, F1 (%) (mean over training seeds), seed range (%) (of F1), seeds,
     P (%) and R (%) (precision and recall, means over seeds), F1 95% CI, scenes (%) (whole
-    test scenes resampled), scenes, objects, vehicles; percentages to 0.1.
+    test scenes resampled), scenes, objects, vehicles; percentages to 0.1. Cross-validated
+    results (``unit`` fold) give F1, P and R pooled over the folds and ``fold range (%)``,
+    ``folds`` instead.
     """
     if isinstance(rows, Mapping):
         rows = [{"method": k, **v} for k, v in rows.items()]
+    rows = list(rows)
+    unit = unit_of(rows)
     out = []
     for r in rows:
         ci = r.get("ci")
@@ -308,9 +338,9 @@ def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) 
         out.append({
             "Method": r["method"],
             "F1 (%)": round(100 * float(r["f1"]), 1),
-            "seed range (%)": (span(lo, hi)
-                               if lo is not None and r.get("seeds", 1) > 1 else ""),
-            "seeds": r.get("seeds", ""),
+            f"{unit} range (%)": (span(lo, hi)
+                                  if lo is not None and r.get("seeds", 1) > 1 else ""),
+            f"{unit}s": r.get("seeds", ""),
             "P (%)": round(100 * float(r["precision"]), 1),
             "R (%)": round(100 * float(r["recall"]), 1),
             "F1 95% CI, scenes (%)": (
@@ -327,20 +357,26 @@ COMPARISON_COLUMNS = ["comparison", "ΔF1 (points)", "95% CI over scenes (points
                       "per seed (points)", "replicates with A <= B (%)", "scenes", "objects"]
 
 
+def unit_of(rows: Iterable[Mapping[str, Any]]) -> str:
+    """``fold`` if the results come from cross-validation (``unit``), else ``seed``."""
+    return "fold" if any(r.get("unit") == "fold" for r in rows) else "seed"
+
+
 def comparison_table(rows: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
     """Paired differences ``{"A - B": paired_comparison(...)}`` as a table (F1 points;
-    columns :data:`COMPARISON_COLUMNS`)."""
+    columns :data:`COMPARISON_COLUMNS`, ``per fold`` for cross-validated results)."""
+    unit = unit_of(rows.values())
     out = []
     for name, r in rows.items():
         out.append({
             "comparison": name,
             "ΔF1 (points)": round(100 * r["delta_f1"], 1),
             "95% CI over scenes (points)": span(*r["ci"], sep=" to "),
-            "per seed (points)": ", ".join(points(d, "+.1f") for d in r["per_seed"]),
+            f"per {unit} (points)": ", ".join(points(d, "+.1f") for d in r["per_seed"]),
             "replicates with A <= B (%)": round(100 * r["p_not_better"], 1),
             "scenes": r["n_scenes"], "objects": r["n"],
         })
-    return pd.DataFrame(out, columns=COMPARISON_COLUMNS)
+    return pd.DataFrame(out, columns=[c.replace("seed", unit) for c in COMPARISON_COLUMNS])
 
 
 # --- the original code's protocol, for comparison --------------------------------------------

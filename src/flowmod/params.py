@@ -73,6 +73,9 @@ ROLES = ("input", "run", "location", "plan")
 
 _FLOW = ("flow", "crops")  # crops too: in crops mode it computes the flow itself
 _TRAIN = ("train", "xtrain", "wtrain")  # chapters 10 and 11 train with Table 2 too
+#: every stage that splits scenes into train, validation and test
+_FOLDS = ("select", "general", "wide", "crops", "context", *_TRAIN, "evaluate", "generalise",
+          "xevaluate", "wgeneralise", "selfflow")
 
 
 class Params(BaseModel):
@@ -224,8 +227,14 @@ class Params(BaseModel):
     model_width: int = _field(64, ge=4, le=256, read_by=_TRAIN,
                               description="channels of the ResNet18's first stage (64: the "
                                           "paper's; stages have 1, 2, 4, 8 x this)")
-    seeds: int = _field(3, ge=1, le=20, role="plan",
-                        description="training runs per flow method, seeds seed .. seed+seeds-1")
+    seeds: int = _field(1, ge=1, le=20, role="plan",
+                        description="training runs per flow method on one split (folds 1), "
+                                    "seeds seed .. seed+seeds-1")
+    folds: int = _field(
+        3, ge=1, le=10, read_by=_FOLDS,
+        description="cross-validation over scenes: each fold's model (seed seed+k) trains on "
+                    "the other folds and is scored on its own, so every scene is a test "
+                    "scene; 1 = the paper's single train/val/test split (then `seeds` models)")
     amp: Literal["off", "bf16", "fp16"] = _field(
         "off", read_by=_TRAIN,
         description="mixed precision for training and every prediction of its models")
@@ -302,6 +311,11 @@ class Params(BaseModel):
             )
         if abs(sum(self.split_fractions) - 1.0) > 1e-6:
             raise ValueError(f"split_fractions={self.split_fractions} must sum to 1")
+        if self.folds > 1 and self.seeds > 1:
+            raise ValueError(
+                f"folds={self.folds} with seeds={self.seeds}: cross-validation trains one "
+                "model per fold (seed seed+k); set seeds: 1, or folds: 1 for several seeds "
+                "on the paper's single split")
         if not self.categories:
             raise ValueError("categories is empty: give at least one nuScenes category name")
         if not self.dataroot:

@@ -175,6 +175,94 @@ def split_scenes(
     return out
 
 
+def assign_folds(
+    scenes: list[str], folds: int, val_share: float, seed: int, spread: Iterable[str] = (),
+    groups: dict[str, str] | None = None,
+) -> dict[str, tuple[int, bool]]:
+    """Cross-validation over scenes: each scene's fold (0 .. folds-1) and whether it is a
+    validation scene (when its fold is not the one being tested). Returns scene -> (fold, val).
+
+    Every *group* of scenes (``groups``: scene -> group, e.g. its log) stays in one fold.
+    Groups holding a scene of ``spread`` (scenes with sweeps) are dealt out first, so that
+    every fold gets its share of them; each group goes to the fold with the fewest scenes so
+    far (ties: the lower fold). In each fold a seeded ``val_share`` of its groups (at least
+    one where the fold has two or more) are validation scenes: fold k's model trains on the
+    other folds' remaining scenes, chooses its epoch on their validation scenes and is scored
+    once on fold k.
+    """
+    rng = np.random.default_rng(seed)
+    scenes = sorted(scenes)
+    groups = {s: (groups or {}).get(s, s) for s in scenes}
+    members: dict[str, list[str]] = {}
+    for s in scenes:
+        members.setdefault(groups[s], []).append(s)
+    names = sorted(members)
+    if len(names) < folds:
+        raise SelectionError(
+            f"folds={folds} but the kept scenes form only {len(names)} independent group(s): "
+            "use fewer folds or more scenes")
+    preferred = set(spread)
+    first = [g for g in names if preferred & set(members[g])]
+    rest = [g for g in names if g not in set(first)]
+    sizes = [0] * folds
+    of_fold: dict[int, list[str]] = {k: [] for k in range(folds)}
+    for g in [*rng.permutation(first), *rng.permutation(rest)]:
+        k = int(np.argmin(sizes))
+        of_fold[k].append(str(g))
+        sizes[k] += len(members[g])
+    out: dict[str, tuple[int, bool]] = {}
+    for k, gs in of_fold.items():
+        n_val = max(1, int(round(val_share * len(gs)))) if len(gs) >= 2 else 0
+        val = set(rng.permutation(gs)[:n_val]) if n_val else set()
+        out.update({s: (k, g in val) for g in gs for s in members[g]})
+    return out
+
+
+def fold_roles(df: pd.DataFrame, fold: int, folds: int) -> np.ndarray:
+    """The role (``train``, ``val``, ``test``) of each row of ``df`` (scenes, pairs or
+    objects with columns split, fold, val_scene) for the model of ``fold``. One fold is the
+    paper's single split (the ``split`` column); with cross-validation fold k tests its own
+    scenes and validates on the other folds' validation scenes."""
+    if folds == 1:
+        return df["split"].astype(str).to_numpy()
+    k = df["fold"].to_numpy()
+    return np.where(k == fold, "test", np.where(df["val_scene"].to_numpy(bool), "val", "train"))
+
+
+def with_folds(df: pd.DataFrame, scenes: pd.DataFrame) -> pd.DataFrame:
+    """``df`` (pairs or objects, column scene) with its scenes' ``fold`` and ``val_scene``."""
+    if not len(df):
+        return df
+    by = scenes.set_index("scene")
+    return df.assign(fold=df["scene"].map(by["fold"]).astype(int),
+                     val_scene=df["scene"].map(by["val_scene"]).astype(bool))
+
+
+def _scene_split(p: Params, kept: pd.DataFrame, unit: str) -> pd.DataFrame:
+    """(split, fold, val_scene) per kept scene: the paper's single seeded split (folds 1) or
+    the cross-validation folds (split ``f<k>``)."""
+    groups = dict(zip(kept["scene"], kept["scene" if unit == "scene" else "log_token"],
+                      strict=True))
+    sweeps = kept.loc[kept["has_sweeps"], "scene"]
+    if p.folds == 1:
+        split = split_scenes(list(kept["scene"]), p.split_fractions, p.seed,
+                             prefer_test=sweeps, groups=groups)
+        empty = [s for s in SPLITS if s not in set(split.values())]
+        if empty:
+            raise SelectionError(
+                f"split(s) {empty} got no scene: {len(kept)} kept scenes in "
+                f"{len(set(groups.values()))} {unit}(s) cannot fill train, val and test "
+                f"(split_fractions={p.split_fractions}); use more scenes or other fractions")
+        return pd.DataFrame({"split": split, "fold": 0,
+                             "val_scene": {s: v == "val" for s, v in split.items()}})
+    f_train, f_val, _ = p.split_fractions
+    folds = assign_folds(list(kept["scene"]), p.folds, f_val / max(f_train + f_val, 1e-9),
+                         p.seed, spread=sweeps, groups=groups)
+    return pd.DataFrame({"split": {s: f"f{k}" for s, (k, _) in folds.items()},
+                         "fold": {s: k for s, (k, _) in folds.items()},
+                         "val_scene": {s: v for s, (_, v) in folds.items()}})
+
+
 # --- frames and boxes --------------------------------------------------------------------
 
 def camera_frames(nusc, scene_token: str, keyframes_only: bool) -> list[dict]:
@@ -491,19 +579,11 @@ def select_keyframes(p: Params, nusc=None, progress: bool = True) -> Selection:
     # Consecutive scenes of one nuScenes drive share places and parked cars: split by log.
     # A generated world's scenes are independent of each other: split by scene.
     unit = "scene" if world.is_synthetic(p.dataroot_path, p.version) else "log"
-    groups = dict(zip(kept["scene"], kept["scene" if unit == "scene" else "log_token"],
-                      strict=True))
-    split = split_scenes(list(kept["scene"]), p.split_fractions, p.seed,
-                         prefer_test=kept.loc[kept["has_sweeps"], "scene"], groups=groups)
-    scenes["split"] = scenes["scene"].map(split).fillna("excluded")
+    split = _scene_split(p, kept, unit)
+    scenes["split"] = scenes["scene"].map(split["split"]).fillna("excluded")
+    scenes["fold"] = scenes["scene"].map(split["fold"]).fillna(-1).astype(int)
+    scenes["val_scene"] = scenes["scene"].map(split["val_scene"]).fillna(False).astype(bool)
     scenes["split_unit"] = unit
-    empty = [s for s in SPLITS if s not in set(split.values())]
-    if empty:
-        raise SelectionError(
-            f"split(s) {empty} got no scene: {len(kept)} kept scenes in "
-            f"{len(set(groups.values()))} {unit}(s) cannot fill train, val and test "
-            f"(split_fractions={p.split_fractions}); use more scenes or other fractions"
-        )
     kept = scenes[scenes["split"] != "excluded"]
     pairs, objects = keyframe_set(nusc, kept, p, progress)
     if objects.empty:
@@ -512,7 +592,14 @@ def select_keyframes(p: Params, nusc=None, progress: bool = True) -> Selection:
             f"{p.categories}, distance [{p.min_distance}, {p.max_distance}] m and visibility "
             f"{p.visibility_tokens}"
         )
-    return Selection(*_finish(p, pairs, objects), scenes)
+    pairs, objects = _finish(p, pairs, objects)
+    return Selection(with_folds(pairs, scenes), with_folds(objects, scenes), scenes)
+
+
+def held_out(scenes: pd.DataFrame, folds: int) -> pd.DataFrame:
+    """The scenes a model is scored on: the test split (one fold), every kept scene
+    (cross-validation: each by the model of its own fold)."""
+    return scenes[scenes["split"] == "test"] if folds == 1 else scenes[scenes["fold"] >= 0]
 
 
 def select_general(p: Params, scenes: pd.DataFrame, nusc=None, progress: bool = True
@@ -520,13 +607,18 @@ def select_general(p: Params, scenes: pd.DataFrame, nusc=None, progress: bool = 
     """The generalisation set over the held-out scenes of ``scenes`` (the keyframe stage's
     scene table with its split): test scenes with sweeps, at most ``general_max_scenes``.
     Returns (pairs, objects, boxes of every annotated object in frame 1)."""
-    held_out = scenes[(scenes["split"] == "test") & scenes["has_sweeps"]].head(
-        p.general_max_scenes)
-    if held_out.empty:
+    chosen = held_out(scenes, p.folds)
+    chosen = chosen[chosen["has_sweeps"]]
+    # folds take turns, so that every fold's model meets non-keyframe pairs
+    turn = chosen.groupby("fold").cumcount()
+    chosen = chosen.assign(_turn=turn).sort_values(["_turn", "fold"], kind="stable").drop(
+        columns="_turn").head(p.general_max_scenes)
+    if chosen.empty:
         return pd.DataFrame(), pd.DataFrame(), pd.DataFrame()
     nusc = nusc or open_nuscenes(p.dataroot_path, p.version)
-    pairs, objects, boxes = general_set(nusc, held_out, p, progress)
+    pairs, objects, boxes = general_set(nusc, chosen, p, progress)
     pairs, objects = _finish(p, pairs, objects)
+    pairs, objects = with_folds(pairs, scenes), with_folds(objects, scenes)
     return pairs, objects, boxes[boxes["pair_id"].isin(pairs["pair_id"])].reset_index(drop=True)
 
 
@@ -540,7 +632,8 @@ def select_wide(p: Params, scenes: pd.DataFrame, nusc=None, progress: bool = Tru
     every ``wide_sweep_stride``-th frame (0: none), labelled like the generalisation set.
     Columns as the keyframe set; ``set`` is ``keyframe`` or ``sweep``. Returns (pairs,
     objects)."""
-    train = scenes[scenes["split"].isin(["train", "val"])]
+    train = scenes[scenes["split"].isin(["train", "val"])] if p.folds == 1 else scenes[
+        scenes["fold"] >= 0]  # cross-validation: every scene trains the other folds' models
     if train.empty:
         raise SelectionError("no train or val scene in the scene table: run chapter 02")
     nusc = nusc or open_nuscenes(p.dataroot_path, p.version)
@@ -554,13 +647,14 @@ def select_wide(p: Params, scenes: pd.DataFrame, nusc=None, progress: bool = Tru
         frames_p.append(sp)
         frames_o.append(so)
     objects = pd.concat([f for f in frames_o if len(f)] or [pd.DataFrame()], ignore_index=True)
-    if objects.empty or not {"train", "val"} <= set(objects["split"]):
+    if objects.empty or (p.folds == 1 and not {"train", "val"} <= set(objects["split"])):
         raise SelectionError(
             f"the all-distances training set has no vehicle in the train or val split "
             f"(distance {p.general_min_distance:g}-{p.general_max_distance:g} m): check "
             "general_min_distance / general_max_distance")
     pairs = pd.concat([f for f in frames_p if len(f)], ignore_index=True)
-    return _finish(p, pairs, objects)
+    pairs, objects = _finish(p, pairs, objects)
+    return with_folds(pairs, scenes), with_folds(objects, scenes)
 
 
 def select(p: Params, progress: bool = True) -> Selection:

@@ -40,7 +40,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from flowmod import dag
 from flowmod.artefacts import atomic_path, read_manifest
-from flowmod.crops import hflip, read_crops
+from flowmod.crops import fold_crops, hflip
 from flowmod.dag import StageParams
 from flowmod.metrics import metrics, sigmoid
 from flowmod.model import motion_resnet18, predict_logits, resolve_device
@@ -481,13 +481,22 @@ def _end_epoch(run: _Run, epoch: int, train_loss: float, lr_now: float, t0: floa
 # --- the stages that train a seed (chapters 06, 10, 11) ---------------------------------------
 
 def seed_parts(p: Params | StageParams) -> list[str]:
-    """The parts of a training stage: one per training seed (``s0`` .. ``s<seeds-1>``)."""
+    """The parts of a training stage: one per fold (``f0`` .. ``f<folds-1>``) with
+    cross-validation, else one per training seed (``s0`` .. ``s<seeds-1>``)."""
+    if p.folds > 1:
+        return [f"f{k}" for k in range(p.folds)]
     return [f"s{k}" for k in range(p.seeds)]
 
 
+def part_index(part: str) -> int:
+    """k of a training part ``.../s<k>`` or ``.../f<k>`` (its seed is ``seed + k``; ``f<k>``
+    is also the fold it is tested on)."""
+    return int(str(part).rsplit("/", 1)[-1][1:])
+
+
 def seed_index(node: dag.Node) -> int:
-    """k of a training node's last part ``.../s<k>`` (its seed is ``seed + k``)."""
-    return int(str(node.part).rsplit("/", 1)[-1][1:])
+    """k of a training node's last part (:func:`part_index`)."""
+    return part_index(str(node.part))
 
 
 def train_seed(b: dag.Build, train: tuple[Any, pd.DataFrame], val: tuple[Any, pd.DataFrame],
@@ -530,12 +539,13 @@ def recipe_from(method: str, flow_rec: dict[str, Any], crops_rec: dict[str, Any]
 
 
 def build(b: dag.Build, progress: bool) -> dict[str, Any]:
-    """Build one ``train[<method>/s<k>]`` node: a classifier on the method's keyframe
-    train/val crops (the test crops' probabilities recorded every epoch, never scored)."""
-    m = b.node.method
+    """Build one ``train[<method>/s<k>]`` (``f<k>``) node: a classifier on the method's
+    keyframe train/val crops of its split or fold (the test crops' probabilities recorded
+    every epoch, never scored)."""
+    m, folds, k = b.node.method, b.params.folds, seed_index(b.node)
     folder = b.input_dir(dag.Node("crops", m, "keyframe"))
-    info = train_seed(b, read_crops(folder, "train"), read_crops(folder, "val"), progress, m,
-                      record=read_crops(folder, "test")[0])
+    train, val, test = (fold_crops(folder, folds, k, role) for role in ("train", "val", "test"))
+    info = train_seed(b, train, val, progress, m, record=test[0])
     return {**info, "recipe": recipe(b, m)}
 
 

@@ -10,15 +10,15 @@ import pandas as pd
 
 from flowmod import pipeline
 from flowmod.chapters.common import flow_reader
-from flowmod.crops import IMAGE_SIZE, PART_SPLITS, CropsError, crop_paths, samples_path
+from flowmod.crops import IMAGE_SIZE, CropsError, crop_paths, part_splits, samples_path
 from flowmod.dag import Node
 from flowmod.params import Params
-from flowmod.select import Selection
+from flowmod.select import PARTS, Selection
 
 
 def folders(p: Params) -> dict[str, dict[str, Path]]:
     """``{method: {part: published crops folder}}`` of the paper's two parts."""
-    return {m: {part: pipeline.published(p, Node("crops", m, part)) for part in PART_SPLITS}
+    return {m: {part: pipeline.published(p, Node("crops", m, part)) for part in PARTS}
             for m in p.flow_methods}
 
 
@@ -27,7 +27,7 @@ def run_summary(p: Params) -> pd.DataFrame:
     rows = []
     for m, parts in folders(p).items():
         for part, folder in parts.items():
-            for split in PART_SPLITS[part]:
+            for split in part_splits(part, p.folds):
                 n = int(np.load(crop_paths(folder, split)[0], mmap_mode="r").shape[0])
                 rows.append({"method": m, "split": split, "objects": n,
                              "crop (px)": p.crop_size,
@@ -40,12 +40,12 @@ def storage_table(p: Params) -> pd.DataFrame:
     rows = []
     for m, parts in folders(p).items():
         npys = [crop_paths(parts[part], split)[0]
-                for part, splits in PART_SPLITS.items() for split in splits]
+                for part in PARTS for split in part_splits(part, p.folds)]
         n_obj = sum(int(np.load(f, mmap_mode="r").shape[0]) for f in npys)
         crop_bytes = sum(f.stat().st_size for f in npys)
         sample_bytes = sum(samples_path(parts[part], split).stat().st_size
-                           for part, splits in PART_SPLITS.items() for split in splits)
-        flows = [r.path(pid) for part in PART_SPLITS
+                           for part in PARTS for split in part_splits(part, p.folds))
+        flows = [r.path(pid) for part in PARTS
                  for r in [flow_reader(p, m, part)] for pid in r.index["pair_id"]]
         flow_bytes = sum(f.stat().st_size for f in flows)
         rows.append({

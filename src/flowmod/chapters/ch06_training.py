@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pandas as pd
 
 from flowmod import pipeline
@@ -39,11 +40,17 @@ def table2(params: Params) -> pd.DataFrame:
         ("Scheduler", "Gamma", params.gamma),
         ("Training", "Epochs", params.epochs),
         ("Training", "Horizontal flip p", params.hflip_p),
-        ("Training", "Seeds per flow method", params.seeds),
+        ("Training", "Models per flow method", f"{params.folds} (one per fold)"
+         if params.folds > 1 else f"{params.seeds} (seeds)"),
         ("Training", "Mixed precision", params.amp),
         ("Input", "Crop size (px)", params.crop_size),
         ("Network", "ResNet18 first-stage channels", params.model_width),
     ], columns=["Function", "Hyperparameter", "Setting"])
+
+
+def mean_val_f1(histories: list[pd.DataFrame]) -> float:
+    """Mean over a method's models of the validation F1 of each chosen epoch (%, 0.1)."""
+    return round(100 * float(np.mean([h.attrs["best_f1"] for h in histories])), 1)
 
 
 def summary(histories: dict[str, list[pd.DataFrame]]) -> pd.DataFrame:

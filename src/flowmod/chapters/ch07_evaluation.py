@@ -10,8 +10,8 @@ import pandas as pd
 
 from flowmod.chapters.common import headline_method, read_json, results
 from flowmod.dag import Node
-from flowmod.evaluate import seed_probs
-from flowmod.metrics import comparison_table, paired_comparison
+from flowmod.evaluate import paired
+from flowmod.metrics import comparison_table
 from flowmod.metrics import table3 as metrics_table3
 from flowmod.params import Params
 
@@ -43,9 +43,7 @@ def comparisons(params: Params) -> pd.DataFrame:
         da, db = preds[a], preds[b]
         if not da["ann_token"].equals(db["ann_token"]):
             raise ValueError(f"{a} and {b} were scored on different objects")
-        rows[f"{a} - {b}"] = paired_comparison(da["label"].to_numpy(), seed_probs(da),
-                                               seed_probs(db), da["scene"].to_numpy(),
-                                               seed=params.seed)
+        rows[f"{a} - {b}"] = paired(da, db, f"{a} and {b}", seed=params.seed)
     return comparison_table(rows)
 
 
@@ -78,6 +76,10 @@ def numbers(params: Params) -> dict[str, Any]:
         gaps.append(original_vs_clean(params, m)["original_minus_clean"])
         out["n_test"], out["n_test_scenes"] = s["n"], s["n_scenes"]
         out["seeds"] = s["seeds"]
+        out["scored_by"] = (f"pooled over {s['seeds']} cross-validation folds, each scene "
+                            "scored by the model that never saw it"
+                            if s.get("unit") == "fold" else
+                            f"mean of {s['seeds']} training seeds")
     head = headline_method(params)
     s = results(params, head, "test")[1]
     out.update(headline_method=head, headline_f1=round(100 * s["f1"], 1),

@@ -2,18 +2,22 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pandas as pd
 
 from flowmod import pipeline
 from flowmod.chapters import common
 from flowmod.chapters.common import results
+from flowmod.crops import gather_fold
 from flowmod.dag import Node
-from flowmod.evaluate import paired, scored, seed_probs
+from flowmod.evaluate import fold_of, paired, scored, seed_probs
 from flowmod.extensions.context import read_context
 from flowmod.extensions.inputs import VARIANTS, chains
 from flowmod.metrics import comparison_table, seed_summary, span
 from flowmod.params import Params
+from flowmod.select import SPLITS
 
 
 def built(params: Params) -> list[tuple[str | None, str]]:
@@ -51,10 +55,10 @@ def table(params: Params, rows_of: list[tuple[str | None, str]] | None = None,
     for m, v in (rows(params) if rows_of is None else rows_of):
         d = scored(predictions(params, m, v, split), split, params.general_max_distance)
         s = seed_summary(d["label"].to_numpy(), seed_probs(d), d["scene"].to_numpy(),
-                         seed=params.seed)
+                         seed=params.seed, folds=fold_of(d))
         out.append({"flow method": m or "-", "input": v, "channels": VARIANTS[v].channels,
                      "F1 (%)": round(100 * s["f1"], 1),
-                     "seeds (%)": span(s["f1_min"], s["f1_max"]),
+                     f"{s['unit']}s (%)": span(s["f1_min"], s["f1_max"]),
                      "95% CI, scenes (%)": span(*s["ci"]),
                      "P (%)": round(100 * s["precision"], 1),
                      "R (%)": round(100 * s["recall"], 1)})
@@ -98,9 +102,18 @@ def inputs_table() -> pd.DataFrame:
 
 
 def context_split(params: Params, split: str) -> tuple[np.ndarray, np.ndarray, pd.DataFrame]:
-    """The published context crops of one split: (static, images, index)."""
+    """The published context crops of one stored split, or of a role (``train``, ``val``,
+    ``test``; with cross-validation fold 0's): (static, images, index)."""
     part = "general" if split == "general" else "keyframe"
-    return read_context(pipeline.published(params, Node("context", None, part)), split)
+    folder = pipeline.published(params, Node("context", None, part))
+    if split not in SPLITS:
+        return read_context(folder, split)
+
+    def read(s: str) -> tuple[list[Any], pd.DataFrame]:
+        static, images, df = read_context(folder, s)
+        return [static, images], df
+    (static, images), df = gather_fold(read, params.folds, 0, split)
+    return static, images, df
 
 
 def static_explains(flow: np.ndarray, static: np.ndarray, labels: np.ndarray) -> pd.DataFrame:
@@ -165,7 +178,7 @@ def headline(params: Params, paired_test: pd.DataFrame) -> str:
         return ("not built in this run (make extensions trains them: "
                 f"{len(chains(params)) * params.seeds} models)" if params.extension_inputs else
                 "not part of this profile (extension_inputs is empty)")
-    return f"against the raw {main} flow, paired on the test split: " + "; ".join(parts)
+    return f"against the raw {main} flow, paired on the test scenes: " + "; ".join(parts)
 
 
 def glue_key(method: str | None, variant: str) -> str:

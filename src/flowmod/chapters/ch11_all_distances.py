@@ -10,6 +10,7 @@ import pandas as pd
 from flowmod import pipeline
 from flowmod.chapters import common
 from flowmod.chapters.common import results
+from flowmod.crops import part_splits
 from flowmod.dag import Node
 from flowmod.evaluate import breakdown, paired, scored, seed_probs
 from flowmod.evaluate import table4 as evaluate_table4
@@ -32,7 +33,7 @@ def training_summary(params: Params) -> pd.DataFrame:
     for name, node in (("paper: 30-70 m keyframes", "select"), ("all distances", "wide")):
         d = pipeline.published(params, Node(node))
         pairs, obj = (pd.read_parquet(d / f"{k}.parquet") for k in ("pairs", "objects"))
-        for split in ("train", "val"):
+        for split in part_splits("wide", params.folds):
             o, pp = obj[obj["split"] == split], pairs[pairs["split"] == split]
             rows.append({"training set": name, "split": split, "pairs": len(pp),
                          "of them sweep pairs": int((pp["set"] == "sweep").sum()),

@@ -119,7 +119,8 @@ def example(params: Params, done: list[str], k: int = 0
     :func:`flowmod.report.viz.flow_figure`."""
     sel = pipeline.published(params, Node("select"))
     pairs = pd.read_parquet(sel / "pairs.parquet")
-    test = heldout_pairs(pairs, params.selfflow_eval_pairs, params.seed).iloc[[k]]
+    test = heldout_pairs(pairs, params.selfflow_eval_pairs, params.seed,
+                         params.folds).iloc[[k]]
     synthetic = world.is_synthetic(params.dataroot_path, params.version)
     h = held_out(test, pd.read_parquet(sel / "objects.parquet"), params.dataroot_path,
                  params.version, synthetic)

@@ -7,11 +7,10 @@ import json
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pandas as pd
 
 from flowmod import pipeline
-from flowmod.crops import part_of, read_crops
+from flowmod.crops import fold_crops, part_of, read_crops
 from flowmod.dag import Node
 from flowmod.flow import FlowReader, flow_root
 from flowmod.params import Params
@@ -41,9 +40,14 @@ def flow_readers(p: Params) -> dict[str, dict[str, FlowReader]]:
     return {m: {part: flow_reader(p, m, part) for part in PARTS} for m in p.flow_methods}
 
 
-def open_crops(p: Params, method: str, split: str) -> tuple[np.memmap, pd.DataFrame]:
-    """The published crops of one split of ``method``: ``(x (N, 2, S, S) float16, index)``."""
-    return read_crops(pipeline.published(p, Node("crops", method, part_of(split))), split)
+def open_crops(p: Params, method: str, split: str) -> tuple[Any, pd.DataFrame]:
+    """The published crops of ``method``: ``(x (N, 2, S, S) float16, index)`` of a stored
+    array (``general``, ``f<k>``, or a split of one fold) or of a role (``train``, ``val``,
+    ``test``), with cross-validation fold 0's (:func:`flowmod.crops.fold_crops`)."""
+    folder = pipeline.published(p, Node("crops", method, part_of(split)))
+    if split in SPLITS:
+        return fold_crops(folder, p.folds, 0, split)
+    return read_crops(folder, split)
 
 
 def results(p: Params, method: str, name: str = "test") -> tuple[pd.DataFrame, dict[str, Any]]:
@@ -85,8 +89,22 @@ def headline_method(p: Params) -> str:
     return next((m for m in p.flow_methods if m != "gt"), p.flow_methods[0])
 
 
+def split_order(splits: Any) -> list[str]:
+    """The splits present in ``splits`` in book order: train, val, test, then the folds."""
+    present = {str(s) for s in splits}
+    return [s for s in SPLITS if s in present] + sorted(present - set(SPLITS))
+
+
+def n_scored_objects(sel: Selection, folds: int) -> int:
+    """Keyframe objects Table 3 scores: the test split's, or with cross-validation every
+    object (each by the model of its fold)."""
+    obj = sel.objects[sel.objects["set"] == "keyframe"]
+    return int((obj["split"] == "test").sum()) if folds == 1 else len(obj)
+
+
 def split_sizes(sel: Selection, kind: str = "keyframe") -> pd.DataFrame:
-    """Scenes, pairs, objects, moving and still objects per split."""
+    """Scenes, pairs, objects, moving and still objects per split (or fold: then also its
+    scenes that the other folds' models validate on)."""
     pairs = sel.pairs[sel.pairs["set"] == kind]
     obj = sel.objects[sel.objects["set"] == kind]
     out = pd.DataFrame({
@@ -94,7 +112,10 @@ def split_sizes(sel: Selection, kind: str = "keyframe") -> pd.DataFrame:
         "pairs": pairs.groupby("split").size(),
         "objects": obj.groupby("split").size(),
         "moving": obj.groupby("split")["label"].sum(),
-    }).reindex([s for s in SPLITS if s in set(pairs["split"])]).fillna(0).astype(int)
+    }).reindex(split_order(pairs["split"])).fillna(0).astype(int)
     out["still"] = out["objects"] - out["moving"]
     out["moving %"] = (100 * out["moving"] / out["objects"].clip(lower=1)).round(1)
+    if "fold" in pairs and pairs["split"].astype(str).str.startswith("f").any():
+        val = pairs[pairs["val_scene"].astype(bool)].groupby("split")["scene"].nunique()
+        out["val scenes"] = val.reindex(out.index).fillna(0).astype(int)
     return out

@@ -29,10 +29,10 @@ import pandas as pd
 from flowmod import dag
 from flowmod.artefacts import atomic_path
 from flowmod.crops import (
-    PART_SPLITS,
     CropsError,
     crop_image,
     part_objects,
+    part_splits,
     split_objects,
     static_crops,
 )
@@ -129,7 +129,7 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
                           unit="pair", disable=not progress)}
     work = b.start(fresh=True)
     rows = {s: build_split(objects, pairs, q.dataroot_path, work, s, q.crop_size, q.crop_scale,
-                           boxes, progress) for s in PART_SPLITS[part]}
+                           boxes, progress) for s in part_splits(part, q.folds)}
     return {"rows": rows, "boxes": sum(len(v) for v in boxes.values())}
 
 

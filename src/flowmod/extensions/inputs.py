@@ -30,12 +30,12 @@ import numpy as np
 import pandas as pd
 
 from flowmod import dag
-from flowmod.crops import read_crops
-from flowmod.evaluate import predict_splits
+from flowmod.crops import SplitReader, gather_fold, read_crops
+from flowmod.evaluate import predict_splits, scored_rows
 from flowmod.extensions.context import read_context
 from flowmod.params import Params
 from flowmod.select import PARTS
-from flowmod.train import seed_parts, train_seed
+from flowmod.train import seed_index, seed_parts, train_seed
 
 
 @dataclass(frozen=True)
@@ -123,8 +123,9 @@ def _same_objects(a: pd.DataFrame, b: pd.DataFrame, what: str) -> None:
 
 def split_inputs(variant: str, context_folder: Any, crops_folder: Any, split: str
                  ) -> tuple[Inputs, pd.DataFrame]:
-    """(inputs, index) of one split for ``variant``: the context node's arrays and, for an
-    input with flow, the flow crops of the method's crops node (same objects, checked)."""
+    """(inputs, index) of one stored split for ``variant``: the context node's arrays and,
+    for an input with flow, the flow crops of the method's crops node (same objects,
+    checked)."""
     static, images, df = read_context(context_folder, split)
     v = VARIANTS[variant]
     flow = None
@@ -133,6 +134,35 @@ def split_inputs(variant: str, context_folder: Any, crops_folder: Any, split: st
         _same_objects(fdf, df, f"{split} split of {crops_folder}")
     return Inputs(variant, flow, static if v.static else None,
                   images if v.images else None), df
+
+
+def _reader(variant: str, context_folder: Any, crops_folder: Any) -> SplitReader:
+    """A :data:`flowmod.crops.SplitReader` of the input's parts (flow, static, images)."""
+    def read(split: str) -> tuple[list[Any], pd.DataFrame]:
+        x, df = split_inputs(variant, context_folder, crops_folder, split)
+        return [x.parts[k] for k in ("flow", "static", "images")], df
+    return read
+
+
+def _inputs(variant: str, arrays: list[Any], df: pd.DataFrame) -> tuple[Inputs, pd.DataFrame]:
+    flow, static, images = arrays
+    return Inputs(variant, flow, static, images), df
+
+
+def fold_inputs(variant: str, context_folder: Any, crops_folder: Any, folds: int, fold: int,
+                role: str, part: str = "keyframe") -> tuple[Inputs, pd.DataFrame]:
+    """(inputs, index) of the objects that play ``role`` for the model of ``fold``
+    (:func:`flowmod.crops.gather_fold`)."""
+    return _inputs(variant, *gather_fold(_reader(variant, context_folder, crops_folder),
+                                         folds, fold, role, part))
+
+
+def scored_inputs(variant: str, context_folder: Any, crops_folder: Any, folds: int,
+                  part: str) -> tuple[Inputs, pd.DataFrame]:
+    """(inputs, index) of every object a chain's models are scored on in ``part``
+    (:func:`flowmod.evaluate.scored_rows`)."""
+    return _inputs(variant, *scored_rows(_reader(variant, context_folder, crops_folder),
+                                         folds, part))
 
 
 # --- the stages --------------------------------------------------------------------------------
@@ -160,21 +190,23 @@ def build_xtrain(b: dag.Build, progress: bool) -> dict[str, Any]:
     m, v = _chain(b.node)
     ctx = b.input_dir(dag.Node("context", None, "keyframe"))
     crops_dir = b.input_dir(dag.Node("crops", m, "keyframe")) if m else None
-    train, val = (split_inputs(v, ctx, crops_dir, s) for s in ("train", "val"))
+    train, val = (fold_inputs(v, ctx, crops_dir, b.params.folds, seed_index(b.node), role)
+                  for role in ("train", "val"))
     info = train_seed(b, train, val, progress, f"{m + ' ' if m else ''}{v}",
                       in_channels=VARIANTS[v].channels, flip_negate=VARIANTS[v].negate)
     return {**info, "input": v, "channels": VARIANTS[v].channels}
 
 
 def build_xevaluate(b: dag.Build, progress: bool) -> dict[str, Any]:
-    """Build one ``xevaluate[<method>/<input>]`` node: every seed on the test split and the
-    generalisation set (``test.parquet``, ``general.parquet`` with ``prob_s<k>``)."""
+    """Build one ``xevaluate[<method>/<input>]`` node: the chain's models on their test rows
+    and the generalisation set (``test.parquet``, ``general.parquet``; ``prob_s<k>`` per
+    seed, or ``prob`` by each row's fold)."""
     m, v = _chain(b.node)
     splits = {}
     for split, part in (("test", "keyframe"), ("general", "general")):
         crops_dir = b.input_dir(dag.Node("crops", m, part)) if m else None
-        splits[split] = split_inputs(v, b.input_dir(dag.Node("context", None, part)),
-                                     crops_dir, split)
+        splits[split] = scored_inputs(v, b.input_dir(dag.Node("context", None, part)),
+                                      crops_dir, b.params.folds, part)
     predict_splits(b, "xtrain", chain_key(m, v), splits, in_channels=None)
     return {"seeds": b.params.seeds, "input": v}
 

@@ -21,6 +21,7 @@ from flowmod.flow.selftrain import (
     SelfFlowError,
     baselines,
     cache_gt,
+    fold0_pairs,
     held_out,
     heldout_pairs,
     sample_pairs,
@@ -43,9 +44,8 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
             "world: there is no exact flow to supervise with; use selfflow_modes=[photometric]")
     sel = b.input_dir(dag.Node("select"))
     pairs = pd.read_parquet(sel / "pairs.parquet")
-    train = sample_pairs(pairs[pairs["split"].isin(["train", "val"])], q.selfflow_pairs,
-                         (q.seed, 0))
-    test = heldout_pairs(pairs, q.selfflow_eval_pairs, q.seed)
+    train = sample_pairs(fold0_pairs(pairs, q.folds, False), q.selfflow_pairs, (q.seed, 0))
+    test = heldout_pairs(pairs, q.selfflow_eval_pairs, q.seed, q.folds)
     if train.empty or test.empty:
         raise SelfFlowError(f"no training ({len(train)}) or held-out ({len(test)}) pair in "
                             "chapter 02's selection: run chapter 02 first")

@@ -29,10 +29,10 @@ from typing import Any
 import pandas as pd
 
 from flowmod import dag
-from flowmod.crops import read_crops
-from flowmod.evaluate import predict_splits
+from flowmod.crops import fold_crops
+from flowmod.evaluate import predict_splits, scored_crops
 from flowmod.select import PARTS, WIDE, open_nuscenes, select_wide, write_tables
-from flowmod.train import recipe, seed_parts, train_seed
+from flowmod.train import recipe, seed_index, seed_parts, train_seed
 
 # --- the stages --------------------------------------------------------------------------------
 
@@ -49,10 +49,10 @@ def build_wide(b: dag.Build, progress: bool) -> dict[str, Any]:
 def build_wtrain(b: dag.Build, progress: bool) -> dict[str, Any]:
     """Build one ``wtrain[<method>/s<k>]`` node: the classifier on the wide crops, epoch
     chosen on the wide validation split."""
-    m = b.node.method
+    m, folds, k = b.node.method, b.params.folds, seed_index(b.node)
     folder = b.input_dir(dag.Node("crops", m, WIDE))
-    info = train_seed(b, read_crops(folder, "train"), read_crops(folder, "val"), progress,
-                      f"{m} all distances")
+    info = train_seed(b, fold_crops(folder, folds, k, "train", WIDE),
+                      fold_crops(folder, folds, k, "val", WIDE), progress, f"{m} all distances")
     return {**info, "recipe": recipe(b, m)}
 
 
@@ -60,7 +60,7 @@ def build_wgeneralise(b: dag.Build, progress: bool) -> dict[str, Any]:
     """Build ``wgeneralise[<method>]``: every seed on the generalisation crops and on the
     keyframe test split (``general.parquet``, ``test.parquet``)."""
     m = b.node.method
-    splits = {split: read_crops(b.input_dir(dag.Node("crops", m, part)), split)
+    splits = {split: scored_crops(b.input_dir(dag.Node("crops", m, part)), b.params.folds, part)
               for split, part in (("general", "general"), ("test", "keyframe"))}
     frames = predict_splits(b, "wtrain", m, splits)
     return {"seeds": b.params.seeds, "general": len(frames["general"]),

@@ -44,6 +44,7 @@ from flowmod.flow.metrics import flow_metrics
 from flowmod.flow.networks import FastFlowNetFlow
 from flowmod.flow.registry import read_image, resize_flow
 from flowmod.progress import bar
+from flowmod.select import fold_roles
 
 #: The two ways of training (see the module docstring).
 MODES = ("photometric", "supervised")
@@ -361,6 +362,14 @@ def sample_pairs(df: pd.DataFrame, n: int, seed: Sequence[int]) -> pd.DataFrame:
     return df.iloc[np.sort(idx)].reset_index(drop=True)
 
 
-def heldout_pairs(pairs: pd.DataFrame, n: int, seed: int) -> pd.DataFrame:
-    """The ``n`` held-out pairs (of the test scenes) drawn with ``seed``."""
-    return sample_pairs(pairs[pairs["split"] == "test"], n, (seed, 1))
+def fold0_pairs(pairs: pd.DataFrame, folds: int, held_out: bool) -> pd.DataFrame:
+    """The pairs a network is trained on (train and val scenes) or scored on (test scenes):
+    of the single split, or with cross-validation as the classifier of fold 0."""
+    test = fold_roles(pairs, 0, folds) == "test"
+    return pairs[test if held_out else ~test]
+
+
+def heldout_pairs(pairs: pd.DataFrame, n: int, seed: int, folds: int = 1) -> pd.DataFrame:
+    """The ``n`` held-out pairs (of the test scenes, :func:`fold0_pairs`) drawn with
+    ``seed``."""
+    return sample_pairs(fold0_pairs(pairs, folds, True), n, (seed, 1))
