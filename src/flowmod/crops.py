@@ -652,42 +652,58 @@ def part_splits(part: str, folds: int) -> tuple[str, ...]:
 SplitReader = Callable[[str], tuple[list[Any], pd.DataFrame]]
 
 
+def crops_reader(folder: str | os.PathLike[str]) -> SplitReader:
+    """The :data:`SplitReader` of a crops node: ``[x (N, 2, S, S)], index``."""
+    def read(split: str) -> tuple[list[Any], pd.DataFrame]:
+        x, df = read_crops(folder, split)
+        return [x], df
+    return read
+
+
+def take_rows(arrays: list[Any], keep: np.ndarray) -> list[Any]:
+    """The rows ``keep`` (bool mask) of each array (None stays None), in memory."""
+    return [None if a is None else np.asarray(a[keep]) for a in arrays]
+
+
+def concat_arrays(parts: Iterable[list[Any]]) -> list[Any]:
+    """Position by position, the concatenation of several array lists (None stays None)."""
+    return [None if cols[0] is None else np.concatenate(cols)
+            for cols in zip(*parts, strict=True)]
+
+
 def gather_fold(read: SplitReader, folds: int, fold: int, role: str, part: str = "keyframe"
                 ) -> tuple[list[Any], pd.DataFrame]:
     """The rows of a node's arrays (stored by :func:`part_splits`, read by ``read``) that
     play ``role`` (``train``, ``val``, ``test``) for the model of ``fold``
     (:func:`flowmod.select.fold_roles`). One fold reads the split as it is (memmaps);
     cross-validation gathers the rows of the other folds' arrays into memory (train, val) or
-    reads the fold's own (test). The generalisation part is one array set: ``test`` is its
-    rows of the fold's scenes."""
-    if part == "general" or (folds > 1 and role == "test"):
-        arrays, df = read("general" if part == "general" else f"f{fold}")
-        if folds == 1 or part != "general":
+    reads the fold's own (test). The generalisation part is one array set: with
+    cross-validation, its rows of the fold's scenes."""
+    if part == "general":
+        arrays, df = read("general")
+        if folds == 1:
             return arrays, df
         keep = df["fold"].to_numpy() == fold
-        return [None if a is None else np.asarray(a[keep]) for a in arrays], \
-            df[keep].reset_index(drop=True)
+        return take_rows(arrays, keep), df[keep].reset_index(drop=True)
     if folds == 1:
         return read(role)
+    if role == "test":
+        return read(f"f{fold}")
     parts, dfs = [], []
     for k in range(folds):
         if k != fold:
             arrays, df = read(f"f{k}")
             keep = fold_roles(df, fold, folds) == role
-            parts.append([None if a is None else np.asarray(a[keep]) for a in arrays])
+            parts.append(take_rows(arrays, keep))
             dfs.append(df[keep])
-    return [None if cols[0] is None else np.concatenate(cols) for cols in zip(*parts, strict=True)], \
-        pd.concat(dfs, ignore_index=True)
+    return concat_arrays(parts), pd.concat(dfs, ignore_index=True)
 
 
 def fold_crops(folder: str | os.PathLike[str], folds: int, fold: int, role: str,
                part: str = "keyframe") -> tuple[Any, pd.DataFrame]:
     """``(x (N, 2, S, S), index)``: the flow crops of a crops node that play ``role`` for the
     model of ``fold`` (:func:`gather_fold`)."""
-    def read(split: str) -> tuple[list[Any], pd.DataFrame]:
-        x, df = read_crops(folder, split)
-        return [x], df
-    arrays, df = gather_fold(read, folds, fold, role, part)
+    arrays, df = gather_fold(crops_reader(folder), folds, fold, role, part)
     return arrays[0], df
 
 

@@ -13,7 +13,15 @@ import pandas as pd
 
 from flowmod import dag, geometry
 from flowmod.artefacts import atomic_path, write_json
-from flowmod.crops import SplitReader, crop_windows, gather_fold, read_crops, read_samples
+from flowmod.crops import (
+    SplitReader,
+    concat_arrays,
+    crop_windows,
+    crops_reader,
+    gather_fold,
+    read_crops,
+    read_samples,
+)
 from flowmod.metrics import (
     apply_threshold,
     fit_threshold,
@@ -78,17 +86,12 @@ def scored_rows(read: SplitReader, folds: int, part: str = "keyframe"
     got = [gather_fold(read, folds, k, "test", part) for k in range(folds)]
     if len(got) == 1:
         return got[0]
-    arrays = [None if cols[0] is None else np.concatenate(cols)
-              for cols in zip(*(a for a, _ in got), strict=True)]
-    return arrays, pd.concat([df for _, df in got], ignore_index=True)
+    return concat_arrays(a for a, _ in got), pd.concat([df for _, df in got], ignore_index=True)
 
 
 def scored_crops(folder: Any, folds: int, part: str = "keyframe") -> tuple[Any, pd.DataFrame]:
     """``(x, index)`` of :func:`scored_rows` for a crops node."""
-    def read(split: str) -> tuple[list[Any], pd.DataFrame]:
-        x, df = read_crops(folder, split)
-        return [x], df
-    arrays, df = scored_rows(read, folds, part)
+    arrays, df = scored_rows(crops_reader(folder), folds, part)
     return arrays[0], df
 
 

@@ -127,6 +127,17 @@ def filter_scenes(scenes: pd.DataFrame, exclude: Iterable[str]) -> pd.DataFrame:
     return out
 
 
+def _group_members(scenes: Iterable[str], groups: dict[str, str] | None
+                   ) -> tuple[list[str], dict[str, list[str]], list[str]]:
+    """(sorted scenes, group -> its scenes, sorted group names); without ``groups`` each
+    scene is its own group."""
+    scenes = sorted(scenes)
+    members: dict[str, list[str]] = {}
+    for s in scenes:
+        members.setdefault((groups or {}).get(s, s), []).append(s)
+    return scenes, members, sorted(members)
+
+
 def split_scenes(
     scenes: list[str], fractions: list[float], seed: int, prefer_test: Iterable[str] = (),
     groups: dict[str, str] | None = None,
@@ -141,12 +152,7 @@ def split_scenes(
     preferred (real nuScenes) this is a plain shuffle.
     """
     rng = np.random.default_rng(seed)
-    scenes = sorted(scenes)
-    groups = {s: (groups or {}).get(s, s) for s in scenes}
-    members: dict[str, list[str]] = {}
-    for s in scenes:
-        members.setdefault(groups[s], []).append(s)
-    names = sorted(members)
+    scenes, members, names = _group_members(scenes, groups)
     n = len(scenes)
     n_test = int(round(fractions[2] * n))
     n_val = int(round(fractions[1] * n))
@@ -191,12 +197,7 @@ def assign_folds(
     once on fold k.
     """
     rng = np.random.default_rng(seed)
-    scenes = sorted(scenes)
-    groups = {s: (groups or {}).get(s, s) for s in scenes}
-    members: dict[str, list[str]] = {}
-    for s in scenes:
-        members.setdefault(groups[s], []).append(s)
-    names = sorted(members)
+    scenes, members, names = _group_members(scenes, groups)
     if len(names) < folds:
         raise SelectionError(
             f"folds={folds} but the kept scenes form only {len(names)} independent group(s): "
