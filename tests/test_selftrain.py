@@ -4,6 +4,7 @@ published weights as an ordinary ``fastflownet`` checkpoint, and the stage's nod
 from __future__ import annotations
 
 import json
+import time
 
 import cv2
 import numpy as np
@@ -72,7 +73,7 @@ def pairs_data(smoke_built):
     the smoke profile's flow_scale."""
     p = smoke_built
     sel = pd.read_parquet(pipeline.published(p, dag.Node("select")) / "pairs.parquet")
-    train = selftrain.fold0_pairs(sel, p.folds, held_out=False).head(4)
+    train = selftrain.fold0_pairs(sel, p.folds, "train").head(4)
     return p, train
 
 
@@ -112,6 +113,18 @@ def test_training_resumes_where_it_stopped_and_learns(pairs_data, tmp_path):
         torch.testing.assert_close(resumed.state_dict()[k], v, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(h1["loss"], h2["loss"], rtol=1e-5)
     assert list(h2["step"]) == [1, 2, 3, 4, 5, 6]
+    # with an evaluation: step 0 scores the untrained network, then every eval_every steps
+    calls = []
+
+    def evaluate(model):
+        calls.append(sum(float(v.abs().sum()) for v in model.state_dict().values()))
+        return {"epe": float(len(calls))}
+    _, h3 = selftrain.train_flow(data, "supervised", tmp_path / "e", evaluate=evaluate,
+                                 eval_every=4, **kw)
+    assert list(h3["step"]) == [0, 1, 2, 3, 4, 5, 6]
+    assert h3["val_epe"].tolist()[:1] + h3["val_epe"].dropna().tolist()[1:] == [1.0, 2.0, 3.0]
+    assert list(h3.dropna(subset=["val_epe"])["step"]) == [0, 4, 6]
+    assert np.isnan(h3["loss"].iloc[0]) and calls[0] != calls[1]
     with pytest.raises(selftrain.SelfFlowError, match="exact flow"):
         selftrain.train_flow(_data(p, train, tmp_path, gt=False), "supervised",
                              tmp_path / "c", **kw)
@@ -124,7 +137,8 @@ def test_published_weights_are_a_fastflownet_checkpoint_with_the_recorded_error(
     assert ch12.built(p) == ["photometric", "supervised"]
     for mode in ch12.built(p):
         hist, ev = ch12.results(p, mode)
-        assert ev["steps"] == p.selfflow_iters == len(hist)
+        assert ev["steps"] == p.selfflow_iters == len(hist) - 1  # and step 0
+        assert hist["step"].iloc[0] == 0 and not np.isnan(hist["val_epe"].iloc[0])
         est = FastFlowNetFlow(ch12.weights_path(p, mode), device="cpu", scale=p.flow_scale)
         sel = pipeline.published(p, dag.Node("select"))
         pairs = pd.read_parquet(sel / "pairs.parquet")
@@ -133,7 +147,14 @@ def test_published_weights_are_a_fastflownet_checkpoint_with_the_recorded_error(
                                p.dataroot_path, p.version, True)
         again = selftrain.score(est.estimate, h)
         assert again["epe"] == pytest.approx(ev["fastflownet"]["epe"], rel=1e-4)
-        assert hist["heldout_epe"].dropna().iloc[-1] == pytest.approx(again["epe"], rel=1e-4)
+        # the curve and the choice are on the validation scenes' pairs, not the test pairs
+        val = selftrain.validation_pairs(pairs, p.selfflow_eval_pairs, p.seed, p.folds)
+        assert not set(val["scene_token"]) & set(test["scene_token"])
+        hv = selftrain.held_out(val, pd.read_parquet(sel / "objects.parquet"),
+                                p.dataroot_path, p.version, True)
+        on_val = selftrain.score(est.estimate, hv)["epe"]
+        assert hist["val_epe"].dropna().iloc[-1] == pytest.approx(on_val, rel=1e-4)
+        assert ev["validation"]["fastflownet"]["epe"] == pytest.approx(on_val, rel=1e-4)
         assert set(ev["baselines"]) == {"zero flow", "farneback", "dis (medium)"}
     t = ch12.epe_table(p, ch12.built(p))
     assert list(t["method"]) == ["zero flow", "farneback", "dis (medium)",
@@ -144,8 +165,7 @@ def test_published_weights_are_a_fastflownet_checkpoint_with_the_recorded_error(
 
 def test_selfflow_nodes_parameters_and_gate(smoke_built, tmp_path):
     demo = load_profile("demo")
-    assert [str(n) for n in pipeline.nodes(demo, ["12"])] == [
-        "selfflow[photometric]", "selfflow[supervised]"]
+    assert [str(n) for n in pipeline.nodes(demo, ["12"])] == ["selfflow[supervised]"]
     assert pipeline.gate(dag.Node("selfflow", None, "photometric")) == "selfflow_build"
     assert load_profile("paper", dataroot="/x").selfflow_modes == ["photometric"]
     with pytest.raises(ProfileError, match="selfflow_crop.*multiples of 64"):
@@ -163,3 +183,19 @@ def test_selfflow_nodes_parameters_and_gate(smoke_built, tmp_path):
     info = json.loads((pipeline.node_dir(smoke_built, dag.Node("selfflow", None, "photometric"))
                        / "manifest.json").read_text())
     assert info["params"]["selfflow_iters"] == 2 and info["params"]["flow_scale"] == 0.5
+
+
+def test_seconds_per_pair_time_the_estimator_not_the_scoring(monkeypatch):
+    n, flow = 3, np.zeros((8, 12, 2), np.float32)
+    data = selftrain.HeldOut([np.zeros((8, 12, 3), np.uint8)] * n,
+                             [np.zeros((8, 12, 3), np.uint8)] * n, [flow + 1.0] * n,
+                             [np.ones((8, 12), bool)] * n, [np.zeros((0, 4))] * n)
+    real = selftrain.flow_metrics
+
+    def slow_metrics(*args):
+        time.sleep(0.1)
+        return real(*args)
+    monkeypatch.setattr(selftrain, "flow_metrics", slow_metrics)
+    out = selftrain.score(lambda a, b: flow, data)
+    assert out["epe"] == pytest.approx(np.sqrt(2.0), rel=1e-5)
+    assert out["seconds_per_pair"] < 0.05, "the scoring's time is not the estimator's"

@@ -28,13 +28,15 @@ from flowmod.flow.selftrain import (
     save_state,
     score_model,
     train_flow,
+    validation_pairs,
 )
 
 
 def build(b: dag.Build, progress: bool) -> dict[str, Any]:
-    """Build one ``selfflow[<mode>]`` node: FastFlowNet trained and evaluated,
-    ``weights.pt`` (a FastFlowNet state_dict), ``history.csv`` and ``eval.json`` (held-out
-    metrics of the network and of the baselines)."""
+    """Build one ``selfflow[<mode>]`` node: FastFlowNet trained on fold 0's training-scene
+    pairs, its curve on validation-scene pairs, and scored once on test-scene pairs at the
+    end: ``weights.pt`` (a FastFlowNet state_dict), ``history.csv`` and ``eval.json`` (the
+    network's and the baselines' metrics on the validation and on the test pairs)."""
     q, mode = b.params, str(b.node.part)
     root = q.dataroot_path
     synthetic = world.is_synthetic(root, q.version)
@@ -44,41 +46,47 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
             "world: there is no exact flow to supervise with; use selfflow_modes=[photometric]")
     sel = b.input_dir(dag.Node("select"))
     pairs = pd.read_parquet(sel / "pairs.parquet")
-    train = sample_pairs(fold0_pairs(pairs, q.folds, False), q.selfflow_pairs, (q.seed, 0))
+    train = sample_pairs(fold0_pairs(pairs, q.folds, "train"), q.selfflow_pairs, (q.seed, 0))
+    val = validation_pairs(pairs, q.selfflow_eval_pairs, q.seed, q.folds)
     test = heldout_pairs(pairs, q.selfflow_eval_pairs, q.seed, q.folds)
-    if train.empty or test.empty:
-        raise SelfFlowError(f"no training ({len(train)}) or held-out ({len(test)}) pair in "
-                            "chapter 02's selection: run chapter 02 first")
+    if train.empty or val.empty or test.empty:
+        raise SelfFlowError(f"no training ({len(train)}), validation ({len(val)}) or test "
+                            f"({len(test)}) pair in chapter 02's selection: run chapter 02 "
+                            "first")
     work = b.start(fresh=q.force)
     gt_files = (cache_gt(train, root, q.version, q.flow_scale, work / "gt", progress)
                 if mode == "supervised" else None)
     data = FramePairs([(root / r.path_1, root / r.path_2) for r in train.itertuples()],
                       q.flow_scale, gt_files)
-    heldout = held_out(test, pd.read_parquet(sel / "objects.parquet"), root, q.version,
-                       synthetic)
+    objects = pd.read_parquet(sel / "objects.parquet")
+    val_data = held_out(val, objects, root, q.version, synthetic)
     model, hist = train_flow(
         data, mode, work, iters=q.selfflow_iters, batch=q.selfflow_batch, lr=q.selfflow_lr,
         crop=q.selfflow_crop, smooth=q.selfflow_smooth, seed=q.seed,
-        evaluate=functools.partial(score_model, data=heldout, scale=q.flow_scale),
+        evaluate=functools.partial(score_model, data=val_data, scale=q.flow_scale),
         eval_every=q.selfflow_eval_every, progress=progress,
         desc=f"train fastflownet ({mode})", device=q.device)
     save_state({k: v.cpu() for k, v in model.state_dict().items()}, work / "weights.pt")
     with atomic_path(work / "history.csv") as tmp:
         hist.to_csv(tmp, index=False)
-    final = {k[len("heldout_"):]: v for k, v in hist.iloc[-1].items() if k.startswith("heldout_")}
+    test_data = held_out(test, objects, root, q.version, synthetic)  # read once, at the end
+    final = {k[len("val_"):]: v for k, v in hist.iloc[-1].items() if k.startswith("val_")}
     write_json(work / "eval.json", {
         "mode": mode, "steps": int(hist["step"].iloc[-1]),
         "seconds_per_step": float(hist["seconds"].median()),
-        "train_pairs": len(train), "heldout_pairs": len(test),
-        "fastflownet": final, "baselines": baselines(heldout, q.flow_scale)})
+        "train_pairs": len(train), "val_pairs": len(val), "heldout_pairs": len(test),
+        "validation": {"fastflownet": final,
+                       "baselines": baselines(val_data, q.flow_scale)},
+        "fastflownet": score_model(model, test_data, q.flow_scale),
+        "baselines": baselines(test_data, q.flow_scale)})
     shutil.rmtree(work / "gt", ignore_errors=True)
     (work / "last.pt").unlink(missing_ok=True)
     return {"mode": mode, "steps": int(hist["step"].iloc[-1])}
 
 
 #: Chapter 12: FastFlowNet trained from scratch (``make selfflow``).
-STAGE = dag.Stage("selfflow", 1, "12", "selfflow/{part}",
-                  "FastFlowNet trained from scratch, held-out end-point error",
+STAGE = dag.Stage("selfflow", 2, "12", "selfflow/{part}",
+                  "FastFlowNet trained from scratch, validation and test end-point error",
                   nodes=lambda p: [dag.Node("selfflow", None, mode) for mode in p.selfflow_modes],
                   inputs=lambda n, p: (dag.Node("world"), dag.Node("select")), build=build,
                   gate="selfflow_build")

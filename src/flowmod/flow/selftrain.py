@@ -247,14 +247,16 @@ def held_out(pairs: pd.DataFrame, objects: pd.DataFrame, dataroot: Path, version
 def score(estimate: Callable[[np.ndarray, np.ndarray], np.ndarray], data: HeldOut
           ) -> dict[str, float]:
     """Mean over the held-out pairs of EPE (px) and Fl-all (%), overall and inside the target
-    vehicles' boxes, of ``estimate(img1, img2) -> (H, W, 2)`` px, and its seconds per pair;
-    NaN metrics without exact flow."""
-    rows, t0 = [], time.perf_counter()
+    vehicles' boxes, of ``estimate(img1, img2) -> (H, W, 2)`` px, and its seconds per pair
+    (the estimator's calls only); NaN metrics without exact flow."""
+    rows, seconds = [], 0.0
     for k in range(len(data.img1)):
+        t0 = time.perf_counter()
         flow = estimate(data.img1[k], data.img2[k])
+        seconds += time.perf_counter() - t0  # the estimator only, not the scoring
         if data.gt is not None:
             rows.append(flow_metrics(flow, data.gt[k], data.valid[k], data.boxes[k]))
-    out = {"seconds_per_pair": (time.perf_counter() - t0) / max(len(data.img1), 1)}
+    out = {"seconds_per_pair": seconds / max(len(data.img1), 1)}
     keys = ("epe", "epe_boxes", "fl_all", "fl_all_boxes")
     out.update({k: float(np.nanmean([r[k] for r in rows])) if rows else float("nan")
                 for k in keys})
@@ -297,9 +299,9 @@ def train_flow(data: FramePairs, mode: str, work: Path, *, iters: int, batch: in
                ) -> tuple[FastFlowNet, pd.DataFrame]:
     """Train a FastFlowNet from scratch in ``work`` (resumable from ``work/last.pt``).
 
-    ``mode``: ``photometric`` or ``supervised`` (``data`` must hold exact flow). Every
-    ``eval_every`` steps and after the last, ``evaluate(model)`` adds held-out metrics to the
-    history. ``stop_after``: end after that many steps (tests of resuming); ``device``: where
+    ``mode``: ``photometric`` or ``supervised`` (``data`` must hold exact flow). Before the
+    first step (step 0: the untrained network), every ``eval_every`` steps and after the
+    last, ``evaluate(model)`` adds its metrics (``val_<name>``) to the history. ``stop_after``: end after that many steps (tests of resuming); ``device``: where
     the network trains (``auto``: CUDA when there is one). Returns the model
     and the history: one row per step (step, loss, the loss's parts, seconds) with the
     evaluations' columns on their steps."""
@@ -322,6 +324,8 @@ def train_flow(data: FramePairs, mode: str, work: Path, *, iters: int, batch: in
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optim"])
         start, rows = int(state["step"]), list(state["history"])
+    if evaluate is not None and start == 0:
+        rows.append({"step": 0, **{f"val_{k}": v for k, v in evaluate(model).items()}})
     model.train()
     pbar = bar(total=iters, initial=start, desc=desc, unit="step", disable=not progress)
     end = iters if stop_after is None else min(iters, start + stop_after)
@@ -342,7 +346,7 @@ def train_flow(data: FramePairs, mode: str, work: Path, *, iters: int, batch: in
                                      "seconds": time.perf_counter() - t0}
             if evaluate is not None and ((eval_every and (step + 1) % eval_every == 0)
                                          or step + 1 == iters):
-                row.update({f"heldout_{k}": v for k, v in evaluate(model).items()})
+                row.update({f"val_{k}": v for k, v in evaluate(model).items()})
             rows.append(row)
             pbar.update(1)
             pbar.set_postfix(loss=f"{row['loss']:.3f}")
@@ -362,14 +366,20 @@ def sample_pairs(df: pd.DataFrame, n: int, seed: Sequence[int]) -> pd.DataFrame:
     return df.iloc[np.sort(idx)].reset_index(drop=True)
 
 
-def fold0_pairs(pairs: pd.DataFrame, folds: int, held_out: bool) -> pd.DataFrame:
-    """The pairs a network is trained on (train and val scenes) or scored on (test scenes):
-    of the single split, or with cross-validation as the classifier of fold 0."""
-    test = fold_roles(pairs, 0, folds) == "test"
-    return pairs[test if held_out else ~test]
+def fold0_pairs(pairs: pd.DataFrame, folds: int, role: str) -> pd.DataFrame:
+    """The pairs of one role (``train``, ``val``, ``test``) for a network: of the single
+    split, or with cross-validation as for the classifier of fold 0. It trains on ``train``
+    pairs, is chosen on ``val`` pairs and scored once on ``test`` pairs."""
+    return pairs[fold_roles(pairs, 0, folds) == role]
+
+
+def validation_pairs(pairs: pd.DataFrame, n: int, seed: int, folds: int = 1) -> pd.DataFrame:
+    """The ``n`` validation pairs (of fold 0's validation scenes) drawn with ``seed``: the
+    training curve and the choice of a network are made on them."""
+    return sample_pairs(fold0_pairs(pairs, folds, "val"), n, (seed, 2))
 
 
 def heldout_pairs(pairs: pd.DataFrame, n: int, seed: int, folds: int = 1) -> pd.DataFrame:
     """The ``n`` held-out pairs (of the test scenes, :func:`fold0_pairs`) drawn with
     ``seed``."""
-    return sample_pairs(fold0_pairs(pairs, folds, True), n, (seed, 1))
+    return sample_pairs(fold0_pairs(pairs, folds, "test"), n, (seed, 1))

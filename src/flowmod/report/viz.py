@@ -308,19 +308,21 @@ def training_curves(histories: dict[str, list[pd.DataFrame]]) -> plt.Figure:
 def flow_training_curves(histories: dict[str, pd.DataFrame],
                          references: dict[str, float]) -> plt.Figure:
     """A flow network's training: the loss per step (left, one colour per way of training,
-    smoothed over 25 steps) and the held-out end-point error at each evaluation (right), with
+    smoothed over 25 steps) and the validation end-point error at each evaluation (right; step
+    0: the untrained network), with
     the ``references`` (e.g. DIS: name -> EPE px) as horizontal lines."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.4))
     for i, (name, h) in enumerate(histories.items()):
-        loss = h["loss"].rolling(25, min_periods=1).mean()
-        axes[0].plot(h["step"], loss / loss.iloc[0], color=f"C{i}", label=name)
-        ev = h.dropna(subset=["heldout_epe"])
-        axes[1].plot(ev["step"], ev["heldout_epe"], marker="o", ms=3, color=f"C{i}", label=name)
+        steps = h.dropna(subset=["loss"])  # step 0 (the untrained network) has no loss
+        loss = steps["loss"].rolling(25, min_periods=1).mean()
+        axes[0].plot(steps["step"], loss / loss.iloc[0], color=f"C{i}", label=name)
+        ev = h.dropna(subset=["val_epe"])
+        axes[1].plot(ev["step"], ev["val_epe"], marker="o", ms=3, color=f"C{i}", label=name)
     for j, (name, v) in enumerate(references.items()):
         axes[1].axhline(v, color="0.5", ls=("--", ":", "-.")[j % 3], lw=1, label=name)
     axes[0].set(xlabel="step", ylabel="loss / first step's", title="training loss",
                 yscale="log")
-    axes[1].set(xlabel="step", ylabel="EPE (px)", title="held-out end-point error")
+    axes[1].set(xlabel="step", ylabel="EPE (px)", title="validation end-point error")
     for ax in axes:
         ax.legend(fontsize=7)
     fig.tight_layout()
