@@ -243,10 +243,12 @@ def test_static_flow_crop_equals_the_crop_of_the_static_flow_field():
     xy = np.stack([xs.ravel(), ys.ravel()], 1).astype(float)
     depth, _ = geometry.scene_depth(xy, K, FORWARD, [], 0.0)
     field = geometry.static_flow(xy, depth, K, FORWARD, T2).reshape(h, w, 2)
-    boxes = np.array([[1100.0, 560.0, 1160.0, 600.0], [400.0, 600.0, 470.0, 650.0]])
+    # the third and fourth windows leave the frame (right, bottom-left): edge-padded alike
+    boxes = np.array([[1100.0, 560.0, 1160.0, 600.0], [400.0, 600.0, 470.0, 650.0],
+                      [1550.0, 500.0, 1600.0, 540.0], [0.0, 840.0, 60.0, 890.0]])
     want = crop_boxes(field.astype(np.float32), boxes, 32)
     for win, crop in zip(crop_windows(boxes, 3.0), want, strict=True):
-        got = geometry.static_flow_crop(win, 32, K, FORWARD, T2, [], 0.0)
+        got = geometry.static_flow_crop(win, 32, K, FORWARD, T2, [], 0.0, image_size=(w, h))
         assert got.shape == (2, 32, 32) and got.dtype == np.float32
         np.testing.assert_allclose(got, crop, atol=0.05)
         assert np.abs(crop).max() > 5.0, "the test needs flow worth the name"
@@ -302,3 +304,33 @@ def test_static_crops_explain_the_exact_flow_of_still_vehicles(smoke_built):
     assert np.median(on_box[seen] / raw[seen]) < 0.02
     movers = np.linalg.norm(np.asarray(x[~still], np.float32) - static[~still], axis=1)
     assert np.median(movers) > 10 * np.median(on_box)
+
+
+def test_deployed_depth_puts_the_target_at_its_2d_boxs_ground_contact():
+    """A car 18 m ahead on flat ground (rear face 1.8 m wide, as tall as the camera is high)
+    seen as the camera drives 1 m forward. From its 2D box alone (bottom edge on the
+    ground: 18 m) the deployable static flow inside the box is the annotated 3D box's; off
+    the box it is the ground's; the ground alone would put the box's pixels at the far
+    plane."""
+    T2 = FORWARD.copy()
+    T2[0, 3] += 1.0
+    f, z = 1266.0, 18.0
+    box2d = np.array([816.0 - f * 0.9 / z, 491.0, 816.0 + f * 0.9 / z, 491.0 + f * 1.5 / z])
+    assert geometry.contact_depth(box2d, K, FORWARD, 0.0) == pytest.approx(z)
+    assert np.isnan(geometry.contact_depth(np.array([700.0, 300.0, 900.0, 480.0]), K,
+                                           FORWARD, 0.0)), "bottom edge above the horizon"
+    c, rot = geometry.box_in_camera(FORWARD, np.array([z + 2.25, 0.0, 0.75]),
+                                    np.array([1.0, 0.0, 0.0, 0.0]))
+    annotated = [(c, np.array([1.8, 4.5, 1.5]), rot)]
+    win = np.array([816.0 - 150.0, 430.0, 300.0])
+    deployed = geometry.static_flow_crop(win, 30, K, FORWARD, T2, annotated, 0.0, box2d=box2d)
+    oracle = geometry.static_flow_crop(win, 30, K, FORWARD, T2, annotated, 0.0)
+    ground = geometry.static_flow_crop(win, 30, K, FORWARD, T2, [], 0.0)
+    xy = geometry.window_lattice(win, 30)
+    inside = ((xy[:, 0] > box2d[0] + 1) & (xy[:, 0] < box2d[2] - 1) & (xy[:, 1] > box2d[1] + 1)
+              & (xy[:, 1] < box2d[3] - 1)).reshape(30, 30)
+    assert inside.sum() >= 20
+    np.testing.assert_allclose(deployed[:, inside], oracle[:, inside], atol=0.02)
+    assert np.abs(ground[:, inside] - oracle[:, inside]).max() > 1.0
+    np.testing.assert_allclose(deployed[:, ~inside & (xy[:, 1] > 600).reshape(30, 30)],
+                               ground[:, ~inside & (xy[:, 1] > 600).reshape(30, 30)])

@@ -158,6 +158,32 @@ def test_context_crops_match_the_flow_crops_objects_images_and_geometry(smoke_bu
     assert t.loc["moving", "residual (px)"] > 3 * t.loc["still", "residual (px)"]
 
 
+def test_deployed_static_world_explains_still_vehicles_less_exactly_than_the_oracle(
+        smoke_built):
+    """The static world a car could compute (flat ground, the target at its 2D box's ground
+    contact) removes most of a still vehicle's exact flow, less exactly than the annotated
+    3D boxes do; movers keep theirs. ``residual-deployed`` stacks flow minus it."""
+    p = smoke_built
+    ctx = pipeline.published(p, dag.Node("context", None, "keyframe"))
+    flows = pipeline.published(p, dag.Node("crops", "gt", "keyframe"))
+    x, idx = crops.read_crops(flows, "f0")
+    oracle = context.read_context(ctx, "f0")[0]
+    deployed, _, didx = context.read_context(ctx, "f0", "ground")
+    assert didx["ann_token"].equals(idx["ann_token"]) and deployed.shape == x.shape
+    assert not np.array_equal(deployed, oracle)
+    moved = np.median(np.abs(np.asarray(x, np.float32)), axis=(1, 2, 3)) > 0.5
+    labels = idx["label"].to_numpy()[moved]
+    car = ch10.static_explains(x[moved], deployed[moved], labels).set_index("vehicles")
+    box = ch10.static_explains(x[moved], oracle[moved], labels).set_index("vehicles")
+    assert car.loc["still", "objects"] >= 5
+    assert car.loc["still", "residual / flow"] < 0.5
+    assert box.loc["still", "residual (px)"] < car.loc["still", "residual (px)"]
+    assert car.loc["moving", "residual (px)"] > car.loc["still", "residual (px)"]
+    xs, _ = inputs.split_inputs("residual-deployed", ctx, flows, "f0")
+    np.testing.assert_allclose(xs[np.arange(4)], np.asarray(x[:4], np.float32)
+                               - np.asarray(deployed[:4], np.float32))
+
+
 def test_context_refuses_a_corrupt_image(smoke_built, tmp_path):
     p = smoke_built
     pairs = pd.read_parquet(pipeline.published(p, dag.Node("select")) / "pairs.parquet")

@@ -265,17 +265,23 @@ GlobalBox = tuple[np.ndarray, np.ndarray, np.ndarray]
 def static_crops(objects: pd.DataFrame, pairs: pd.DataFrame, size: int, scale: float,
                  ground_z: float = 0.0,
                  frame_boxes: Mapping[str, Sequence[GlobalBox]] | None = None,
-                 progress: bool = False) -> np.ndarray:
+                 progress: bool = False, deployed: bool = False) -> np.ndarray:
     """(N, 2, S, S) float32 px: :func:`flowmod.geometry.static_flow_crop` for every object
     of ``objects`` (rows of objects.parquet, in their order) in its pair's crop window
-    (``scale`` x the box), with depth from the annotated 3D boxes and the ground
+    (``scale`` x the box; edge-padded outside the frame like the flow crops), with depth
+    from the annotated 3D boxes and the ground
     ``z = ground_z`` (global; 0 on the generated world and in nuScenes, whose ego poses lie
     on the ground): the crop the ego-motion-compensated input subtracts. The boxes are
     ``frame_boxes[pair_id]`` (every annotated box of the pair's first frame, global:
-    :func:`flowmod.select.frame_boxes_3d`) where given, else the object's own box only."""
+    :func:`flowmod.select.frame_boxes_3d`) where given, else the object's own box only.
+    ``deployed``: no 3D box at all, the target's depth from its 2D box's ground contact
+    (:func:`flowmod.geometry.deployed_depth`: what a car could compute)."""
     p = pairs.set_index("pair_id")
-    wins = crop_windows(objects[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float), scale)
+    box2d = objects[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float)
+    wins = crop_windows(box2d, scale)
     out = np.empty((len(objects), 2, size, size), np.float32)
+    if deployed:
+        frame_boxes = {str(pid): () for pid in objects["pair_id"]}
     cams: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, list[Any]]] = {}
     rows = zip(objects.itertuples(index=False), wins, strict=True)
     for i, (o, win) in enumerate(bar(rows, total=len(objects), desc="static-world crops",
@@ -291,7 +297,9 @@ def static_crops(objects: pd.DataFrame, pairs: pd.DataFrame, size: int, scale: f
             c, rot = geometry.box_in_camera(T1, np.array([o.center_x, o.center_y, o.center_z]),
                                             np.array([o.qw, o.qx, o.qy, o.qz]))
             boxes = [(c, np.array([o.size_w, o.size_l, o.size_h]), rot)]
-        out[i] = geometry.static_flow_crop(win, size, K, T1, T2, boxes, ground_z)
+        out[i] = geometry.static_flow_crop(win, size, K, T1, T2, boxes, ground_z,
+                                           image_size=IMAGE_SIZE,
+                                           box2d=box2d[i] if deployed else None)
     return out
 
 

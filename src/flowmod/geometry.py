@@ -229,6 +229,32 @@ def scene_depth(
     return np.where(np.isfinite(depth), depth, far), source
 
 
+def contact_depth(box: np.ndarray, K: np.ndarray, cam2global: np.ndarray, ground_z: float
+                  ) -> float:
+    """Camera-z depth (m) of a 2D box's ground contact on a flat ground: where the ray
+    through the middle of its bottom edge meets ``z = ground_z`` (global); NaN when that
+    edge is at or above the horizon. box: (4,) xmin, ymin, xmax, ymax px. What a car can
+    compute from a detection and its odometry: no 3D box, no depth sensor."""
+    b = np.asarray(box, np.float64)
+    xy = np.array([[(b[0] + b[2]) / 2.0, b[3]]])
+    return float(plane_depth(xy, K, cam2global, ground_z)[0])
+
+
+def deployed_depth(xy: np.ndarray, box: np.ndarray, K: np.ndarray, cam2global: np.ndarray,
+                   ground_z: float, far: float = FAR_DEPTH) -> np.ndarray:
+    """(N,) m: the depth a car could assume at pixels ``xy`` (N, 2): the flat ground (else
+    ``far``), and inside the target's 2D ``box`` a surface facing the camera at the box's
+    ground-contact depth (:func:`contact_depth`). Other vehicles are not known: ground."""
+    depth, _ = scene_depth(xy, K, cam2global, [], ground_z, far)
+    d = contact_depth(box, K, cam2global, ground_z)
+    if np.isfinite(d):
+        b = np.asarray(box, np.float64)
+        inside = ((xy[:, 0] >= b[0]) & (xy[:, 0] <= b[2]) & (xy[:, 1] >= b[1])
+                  & (xy[:, 1] <= b[3]))
+        depth[inside] = d
+    return depth
+
+
 def window_lattice(window: np.ndarray, size: int) -> np.ndarray:
     """(S * S, 2) image px of the pixels of an S x S crop of the square window ``x0, y0, n``
     (:func:`flowmod.crops.crop_windows`), row by row: where the bilinear resize of the
@@ -242,14 +268,26 @@ def window_lattice(window: np.ndarray, size: int) -> np.ndarray:
 def static_flow_crop(
     window: np.ndarray, size: int, K: np.ndarray, cam2global_1: np.ndarray,
     cam2global_2: np.ndarray, boxes: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-    ground_z: float, far: float = FAR_DEPTH,
+    ground_z: float, far: float = FAR_DEPTH, image_size: tuple[int, int] | None = None,
+    box2d: np.ndarray | None = None,
 ) -> np.ndarray:
     """(2, S, S) float32 px: the flow a static world would have at the pixels of a crop of
     ``window``, from the two camera poses and the depth of :func:`scene_depth` (annotated
     boxes of frame 1, the ground, the far plane; all of which real nuScenes has too). The
-    classifier's crop minus this is the ego-motion-compensated (residual) input."""
+    classifier's crop minus this is the ego-motion-compensated (residual) input.
+
+    ``image_size`` (width, height) px: where the window leaves the frame, take the flow at
+    the nearest pixel of the frame, as the flow crop's edge padding does (so the residual
+    there is the frame edge's, not padding minus geometry); None: the geometry everywhere.
+    ``box2d`` (4,) px: the deployable variant, depth from the target's 2D box on the flat
+    ground (:func:`deployed_depth`) instead of the annotated ``boxes`` (an oracle)."""
     xy = window_lattice(window, size)
-    depth, _ = scene_depth(xy, K, cam2global_1, boxes, ground_z, far)
+    if image_size is not None:
+        xy = np.clip(xy, 0.0, [image_size[0] - 1.0, image_size[1] - 1.0])
+    if box2d is not None:
+        depth = deployed_depth(xy, box2d, K, cam2global_1, ground_z, far)
+    else:
+        depth, _ = scene_depth(xy, K, cam2global_1, boxes, ground_z, far)
     flow = static_flow(xy, depth, K, cam2global_1, cam2global_2)
     return flow.reshape(size, size, 2).transpose(2, 0, 1).astype(np.float32)
 

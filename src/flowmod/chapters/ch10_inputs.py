@@ -18,6 +18,7 @@ from flowmod.extensions.inputs import VARIANTS, chains
 from flowmod.metrics import comparison_table, seed_summary, span
 from flowmod.params import Params
 from flowmod.select import SPLITS
+from flowmod.train import seed_parts
 
 
 def built(params: Params) -> list[tuple[str | None, str]]:
@@ -147,13 +148,24 @@ def built_note(params: Params, done: list[tuple[str | None, str]]) -> str:
                 "`extension_inputs=[residual]`) and run `make extensions`.")
     todo = [c for c in chains(params) if c not in done]
     return common.built_note("Chains built", [f"{m or 'no flow'}/{v}" for m, v in done],
-                             len(chains(params)), f"{len(todo) * params.seeds} models",
+                             len(chains(params)), f"{len(todo) * len(seed_parts(params))} models",
                              "extension_build")
 
 
 #: How a headline names the inputs whose static-world flow takes depth from the annotated
 #: 3D boxes: information a car does not have.
 ORACLE_NOTE = " (static world with annotated-box depth, an oracle a car does not have)"
+#: How a headline names the input whose static-world flow a car could compute.
+DEPLOYED_NOTE = (" (static world from the flat ground and the target's 2D box, as a car "
+                 "could compute it)")
+
+
+def depth_note(variant: str) -> str:
+    """What a table or headline says of an input's static-world depth ('' without one)."""
+    v = VARIANTS[variant]
+    if not v.static:
+        return ""
+    return ORACLE_NOTE if v.depth == "boxes" else DEPLOYED_NOTE
 
 
 def headline(params: Params, paired_test: pd.DataFrame) -> str:
@@ -171,12 +183,12 @@ def headline(params: Params, paired_test: pd.DataFrame) -> str:
             continue
         r = by_name.loc[comparison_name(params, m, v)]
         on = "" if m else f" (no flow; against {reference(params, m)} flow)"
-        oracle = ORACLE_NOTE if VARIANTS[v].static else ""
+        oracle = depth_note(v)
         parts.append(f"{v}{oracle}{on} {r['ΔF1 (points)']:+.1f} F1 points (95 % interval "
                      f"over scenes {r['95% CI over scenes (points)']})")
     if not parts:
         return ("not built in this run (make extensions trains them: "
-                f"{len(chains(params)) * params.seeds} models)" if params.extension_inputs else
+                f"{len(chains(params)) * len(seed_parts(params))} models)" if params.extension_inputs else
                 "not part of this profile (extension_inputs is empty)")
     return f"against the raw {main} flow, paired on the test scenes: " + "; ".join(parts)
 

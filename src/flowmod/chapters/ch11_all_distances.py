@@ -16,6 +16,7 @@ from flowmod.evaluate import breakdown, paired, scored, seed_probs
 from flowmod.evaluate import table4 as evaluate_table4
 from flowmod.metrics import comparison_table, false_alarm_rate, metrics
 from flowmod.params import Params
+from flowmod.train import seed_parts
 
 #: Distance bins of the chapter's breakdowns (m): Table 4's range and beyond it.
 EDGES = (0, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100.01)
@@ -139,7 +140,7 @@ def built_note(params: Params, done: list[str]) -> str:
     todo = [m for m in params.wide_methods if m not in done]
     return common.built_note("Methods trained on all distances", done,
                              len(params.wide_methods),
-                             f"{', '.join(todo)}; {len(todo) * params.seeds} models",
+                             f"{', '.join(todo)}; {len(todo) * len(seed_parts(params))} models",
                              "extension_build")
 
 
@@ -151,7 +152,7 @@ def headline(params: Params, table: pd.DataFrame, done: list[str]) -> str:
     main = next((m for m in done if m != "gt"), done[0] if done else None)
     if main is None:
         return ("not built in this run (make extensions trains them: "
-                f"{len(params.wide_methods) * params.seeds} models)")
+                f"{len(params.wide_methods) * len(seed_parts(params))} models)")
     t = table[table["vehicles"].str.endswith("(Table 4)")
               & (table["scored against"] == "paper rule (previous keyframe)")].set_index(
         "method")

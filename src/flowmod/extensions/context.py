@@ -6,6 +6,9 @@ crops: the static-world flow of its crop window and the two camera images of tha
   annotated 3D box of the first frame where a ray meets one, else the ground plane, else a
   far plane (:func:`flowmod.crops.static_crops`; all of which real nuScenes has too). The
   flow crop minus it is the ego-motion-compensated (residual) input.
+* ``<split>.deployed.npy``: (N, 2, S, S) float16 px, the same with what a car could know
+  (:func:`flowmod.geometry.deployed_depth`): no 3D box, the flat ground, and the target at
+  its 2D box's ground-contact depth.
 * ``<split>.images.npy``: (N, 6, S, S) uint8, RGB of frame 1 then RGB of frame 2 in the same
   window (the window of the flow crop, cut from the full-resolution images and resized the
   same way: :func:`flowmod.crops.crop_image`).
@@ -39,8 +42,12 @@ from flowmod.crops import (
 from flowmod.progress import bar
 from flowmod.select import PARTS, frame_boxes_3d, objects_node, open_nuscenes
 
-#: Files of one split: static-world flow crops, image crops, index.
-STATIC, IMAGES = "static", "images"
+#: Files of one split: static-world flow crops (annotated-box depth; deployable depth),
+#: image crops, index.
+STATIC, DEPLOYED, IMAGES = "static", "deployed", "images"
+#: The static-world flow a ``depth`` of :func:`read_context` names: ``boxes`` (annotated 3D
+#: boxes, an oracle) or ``ground`` (the 2D box's ground contact, deployable).
+DEPTHS = {"boxes": STATIC, "ground": DEPLOYED}
 
 
 def read_image(path: Path) -> np.ndarray:
@@ -73,9 +80,10 @@ def image_crops(objects: pd.DataFrame, pairs: pd.DataFrame, dataroot: Path, size
 
 
 def paths(folder: str | os.PathLike[str], split: str) -> dict[str, Path]:
-    """The files of one split: ``static``, ``images`` (.npy) and ``index`` (.parquet)."""
+    """The files of one split: ``static``, ``deployed``, ``images`` (.npy) and ``index``
+    (.parquet)."""
     d = Path(folder)
-    return {STATIC: d / f"{split}.{STATIC}.npy", IMAGES: d / f"{split}.{IMAGES}.npy",
+    return {**{k: d / f"{split}.{k}.npy" for k in (STATIC, DEPLOYED, IMAGES)},
             "index": d / f"{split}.parquet"}
 
 
@@ -86,8 +94,10 @@ def build_split(objects: pd.DataFrame, pairs: pd.DataFrame, dataroot: Path, out:
     df = split_objects(objects, split)
     f = paths(out, split)
     static = static_crops(df, pairs, size, scale, frame_boxes=frame_boxes, progress=progress)
+    deployed = static_crops(df, pairs, size, scale, deployed=True)
     images = image_crops(df, pairs, dataroot, size, scale, progress=progress)
-    for name, arr in ((STATIC, static.astype(np.float16)), (IMAGES, images)):
+    for name, arr in ((STATIC, static.astype(np.float16)),
+                      (DEPLOYED, deployed.astype(np.float16)), (IMAGES, images)):
         with atomic_path(f[name]) as tmp:
             np.save(tmp, arr, allow_pickle=False)
     with atomic_path(f["index"]) as tmp:
@@ -95,17 +105,18 @@ def build_split(objects: pd.DataFrame, pairs: pd.DataFrame, dataroot: Path, out:
     return len(df)
 
 
-def read_context(folder: str | os.PathLike[str], split: str
+def read_context(folder: str | os.PathLike[str], split: str, depth: str = "boxes"
                  ) -> tuple[np.ndarray, np.ndarray, pd.DataFrame]:
     """(static (N, 2, S, S) float16 px, images (N, 6, S, S) uint8, index) of one split,
-    memory-mapped; :class:`CropsError` naming the file when one is missing or they
+    memory-mapped; the static-world flow with ``depth`` :data:`DEPTHS` (``boxes``: annotated,
+    ``ground``: deployable). :class:`CropsError` naming the file when one is missing or they
     disagree."""
     f = paths(folder, split)
     for path in f.values():
         if not path.is_file():
             raise CropsError(f"context artefact missing: {path}; run chapter 10's stages "
                              "(python -m flowmod.runner --only 10 --set extension_build=true)")
-    static = np.load(f[STATIC], mmap_mode="r", allow_pickle=False)
+    static = np.load(f[DEPTHS[depth]], mmap_mode="r", allow_pickle=False)
     images = np.load(f[IMAGES], mmap_mode="r", allow_pickle=False)
     df = pd.read_parquet(f["index"])
     if not (static.shape[0] == images.shape[0] == len(df)) or static.shape[1] != 2 \
@@ -134,7 +145,7 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
 
 
 #: Chapter 10's static-world flow and image crops, one node per part (no flow method).
-STAGE = dag.Stage("context", 1, "10", "extensions/context/{part}",
+STAGE = dag.Stage("context", 2, "10", "extensions/context/{part}",
                   "static-world flow and image crops of every object",
                   nodes=lambda p: ([dag.Node("context", None, part) for part in PARTS]
                                    if p.extension_inputs else []),

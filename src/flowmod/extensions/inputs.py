@@ -4,7 +4,11 @@ Inputs (channels, in this order; ``S x S`` crops of the paper's window):
 
 =============== == =====================================================================
 ``flow``         2 the paper's input: the flow crop (u, v), px
-``residual``     2 flow minus the static-world flow of the window (ego motion removed), px
+``residual``     2 flow minus the static-world flow of the window (ego motion removed), px;
+                   depth from the annotated 3D boxes (an oracle a car does not have)
+``residual-deployed``
+                 2 the same with the depth a car could assume: flat ground, the target
+                   at its 2D box's ground contact (ego poses are odometry)
 ``flow+static``  4 the flow crop, then the static-world flow (u, v, u_s, v_s), px
 ``images``       6 no flow: RGB of frame 1 and frame 2 in the window, standardised
 ``images+flow``  8 the flow crop, then the six image channels
@@ -50,11 +54,15 @@ class Variant:
     #: channels negated by a horizontal flip (horizontal flow components)
     negate: tuple[int, ...]
     doc: str
+    #: the static-world flow's depth (:data:`flowmod.extensions.context.DEPTHS`)
+    depth: str = "boxes"
 
 
 VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("flow", 2, True, False, False, (0,), "raw flow (the paper)"),
     Variant("residual", 2, True, True, False, (0,), "flow minus static-world flow"),
+    Variant("residual-deployed", 2, True, True, False, (0,),
+            "flow minus static-world flow, target depth from its 2D box", depth="ground"),
     Variant("flow+static", 4, True, True, False, (0, 2), "flow and static-world flow"),
     Variant("images", 6, False, False, True, (), "the two images, no flow"),
     Variant("images+flow", 8, True, False, True, (0,), "flow and the two images"),
@@ -80,7 +88,7 @@ def compose(variant: str, flow: np.ndarray | None = None, static: np.ndarray | N
     f = np.asarray(flow, np.float32) if v.flow else None
     if variant == "flow":
         return f  # type: ignore[return-value]
-    if variant == "residual":
+    if variant in ("residual", "residual-deployed"):
         return f - np.asarray(static, np.float32)  # type: ignore[operator]
     if variant == "flow+static":
         return np.concatenate([f, np.asarray(static, np.float32)], axis=1)  # type: ignore[list-item]
@@ -126,8 +134,8 @@ def split_inputs(variant: str, context_folder: Any, crops_folder: Any, split: st
     """(inputs, index) of one stored split for ``variant``: the context node's arrays and,
     for an input with flow, the flow crops of the method's crops node (same objects,
     checked)."""
-    static, images, df = read_context(context_folder, split)
     v = VARIANTS[variant]
+    static, images, df = read_context(context_folder, split, v.depth)
     flow = None
     if v.flow:
         flow, fdf = read_crops(crops_folder, split)
