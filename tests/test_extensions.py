@@ -44,12 +44,18 @@ def test_blind_spots_and_slow_fast_recall():
     label = (speed >= 2).astype(int)
     # a classifier that finds every fast mover and half the slow ones
     prob = np.r_[np.full(20, 0.1), np.full(10, 0.9), np.full(10, 0.1), np.full(20, 0.9)]
-    df = pd.DataFrame({"label": label, "speed": speed, "motion_angle": rng.uniform(0, 10, n),
+    angle = rng.uniform(0, 10, n)
+    angle[30:40] = 80.0  # the slow movers the classifier misses move across the line of sight
+    df = pd.DataFrame({"label": label, "speed": speed, "motion_angle": angle,
                        "distance": rng.uniform(30, 70, n), "box_width_px": 50.0,
                        "scene": np.repeat(["a", "b", "c"], 20)})
     t = blind_spots.blind_spots(df, prob[None], df["scene"].to_numpy())
     assert set(t["by"]) == {"angle to the line of sight (deg)", "speed (m/s)", "distance (m)",
-                            "box width (px)"}
+                            "box width (px)", blind_spots.RADIAL_SPEED}
     speeds = t[t["by"] == "speed (m/s)"].set_index("bin")
     assert speeds.loc["[2, 3)", "recall"] == 0.5 and speeds.loc["[5, 10)", "recall"] == 1.0
     assert blind_spots.recall_slow_and_fast(t) == (0.5, 1.0)
+    # along the line of sight only: the crossing slow movers are not counted
+    radial = t[t["by"] == blind_spots.RADIAL_SPEED].set_index("bin")
+    assert radial.loc["[2, 3)", "n_moving"] == 10 and radial.loc["[2, 3)", "recall"] == 1.0
+    assert radial.loc["[0, 2)", "n"] == 20

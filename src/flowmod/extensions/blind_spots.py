@@ -39,18 +39,31 @@ def motion_geometry(objects: pd.DataFrame, pairs: pd.DataFrame) -> pd.DataFrame:
                           box_width_px=(objects["xmax"] - objects["xmin"]).to_numpy())
 
 
+#: Movers whose motion is within this angle (deg) of the line of sight count as radial.
+RADIAL_MAX_ANGLE = 30.0
+#: The ``by`` of :func:`blind_spots`' speed bins over all vehicles, and over the still ones
+#: and the movers along the line of sight only.
+SPEED, RADIAL_SPEED = "speed (m/s)", f"speed (m/s), movers within {RADIAL_MAX_ANGLE:g} deg " \
+    "of the line of sight"
+SPEED_BINS = [0, 2, 3, 5, 10, 40]
+
+
 def blind_spots(df: pd.DataFrame, probs: np.ndarray, groups: np.ndarray) -> pd.DataFrame:
     """F1 and recall of the moving vehicles by the angle of their motion to the line of
-    sight, their speed, distance and box size (mean over training seeds, scene-level
-    intervals, counts): one table with a ``by`` column. ``df``: predictions with the
-    columns of :func:`motion_geometry`; probs: (S, N)."""
+    sight, their speed (of all; of the radial movers, :data:`RADIAL_SPEED`), distance and
+    box size (scene-level intervals, counts): one table with a ``by`` column. ``df``:
+    predictions with the columns of :func:`motion_geometry`; probs: (S, N)."""
     specs = [("motion_angle", [0, 15, 30, 60, 90.01], "angle to the line of sight (deg)"),
-             ("speed", [0, 2, 3, 5, 10, 40], "speed (m/s)"),
+             ("speed", SPEED_BINS, SPEED),
              ("distance", [30, 40, 50, 60, 70.01], "distance (m)"),
              ("box_width_px", [0, 20, 40, 80, 2000], "box width (px)")]
+    label = df["label"].to_numpy()
+    radial = (label == 0) | (df["motion_angle"].to_numpy() < RADIAL_MAX_ANGLE)
+    probs, groups = np.asarray(probs), np.asarray(groups)
     out = []
-    for col, bins, name in specs:
-        t = _breakdown(df, df["label"], probs, by=col, bins=bins, groups=groups)
+    for col, bins, name in [*specs, ("speed", SPEED_BINS, RADIAL_SPEED)]:
+        k = radial if name == RADIAL_SPEED else np.ones(len(df), bool)
+        t = _breakdown(df[k], df["label"][k], probs[:, k], by=col, bins=bins, groups=groups[k])
         out.append(t.rename(columns={f"{col}_bin": "bin"}).assign(by=name))
     cols = ["by", "bin", "n", "n_moving", "precision", "recall", "f1", "ci_lo", "ci_hi",
             "scenes"]
@@ -78,7 +91,7 @@ def physical_signal(focal_px: float, dt_s: float, distances_m=(30.0, 50.0, 70.0)
 def recall_slow_and_fast(blind: pd.DataFrame) -> tuple[float, float]:
     """Recall of the moving vehicles just above the threshold (2-3 m/s) and of those at 5
     m/s or more (NaN where a bin holds no mover), from a :func:`blind_spots` table."""
-    a = blind[blind["by"].str.startswith("speed")].set_index("bin")
+    a = blind[blind["by"] == SPEED].set_index("bin")
 
     def rec(bins: tuple[str, ...]) -> float:
         rows = a[a.index.isin(bins) & (a["n_moving"] > 0)]
