@@ -63,11 +63,11 @@ book: run browser  ## run, then render the book into build/html (and check it in
 	$(PY) -m flowmod.report.book --executed $(EXECUTED) --out $(HTML)
 	$(PY) -m flowmod.report.browser $(HTML) --screenshot build/book-screenshot.png --screenshots build/screenshots
 
-extensions: RUN_SET += --set extension_build=true
-extensions: book  ## make book, training chapters 10 and 11's models first (demo: 27 models, ~50 min more)
+extensions: RUN_SET += --set extension_build=true --set "extension_inputs=[residual,residual-deployed,flow+static,images,images+flow]" --set "extension_methods=[gt,dis]" --set "wide_methods=[gt,dis]"
+extensions: book  ## make book with chapters 10 and 11's full matrix (every input on gt and dis; demo: 18 more models)
 
-selfflow: RUN_SET += --set selfflow_build=true
-selfflow: book  ## make book, training chapter 12's FastFlowNets first (demo: 2 x 600 steps, ~25 min more; resumable)
+selfflow: RUN_SET += --set selfflow_build=true --set "selfflow_modes=[photometric,supervised]"
+selfflow: book  ## make book with chapter 12's photometric FastFlowNet too (demo: 400 more steps; resumable)
 
 test: env browser lint  ## lint, unit tests, notebooks on the smoke profile, the book build (TEST_WORKERS=2)
 	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=20 $(PYTEST_ARGS)

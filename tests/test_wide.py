@@ -88,7 +88,7 @@ def test_sweep_pairs_of_a_training_scene_are_labelled_like_the_generalisation_se
 
 def test_wide_methods_default_and_checks():
     p = load_profile("demo")
-    assert p.wide_methods == ["gt", "dis"]
+    assert p.wide_methods == ["dis"]
     q = load_profile("demo", wide_methods=None, extension_methods=["dis"])
     assert q.wide_methods == ["dis"], "default: chapter 10's methods"
     with pytest.raises(ProfileError, match="wide_methods.*farneback.*not in flow_methods"):

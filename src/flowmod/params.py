@@ -113,8 +113,9 @@ class Params(BaseModel):
                                description="synthetic world: number of scenes")
     world_keyframes: int = _field(20, ge=2, le=60, read_by=("world",),
                                   description="keyframes (2 Hz) per scene")
-    world_sweep_scenes: int = _field(4, ge=0, read_by=("world",),
-                                     description="scenes that also get ~12 Hz sweeps")
+    world_sweep_scenes: int = _field(6, ge=0, read_by=("world",),
+                                     description="scenes that also get ~12 Hz sweeps (dealt "
+                                                 "over the folds first)")
     world_vehicles: int = _field(28, ge=1, le=200, read_by=("world",),
                                  description="vehicles per scene (mean)")
 
@@ -163,7 +164,7 @@ class Params(BaseModel):
         100.0, gt=0.0, read_by=("general",),
         description="m, vehicles from general_max_distance to this are also selected and "
                     "reported apart from Table 4 (0 = none)")
-    general_max_scenes: int = _field(4, ge=0, read_by=("general",),
+    general_max_scenes: int = _field(6, ge=0, read_by=("general",),
                                      description="held-out scenes used (0 = none)")
 
     # --- optical flow ------------------------------------------------------------------
@@ -224,9 +225,10 @@ class Params(BaseModel):
     gamma: float = _field(0.5, gt=0.0, le=1.0, read_by=_TRAIN, description="StepLR factor")
     hflip_p: float = _field(0.5, ge=0.0, le=1.0, read_by=_TRAIN,
                             description="training-only horizontal flip")
-    model_width: int = _field(64, ge=4, le=256, read_by=_TRAIN,
+    model_width: int = _field(32, ge=4, le=256, read_by=_TRAIN,
                               description="channels of the ResNet18's first stage (64: the "
-                                          "paper's; stages have 1, 2, 4, 8 x this)")
+                                          "paper's; the demo's 32 trains ~4x faster; stages "
+                                          "have 1, 2, 4, 8 x this)")
     seeds: int = _field(1, ge=1, le=20, role="plan",
                         description="training runs per flow method on one split (folds 1), "
                                     "seeds seed .. seed+seeds-1")
@@ -241,19 +243,21 @@ class Params(BaseModel):
     num_workers: int = _field(0, ge=0, le=64, role="run", description="DataLoader workers")
 
     # --- beyond the paper (chapter 10) ---------------------------------------------------
-    extension_inputs: list[Literal["residual", "flow+static", "images", "images+flow"]] = (
-        _field(lambda: ["residual", "flow+static", "images", "images+flow"], role="plan",
+    extension_inputs: list[Literal["residual", "residual-deployed", "flow+static", "images",
+                                   "images+flow"]] = (
+        _field(lambda: ["residual", "residual-deployed", "images", "images+flow"], role="plan",
                description="chapter 10: classifier inputs besides the raw flow, each trained "
-                           "with seeds x Table 2 (residual = flow - static-world flow; "
+                           "with Table 2 (residual = flow - static-world flow, annotated-box "
+                           "depth; residual-deployed: depth from the 2D box's ground contact; "
                            "flow+static; images = the two image crops; images+flow)"))
     extension_methods: list[str] | None = _field(
         None, role="plan",
         description="chapter 10: the flow methods its flow inputs are built on; default: the "
-                    "exact flow (if in flow_methods) and the first other method")
+                    "first method that is not the exact flow (a flow a car could compute)")
     extension_build: bool = _field(
-        False, role="run",
-        description="chapters 10 and 11 train their stale models (make extensions); off: "
-                    "they show the ones built")
+        True, role="run",
+        description="chapters 10 and 11 train their stale models; off: they show the ones "
+                    "built (make extensions: the full matrix of inputs and methods)")
 
     # --- beyond the paper (chapter 11): trained on all distances --------------------------
     wide_methods: list[str] | None = _field(
@@ -269,15 +273,15 @@ class Params(BaseModel):
 
     # --- beyond the paper (chapter 12): FastFlowNet trained here ---------------------------
     selfflow_modes: list[Literal["photometric", "supervised"]] = _field(
-        lambda: ["photometric", "supervised"], role="plan",
+        lambda: ["supervised"], role="plan",
         description="chapter 12: how FastFlowNet is trained from scratch: photometric "
                     "(self-supervised) and/or supervised by the exact flow (generated world "
                     "only); [] = off")
     selfflow_build: bool = _field(
-        False, role="run",
-        description="chapter 12 trains its stale networks (make selfflow); off: it shows "
-                    "the ones built")
-    selfflow_iters: int = _field(600, ge=1, le=10_000_000, read_by=("selfflow",),
+        True, role="run",
+        description="chapter 12 trains its stale networks; off: it shows the ones built "
+                    "(make selfflow: photometric too, longer)")
+    selfflow_iters: int = _field(400, ge=1, le=10_000_000, read_by=("selfflow",),
                                  description="chapter 12: training steps (the CPU budget)")
     selfflow_batch: int = _field(4, ge=1, le=256, read_by=("selfflow",),
                                  description="chapter 12: pairs per step")
@@ -345,8 +349,8 @@ class Params(BaseModel):
         if len(set(self.extension_inputs)) != len(self.extension_inputs):
             raise ValueError(f"extension_inputs={self.extension_inputs} lists an input twice")
         if self.extension_methods is None:
-            self.extension_methods = [m for m in self.flow_methods if m == "gt"][:1] + [
-                m for m in self.flow_methods if m != "gt"][:1]
+            self.extension_methods = ([m for m in self.flow_methods if m != "gt"]
+                                      or list(self.flow_methods))[:1]
         stray = [m for m in self.extension_methods if m not in self.flow_methods]
         if self.extension_inputs and (stray or not self.extension_methods):
             raise ValueError(
