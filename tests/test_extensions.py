@@ -54,7 +54,8 @@ def test_blind_spots_and_slow_fast_recall():
                             "box width (px)", blind_spots.RADIAL_SPEED}
     speeds = t[t["by"] == "speed (m/s)"].set_index("bin")
     assert speeds.loc["[2, 3)", "recall"] == 0.5 and speeds.loc["[5, 10)", "recall"] == 1.0
-    assert blind_spots.recall_slow_and_fast(t) == (0.5, 1.0)
+    assert blind_spots.recall_slow_and_fast(t, blind_spots.SPEED) == (0.5, 1.0)
+    assert blind_spots.recall_slow_and_fast(t) == (1.0, 1.0), "the radial movers by default"
     # along the line of sight only: the crossing slow movers are not counted
     radial = t[t["by"] == blind_spots.RADIAL_SPEED].set_index("bin")
     assert radial.loc["[2, 3)", "n_moving"] == 10 and radial.loc["[2, 3)", "recall"] == 1.0

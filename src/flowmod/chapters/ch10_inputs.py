@@ -117,6 +117,13 @@ def context_split(params: Params, split: str) -> tuple[np.ndarray, np.ndarray, p
     return static, images, df
 
 
+def explains_method(params: Params) -> str:
+    """The flow whose crops measure what the static world explains: the exact flow where the
+    profile has it (the static model's own error, not the flow method's), else chapter 10's
+    first method."""
+    return "gt" if "gt" in params.flow_methods else params.extension_methods[0]
+
+
 def static_explains(flow: np.ndarray, static: np.ndarray, labels: np.ndarray) -> pd.DataFrame:
     """How much of the flow at the vehicles the static world explains: per class (still,
     moving), the median over objects of the median flow magnitude in the box's square (the

@@ -88,10 +88,11 @@ def physical_signal(focal_px: float, dt_s: float, distances_m=(30.0, 50.0, 70.0)
     return pd.DataFrame(rows)
 
 
-def recall_slow_and_fast(blind: pd.DataFrame) -> tuple[float, float]:
+def recall_slow_and_fast(blind: pd.DataFrame, by: str = RADIAL_SPEED) -> tuple[float, float]:
     """Recall of the moving vehicles just above the threshold (2-3 m/s) and of those at 5
-    m/s or more (NaN where a bin holds no mover), from a :func:`blind_spots` table."""
-    a = blind[blind["by"] == SPEED].set_index("bin")
+    m/s or more (NaN where a bin holds no mover), from a :func:`blind_spots` table; ``by``:
+    of the movers along the line of sight (:data:`RADIAL_SPEED`) or of all (:data:`SPEED`)."""
+    a = blind[blind["by"] == by].set_index("bin")
 
     def rec(bins: tuple[str, ...]) -> float:
         rows = a[a.index.isin(bins) & (a["n_moving"] > 0)]
