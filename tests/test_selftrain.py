@@ -159,7 +159,8 @@ def test_published_weights_are_a_fastflownet_checkpoint_with_the_recorded_error(
     t = ch12.epe_table(p, ch12.built(p))
     assert list(t["method"]) == ["zero flow", "farneback", "dis (medium)",
                                  "fastflownet (photometric)", "fastflownet (supervised)"]
-    assert "against DIS's" in ch12.headline(p, ch12.built(p))
+    head = ch12.headline(p, ch12.built(p))
+    assert "against DIS's" in head and "the zero flow's" in head
     assert not (pipeline.node_dir(p, dag.Node("selfflow", None, "supervised")) / "gt").exists()
 
 
