@@ -471,3 +471,24 @@ def test_stored_gt_flow_is_finite_and_exact_on_valid_pixels(smoke_world, smoke_n
     print("gt storage error on valid pixels, p50 p90 p99 p99.9 (px):",
           np.percentile(err, [50, 90, 99, 99.9]).round(3))
     assert np.percentile(err, 99) < 1.0, np.percentile(err, [50, 90, 99, 99.9])
+
+
+def test_swept_scenes_get_near_movers_and_keep_everything_else():
+    """A scene with sweeps (the generalisation set's) gets vehicles driving near the ego, from
+    its own random stream: every other agent is the one the scene has without sweeps."""
+    from flowmod.world import agents as wa
+    from flowmod.world.scene import traj_state
+
+    added = []
+    for idx in range(4):
+        with_sweeps = wa.sample_scene(0, idx, 10, 24, "clear", True)
+        a, b = with_sweeps["agents"], wa.sample_scene(0, idx, 10, 24, "clear", False)["agents"]
+        assert a[:len(b)] == b
+        ego = with_sweeps["ego"]
+        for agent in a[len(b):]:
+            t = np.linspace(0, with_sweeps["duration"], 10)
+            gap = np.hypot(traj_state(agent["traj"], t)["x"] - traj_state(ego, t)["x"],
+                           traj_state(agent["traj"], t)["y"] - traj_state(ego, t)["y"])
+            added.append((agent["role"], float(gap.min())))
+    assert len(added) >= 8 and all(role == "moving" for role, _ in added)
+    assert all(gap < 30.0 for _, gap in added), added

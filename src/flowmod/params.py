@@ -37,7 +37,7 @@ TABLE1_CATEGORIES = [
 FLOW_METHODS = ("gt", "dis", "farneback", "raft", "raft_small", "fastflownet")
 #: Version of the synthetic world's generator (:mod:`flowmod.world`): bump when it changes
 #: what it writes. With the generation parameters it names the folder a world is made in.
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 #: A generated world's table written by the generator (real nuScenes has none).
 WORLD_FILE = "synth_world.json"
 #: A generated world's manifest, beside its tables (``flowmod.world.source``).

@@ -18,7 +18,8 @@ it and on real nuScenes. What the world contains, per scene (``synth-0000``, ...
 Frames are 1600x900 JPEGs of a nuScenes-like CAM_FRONT (fx = fy ~ 1266 px, camera ~1.5 m up,
 ~1.7 m ahead of the ego origin). Keyframes (samples) come every ~0.5 s; ``n_sweep_scenes``
 scenes also get the ~12 Hz frames in between (sweeps; 4-5 per gap, jittered timestamps, an
-occasional dropped frame). Annotations (sample_annotation) exist on keyframes for every agent
+occasional dropped frame) and about three more vehicles driving with or against the ego
+nearer than 30 m (the generalisation set's near movers). Annotations (sample_annotation) exist on keyframes for every agent
 within 100 m; visibility tokens '1'..'4' come from the rendered visible fraction of the box's
 silhouette inside the image (0-40, 40-60, 60-80, 80-100 %).
 
