@@ -8,6 +8,6 @@
 * :mod:`~flowmod.extensions.selfflow` (chapter 12, ``selfflow_modes``): FastFlowNet trained
   here from scratch.
 
-Their models are trained by ``make extensions`` (chapters 10 and 11, ``extension_build``)
-and ``make selfflow`` (chapter 12, ``selfflow_build``).
+Their models are trained by ``make book`` for the profile's chains (``extension_build``,
+``selfflow_build``); ``make extensions`` and ``make selfflow`` add the rest of the matrix.
 """

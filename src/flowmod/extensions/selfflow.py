@@ -2,7 +2,7 @@
 
 The training itself (losses, batches, held-out scoring) is :mod:`flowmod.flow.selftrain`;
 this module declares the ``selfflow[<mode>]`` nodes (``selfflow_modes``: ``photometric``
-and/or ``supervised``), built only with ``selfflow_build`` (``make selfflow``). The
+and/or ``supervised``), built only with ``selfflow_build`` (on in the demo). The
 chapter's tables are in :mod:`flowmod.chapters.ch12_self_trained_flow`.
 """
 
@@ -84,7 +84,7 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
     return {"mode": mode, "steps": int(hist["step"].iloc[-1])}
 
 
-#: Chapter 12: FastFlowNet trained from scratch (``make selfflow``).
+#: Chapter 12: FastFlowNet trained from scratch (with ``selfflow_build``).
 STAGE = dag.Stage("selfflow", 2, "12", "selfflow/{part}",
                   "FastFlowNet trained from scratch, validation and test end-point error",
                   nodes=lambda p: [dag.Node("selfflow", None, mode) for mode in p.selfflow_modes],

@@ -19,7 +19,7 @@ Stages (chapter 11; its tables are in :mod:`flowmod.chapters.ch11_all_distances`
   the keyframe test split (``test.parquet``), ``prob_s<k>`` per seed.
 
 The selection is always built (seconds); flow, crops, models and predictions only with
-``extension_build`` (``make extensions``): they do not fit the cold book's time budget.
+``extension_build`` (on in the demo; ``make extensions`` adds the exact flow).
 """
 
 from __future__ import annotations
@@ -73,7 +73,7 @@ WIDE_STAGE = dag.Stage(
     "training pairs and objects at every distance, sweeps too",
     nodes=lambda p: [dag.Node("wide")] if p.wide_methods else [],
     inputs=lambda n, p: (dag.Node("world"), dag.Node("select")), build=build_wide)
-#: Chapter 11: one seed of a classifier trained on all distances (``make extensions``).
+#: Chapter 11: one fold's (or seed's) classifier trained on all distances (extension_build).
 WTRAIN = dag.Stage(
     "wtrain", 1, "11", "extensions/wide/models/{method}/{part}",
     "a classifier trained on all distances",
