@@ -181,6 +181,22 @@ def test_paired_comparison_at_the_given_threshold_and_level():
     assert d["delta_f1"] == pytest.approx(ev.metrics(y, p, 0.3)["f1"] - ev.metrics(y, q, 0.3)["f1"])
 
 
+def test_paired_comparison_says_whether_it_decides_and_what_it_could_detect():
+    """The verdict follows the interval; the detectable difference is 2.8 standard errors of
+    the replicates (95 %, 80 % power): far apart decided, identical undecided."""
+    y, p, g = _scenes(20)
+    better = np.where(y == 1, 0.9, 0.1)
+    d = ev.paired_comparison(y, better, p, g, n=300, seed=1)
+    diff = ev.scene_bootstrap(y, better, g, 300, 1) - ev.scene_bootstrap(y, p, g, 300, 1)
+    assert d["detectable"] == pytest.approx(2.8016 * np.std(diff, ddof=1), rel=1e-3)
+    same = ev.paired_comparison(y, p, p, g, n=300, seed=1)
+    t = ev.comparison_table({"better - p": d, "p - p": same})
+    assert t["verdict"].tolist() == ["A better", "undecided"]
+    assert t.loc[0, "detectable (points)"] == round(100 * d["detectable"], 1) > 0
+    assert ev.verdict((-0.2, -0.1)) == "B better" and ev.verdict((np.nan, np.nan)) == "undecided"
+    assert np.isnan(ev.detectable([0.1]))
+
+
 def test_paired_comparison_per_seed_pairs_only_common_seeds():
     """A with 2 seeds against B with 1: one per-seed difference (seed 0 against seed 0)."""
     perfect = np.where(Y6 == 1, 0.9, 0.1)

@@ -194,7 +194,9 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
     g11 = glue_of(smoke_run, "11_all_distances")
     assert g11["wide_n_built"] == 1
     assert {k: g11[k] for k in ch11.near_counts(p)} == ch11.near_counts(p)
-    assert g11["wide_headline"] == ch11.headline(p, ch11.table4(p, ["dis"]), ["dis"])
+    assert g11["wide_headline"] == ch11.headline(p, ch11.table4(p, ["dis"]), ["dis"],
+                                                 ch11.comparisons(p, ["dis"], "general"))
+    assert "95 % interval over scenes" in g11["wide_headline"]
     assert (smoke_run["base"] / "runs" / "figures" / "wide_f1_distance.png").stat().st_size > 5000
     # chapter 12: both networks trained (smoke: 4 steps), the headline from their evaluation
     from flowmod.chapters import ch12_self_trained_flow as ch12

@@ -10,6 +10,7 @@ every 2 still objects.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
+from statistics import NormalDist
 from typing import Any
 
 import numpy as np
@@ -180,6 +181,34 @@ def interval(replicates: Any, level: float = 0.95) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
+#: Power at which :func:`detectable` sizes the smallest difference the scenes can resolve.
+POWER = 0.8
+
+
+def detectable(replicates: Any, level: float = 0.95, power: float = POWER) -> float:
+    """The smallest true difference that a paired comparison over these scenes would find
+    (its interval excluding zero) with probability ``power``: ``(z(1 - a/2) + z(power)) *
+    SE``, SE the standard deviation of the defined bootstrap replicates of the difference
+    (the normal approximation; 2.8 SE at 95 % and 80 %). NaN with fewer than two."""
+    r = np.asarray(replicates, dtype=np.float64).reshape(-1)
+    r = r[~np.isnan(r)]
+    if r.size < 2:
+        return float("nan")
+    z = NormalDist().inv_cdf
+    return float((z(1 - (1 - level) / 2) + z(power)) * r.std(ddof=1))
+
+
+def verdict(ci: tuple[float, float]) -> str:
+    """``A better`` or ``B better`` when the interval of A - B excludes zero, else
+    ``undecided`` (also when it is undefined)."""
+    lo, hi = ci
+    if lo > 0:
+        return "A better"
+    if hi < 0:
+        return "B better"
+    return "undecided"
+
+
 def bootstrap_f1_ci(y_true: Any, y_prob: Any, groups: Any, n: int = 2000, seed: int = 0,
                     threshold: float = 0.5, level: float = 0.95) -> tuple[float, float]:
     """Scene-level percentile bootstrap interval of the (seed-mean) F1; see
@@ -235,7 +264,8 @@ def paired_comparison(y_true: Any, prob_a: Any, prob_b: Any, groups: Any, n: int
     cancels), the per-seed differences (seed k of A against seed k of B; with ``folds``, as
     :func:`seed_summary`, fold k's), the share of replicates in which A is not better and
     the number of replicates left out because their scenes hold no mover (F1 undefined for
-    both)."""
+    both); and ``detectable``, the smallest difference these scenes would resolve
+    (:func:`detectable`), for a question the interval leaves open."""
     y, pa = _as_models(y_true, prob_a)
     _, pb = _as_models(y_true, prob_b)
     ra = scene_bootstrap(y, pa, groups, n, seed, threshold)
@@ -253,6 +283,7 @@ def paired_comparison(y_true: Any, prob_a: Any, prob_b: Any, groups: Any, n: int
     d = ra - rb
     defined = d[~np.isnan(d)]
     return {"delta_f1": float(fa.mean() - fb.mean()), "ci": interval(d, level),
+            "detectable": detectable(d, level),
             "per_seed": per,
             "p_not_better": float(np.mean(defined <= 0)) if defined.size else float("nan"),
             "undefined_replicates": int(d.size - defined.size),
@@ -354,7 +385,8 @@ def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) 
 
 #: Columns of :func:`comparison_table` (also when it has no row).
 COMPARISON_COLUMNS = ["comparison", "ΔF1 (points)", "95% CI over scenes (points)",
-                      "per seed (points)", "replicates with A <= B (%)", "scenes", "objects"]
+                      "verdict", "detectable (points)", "per seed (points)",
+                      "replicates with A <= B (%)", "scenes", "objects"]
 
 
 def unit_of(rows: Iterable[Mapping[str, Any]]) -> str:
@@ -364,7 +396,8 @@ def unit_of(rows: Iterable[Mapping[str, Any]]) -> str:
 
 def comparison_table(rows: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
     """Paired differences ``{"A - B": paired_comparison(...)}`` as a table (F1 points;
-    columns :data:`COMPARISON_COLUMNS`, ``per fold`` for cross-validated results)."""
+    columns :data:`COMPARISON_COLUMNS`, ``per fold`` for cross-validated results): the
+    verdict, and the smallest difference the scenes would detect (80 % power)."""
     unit = unit_of(rows.values())
     out = []
     for name, r in rows.items():
@@ -372,6 +405,8 @@ def comparison_table(rows: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
             "comparison": name,
             "ΔF1 (points)": round(100 * r["delta_f1"], 1),
             "95% CI over scenes (points)": span(*r["ci"], sep=" to "),
+            "verdict": verdict(r["ci"]),
+            "detectable (points)": round(100 * r.get("detectable", float("nan")), 1),
             f"per {unit} (points)": ", ".join(points(d, "+.1f") for d in r["per_seed"]),
             "replicates with A <= B (%)": round(100 * r["p_not_better"], 1),
             "scenes": r["n_scenes"], "objects": r["n"],

@@ -191,8 +191,7 @@ def headline(params: Params, paired_test: pd.DataFrame) -> str:
         r = by_name.loc[comparison_name(params, m, v)]
         on = "" if m else f" (no flow; against {reference(params, m)} flow)"
         oracle = depth_note(v)
-        parts.append(f"{v}{oracle}{on} {r['ΔF1 (points)']:+.1f} F1 points (95 % interval "
-                     f"over scenes {r['95% CI over scenes (points)']})")
+        parts.append(f"{v}{oracle}{on} {common.difference_words(r)}")
     if not parts:
         return ("not built in this run (make extensions trains them: "
                 f"{len(chains(params)) * len(seed_parts(params))} models)" if params.extension_inputs else

@@ -144,9 +144,12 @@ def built_note(params: Params, done: list[str]) -> str:
                              "extension_build")
 
 
-def headline(params: Params, table: pd.DataFrame, done: list[str]) -> str:
+def headline(params: Params, table: pd.DataFrame, done: list[str],
+             paired: pd.DataFrame | None = None) -> str:
     """One sentence for the landing page: Table 4's F1 of the main method trained on all
-    distances against the paper's training (from :func:`table4`), or how to build it."""
+    distances against the paper's training (from :func:`table4`) and, with ``paired``
+    (:func:`comparisons` on the generalisation set), their paired difference; or how to
+    build it."""
     if not params.wide_methods:
         return "not part of this profile (wide_methods is empty)"
     main = next((m for m in done if m != "gt"), done[0] if done else None)
@@ -160,4 +163,6 @@ def headline(params: Params, table: pd.DataFrame, done: list[str]) -> str:
     return (f"trained on every distance up to {params.general_max_distance:g} m instead of "
             f"30-70 m keyframes only, the {main} classifier reaches Table 4 F1 "
             f"{wide['F1 (%)']:.1f} % (interval over scenes {wide['F1 95% CI, scenes (%)']} %) "
-            f"against {paper['F1 (%)']:.1f} %")
+            f"against {paper['F1 (%)']:.1f} %" + (
+                f": {common.difference_words(paired.iloc[done.index(main)])}"
+                if paired is not None and len(paired) == len(done) else ""))

@@ -84,6 +84,18 @@ def built_note(what: str, done: list[str], planned: int, others: str, flag: str)
     return out
 
 
+def difference_words(row: Any) -> str:
+    """A paired comparison's row (:func:`flowmod.metrics.comparison_table`) in words: ``+1.2
+    F1 points (95 % interval over scenes -0.5 to 2.9)``, and when it leaves the question
+    open, the smallest difference these scenes would detect."""
+    text = (f"{row['ΔF1 (points)']:+.1f} F1 points (95 % interval over scenes "
+            f"{row['95% CI over scenes (points)']}")
+    if "verdict" in row and row["verdict"] == "undecided":
+        text += (f"; undecided: these scenes would detect {row['detectable (points)']:.1f} "
+                 "points or more")
+    return text + ")"
+
+
 def headline_method(p: Params) -> str:
     """The method the book's headlines quote: the first estimated flow of the profile."""
     return next((m for m in p.flow_methods if m != "gt"), p.flow_methods[0])
