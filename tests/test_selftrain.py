@@ -149,7 +149,7 @@ def test_published_weights_are_a_fastflownet_checkpoint_with_the_recorded_error(
         assert again["epe"] == pytest.approx(ev["fastflownet"]["epe"], rel=1e-4)
         # the curve and the choice are on the validation scenes' pairs, not the test pairs
         val = selftrain.validation_pairs(pairs, p.selfflow_eval_pairs, p.seed, p.folds)
-        assert not set(val["scene_token"]) & set(test["scene_token"])
+        assert not set(val["scene"]) & set(test["scene"])
         hv = selftrain.held_out(val, pd.read_parquet(sel / "objects.parquet"),
                                 p.dataroot_path, p.version, True)
         on_val = selftrain.score(est.estimate, hv)["epe"]

@@ -98,7 +98,7 @@ def test_wide_methods_default_and_checks():
 
 
 def test_chapter11_nodes_belong_to_chapter_11_and_need_extension_build():
-    demo = load_profile("demo")
+    demo = load_profile("demo", wide_methods=["gt", "dis"])  # make extensions' matrix
     eleven = [str(n) for n in pipeline.nodes(demo, ["11"])]
     # stage by stage in data order, each node after its inputs
     assert eleven == ["wide", "crops[gt/wide]", "crops[dis/wide]", "wtrain[gt/f0]",
