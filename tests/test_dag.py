@@ -93,7 +93,7 @@ def graph(tmp: Path, select_build=build_select) -> dag.Graph:
 def toy(tmp_path: Path) -> tuple[dag.Graph, Params]:
     CALLS.clear()
     p = validate({"run_dir": str(tmp_path / "runs"), "dataroot": str(tmp_path / "data"),
-                  "seeds": 2, "folds": 1, "synthetic": False})
+                  "seeds": 2, "folds": 1, "synthetic": False, "extension_build": False})
     return graph(tmp_path), p
 
 

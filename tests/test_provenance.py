@@ -36,6 +36,7 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "world_keyframes": (4, {"world"}, ()),
     "world_sweep_scenes": (2, {"world"}, ()),
     "world_vehicles": (17, {"world"}, ()),
+    "world_near_movers": (1, {"world"}, ()),
     "categories": (["vehicle.car", "vehicle.truck"], {"select", "general", "wide"}, ()),
     "min_distance": (25.0, {"select"}, ()),
     "max_distance": (65.0, {"select"}, ()),

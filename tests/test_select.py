@@ -190,12 +190,10 @@ def test_generalisation_manifest(selection, smoke_params):
         "fold"].astype(str)).all()
     gap = (gen_pairs["timestamp_2"] - gen_pairs["timestamp_1"]) / 1e6
     assert gap.between(0.2, 0.6).all(), "4 camera frames at ~12 Hz is ~0.33 s"
-    # the generalisation range, not Table 1's 30-70 m: swept scenes get near traffic, so
-    # the set holds movers nearer than 30 m (chapters 08 and 11 ask about them)
+    # the generalisation range, not Table 1's 30-70 m (the smoke world's swept scene has no
+    # near traffic, world_near_movers 0; tests/test_world.py checks the demo's)
     assert gen["distance"].between(smoke_params.general_min_distance,
                                    smoke_params.general_beyond_distance).all()
-    near = gen[gen["distance"] < 30]
-    assert (near["label"] == 1).sum() >= 3, near[["distance", "speed", "label"]]
 
 
 def test_artefacts_are_skipped_when_up_to_date(smoke_params, selection):

@@ -49,6 +49,7 @@ def test_comparison_table_every_cell():
     want = pd.DataFrame({
         "comparison": ["gt - dis"], "ΔF1 (points)": [3.1],
         "95% CI over scenes (points)": ["-1.5 to 8.5"],
+        "verdict": ["undecided"], "detectable (points)": [float("nan")],
         "per seed (points)": ["+2.0, -1.1, +5.0"],
         "replicates with A <= B (%)": [12.3], "scenes": [5], "objects": [409],
     })

@@ -118,6 +118,10 @@ class Params(BaseModel):
                                                  "over the folds first)")
     world_vehicles: int = _field(28, ge=1, le=200, read_by=("world",),
                                  description="vehicles per scene (mean)")
+    world_near_movers: int = _field(3, ge=0, le=20, read_by=("world",),
+                                    description="vehicles driving near the ego (in view "
+                                                "nearer than 30 m) a scene with sweeps gets "
+                                                "besides (the generalisation set's near movers)")
 
     # --- selection (Table 1) -----------------------------------------------------------
     categories: list[str] = _field(lambda: list(TABLE1_CATEGORIES),

@@ -203,8 +203,8 @@ def _in_band(iv: np.ndarray, lo: float = 30.0, hi: float = 70.0, fov: float = 0.
 _NEAR = (30.0, 72.0)
 #: Distances (m) at which a swept scene's extra near traffic is placed in view.
 _CLOSE = (8.0, 28.0)
-#: Vehicles driving near the ego that a scene with sweeps gets besides the others: the
-#: generalisation set's near movers (chapters 08 and 11 ask about them).
+#: Vehicles driving near the ego that a scene with sweeps gets besides the others by default
+#: (``world_near_movers``): the generalisation set's near movers (chapters 08 and 11).
 NEAR_MOVERS = 3
 
 #: A candidate agent: (category, size (w, l, h) in m, role, trajectory or None).
@@ -454,8 +454,10 @@ def sample_scene(
     n_vehicles: int,
     weather: str,
     with_sweeps: bool,
+    near_movers: int = NEAR_MOVERS,
 ) -> dict:
-    """Sample one scene's description (JSON-able dict). Deterministic in (seed, index, sizes)."""
+    """Sample one scene's description (JSON-able dict). Deterministic in (seed, index, sizes).
+    ``near_movers``: vehicles driving near the ego that a scene with sweeps gets besides."""
     rng = np.random.default_rng([int(seed), int(index), 101])
     duration = (n_keyframes - 1) * 0.5
     layout, roads, cross_x = _sample_streets(rng)
@@ -465,9 +467,9 @@ def sample_scene(
     placed = _start_placement(roads, ego, duration, cross_x, vmax, n_keyframes)
     agents = _place_vehicles(rng, placed, n_vehicles, n_keyframes)
     _add_pedestrians(rng, placed, agents)
-    if with_sweeps:  # its own stream: the rest of the scene is as without them
+    if with_sweeps and near_movers:  # its own stream: the rest is as without them
         _add_near_movers(np.random.default_rng([int(seed), int(index), 303]), placed, agents,
-                         NEAR_MOVERS)
+                         near_movers)
 
     ego_x = traj_state(ego, np.array([0.0, duration]))["x"]
     x_range = (float(min(ego_x) - 40.0), float(max(ego_x) + 330.0))

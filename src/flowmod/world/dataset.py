@@ -47,6 +47,7 @@ import numpy as np
 from flowmod.params import GENERATOR_VERSION
 from flowmod.progress import bar
 from flowmod.world import scene as ws
+from flowmod.world.agents import NEAR_MOVERS
 from flowmod.world.records import (
     CHANNEL,
     TABLES,
@@ -83,6 +84,7 @@ def generate_world(
     seed: int = 0,
     n_jobs: int = 2,
     progress: bool = True,
+    near_movers: int = NEAR_MOVERS,
 ) -> Path:
     """Generate the synthetic world into ``<dataroot>/<version>`` (+ samples/, sweeps/, maps/).
 
@@ -97,7 +99,8 @@ def generate_world(
     root.mkdir(parents=True, exist_ok=True)
     weathers, sweeps = ws.plan_weathers(n_scenes, n_sweep_scenes, seed)
     args = [
-        (str(root), int(seed), i, int(n_keyframes), int(vehicles_per_scene), weathers[i], sweeps[i])
+        (str(root), int(seed), i, int(n_keyframes), int(vehicles_per_scene), weathers[i], sweeps[i],
+         int(near_movers))
         for i in range(n_scenes)
     ]
     results = _run_jobs(args, n_jobs, progress)
@@ -112,6 +115,7 @@ def generate_world(
         "n_keyframes": int(n_keyframes),
         "n_sweep_scenes": int(n_sweep_scenes),
         "vehicles_per_scene": int(vehicles_per_scene),
+        "near_movers": int(near_movers),
         "seed": int(seed),
         "generator_version": GENERATOR_VERSION,
     }

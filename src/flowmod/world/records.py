@@ -173,9 +173,11 @@ def _exposures(seed: int, index: int, times: np.ndarray) -> np.ndarray:
 
 
 def _scene_description(
-    seed: int, index: int, n_keyframes: int, vehicles: int, weather: str, with_sweeps: bool
+    seed: int, index: int, n_keyframes: int, vehicles: int, weather: str, with_sweeps: bool,
+    near_movers: int = wa.NEAR_MOVERS,
 ) -> dict:
-    scene = wa.sample_scene(seed, index, n_keyframes, vehicles, weather, with_sweeps)
+    scene = wa.sample_scene(seed, index, n_keyframes, vehicles, weather, with_sweeps,
+                            near_movers)
     scene["name"] = f"synth-{index:04d}"
     scene["token"] = token(seed, "scene", index)
     scene["t0_us"] = BASE_US + index * 3_600_000_000
@@ -220,9 +222,11 @@ def _render_scene(
     vehicles: int,
     weather: str,
     with_sweeps: bool,
+    near_movers: int = wa.NEAR_MOVERS,
 ) -> dict:
     """Render one scene's frames to ``dataroot`` and return its table rows and description."""
-    scene = _scene_description(seed, index, n_keyframes, vehicles, weather, with_sweeps)
+    scene = _scene_description(seed, index, n_keyframes, vehicles, weather, with_sweeps,
+                               near_movers)
     geo = wg.SceneGeometry(scene)
     root = Path(dataroot)
     t0 = scene["t0_us"]

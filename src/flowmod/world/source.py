@@ -155,7 +155,7 @@ def _generate(p: Params, root: Path, version: str, progress: bool) -> None:
     generate_world(root, version, n_scenes=g["world_scenes"], n_keyframes=g["world_keyframes"],
                    n_sweep_scenes=g["world_sweep_scenes"],
                    vehicles_per_scene=g["world_vehicles"], seed=g["seed"], n_jobs=p.n_jobs,
-                   progress=progress)
+                   progress=progress, near_movers=g["world_near_movers"])
     write_manifest(root / version / WORLD_MANIFEST, {
         "node": "world", "world_id": p.world_id, "generation": g,
         "tables": table_digests(p), "inventory": image_inventory(root),
