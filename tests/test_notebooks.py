@@ -132,8 +132,10 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
             return metrics(df[col], df["prob"])["f1"]
         return np.mean([metrics(df[col], df[c])["f1"] for c in cols])
 
-    # learnt something: far above the all-still classifier (0) and a collapsed fold model
-    assert g7["test_f1_gt"] >= 35 and g7["test_f1_dis"] >= 35, (g7["test_f1_gt"],
+    # learnt something: far above the all-still classifier (0) and a collapsed fold model.
+    # The smoke classifiers are weak and move with the thread count (dis F1 30.6-39.6,
+    # gt 44.6-58.5 between a 2-worker CI run and a single process): a collapse guard only
+    assert g7["test_f1_gt"] >= 25 and g7["test_f1_dis"] >= 25, (g7["test_f1_gt"],
                                                                  g7["test_f1_dis"])
     for m in ("gt", "dis"):
         # every recorded number, recomputed from the saved predictions
