@@ -51,7 +51,7 @@ def test_defaults_are_the_demo_profile():
         ({"crop_size": 4}, "crop_size=4"),
         ({"categories": []}, "categories is empty"),
         ({"dataroot": ""}, "dataroot is required"),
-        ({"world_sweep_scenes": 99}, "world_sweep_scenes=99 must be <= world_scenes=40"),
+        ({"world_sweep_scenes": 199}, "world_sweep_scenes=199 must be <= world_scenes=100"),
     ],
 )
 def test_bad_values_name_the_key(override, needle):

@@ -109,11 +109,11 @@ class Params(BaseModel):
                           description="table folder under dataroot, e.g. v1.0-mini")
     synthetic: bool = _field(True, role="run",
                              description="build the synthetic world when dataroot is absent")
-    world_scenes: int = _field(40, ge=1, le=2000, read_by=("world",),
+    world_scenes: int = _field(100, ge=1, le=2000, read_by=("world",),
                                description="synthetic world: number of scenes")
-    world_keyframes: int = _field(20, ge=2, le=60, read_by=("world",),
+    world_keyframes: int = _field(8, ge=2, le=60, read_by=("world",),
                                   description="keyframes (2 Hz) per scene")
-    world_sweep_scenes: int = _field(6, ge=0, read_by=("world",),
+    world_sweep_scenes: int = _field(15, ge=0, read_by=("world",),
                                      description="scenes that also get ~12 Hz sweeps (dealt "
                                                  "over the folds first)")
     world_vehicles: int = _field(28, ge=1, le=200, read_by=("world",),
@@ -168,7 +168,7 @@ class Params(BaseModel):
         100.0, gt=0.0, read_by=("general",),
         description="m, vehicles from general_max_distance to this are also selected and "
                     "reported apart from Table 4 (0 = none)")
-    general_max_scenes: int = _field(6, ge=0, read_by=("general",),
+    general_max_scenes: int = _field(15, ge=0, read_by=("general",),
                                      description="held-out scenes used (0 = none)")
 
     # --- optical flow ------------------------------------------------------------------
@@ -221,12 +221,15 @@ class Params(BaseModel):
     crop_scale: float = _field(3.0, ge=1.0, le=10.0, read_by=("crops", "context"),
                                description="crop side / box side")
     epochs: int = _field(8, ge=1, le=500, read_by=_TRAIN, description="training epochs")
-    batch_size: int = _field(128, ge=1, le=4096, read_by=_TRAIN, description="Table 2")
+    batch_size: int = _field(32, ge=1, le=4096, read_by=_TRAIN,
+                            description="Table 2: 128 (the demo: 32)")
     lr: float = _field(0.01, gt=0.0, le=10.0, read_by=_TRAIN, description="SGD learning rate")
     momentum: float = _field(0.9, ge=0.0, lt=1.0, read_by=_TRAIN, description="SGD momentum")
     weight_decay: float = _field(0.01, ge=0.0, read_by=_TRAIN, description="SGD weight decay")
-    step_size: int = _field(10, ge=1, read_by=_TRAIN, description="StepLR step, epochs")
-    gamma: float = _field(0.5, gt=0.0, le=1.0, read_by=_TRAIN, description="StepLR factor")
+    step_size: int = _field(3, ge=1, read_by=_TRAIN,
+                           description="StepLR step, epochs (Table 2: 10; the demo: 3)")
+    gamma: float = _field(0.3, gt=0.0, le=1.0, read_by=_TRAIN,
+                          description="StepLR factor (Table 2: 0.5; the demo: 0.3)")
     hflip_p: float = _field(0.5, ge=0.0, le=1.0, read_by=_TRAIN,
                             description="training-only horizontal flip")
     model_width: int = _field(32, ge=4, le=256, read_by=_TRAIN,
@@ -285,7 +288,7 @@ class Params(BaseModel):
         True, role="run",
         description="chapter 12 trains its stale networks; off: it shows the ones built "
                     "(make selfflow: photometric too, longer)")
-    selfflow_iters: int = _field(400, ge=1, le=10_000_000, read_by=("selfflow",),
+    selfflow_iters: int = _field(300, ge=1, le=10_000_000, read_by=("selfflow",),
                                  description="chapter 12: training steps (the CPU budget)")
     selfflow_batch: int = _field(4, ge=1, le=256, read_by=("selfflow",),
                                  description="chapter 12: pairs per step")
