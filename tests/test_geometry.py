@@ -278,7 +278,18 @@ def test_static_crops_explain_the_exact_flow_of_still_vehicles(smoke_built):
     x, idx = common.open_crops(p, "gt", "train")
     still = idx["true_speed"].to_numpy() < 0.01
     assert still.sum() >= 5 and (~still).sum() >= 5
-    static = crops.static_crops(idx, pairs, p.crop_size, p.crop_scale)
+    both = crops.static_crops(idx, pairs, p.crop_size, p.crop_scale, depths=("ground", "boxes"))
+    static = crops.static_crops(idx, pairs, p.crop_size, p.crop_scale)["boxes"]
+    np.testing.assert_array_equal(both["boxes"], static)  # one pass, same crops
+    wins_ = crops.crop_windows(idx[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float),
+                               p.crop_scale)
+    row0 = pairs.set_index("pair_id").loc[idx["pair_id"].iloc[0]]
+    np.testing.assert_array_equal(both["ground"][0], geometry.static_flow_crop(
+        wins_[0], p.crop_size, *geometry.pair_cameras(row0), [], 0.0,
+        image_size=crops.IMAGE_SIZE, box2d=idx[["xmin", "ymin", "xmax", "ymax"]].to_numpy(
+            float)[0]))
+    with pytest.raises(ValueError, match="unknown static-world depth"):
+        crops.static_crops(idx.head(1), pairs, p.crop_size, p.crop_scale, depths=("lidar",))
     wins = crops.crop_windows(idx[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float),
                               p.crop_scale)
     on_box, rest, raw = [], [], []

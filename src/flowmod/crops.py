@@ -262,44 +262,66 @@ PairItems = Callable[[str, np.ndarray], tuple[np.ndarray, np.ndarray, int, list[
 GlobalBox = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
+#: Depth of the static world in :func:`static_crops`: ``boxes``, the annotated 3D boxes (an
+#: oracle), or ``ground``, the target's 2D box on the flat ground (what a car could compute).
+STATIC_DEPTHS = ("boxes", "ground")
+
+
+def _pair_geometry(pair: Any, boxes3d: Sequence[GlobalBox]) -> tuple[Any, ...]:
+    """One pair's cameras (K, frame-1 and frame-2 camera-to-global) and its annotated boxes
+    in frame 1's camera, those in front of it: [(centre, wlh, rotation)]."""
+    K, T1, T2 = geometry.pair_cameras(pair)
+    inside = [geometry.box_in_camera(T1, c, q) + (np.asarray(wlh, float),)
+              for c, wlh, q in boxes3d]
+    return K, T1, T2, [(c, wlh, rot) for c, rot, wlh in inside if c[2] > 0]
+
+
+def _own_box(o: Any, T1: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The object's own annotated box in frame 1's camera (when no frame boxes are given)."""
+    c, rot = geometry.box_in_camera(T1, np.array([o.center_x, o.center_y, o.center_z]),
+                                    np.array([o.qw, o.qx, o.qy, o.qz]))
+    return [(c, np.array([o.size_w, o.size_l, o.size_h]), rot)]
+
+
 def static_crops(objects: pd.DataFrame, pairs: pd.DataFrame, size: int, scale: float,
                  ground_z: float = 0.0,
                  frame_boxes: Mapping[str, Sequence[GlobalBox]] | None = None,
-                 progress: bool = False, deployed: bool = False) -> np.ndarray:
-    """(N, 2, S, S) float32 px: :func:`flowmod.geometry.static_flow_crop` for every object
-    of ``objects`` (rows of objects.parquet, in their order) in its pair's crop window
-    (``scale`` x the box; edge-padded outside the frame like the flow crops), with depth
-    from the annotated 3D boxes and the ground
-    ``z = ground_z`` (global; 0 on the generated world and in nuScenes, whose ego poses lie
-    on the ground): the crop the ego-motion-compensated input subtracts. The boxes are
-    ``frame_boxes[pair_id]`` (every annotated box of the pair's first frame, global:
-    :func:`flowmod.select.frame_boxes_3d`) where given, else the object's own box only.
-    ``deployed``: no 3D box at all, the target's depth from its 2D box's ground contact
-    (:func:`flowmod.geometry.deployed_depth`: what a car could compute)."""
+                 depths: Sequence[str] = ("boxes",), progress: bool = False
+                 ) -> dict[str, np.ndarray]:
+    """For each of ``depths`` (:data:`STATIC_DEPTHS`), (N, 2, S, S) float32 px:
+    :func:`flowmod.geometry.static_flow_crop` for every object of ``objects`` (rows of
+    objects.parquet, in their order) in its pair's crop window (``scale`` x the box;
+    edge-padded outside the frame like the flow crops), on the ground ``z = ground_z``
+    (global; 0 on the generated world and in nuScenes, whose ego poses lie on the ground):
+    the crop the ego-motion-compensated input subtracts. Depth ``boxes``: the annotated 3D
+    boxes ``frame_boxes[pair_id]`` (every box of the pair's first frame, global:
+    :func:`flowmod.select.frame_boxes_3d`) where given, else the object's own box only;
+    ``ground``: no 3D box, the target at its 2D box's ground contact
+    (:func:`flowmod.geometry.deployed_depth`). Each pair's cameras are read once."""
+    unknown = sorted(set(depths) - set(STATIC_DEPTHS))
+    if unknown:
+        raise ValueError(f"unknown static-world depth {unknown}; known: {list(STATIC_DEPTHS)}")
     p = pairs.set_index("pair_id")
     box2d = objects[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float)
     wins = crop_windows(box2d, scale)
-    out = np.empty((len(objects), 2, size, size), np.float32)
-    if deployed:
-        frame_boxes = {str(pid): () for pid in objects["pair_id"]}
-    cams: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, list[Any]]] = {}
+    out = {d: np.empty((len(objects), 2, size, size), np.float32) for d in depths}
+    cams: dict[str, tuple[Any, ...]] = {}
     rows = zip(objects.itertuples(index=False), wins, strict=True)
     for i, (o, win) in enumerate(bar(rows, total=len(objects), desc="static-world crops",
                                      unit="object", disable=not progress)):
         pid = str(o.pair_id)
         if pid not in cams:
-            K, T1, T2 = geometry.pair_cameras(p.loc[pid])
-            boxes = [geometry.box_in_camera(T1, c, q) + (np.asarray(wlh, float),)
-                     for c, wlh, q in (frame_boxes or {}).get(pid, ())]
-            cams[pid] = (K, T1, T2, [(c, wlh, rot) for c, rot, wlh in boxes if c[2] > 0])
+            cams[pid] = _pair_geometry(p.loc[pid], (frame_boxes or {}).get(pid, ()))
         K, T1, T2, boxes = cams[pid]
-        if frame_boxes is None or pid not in frame_boxes:
-            c, rot = geometry.box_in_camera(T1, np.array([o.center_x, o.center_y, o.center_z]),
-                                            np.array([o.qw, o.qx, o.qy, o.qz]))
-            boxes = [(c, np.array([o.size_w, o.size_l, o.size_h]), rot)]
-        out[i] = geometry.static_flow_crop(win, size, K, T1, T2, boxes, ground_z,
-                                           image_size=IMAGE_SIZE,
-                                           box2d=box2d[i] if deployed else None)
+        for d in depths:
+            if d == "ground":
+                out[d][i] = geometry.static_flow_crop(win, size, K, T1, T2, [], ground_z,
+                                                      image_size=IMAGE_SIZE, box2d=box2d[i])
+                continue
+            own = frame_boxes is None or pid not in frame_boxes
+            out[d][i] = geometry.static_flow_crop(win, size, K, T1, T2,
+                                                  _own_box(o, T1) if own else boxes, ground_z,
+                                                  image_size=IMAGE_SIZE)
     return out
 
 

@@ -93,11 +93,11 @@ def build_split(objects: pd.DataFrame, pairs: pd.DataFrame, dataroot: Path, out:
     """Write the three files of one split (each atomically); returns its number of rows."""
     df = split_objects(objects, split)
     f = paths(out, split)
-    static = static_crops(df, pairs, size, scale, frame_boxes=frame_boxes, progress=progress)
-    deployed = static_crops(df, pairs, size, scale, deployed=True)
+    static = static_crops(df, pairs, size, scale, frame_boxes=frame_boxes,
+                          depths=tuple(DEPTHS), progress=progress)
     images = image_crops(df, pairs, dataroot, size, scale, progress=progress)
-    for name, arr in ((STATIC, static.astype(np.float16)),
-                      (DEPLOYED, deployed.astype(np.float16)), (IMAGES, images)):
+    for name, arr in ((STATIC, static["boxes"].astype(np.float16)),
+                      (DEPLOYED, static["ground"].astype(np.float16)), (IMAGES, images)):
         with atomic_path(f[name]) as tmp:
             np.save(tmp, arr, allow_pickle=False)
     with atomic_path(f["index"]) as tmp:
