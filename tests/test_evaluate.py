@@ -161,3 +161,27 @@ def test_failure_reasons_tag_remote_slow_and_crowded():
     shares = evaluate.failure_shares(t).set_index("reason")
     assert shares.loc["remote or slow", "wrong predictions (%)"] == 100.0
     assert shares.loc["other objects in the crop", "all objects (%)"] == pytest.approx(66.7)
+
+
+@pytest.mark.slow
+def test_published_protocol_replays_the_original_batch_not_the_training_one(smoke_built):
+    """Chapter 07's protocol gap averages F1 per batch of the original's 128, whatever batch
+    the models trained with (the smoke trains with 8, the demo with 32)."""
+    import json
+
+    from flowmod import dag, pipeline
+    from flowmod.chapters import common
+    from flowmod.train import EPOCH_PROBS
+
+    p = smoke_built
+    assert p.batch_size != evaluate.ORIGINAL_BATCH == 128
+    folder = pipeline.published(p, dag.Node("evaluate", "dis"))
+    got = json.loads((folder / "original.json").read_text())
+    preds = common.results(p, "dis", "test")[0]
+    epochs = [np.load(common.model_path(p, "dis", part).parent / EPOCH_PROBS)
+              for part in ("f0", "f1")]
+    want = evaluate.original_protocol(preds, epochs, 128)
+    assert got["per_seed_original"] == pytest.approx(want["per_seed_original"])
+    assert got["original"] == pytest.approx(want["original"])
+    assert got["original"] != pytest.approx(
+        evaluate.original_protocol(preds, epochs, p.batch_size)["original"])
