@@ -16,8 +16,9 @@ from pathlib import Path
 
 import pandas as pd
 
-from flowmod import crops, dag
+from flowmod import dag, pipeline
 from flowmod.artefacts import write_json
+from flowmod.chapters.ch05_preprocessing import storage_table
 from flowmod.params import load_profile
 from flowmod.paths import repo_root
 
@@ -30,12 +31,12 @@ def folder_bytes(folder: Path) -> int:
 
 
 def method_row(p, storage: dict[str, float]) -> dict[str, float]:
-    """One method's row of :func:`flowmod.crops.storage_table` (crops and samples per object,
+    """One method's row of :func:`flowmod.chapters.ch05_preprocessing.storage_table` (crops and samples per object,
     the flow kept) with what is left in the crops-mode pool (nothing once every crops node is
     published) and the pairs selected."""
     m = storage["method"]
     pool = p.run_path / "crops" / m / "pool"
-    pairs = sum(len(pd.read_parquet(dag.published(p, dag.Node(n)) / "pairs.parquet"))
+    pairs = sum(len(pd.read_parquet(pipeline.published(p, dag.Node(n)) / "pairs.parquet"))
                 for n in ("select", "general"))
     return {
         "objects": storage["objects"], "crop kB / object": storage["per object (kB)"],
@@ -56,16 +57,13 @@ def main(argv: list[str] | None = None) -> int:
                     help="pairs to extrapolate to (default: trainval keyframe pairs)")
     args = ap.parse_args(argv)
     p = load_profile(args.profile)
-    # chapters 10 and 11's models (and 11's crops) are built by `make extensions` only:
-    # counted when present
-    missing = [str(s.node) for s in dag.status(p) if s.state != "up to date"
-               and not dag.gated(s.node)]
+    missing = [str(s.node) for s in pipeline.status(p) if s.state != "up to date"]
     if missing:
         print(f"{len(missing)} nodes not up to date ({', '.join(missing[:3])} ...): run `make book` "
               f"(PROFILE={args.profile}) first")
         return 2
     folders = {d.name: folder_bytes(d) / 1e6 for d in sorted(p.run_path.iterdir()) if d.is_dir()}
-    storage = crops.storage_table(p)  # rounded to 0.01: the per-object figures of chapter 05
+    storage = storage_table(p)  # rounded to 0.01: the per-object figures of chapter 05
     methods = {r["method"]: method_row(p, r) for r in storage.to_dict("records")}
     for row in methods.values():
         obj_per_pair = row["objects"] / max(row["pairs selected"], 1)
@@ -82,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
                folder_bytes(d) / 1e6 for d in (p.run_path / "extensions" / "wide" / "models",
                                                *(p.run_path / "crops").glob("*/wide"))
                if d.is_dir()),
-           "demo goal MB (make book, without chapters 10 and 11's models)": 500,
+           "demo goal MB (make book)": 500,
            "methods": methods}
     res = repo_root() / "benchmarks" / "results"
     res.mkdir(parents=True, exist_ok=True)
