@@ -98,3 +98,17 @@ def test_a_step_lowers_the_loss_on_its_batch_and_levels_match_forward():
     for step in range(1, 6):
         last = pt.train_step(model, opt, batch, r, step)["loss"]
     assert last < first
+
+
+@pytest.mark.slow
+def test_prepare_reads_the_world_where_it_was_generated(tmp_path):
+    """``make flownet`` once failed before its first step: the world is generated in
+    ``<dataroot>/worlds/<id>/`` and was then looked for at the dataroot itself."""
+    recipe = replace(pt.Recipe(), world_scenes=2, world_keyframes=3, world_vehicles=4,
+                     val_every=2, eval_pairs=1, start_stride=8)
+    fp, root = pt.ensure_world(recipe, tmp_path / "pretrain", progress=False)
+    assert root.parent == tmp_path / "pretrain" / "worlds"
+    assert (root / "v1.0-synth" / "scene.json").is_file() and len(fp) == 64
+    world_fp, data, heldout = pt.prepare(recipe, tmp_path / "pretrain", tmp_path / "work",
+                                         progress=False)
+    assert world_fp == fp and len(data.pairs) > 0 and len(heldout.img1) == 1

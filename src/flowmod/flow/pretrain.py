@@ -140,14 +140,17 @@ def pyramid_loss(levels: Sequence[Tensor], gt: Tensor, valid: Tensor,
 
 # --- the pretraining world ------------------------------------------------------------------------
 
-def ensure_world(recipe: Recipe, dataroot: Path, progress: bool = True) -> str:
-    """Generate the pretraining world at ``dataroot`` unless it is there; its fingerprint
-    (the tables' content)."""
+def ensure_world(recipe: Recipe, dataroot: Path, progress: bool = True) -> tuple[str, Path]:
+    """Generate the pretraining world under ``dataroot`` unless it is there; its fingerprint
+    (the tables' content) and its root (a generated world lives in ``worlds/<id>/`` of the
+    dataroot)."""
     p = recipe.world_params(str(dataroot))
-    ensure_world_data(p, progress=progress)
-    vdir = dataroot / p.version
-    files = sorted(f for f in vdir.glob("*.json") if f.name != "flowmod.manifest.json")
-    return fingerprint([(f.name, file_digest(f)) for f in files], n=64)
+    root = Path(ensure_world_data(p, progress=progress))
+    files = sorted(f for f in (root / p.version).glob("*.json")
+                   if f.name != "flowmod.manifest.json")
+    if not files:
+        raise PretrainError(f"no tables in {root / p.version}: delete {root} and rerun")
+    return fingerprint([(f.name, file_digest(f)) for f in files], n=64), root
 
 
 def scene_frames(dataroot: Path, version: str) -> dict[str, list[dict]]:
@@ -427,7 +430,7 @@ def smoke_check(recipe: Recipe, weights: Path, smoke: Params, work: Path) -> dic
 def prepare(recipe: Recipe, dataroot: Path, work: Path, progress: bool = True
             ) -> tuple[str, PairCache, HeldOut]:
     """The world (generated if missing), its training pairs and the validation set."""
-    world_fp = ensure_world(recipe, dataroot, progress)
+    world_fp, dataroot = ensure_world(recipe, dataroot, progress)
     version = recipe.world_params(str(dataroot)).version
     frames = scene_frames(dataroot, version)
     split = scene_split(list(frames), recipe.val_every)
