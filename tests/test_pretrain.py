@@ -3,15 +3,19 @@ schedule, the batches. Hand-made tensors; seconds."""
 
 from __future__ import annotations
 
-from dataclasses import replace
+import json
+from dataclasses import asdict, replace
 
 import numpy as np
 import pandas as pd
 import pytest
 import torch
 
+from flowmod.artefacts import file_digest
 from flowmod.flow import pretrain as pt
 from flowmod.flow.architectures import FastFlowNet, fastflownet_inputs
+from flowmod.params import load_profile
+from flowmod.paths import repo_root
 
 
 def test_level_target_averages_valid_pixels_and_needs_half_of_a_cell():
@@ -112,3 +116,64 @@ def test_prepare_reads_the_world_where_it_was_generated(tmp_path):
     world_fp, data, heldout = pt.prepare(recipe, tmp_path / "pretrain", tmp_path / "work",
                                          progress=False)
     assert world_fp == fp and len(data.pairs) > 0 and len(heldout.img1) == 1
+
+
+def test_loss_curve_averages_blocks_of_steps():
+    rows = [{"step": s, "loss": float(s), "epe2": 2.0 * s} for s in range(1, 251)]
+    got = pt.loss_curve(rows, every=100)
+    assert [r["step"] for r in got] == [100, 200, 250]
+    assert got[0]["loss"] == pytest.approx(50.5) and got[2]["epe2"] == pytest.approx(451.0)
+
+
+def test_training_starts_from_the_seeded_initial_network():
+    r = pt.Recipe(seed=5)
+    a, b = pt.initial_model(r), pt.initial_model(r)
+    other = pt.initial_model(replace(r, seed=6))
+    assert all(torch.equal(a.state_dict()[k], b.state_dict()[k]) for k in a.state_dict())
+    assert not all(torch.equal(a.state_dict()[k], other.state_dict()[k])
+                   for k in a.state_dict())
+
+
+# --- the shipped weights (weights/fastflownet_synth) -----------------------------------------------
+
+SHIPPED = repo_root() / pt.WEIGHTS_DIR
+
+
+@pytest.fixture(scope="module")
+def manifest() -> dict:
+    f = SHIPPED / "manifest.json"
+    assert f.is_file(), f"{f} is missing: `make flownet` makes it (the weights ship with the code)"
+    return json.loads(f.read_text())
+
+
+def test_shipped_weights_are_the_recorded_float16_file_of_the_current_recipe(manifest):
+    w = SHIPPED / "weights.pt"
+    assert file_digest(w) == manifest["sha256"], "weights.pt is not the file the manifest hashed"
+    assert w.stat().st_size <= 10 * 2**20
+    state = torch.load(w, map_location="cpu", weights_only=True)
+    assert {v.dtype for v in state.values()} == {torch.float16}
+    assert set(state) == set(FastFlowNet().state_dict())
+    assert manifest["recipe"] == json.loads(json.dumps(asdict(pt.Recipe()))), (
+        "the recipe changed since the weights were made: `make flownet` remakes them")
+    assert manifest["steps"] == pt.Recipe().steps, "the shipped weights end the schedule"
+    assert manifest["world"]["fingerprint"] and len(manifest["world"]["fingerprint"]) == 64
+    val = manifest["validation"]
+    assert [c["step"] for c in val["curve"]][:2] == [0, pt.Recipe().eval_every]
+    assert val["curve"][-1]["step"] == manifest["steps"]
+
+
+@pytest.mark.slow
+def test_shipped_weights_reproduce_their_check_on_the_smoke_world(manifest, smoke_world,
+                                                                  tmp_path):
+    """The recipe's first steps from scratch give the recorded losses, and the shipped
+    weights the recorded errors on the smoke world's pairs."""
+    data = smoke_world[0].parents[1]
+    smoke = load_profile("smoke", dataroot=str(data), n_jobs=1)
+    threads = torch.get_num_threads()
+    got = pt.smoke_check(pt.Recipe(), SHIPPED / "weights.pt", smoke, tmp_path / "check")
+    assert torch.get_num_threads() == threads, "the check leaves the thread count as it was"
+    want = manifest["check"]
+    assert got["world_id"] == want["world_id"] and got["steps"] == want["steps"]
+    assert got["first_losses"] == pytest.approx(want["first_losses"], rel=1e-6, abs=0)
+    for k in ("epe", "epe_boxes", "fl_all"):
+        assert got["weights"][k] == pytest.approx(want["weights"][k], rel=1e-4), k

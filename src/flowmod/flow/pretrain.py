@@ -89,8 +89,11 @@ class Recipe:
     batch: int = 4
     crop: tuple[int, int] = (256, 448)
     lr: float = 3e-4
-    #: steps at which the rate is multiplied by ``gamma``
-    milestones: tuple[int, ...] = (6_000, 10_000, 14_000)
+    #: steps at which the rate is multiplied by ``gamma`` (sized so that the whole schedule,
+    #: :attr:`steps`, fits one working session on 2 CPU cores, ~1.1 s a step)
+    milestones: tuple[int, ...] = (2_000, 3_000, 3_500)
+    #: the schedule's length: ``make flownet`` trains to it
+    steps: int = 4_000
     gamma: float = 0.5
     clip: float = 1.0
     #: loss weights of levels 2..6 (means over valid pixels, px of the input)
@@ -323,8 +326,7 @@ def train(recipe: Recipe, data: PairCache, work: Path, steps: int, heldout: Held
     """Train (or resume) to ``steps`` in ``work``; evaluate on ``heldout`` every
     ``eval_every`` steps. Returns the model and the history (a row per step)."""
     torch.set_num_threads(recipe.threads)
-    torch.manual_seed(recipe.seed)
-    model = FastFlowNet()
+    model = initial_model(recipe)
     opt = torch.optim.Adam(model.parameters(), lr=recipe.lr)
     start, rows = _resume(work, model, opt, recipe)
     model.train()
@@ -368,6 +370,25 @@ def curve(rows: Sequence[dict[str, float]]) -> list[dict[str, float]]:
             for r in rows if "val_epe" in r]
 
 
+def loss_curve(rows: Sequence[dict[str, float]], every: int = CHECKPOINT_EVERY
+               ) -> list[dict[str, float]]:
+    """The training curve in blocks of ``every`` steps: the last step of each block, the
+    block's mean loss and mean finest-level EPE (px, on the training windows)."""
+    out = []
+    for k in range(0, len(rows), every):
+        block = rows[k:k + every]
+        out.append({"step": int(block[-1]["step"]),
+                    "loss": float(np.mean([r["loss"] for r in block])),
+                    "epe2": float(np.mean([r["epe2"] for r in block]))})
+    return out
+
+
+def initial_model(recipe: Recipe) -> FastFlowNet:
+    """The network of step 0: what :func:`train` starts from (seeded with the recipe)."""
+    torch.manual_seed(recipe.seed)
+    return FastFlowNet().eval()
+
+
 def publish(recipe: Recipe, work: Path, out: Path, world_fp: str, heldout: HeldOut,
             wall_seconds: float | None = None) -> dict[str, Any]:
     """Publish ``work/last.pt`` as ``out/weights.pt`` (float16) with ``out/manifest.json``;
@@ -388,7 +409,11 @@ def publish(recipe: Recipe, work: Path, out: Path, world_fp: str, heldout: HeldO
                       include={"seed", "world_scenes", "world_keyframes",
                                "world_sweep_scenes", "world_vehicles"})},
         "validation": {"pairs": len(heldout.img1), "final_float16": final,
-                       "baselines": baselines(heldout, recipe.scale), "curve": curve(rows)},
+                       "baselines": baselines(heldout, recipe.scale),
+                       "curve": [{"step": 0, **{f"val_{k}": v for k, v in score_model(
+                           initial_model(recipe), heldout, recipe.scale).items()}},
+                                 *curve(rows)]},
+        "training_curve": loss_curve(rows),
         "first_losses": [r["loss"] for r in rows[:5]],
         "train_seconds": float(sum(r["seconds"] for r in rows)),
         "wall_seconds": wall_seconds,
@@ -419,7 +444,11 @@ def smoke_check(recipe: Recipe, weights: Path, smoke: Params, work: Path) -> dic
     every = {s: "train" for s in frames}
     pairs = training_pairs(frames, every, recipe.max_gap, recipe.start_stride)
     data = PairCache(pairs, root, smoke.version, recipe.scale, work / "cache")
-    _, rows = train(recipe, data, work / "train", CHECK_STEPS, None, progress=False)
+    threads = torch.get_num_threads()
+    try:  # train() sets the recipe's thread count (the losses depend on it)
+        _, rows = train(recipe, data, work / "train", CHECK_STEPS, None, progress=False)
+    finally:
+        torch.set_num_threads(threads)
     held = validation_set(replace(recipe, eval_pairs=CHECK_PAIRS), root,
                           {s: "val" for s in frames})
     return {"world_id": smoke.world_id, "steps": CHECK_STEPS,
@@ -445,7 +474,8 @@ def main(argv: list[str] | None = None) -> int:
     """``python -m flowmod.flow.pretrain``: train (resumable) and publish the weights."""
     ap = argparse.ArgumentParser(prog="python -m flowmod.flow.pretrain",
                                  description=main.__doc__)
-    ap.add_argument("--steps", type=int, default=16_000, help="train to this step")
+    ap.add_argument("--steps", type=int, default=Recipe.steps,
+                    help="train to this step (default: the recipe's schedule)")
     ap.add_argument("--dataroot", type=Path, default=repo_root() / "data" / "pretrain")
     ap.add_argument("--work", type=Path, default=repo_root() / "runs" / "pretrain")
     ap.add_argument("--out", type=Path, default=repo_root() / WEIGHTS_DIR)
