@@ -66,8 +66,8 @@ book: run browser  ## run, then render the book into build/html (and check it in
 extensions: RUN_SET += --set extension_build=true --set "extension_inputs=[residual,residual-deployed,flow+static,images,images+flow]" --set "extension_methods=[gt,dis]" --set "wide_methods=[gt,dis]"
 extensions: book  ## make book with chapters 10 and 11's full matrix (every input on gt and dis; demo: 18 more models)
 
-selfflow: RUN_SET += --set selfflow_build=true --set "selfflow_modes=[photometric,supervised]"
-selfflow: book  ## make book with chapter 12's photometric FastFlowNet too (demo: 400 more steps; resumable)
+selfflow: RUN_SET += --set selfflow_build=true
+selfflow: book  ## make book with chapter 12 training FastFlowNet in the book too (photometric and supervised; resumable)
 
 test: env browser lint  ## lint, unit tests, notebooks on the smoke profile, the book build (TEST_WORKERS=2)
 	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=20 $(PYTEST_ARGS)
@@ -101,7 +101,7 @@ lab: env  ## JupyterLab on notebooks/ with the venv's kernel: run a chapter cell
 mutation: env  ## mutation testing of the modules whose numbers reach the book (mutmut; not part of make test)
 	$(PY) benchmarks/mutation.py
 
-flownet: env  ## train the shipped FastFlowNet weights from scratch (weights/fastflownet_synth; hours on a CPU, resumable)
+flownet: env  ## train the shipped FastFlowNet weights from scratch (weights/fastflownet_synth; ~1.5 h on 2 CPU cores, resumable)
 	$(PY) -m flowmod.flow.pretrain $(if $(STEPS),--steps $(STEPS))
 
 bench: env  ## throughput and memory figures into benchmarks/results/ (never asserted)

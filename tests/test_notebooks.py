@@ -200,13 +200,17 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
                                                  ch11.comparisons(p, ["dis"], "general"))
     assert "95 % interval over scenes" in g11["wide_headline"]
     assert (smoke_run["base"] / "runs" / "figures" / "wide_f1_distance.png").stat().st_size > 5000
-    # chapter 12: both networks trained (smoke: 4 steps), the headline from their evaluation
+    # chapter 12: the shipped weights measured on this world, and both networks trained in
+    # the book (smoke: a few steps)
     from flowmod.chapters import ch12_self_trained_flow as ch12
 
     g12 = glue_of(smoke_run, "12_self_trained_flow")
     assert g12["selfflow_n_built"] == 2
-    assert g12["selfflow_headline"] == ch12.headline(p, ["photometric", "supervised"])
-    for name in ("selfflow_training.png", "selfflow_example.png"):
+    m = ch12.shipped_manifest()
+    assert g12["shipped_steps"] == m["steps"]
+    data = ch12.world_pairs(p, p.selfflow_eval_pairs)
+    assert g12["selfflow_headline"] == ch12.shipped_headline(m, ch12.world_table(p, data), {})
+    for name in ("selfflow_training.png", "pretrain_curves.png", "shipped_example.png"):
         assert (smoke_run["base"] / "runs" / "figures" / name).stat().st_size > 5000
 
 

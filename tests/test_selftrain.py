@@ -166,7 +166,9 @@ def test_published_weights_are_a_fastflownet_checkpoint_with_the_recorded_error(
 
 def test_selfflow_nodes_parameters_and_gate(smoke_built, tmp_path):
     demo = load_profile("demo")
-    assert [str(n) for n in pipeline.nodes(demo, ["12"])] == ["selfflow[supervised]"]
+    assert [str(n) for n in pipeline.nodes(demo, ["12"])] == ["selfflow[photometric]",
+                                                              "selfflow[supervised]"]
+    assert not demo.selfflow_build, "the default book shows the shipped weights; make selfflow"
     assert pipeline.gate(dag.Node("selfflow", None, "photometric")) == "selfflow_build"
     assert load_profile("paper", dataroot="/x").selfflow_modes == ["photometric"]
     with pytest.raises(ProfileError, match="selfflow_crop.*multiples of 64"):
@@ -200,3 +202,36 @@ def test_seconds_per_pair_time_the_estimator_not_the_scoring(monkeypatch):
     out = selftrain.score(lambda a, b: flow, data)
     assert out["epe"] == pytest.approx(np.sqrt(2.0), rel=1e-5)
     assert out["seconds_per_pair"] < 0.05, "the scoring's time is not the estimator's"
+
+
+def test_the_papers_observation_is_answered_with_paired_numbers(smoke_built):
+    """Chapter 12 compares the shipped network's chain with DIS's; the smoke profile has no
+    fastflownet chain, so the exact flow's stands in for it."""
+    from flowmod.chapters import ch07_evaluation as ch07
+    from flowmod.chapters import common
+
+    p = smoke_built
+    table = pd.DataFrame({"method": [ch12.SHIPPED, "dis (medium)"],
+                          "EPE in boxes (px)": [3.0, 1.0]})
+    assert ch12.observation(p, table) == {}, "no fastflownet chain in the smoke profile"
+    obs = ch12.observation(p, table, methods=("gt", "dis"))
+    assert obs["epe_boxes_minus_dis"] == 2.0
+    want = ch07.comparisons(p).set_index("comparison").loc["gt - dis"]
+    assert obs["test"]["ΔF1 (points)"] == want["ΔF1 (points)"]
+    assert obs["test"]["95% CI over scenes (points)"] == want["95% CI over scenes (points)"]
+    general = common.results(p, "dis", "general")[0]
+    assert obs["general"]["objects"] == (general["distance"] <= p.general_max_distance).sum()
+    assert obs["general"]["objects"] < len(general), "Table 4's range, not every object"
+    words = ch12.observation_words(obs)
+    assert "less accurate than DIS's (+2.00 px" in words and "on Table 4" in words
+    # the verdict in words: the paper's observation repeats only for a decided difference
+    # whose sign goes against the flows' accuracy
+    row = {"ΔF1 (points)": 4.0, "95% CI over scenes (points)": "1.0 to 7.0",
+           "verdict": "A better", "detectable (points)": 3.0}
+    decided = {"epe_boxes_minus_dis": 2.0, "test": row, "general": row}
+    assert "observation repeats" in ch12.observation_words(decided)
+    assert "does not repeat" in ch12.observation_words({**decided, "epe_boxes_minus_dis": -1.0})
+    assert "cannot tell" in ch12.observation_words(
+        {**decided, "test": {**row, "verdict": "undecided"}})
+    assert "unknown" in ch12.observation_words({**decided, "epe_boxes_minus_dis": None})
+    assert "cannot answer" in ch12.observation_words({})

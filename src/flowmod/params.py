@@ -173,7 +173,7 @@ class Params(BaseModel):
 
     # --- optical flow ------------------------------------------------------------------
     flow_methods: list[Literal[FLOW_METHODS]] = _field(  # type: ignore[valid-type]
-        lambda: ["gt", "dis", "farneback"], role="plan",
+        lambda: ["gt", "dis", "farneback", "fastflownet"], role="plan",
         description="flow methods; one chain of flow, crops, model and scores each",
     )
     flow_networks: list[Literal["raft", "raft_small", "fastflownet"]] = _field(
@@ -192,9 +192,11 @@ class Params(BaseModel):
     raft_small_weights: str | None = _field(None, read_by=_FLOW, methods=("raft_small",),
                                             file=True,
                                             description="path to RAFT-small weights")
-    fastflownet_weights: str | None = _field(None, read_by=_FLOW, methods=("fastflownet",),
-                                             file=True,
-                                             description="path to FastFlowNet weights")
+    fastflownet_weights: str | None = _field(
+        "weights/fastflownet_synth/weights.pt", read_by=_FLOW, methods=("fastflownet",),
+        file=True, description="path to FastFlowNet weights (default: the study's own, "
+                               "pretrained on a synthetic world; null: an official "
+                               "checkpoint from the torch hub cache)")
     flow_store: Literal["pairs", "crops"] = _field(
         "crops", read_by=_FLOW,
         description="pairs: keep every pair's flow; crops: keep only the objects' crops (the "
@@ -280,14 +282,14 @@ class Params(BaseModel):
 
     # --- beyond the paper (chapter 12): FastFlowNet trained here ---------------------------
     selfflow_modes: list[Literal["photometric", "supervised"]] = _field(
-        lambda: ["supervised"], role="plan",
+        lambda: ["photometric", "supervised"], role="plan",
         description="chapter 12: how FastFlowNet is trained from scratch: photometric "
                     "(self-supervised) and/or supervised by the exact flow (generated world "
                     "only); [] = off")
     selfflow_build: bool = _field(
-        True, role="run",
+        False, role="run",
         description="chapter 12 trains its stale networks; off: it shows the ones built "
-                    "(make selfflow: photometric too, longer)")
+                    "(make selfflow turns it on)")
     selfflow_iters: int = _field(300, ge=1, le=10_000_000, read_by=("selfflow",),
                                  description="chapter 12: training steps (the CPU budget)")
     selfflow_batch: int = _field(4, ge=1, le=256, read_by=("selfflow",),

@@ -1,4 +1,9 @@
-"""Chapter 12's backend: FastFlowNet trained here, against DIS and the exact flow."""
+"""Chapter 12's backend: FastFlowNet trained here, against DIS and the exact flow.
+
+Two sources of weights: the shipped ones (``weights/fastflownet_synth/``, pretrained
+supervised on a world of their own by :mod:`flowmod.flow.pretrain`; the demo profile's
+``fastflownet`` flow method), read from their manifest; and the networks the ``selfflow``
+stage trains in the book (``selfflow_modes``), read from their published nodes."""
 
 from __future__ import annotations
 
@@ -12,10 +17,25 @@ import pandas as pd
 from flowmod import pipeline, world
 from flowmod.chapters import common
 from flowmod.dag import Node
+from flowmod.evaluate import paired, scored
 from flowmod.flow.estimators import DISFlow
 from flowmod.flow.networks import FastFlowNetFlow
-from flowmod.flow.selftrain import DIS_PRESET, held_out, heldout_pairs
+from flowmod.flow.pretrain import WEIGHTS_DIR
+from flowmod.flow.selftrain import (
+    DIS_PRESET,
+    HeldOut,
+    baselines,
+    held_out,
+    heldout_pairs,
+    sample_pairs,
+    score,
+)
+from flowmod.metrics import comparison_table
 from flowmod.params import Params
+from flowmod.paths import repo_root
+
+#: The shipped weights' row name in this chapter's tables.
+SHIPPED = "fastflownet (shipped)"
 
 
 def built(params: Params) -> list[str]:
@@ -83,19 +103,18 @@ def beats_dis(params: Params, done: list[str]) -> list[str]:
 
 
 def table3_note(params: Params, done: list[str]) -> str:
-    """Whether a trained network becomes Table 3's ``fastflownet`` row, and how: decided on
-    the validation-scene pairs."""
+    """Whether a network trained in the book could be Table 3's ``fastflownet`` row in place
+    of the shipped weights: decided on the validation-scene pairs, against DIS."""
     if not done:
-        return "No network is trained yet, so Table 3 has no `fastflownet` row from here."
+        return "No network is trained in the book with these parameters."
     better = beats_dis(params, done)
     if not better:
-        return ("No trained network beats DIS on the validation scenes' end-point error, so "
-                "Table 3 keeps its rows: a `fastflownet` row from these weights would only "
-                "show a flow worse than the classical baseline's.")
+        return ("No network trained in the book beats DIS on the validation scenes' end-point "
+                "error; Table 3's `fastflownet` row stays the shipped weights'.")
     path = weights_path(params, better[0])
     return (f"The {better[0]} network beats DIS on the validation scenes' end-point error: "
-            f"Table 3 gains its `fastflownet` row with `make book SET=\"flow_networks="
-            f"[fastflownet] fastflownet_weights={path}\"`.")
+            f"it can be Table 3's `fastflownet` row with `make book SET=\"fastflownet_weights="
+            f"{path}\"`.")
 
 
 def headline(params: Params, done: list[str]) -> str:
@@ -147,3 +166,203 @@ def built_note(params: Params, done: list[str]) -> str:
     return common.built_note("Networks trained", done, len(params.selfflow_modes),
                              f"{', '.join(todo)}; {params.selfflow_iters} steps each",
                              "selfflow_build")
+
+
+# --- the shipped weights (weights/fastflownet_synth) -------------------------------------------
+
+
+def shipped_manifest() -> dict[str, Any] | None:
+    """The manifest of the shipped FastFlowNet weights, or None where they are missing."""
+    f = repo_root() / WEIGHTS_DIR / "manifest.json"
+    return json.loads(f.read_text()) if f.is_file() else None
+
+
+def uses_shipped(params: Params) -> bool:
+    """Whether this profile's ``fastflownet`` flow method runs the shipped weights."""
+    given = params.fastflownet_weights
+    return ("fastflownet" in params.flow_methods and given is not None
+            and params.path(given).resolve() == (repo_root() / WEIGHTS_DIR / "weights.pt"
+                                                  ).resolve())
+
+
+def recipe_table(m: dict[str, Any]) -> pd.DataFrame:
+    """How the shipped weights were made, one row per fact, from their manifest."""
+    r, w = m["recipe"], m["world"]["dataroot_params"]
+    rows = {
+        "network": m["network"],
+        "pretraining world": (f"{w['world_scenes']} scenes x {w['world_keyframes']} keyframes, "
+                              f"seed {w['seed']}, sweeps in every scene; every "
+                              f"{r['val_every']}th scene for validation; no scene of this "
+                              "book's worlds"),
+        "pairs": (f"1 to {r['max_gap']} camera frames apart (12 Hz), from every "
+                  f"{r['start_stride']}th frame of the training scenes, at scale {r['scale']}"),
+        "batch": (f"{r['batch']} random {r['crop'][0]} x {r['crop'][1]} windows, a "
+                  f"horizontal flip with p {r['flip_p']}"),
+        "loss": ("end-point error against the exact flow (valid pixels) at every decoder "
+                 f"level, weights {', '.join(f'{x:g}' for x in r['level_weights'])}"),
+        "schedule": (f"Adam {r['lr']:g}, x{r['gamma']:g} at steps "
+                     f"{', '.join(str(x) for x in r['milestones'])}; {m['steps']} steps"),
+        "training time": (f"{m['train_seconds'] / 3600:.1f} h on {m['where']['device']} "
+                          f"({m['where']['threads']} threads, {m['where']['machine']})"),
+        "file": f"float16 state_dict, sha256 {m['sha256'][:12]}...",
+    }
+    return pd.DataFrame({"": list(rows), "shipped weights": list(rows.values())})
+
+
+def _metric_row(name: str, v: dict[str, float]) -> dict[str, Any]:
+    return {"method": name, "EPE (px)": round(v["epe"], 2),
+            "EPE in boxes (px)": round(v["epe_boxes"], 2),
+            "Fl-all (%)": round(v["fl_all"], 1), "Fl-all in boxes (%)": round(v["fl_all_boxes"], 1)}
+
+
+def validation_table(m: dict[str, Any]) -> pd.DataFrame:
+    """The pretraining world's validation pairs: the baselines, the untrained network (step
+    0) and the shipped float16 weights."""
+    val = m["validation"]
+    rows = [_metric_row(k, v) for k, v in val["baselines"].items()]
+    step0 = {k[4:]: v for k, v in val["curve"][0].items() if k.startswith("val_")}
+    rows.append(_metric_row("fastflownet, step 0 (untrained)", step0))
+    rows.append(_metric_row(f"{SHIPPED}, step {m['steps']}", val["final_float16"]))
+    return pd.DataFrame(rows)
+
+
+def curves(m: dict[str, Any]) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(training curve: step, loss, epe2 per block of steps; validation curve: step, val_*)."""
+    return pd.DataFrame(m["training_curve"]), pd.DataFrame(m["validation"]["curve"])
+
+
+def world_pairs(params: Params, n: int) -> HeldOut | None:
+    """``n`` keyframe pairs of this book's world drawn with the seed (any scene: the shipped
+    weights never saw this world), read with their exact flow; None on a data set without
+    exact flow (real nuScenes), where there is nothing to measure against."""
+    if not world.is_synthetic(params.dataroot_path, params.version):
+        return None
+    sel = pipeline.published(params, Node("select"))
+    pairs = pd.read_parquet(sel / "pairs.parquet")
+    pick = sample_pairs(pairs[pairs["set"] == "keyframe"], n, (params.seed, 12))
+    return held_out(pick, pd.read_parquet(sel / "objects.parquet"), params.dataroot_path,
+                    params.version, synthetic=True)
+
+
+def world_table(params: Params, data: HeldOut) -> pd.DataFrame:
+    """The shipped weights beside the zero flow, Farneback and DIS on ``data`` (this book's
+    world), with the seconds per pair of each estimator on this machine."""
+    ffn = FastFlowNetFlow(repo_root() / WEIGHTS_DIR / "weights.pt", device="cpu",
+                          scale=params.flow_scale)
+    scored = {**baselines(data, params.flow_scale), SHIPPED: score(ffn.estimate, data)}
+    return pd.DataFrame([{**_metric_row(k, v), "s / pair": round(v["seconds_per_pair"], 2)}
+                         for k, v in scored.items()])
+
+
+def observation(params: Params, table: pd.DataFrame | None,
+                methods: tuple[str, str] = ("fastflownet", "dis")) -> dict[str, Any]:
+    """The paper's observation (the less accurate flow classified better) on this study's
+    numbers: the shipped network minus DIS in end-point error inside the target boxes (px,
+    on ``table``'s pairs; None without one) and in Table 3's F1 (paired, same test objects,
+    scene-level interval), and Table 4's likewise. Empty where Table 3 has no
+    ``fastflownet`` and ``dis`` rows or they are not built. ``methods``: the two chains
+    compared (the first's flow is ``table``'s shipped row)."""
+    if not all(m in params.flow_methods and pipeline.built(params, Node("generalise", m))
+               for m in methods):
+        return {}
+    by = None if table is None else table.set_index("method")["EPE in boxes (px)"]
+    out: dict[str, Any] = {"epe_boxes_minus_dis": None if by is None else round(
+        float(by[SHIPPED] - by[f"dis ({DIS_PRESET})"]), 2)}
+    for name, label in (("test", "Table 3"), ("general", "Table 4")):
+        a, b = (scored(common.results(params, m, name)[0], name, params.general_max_distance)
+                for m in methods)
+        row = comparison_table({f"{methods[0]} - {methods[1]} ({label})": paired(
+            a, b, f"{methods[0]} and {methods[1]} ({label})", seed=params.seed)}).iloc[0]
+        out[name] = row
+    return out
+
+
+def world_words(table: pd.DataFrame | None, n: int) -> str:
+    """What the shipped network gets right and wrong against DIS on ``table``'s ``n`` pairs
+    of this book's world, in numbers (or why there are none)."""
+    if table is None:
+        return ("This data set has no exact flow, so the shipped weights' errors cannot be "
+                "measured on it; where `fastflownet` is one of `flow_methods`, Table 3 still "
+                "shows how their flow classifies.")
+    t = table.set_index("method")
+    f, d = t.loc[SHIPPED], t.loc[f"dis ({DIS_PRESET})"]
+
+    def rel(a: float, b: float) -> str:
+        return "lower than" if a < b else "higher than" if a > b else "equal to"
+
+    return (f"On {n} keyframe pairs of this book's world (scenes the network never saw), its "
+            f"end-point error is {f['EPE (px)']:.1f} px over the frame, {rel(f['EPE (px)'], d['EPE (px)'])} "
+            f"DIS's {d['EPE (px)']:.1f} px, and {f['EPE in boxes (px)']:.1f} px inside the far "
+            f"vehicles' boxes, {rel(f['EPE in boxes (px)'], d['EPE in boxes (px)'])} DIS's "
+            f"{d['EPE in boxes (px)']:.1f} px (Fl-all in the boxes {f['Fl-all in boxes (%)']:.1f} "
+            f"against {d['Fl-all in boxes (%)']:.1f} %); it takes {f['s / pair']:.2f} s a pair "
+            f"on this machine against DIS's {d['s / pair']:.2f} s.")
+
+
+def observation_words(obs: dict[str, Any]) -> str:
+    """The paper's observation answered with :func:`observation`'s numbers, or why not."""
+    if not obs:
+        return ("Table 3 of this profile has no `fastflownet` and `dis` rows to compare "
+                "(`flow_methods`), so this chapter cannot answer it here.")
+    d = obs["epe_boxes_minus_dis"]
+    t3, t4 = obs["test"], obs["general"]
+    text = (f"Its classifier minus DIS's, paired on the same objects: "
+            f"{common.difference_words(t3)} on Table 3 and {common.difference_words(t4)} on "
+            "Table 4. ")
+    if d is None:
+        return text + "Without exact flow, which of the two flows is more accurate is unknown."
+    acc = ("less accurate than" if d > 0 else "more accurate than" if d < 0
+           else "as accurate as")
+    text = (f"Inside the target boxes the shipped FastFlowNet's flow is {acc} DIS's "
+            f"({d:+.2f} px of end-point error). " + text)
+    if t3["verdict"] == "undecided":
+        return text + ("These scenes cannot tell the two classifiers apart on Table 3, so "
+                       "they neither repeat nor contradict the paper's observation.")
+    repeats = (t3["verdict"] == "A better") == (d > 0)
+    return text + ("The less accurate flow classifies better here too: the paper's observation "
+                   "repeats." if repeats and d != 0 else
+                   "Here the more accurate flow classifies better: the paper's observation "
+                   "does not repeat.")
+
+
+def shipped_headline(m: dict[str, Any] | None, table: pd.DataFrame | None,
+                     obs: dict[str, Any]) -> str:
+    """One sentence for the landing page on the shipped weights."""
+    if m is None:
+        return (f"no shipped FastFlowNet weights in {WEIGHTS_DIR} (`make flownet` makes "
+                "them)")
+    text = (f"FastFlowNet pretrained here, supervised on a synthetic world of its own "
+            f"({m['steps']} steps, {m['train_seconds'] / 3600:.1f} h on a CPU)")
+    if table is not None:
+        t = table.set_index("method")
+        text += (f", has an end-point error of {t.loc[SHIPPED, 'EPE in boxes (px)']:.1f} px "
+                 "inside the far vehicles' boxes of this book's world against DIS's "
+                 f"{t.loc[f'dis ({DIS_PRESET})', 'EPE in boxes (px)']:.1f} px")
+    if obs:
+        text += (f"; its classifier minus DIS's on Table 3: "
+                 f"{common.difference_words(obs['test'])}")
+    return text
+
+
+def shipped_note(params: Params, m: dict[str, Any] | None) -> str:
+    """A line for the chapter: which weights this profile's ``fastflownet`` runs."""
+    if m is None:
+        return (f"No shipped weights in `{WEIGHTS_DIR}`: `make flownet` makes them (hours on a "
+                "CPU, resumable).")
+    where = ("this profile's `fastflownet` flow method runs them" if uses_shipped(params)
+             else "this profile's `fastflownet` flow method does not run them "
+                  "(`flow_methods`, `fastflownet_weights`)")
+    return (f"Shipped weights: `{WEIGHTS_DIR}/weights.pt`, {m['steps']} steps, sha256 "
+            f"`{m['sha256'][:12]}`; {where}.")
+
+
+def shipped_example(params: Params, data: HeldOut, k: int = 0) -> dict[str, np.ndarray]:
+    """Pair ``k`` of ``data``: the exact flow (where there is one), DIS and the shipped
+    network at full size, for :func:`flowmod.report.viz.flow_figure`."""
+    flows = {"exact": data.gt[k]} if data.gt else {}
+    flows[f"dis ({DIS_PRESET})"] = DISFlow(DIS_PRESET, scale=params.flow_scale).estimate(
+        data.img1[k], data.img2[k])
+    ffn = FastFlowNetFlow(repo_root() / WEIGHTS_DIR / "weights.pt", device="cpu",
+                          scale=params.flow_scale)
+    flows[SHIPPED] = ffn.estimate(data.img1[k], data.img2[k])
+    return flows

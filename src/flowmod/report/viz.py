@@ -329,6 +329,29 @@ def flow_training_curves(histories: dict[str, pd.DataFrame],
     return fig
 
 
+def pretrain_curves(train: pd.DataFrame, val: pd.DataFrame,
+                    references: dict[str, dict[str, float]]) -> plt.Figure:
+    """The shipped network's training: ``train`` (step, loss per block of steps; left) and
+    the validation end-point error overall and inside the far vehicles' boxes (``val``:
+    step, val_epe, val_epe_boxes; step 0 the untrained network), with each of
+    ``references`` (name -> {epe, epe_boxes} px) as a horizontal line."""
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.3))
+    axes[0].plot(train["step"], train["loss"], color="C0")
+    axes[0].set(xlabel="step", ylabel="loss (mean per block)", title="training loss",
+                yscale="log")
+    for ax, key, title in ((axes[1], "epe", "validation EPE"),
+                           (axes[2], "epe_boxes", "validation EPE in far vehicles' boxes")):
+        ax.plot(val["step"], val[f"val_{key}"], marker="o", ms=4, color="C0",
+                label="fastflownet")
+        for j, (name, ref) in enumerate(references.items()):
+            ax.axhline(ref[key], color=f"C{j + 1}", ls=("--", ":", "-.")[j % 3], lw=1,
+                       label=name)
+        ax.set(xlabel="step", ylabel="EPE (px)", title=title, ylim=(0, None))
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
 def prediction_frames(dataroot: str | Path, pairs: pd.DataFrame, preds: pd.DataFrame,
                       n: int = 4, seed: int = 0, threshold: float = 0.5,
                       ) -> tuple[list[np.ndarray], list[str]]:
