@@ -205,7 +205,7 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
     from flowmod.chapters import ch12_self_trained_flow as ch12
 
     g12 = glue_of(smoke_run, "12_self_trained_flow")
-    assert g12["selfflow_n_built"] == 2
+    assert g12["selfflow_n_built"] == 3
     m = ch12.shipped_manifest()
     assert g12["shipped_steps"] == m["steps"]
     data = ch12.world_pairs(p, p.selfflow_eval_pairs)

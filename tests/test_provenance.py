@@ -89,6 +89,7 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "selfflow_pairs": (3, {"selfflow"}, ()),
     "selfflow_eval_pairs": (2, {"selfflow"}, ()),
     "selfflow_eval_every": (3, {"selfflow"}, ()),
+    "selfflow_init": ("weights/other.pt", {"selfflow"}, ("finetune",)),
 }
 #: Parameters whose change is not "some stages read another value" (checked on their own).
 SPECIAL = {"run_dir", "dataroot", "synthetic", "version", "flow_methods", "seeds", "folds",
@@ -126,7 +127,8 @@ def test_every_parameter_makes_exactly_its_readers_and_downstream_stale(finished
     assert getattr(finished, name) != value
     p = finished.model_copy(update={name: value})
     direct = {n for n in pipeline.nodes(p)
-              if n.stage in stages and (not methods or n.method in methods)}
+              if n.stage in stages and (not methods or n.method in methods
+                                        or n.part in methods)}
     assert not_up_to_date(p) == downstream(p, direct)
     for s in pipeline.status(p):
         if s.node in direct and s.node.stage != "world":

@@ -144,11 +144,14 @@ def _meta(name: str) -> dict[str, Any]:
 
 
 def reads(node: Node) -> tuple[str, ...]:
-    """The parameters whose values enter ``node``'s fingerprint (the ``read_by`` declaration)."""
+    """The parameters whose values enter ``node``'s fingerprint (the ``read_by`` declaration;
+    a parameter with ``methods`` only for the nodes of those flow methods or parts)."""
     out = []
     for name in Params.model_fields:
         meta = _meta(name)
-        if node.stage in meta["read_by"] and (not meta["methods"] or node.method in meta["methods"]):
+        only = meta["methods"]
+        if node.stage in meta["read_by"] and (not only or node.method in only
+                                              or node.part in only):
             out.append(name)
     return tuple(out)
 

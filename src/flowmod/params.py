@@ -53,8 +53,9 @@ def _field(default: Any = ..., *, read_by: tuple[str, ...] = (), role: str = "in
     """A :class:`Params` field that also declares who reads it (the provenance declaration).
 
     ``read_by``: the stages whose artefacts depend on the value (their fingerprints include
-    it, :mod:`flowmod.dag`); ``methods``: only for these flow methods' nodes; ``file``: the
-    value is a path whose file content (not its name) enters the fingerprint. ``role``:
+    it, :mod:`flowmod.dag`); ``methods``: only for the nodes of these flow methods (or
+    parts); ``file``: the value is a path whose file content (not its name) enters the
+    fingerprint. ``role``:
     ``input`` (the default: read by ``read_by``), ``run`` (how to run: device, workers, force;
     never makes an artefact stale), ``location`` (where data lives: readable by every stage,
     its identity enters through the world's fingerprint) or ``plan`` (which nodes exist:
@@ -281,11 +282,16 @@ class Params(BaseModel):
                     "starts a non-keyframe pair (general_interval frames apart); 0 = none")
 
     # --- beyond the paper (chapter 12): FastFlowNet trained here ---------------------------
-    selfflow_modes: list[Literal["photometric", "supervised"]] = _field(
-        lambda: ["photometric", "supervised"], role="plan",
-        description="chapter 12: how FastFlowNet is trained from scratch: photometric "
-                    "(self-supervised) and/or supervised by the exact flow (generated world "
-                    "only); [] = off")
+    selfflow_modes: list[Literal["photometric", "supervised", "finetune"]] = _field(
+        lambda: ["photometric", "supervised", "finetune"], role="plan",
+        description="chapter 12: how FastFlowNet is trained in the book: photometric "
+                    "(self-supervised, from scratch), supervised by the exact flow (generated "
+                    "world only) and/or finetune (photometric, from selfflow_init, on the "
+                    "test scenes' frames); [] = off")
+    selfflow_init: str = _field(
+        "weights/fastflownet_synth/weights.pt", read_by=("selfflow",), methods=("finetune",),
+        file=True, description="chapter 12: the FastFlowNet weights the finetune mode starts "
+                               "from (default: the shipped ones)")
     selfflow_build: bool = _field(
         False, role="run",
         description="chapter 12 trains its stale networks; off: it shows the ones built "

@@ -1,8 +1,8 @@
 """Beyond the paper (chapter 12): FastFlowNet trained here from scratch, as a stage.
 
 The training itself (losses, batches, held-out scoring) is :mod:`flowmod.flow.selftrain`;
-this module declares the ``selfflow[<mode>]`` nodes (``selfflow_modes``: ``photometric``
-and/or ``supervised``), built only with ``selfflow_build`` (on in the demo). The
+this module declares the ``selfflow[<mode>]`` nodes (``selfflow_modes``: ``photometric``,
+``supervised``, ``finetune``), built only with ``selfflow_build`` (``make selfflow``). The
 chapter's tables are in :mod:`flowmod.chapters.ch12_self_trained_flow`.
 """
 
@@ -34,9 +34,11 @@ from flowmod.flow.selftrain import (
 
 def build(b: dag.Build, progress: bool) -> dict[str, Any]:
     """Build one ``selfflow[<mode>]`` node: FastFlowNet trained on fold 0's training-scene
-    pairs, its curve on validation-scene pairs, and scored once on test-scene pairs at the
-    end: ``weights.pt`` (a FastFlowNet state_dict), ``history.csv`` and ``eval.json`` (the
-    network's and the baselines' metrics on the validation and on the test pairs)."""
+    pairs (``finetune``: from ``selfflow_init``, photometrically, on its test scenes' pairs,
+    as a user would adapt the weights to their own unlabelled frames), its curve on
+    validation-scene pairs, and scored once on test-scene pairs at the end: ``weights.pt``
+    (a FastFlowNet state_dict), ``history.csv`` and ``eval.json`` (the network's and the
+    baselines' metrics on the validation and on the test pairs)."""
     q, mode = b.params, str(b.node.part)
     root = q.dataroot_path
     synthetic = world.is_synthetic(root, q.version)
@@ -46,13 +48,15 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
             "world: there is no exact flow to supervise with; use selfflow_modes=[photometric]")
     sel = b.input_dir(dag.Node("select"))
     pairs = pd.read_parquet(sel / "pairs.parquet")
-    train = sample_pairs(fold0_pairs(pairs, q.folds, "train"), q.selfflow_pairs, (q.seed, 0))
+    role = "test" if mode == "finetune" else "train"
+    train = sample_pairs(fold0_pairs(pairs, q.folds, role), q.selfflow_pairs, (q.seed, 0))
     val = validation_pairs(pairs, q.selfflow_eval_pairs, q.seed, q.folds)
     test = heldout_pairs(pairs, q.selfflow_eval_pairs, q.seed, q.folds)
     if train.empty or val.empty or test.empty:
         raise SelfFlowError(f"no training ({len(train)}), validation ({len(val)}) or test "
                             f"({len(test)}) pair in chapter 02's selection: run chapter 02 "
                             "first")
+    init = init_weights(q) if mode == "finetune" else None  # before any work
     work = b.start(fresh=q.force)
     gt_files = (cache_gt(train, root, q.version, q.flow_scale, work / "gt", progress)
                 if mode == "supervised" else None)
@@ -65,7 +69,7 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
         crop=q.selfflow_crop, smooth=q.selfflow_smooth, seed=q.seed,
         evaluate=functools.partial(score_model, data=val_data, scale=q.flow_scale),
         eval_every=q.selfflow_eval_every, progress=progress,
-        desc=f"train fastflownet ({mode})", device=q.device)
+        desc=f"train fastflownet ({mode})", device=q.device, init=init)
     save_state({k: v.cpu() for k, v in model.state_dict().items()}, work / "weights.pt")
     with atomic_path(work / "history.csv") as tmp:
         hist.to_csv(tmp, index=False)
@@ -74,7 +78,8 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
     write_json(work / "eval.json", {
         "mode": mode, "steps": int(hist["step"].iloc[-1]),
         "seconds_per_step": float(hist["seconds"].median()),
-        "train_pairs": len(train), "val_pairs": len(val), "heldout_pairs": len(test),
+        "train_pairs": len(train), "train_scenes": sorted(train["scene"].unique()),
+        "val_pairs": len(val), "heldout_pairs": len(test),
         "validation": {"fastflownet": final,
                        "baselines": baselines(val_data, q.flow_scale)},
         "fastflownet": score_model(model, test_data, q.flow_scale),
@@ -82,6 +87,16 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
     shutil.rmtree(work / "gt", ignore_errors=True)
     (work / "last.pt").unlink(missing_ok=True)
     return {"mode": mode, "steps": int(hist["step"].iloc[-1])}
+
+
+def init_weights(q: Any) -> Any:
+    """The file ``selfflow_init`` names (the finetune mode's start), or one clear line."""
+    path = q.path(q.selfflow_init)
+    if not path.is_file():
+        raise SelfFlowError(f"selfflow_init={q.selfflow_init}: no such file ({path}); "
+                            "`make flownet` makes the shipped weights, or name another "
+                            "FastFlowNet state_dict")
+    return path
 
 
 #: Chapter 12: FastFlowNet trained from scratch (with ``selfflow_build``).

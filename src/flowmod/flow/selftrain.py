@@ -46,8 +46,8 @@ from flowmod.flow.registry import read_image, resize_flow
 from flowmod.progress import bar
 from flowmod.select import fold_roles
 
-#: The two ways of training (see the module docstring).
-MODES = ("photometric", "supervised")
+#: The ways of training (see the module docstring).
+MODES = ("photometric", "supervised", "finetune")
 #: Steps between resumable checkpoints (``last.pt``).
 CHECKPOINT_EVERY = 25
 #: Scales at which the photometric loss compares the images (:func:`photometric_loss`): half
@@ -295,11 +295,13 @@ def train_flow(data: FramePairs, mode: str, work: Path, *, iters: int, batch: in
                crop: Sequence[int], smooth: float, seed: int,
                evaluate: Callable[[FastFlowNet], dict[str, float]] | None = None,
                eval_every: int = 0, progress: bool = True, desc: str = "train flow",
-               stop_after: int | None = None, device: Any = "cpu"
+               stop_after: int | None = None, device: Any = "cpu", init: Path | None = None
                ) -> tuple[FastFlowNet, pd.DataFrame]:
-    """Train a FastFlowNet from scratch in ``work`` (resumable from ``work/last.pt``).
+    """Train a FastFlowNet in ``work`` (resumable from ``work/last.pt``), from scratch or
+    from the weights file ``init`` (a float16 or float32 state_dict).
 
-    ``mode``: ``photometric`` or ``supervised`` (``data`` must hold exact flow). Before the
+    ``mode``: ``photometric`` or ``finetune`` (the photometric loss; ``finetune`` needs
+    ``init``) or ``supervised`` (``data`` must hold exact flow). Before the
     first step (step 0: the untrained network), every ``eval_every`` steps and after the
     last, ``evaluate(model)`` adds its metrics (``val_<name>``) to the history. ``stop_after``: end after that many steps (tests of resuming); ``device``: where
     the network trains (``auto``: CUDA when there is one). Returns the model
@@ -309,6 +311,9 @@ def train_flow(data: FramePairs, mode: str, work: Path, *, iters: int, batch: in
         raise SelfFlowError(f"mode={mode!r}; allowed: {MODES}")
     if mode == "supervised" and data.gt_files is None:
         raise SelfFlowError("supervised training needs the exact flow (a generated world)")
+    if (mode == "finetune") != (init is not None):
+        raise SelfFlowError(f"mode={mode!r} with init={init}: the finetune mode, and only it, "
+                            "starts from a weights file (selfflow_init)")
     if any(int(c) % FFN_DIV_SIZE for c in crop):
         raise SelfFlowError(f"selfflow_crop={list(crop)}: both sides must be multiples of "
                             f"{FFN_DIV_SIZE} (FastFlowNet's pyramid)")
@@ -324,6 +329,9 @@ def train_flow(data: FramePairs, mode: str, work: Path, *, iters: int, batch: in
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optim"])
         start, rows = int(state["step"]), list(state["history"])
+    elif init is not None:
+        weights = torch.load(init, map_location=dev, weights_only=True)
+        model.load_state_dict({k: v.float() for k, v in weights.items()})
     if evaluate is not None and start == 0:
         rows.append({"step": 0, **{f"val_{k}": v for k, v in evaluate(model).items()}})
     model.train()
@@ -334,7 +342,7 @@ def train_flow(data: FramePairs, mode: str, work: Path, *, iters: int, batch: in
             t0 = time.perf_counter()
             b = {k: v.to(dev) for k, v in draw_batch(data, step, seed, batch, crop).items()}
             flow = fastflownet_flow(model, b["img1"], b["img2"])
-            if mode == "photometric":
+            if mode in ("photometric", "finetune"):
                 loss, parts = photometric_loss(b["img1"], b["img2"], flow, smooth,
                                                PHOTOMETRIC_SCALES)
             else:
