@@ -2,8 +2,8 @@
 
     .venv/bin/python benchmarks/bench_selfflow.py [--device cpu|cuda] [--repeat N]
 
-Times one optimiser step (forward, loss, backward, Adam) of the photometric and the
-supervised loss on random images at the demo's window and batch, and at the paper profile's
+Times one optimiser step (forward, loss, backward, Adam) of the photometric (census phase)
+and the supervised loss on random images at the demo's input size and batch, and at the paper profile's
 (skipped on CPU: minutes a step), plus the held-out inference of one 1600 x 900 pair at
 flow_scale 0.5. Writes ``benchmarks/results/selfflow_<device>.json``. Figures only, never
 asserted: the machine is noisy (2-4x swings); compare them as ratios (photometric /
@@ -23,7 +23,7 @@ import torch
 from flowmod.artefacts import write_json
 from flowmod.environment import resolve_device
 from flowmod.flow import selftrain
-from flowmod.flow.architectures import FastFlowNet, fastflownet_flow
+from flowmod.flow.architectures import FastFlowNet
 from flowmod.flow.networks import FastFlowNetFlow
 from flowmod.params import load_profile
 from flowmod.paths import repo_root
@@ -46,10 +46,8 @@ def step_seconds(mode: str, batch: int, crop: tuple[int, int], dev: torch.device
         if dev.type == "cuda":
             torch.cuda.synchronize()
         t0 = time.perf_counter()
-        flow = fastflownet_flow(model, x1, x2)
-        loss = (selftrain.photometric_loss(x1, x2, flow, 0.05, selftrain.PHOTOMETRIC_SCALES)[0]
-                if mode == "photometric"
-                else selftrain.supervised_loss(flow, gt, valid)[0])
+        loss = selftrain.step_loss(model, {"img1": x1, "img2": x2, "gt": gt, "valid": valid},
+                                   mode, 2.0, warm=False)[0]
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -73,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     out: dict = {"device": str(dev), "machine": platform.processor() or platform.machine(),
                  "torch_threads": torch.get_num_threads(), "steps": {}}
     for name, (batch, crop) in settings.items():
-        for mode in selftrain.MODES:
+        for mode in ("photometric", "supervised"):  # finetune's step is photometric's
             s = step_seconds(mode, batch, crop, dev, args.repeat)
             out["steps"][f"{name} {mode} (batch {batch}, {crop[0]}x{crop[1]})"] = {
                 "s_per_step": s, "pairs_per_s": batch / s}

@@ -90,6 +90,8 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "selfflow_eval_pairs": (2, {"selfflow"}, ()),
     "selfflow_eval_every": (3, {"selfflow"}, ()),
     "selfflow_init": ("weights/other.pt", {"selfflow"}, ("finetune",)),
+    "selfflow_window": ("crop", {"selfflow"}, ()),
+    "selfflow_warmup": (7, {"selfflow"}, ("photometric",)),
 }
 #: Parameters whose change is not "some stages read another value" (checked on their own).
 SPECIAL = {"run_dir", "dataroot", "synthetic", "version", "flow_methods", "seeds", "folds",

@@ -48,7 +48,7 @@ def test_photometric_loss_is_lowest_at_the_true_motion_and_ignores_exposure():
     assert loss(d, brighter) < 0.5 * loss((0.0, 0.0), brighter)
 
 
-def test_supervised_loss_smoothness_and_inside_mask():
+def test_supervised_loss_and_inside_mask():
     flow = torch.zeros(1, 2, 4, 5)
     gt = torch.zeros(1, 2, 4, 5)
     gt[:, 0] = 3.0
@@ -57,14 +57,52 @@ def test_supervised_loss_smoothness_and_inside_mask():
     valid[..., 0] = 0
     loss, parts = selftrain.supervised_loss(flow, gt, valid)
     assert abs(loss.item() - 5.0) < 1e-3 and abs(parts["epe"] - 5.0) < 1e-3
-    img = torch.full((1, 3, 4, 5), 100.0)
-    assert selftrain.smoothness(gt, img).item() == 0.0, "constant flow is smooth"
-    noisy = gt + torch.randn(1, 2, 4, 5, generator=torch.Generator().manual_seed(0))
-    assert selftrain.smoothness(noisy, img).item() > 0.1
     out = torch.zeros(1, 2, 4, 5)
     out[:, 0, :, 3:] = 2.0  # columns 3 and 4 move right by 2: 5 and 6 are outside
     m = selftrain.inside(out)[0, 0]
     assert m[:, :3].all() and not m[:, 3:].any()
+
+
+def test_second_order_smoothness_is_zero_on_affine_flow_and_stops_at_edges():
+    """Second order: a constant or linearly growing flow (a zoom) costs nothing, a kink
+    does; measured on the 1/4 grid in its pixels; an image edge on the kink waives it."""
+    h, w = 32, 48
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float32),
+                            torch.arange(w, dtype=torch.float32), indexing="ij")
+    img = torch.full((1, 3, h, w), 100.0)
+    zoom = torch.stack((0.1 * xs, 0.05 * ys))[None]
+    assert selftrain.second_order_smoothness(zoom + 3.0, img).item() == pytest.approx(0, abs=1e-6)
+    kink = torch.stack((8.0 * (xs >= 24).float(), torch.zeros_like(xs)))[None]
+    # on the 1/4 grid (12 columns) a 2 px step: |d2| = 2 at the 2 columns beside it, out of
+    # 10 centres and 2 channels, none in y: (2 x 2 / 10 / 2 + 0) / 2
+    assert selftrain.second_order_smoothness(kink, img).item() == pytest.approx(0.1, rel=1e-5)
+    edge = img.clone()
+    edge[..., 24:] = 200.0
+    assert selftrain.second_order_smoothness(kink, edge).item() < 1e-6, "an edge waives it"
+
+
+def test_warmup_distance_is_l1_and_ssim_and_the_loss_says_which_it_used():
+    a = _t(_texture())
+    assert selftrain.warmup_distance(a, a).abs().max().item() < 1e-6
+    darker = 0.5 * a
+    d = selftrain.warmup_distance(a, darker)
+    l1 = 0.15 * (0.5 * a).mean().item() / 255.0
+    assert d.mean().item() > l1, "SSIM adds its share to the L1's"
+    f = torch.zeros(1, 2, 64, 96)
+    warm = selftrain.photometric_loss(a, darker, f, 0.0, warm=True)
+    cold = selftrain.photometric_loss(a, darker, f, 0.0, warm=False)
+    assert warm[1]["warm-up"] == 1.0 and cold[1]["warm-up"] == 0.0
+    assert warm[1]["photometric"] != pytest.approx(cold[1]["photometric"], rel=1e-3)
+    # the warm-up distance also finds the true motion
+    img1 = _texture()
+    img2 = cv2.warpAffine(img1, np.float32([[1, 0, 3], [0, 1, -2]]), (96, 64),
+                          borderMode=cv2.BORDER_REFLECT)
+
+    def loss(u, v):
+        g = torch.tensor([u, v], dtype=torch.float32).view(1, 2, 1, 1).expand(1, 2, 64, 96)
+        return selftrain.photometric_loss(_t(img1), _t(img2), g.contiguous(), 0.0,
+                                          warm=True)[0].item()
+    assert loss(3.0, -2.0) < 0.5 * loss(0.0, 0.0)
 
 
 @pytest.fixture(scope="module")
@@ -99,6 +137,17 @@ def test_batches_are_drawn_from_seed_and_step(pairs_data, tmp_path):
     assert not torch.equal(a["img1"], c["img1"])
     with pytest.raises(selftrain.SelfFlowError, match="selfflow_crop.*larger"):
         selftrain.draw_batch(data, 0, 0, 1, (1024, 2048))
+    # whole frames resized: the picture and its exact flow shrink together
+    f = selftrain.draw_batch(data, 3, 0, 2, (64, 128), "frame")
+    whole = selftrain.draw_batch(data, 3, 0, 2, img.shape[:2], "frame")
+    assert f["img1"].shape == (2, 3, 64, 128) and f["gt"].shape == (2, 2, 64, 128)
+    ratio = 128 / img.shape[1]
+    big = whole["gt"][0, 0][whole["valid"][0, 0] > 0].abs().mean().item()
+    small = f["gt"][0, 0][f["valid"][0, 0] > 0].abs().mean().item()
+    assert small == pytest.approx(ratio * big, rel=0.15), "u scales with the width"
+    assert whole["img1"].shape[-2:] == img.shape[:2]
+    with pytest.raises(selftrain.SelfFlowError, match="selfflow_window='tile'"):
+        selftrain.draw_batch(data, 0, 0, 1, (64, 128), "tile")
 
 
 def test_training_resumes_where_it_stopped_and_learns(pairs_data, tmp_path):

@@ -304,9 +304,19 @@ class Params(BaseModel):
                                 description="chapter 12: Adam learning rate")
     selfflow_crop: list[int] = _field(
         lambda: [256, 448], read_by=("selfflow",), min_length=2, max_length=2,
-        description="chapter 12: training window (h, w) px at flow_scale, multiples of 64")
-    selfflow_smooth: float = _field(0.05, ge=0.0, le=100.0, read_by=("selfflow",),
-                                    description="chapter 12: smoothness weight (photometric)")
+        description="chapter 12: training input size (h, w) px at flow_scale, multiples of "
+                    "64 (selfflow_window)")
+    selfflow_window: Literal["frame", "crop"] = _field(
+        "frame", read_by=("selfflow",),
+        description="chapter 12: the network's training input: whole frames resized to "
+                    "selfflow_crop (frame) or random windows of that size (crop)")
+    selfflow_smooth: float = _field(2.0, ge=0.0, le=100.0, read_by=("selfflow",),
+                                    description="chapter 12: weight of the second-order "
+                                                "smoothness (photometric, finetune)")
+    selfflow_warmup: int = _field(100, ge=0, le=10_000_000, read_by=("selfflow",),
+                                  methods=("photometric",),
+                                  description="chapter 12: first steps of the photometric "
+                                              "mode with the L1 + SSIM distance, then census")
     selfflow_pairs: int = _field(256, ge=1, le=10_000_000, read_by=("selfflow",),
                                  description="chapter 12: training pairs (keyframe pairs of "
                                              "the train and val scenes, drawn with the seed)")

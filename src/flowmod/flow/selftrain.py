@@ -3,22 +3,29 @@
 No pretrained flow weights exist on this machine, so the project's FastFlowNet
 (:class:`flowmod.flow.architectures.FastFlowNet`) is trained on the data set's own frames:
 
-- ``photometric`` (self-supervised, no labels; runs on real nuScenes unchanged): the second
-  image warped back by the predicted flow should look like the first. Loss: the soft census
-  (ternary) distance of the two, robust (Charbonnier), over the pixels that stay inside the
-  image, plus ``selfflow_smooth`` x an edge-aware first-order smoothness of the flow;
+- ``photometric`` (self-supervised from scratch, no labels; runs on real nuScenes
+  unchanged), after the published unsupervised recipes (UFlow, ARFlow, SMURF): the second
+  image warped back by the predicted flow (upsampled to the input's resolution) should look
+  like the first. For the first ``selfflow_warmup`` steps the distance is L1 + SSIM, then the
+  soft census (ternary) distance, robust, over the pixels that stay inside the image; plus
+  ``selfflow_smooth`` x an edge-aware second-order smoothness of the flow on the network's
+  1/4-resolution grid, in its pixels;
 - ``supervised`` (the reference, synthetic world only): the mean end-point error against the
-  world's exact flow over its valid pixels.
+  world's exact flow over its valid pixels;
+- ``finetune``: the photometric loss (census from the first step), starting from a weights
+  file (``selfflow_init``): the path of a user who adapts pretrained weights to their own,
+  unlabelled frames.
 
-Both train on random ``selfflow_crop`` windows of consecutive keyframe pairs of the train
-and val scenes at ``flow_scale``, with Adam, ``selfflow_iters`` steps of ``selfflow_batch``
+Each trains on whole frames resized to ``selfflow_crop`` (``selfflow_window: frame``, as
+ARFlow and UFlow) or on random windows of that size (``crop``), of keyframe pairs at
+``flow_scale``, with Adam, ``selfflow_iters`` steps of ``selfflow_batch``
 pairs; the batch of step ``i`` is drawn with ``(seed, i)`` so a resumed run (``last.pt``,
 written every few steps) sees the same batches as an uninterrupted one. The network's input
 and output go through :func:`flowmod.flow.architectures.fastflownet_flow`, the function the
 ``fastflownet`` estimator uses, so the published ``weights.pt`` is an ordinary FastFlowNet
 checkpoint (``fastflownet_weights``). Held-out evaluation: end-point error on pairs of the
-test scenes at full resolution, beside DIS (medium preset) and Farneback at the same
-``flow_scale`` and the zero flow.
+validation (curve) and test scenes (once) at full resolution, beside DIS (medium preset) and
+Farneback at the same ``flow_scale`` and the zero flow.
 """
 
 from __future__ import annotations
@@ -48,11 +55,14 @@ from flowmod.select import fold_roles
 
 #: The ways of training (see the module docstring).
 MODES = ("photometric", "supervised", "finetune")
+#: How a training pair becomes the network's input (:func:`draw_batch`).
+WINDOWS = ("frame", "crop")
 #: Steps between resumable checkpoints (``last.pt``).
 CHECKPOINT_EVERY = 25
-#: Scales at which the photometric loss compares the images (:func:`photometric_loss`): half
-#: the window (FastFlowNet's flow is at 1/4 resolution anyway) and two coarser ones.
-PHOTOMETRIC_SCALES = (0.5, 0.25, 0.125)
+#: Scales at which the photometric loss compares the images (:func:`photometric_loss`): the
+#: input's own resolution (the flow upsampled, as UFlow and SMURF warp) and three coarser
+#: ones, which widen the reach of the census window.
+PHOTOMETRIC_SCALES = (1.0, 0.5, 0.25, 0.125)
 #: The DIS preset of the baseline (the CPU default of chapter 03).
 DIS_PRESET = "medium"
 
@@ -94,39 +104,71 @@ def inside(flow: Tensor) -> Tensor:
     return ((x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)).unsqueeze(1).to(flow.dtype)
 
 
-def smoothness(flow: Tensor, img: Tensor, edge: float = 10.0) -> Tensor:
-    """Edge-aware first-order smoothness (scalar): mean |flow gradient| (px / px), damped by
-    ``exp(-edge * |image gradient|)`` (image in [0, 1]) where the image has an edge."""
-    g = _gray(img)
+def ssim_distance(a: Tensor, b: Tensor) -> Tensor:
+    """(B, 1, H, W) structural dissimilarity ``(1 - SSIM) / 2`` in [0, 1] of two (B, 3, H, W)
+    BGR [0, 255] images over 3x3 windows, averaged over the channels."""
+    x, y = a / 255.0, b / 255.0
+    mu_x, mu_y = F.avg_pool2d(x, 3, 1, 1), F.avg_pool2d(y, 3, 1, 1)
+    var_x = F.avg_pool2d(x * x, 3, 1, 1) - mu_x ** 2
+    var_y = F.avg_pool2d(y * y, 3, 1, 1) - mu_y ** 2
+    cov = F.avg_pool2d(x * y, 3, 1, 1) - mu_x * mu_y
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    ssim = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)
+            / ((mu_x ** 2 + mu_y ** 2 + c1) * (var_x + var_y + c2)))
+    return ((1 - ssim) / 2).clamp(0, 1).mean(1, keepdim=True)
+
+
+def warmup_distance(a: Tensor, b: Tensor) -> Tensor:
+    """(B, 1, H, W) warm-up distance of two BGR [0, 255] images: 0.15 x mean absolute
+    difference (in [0, 1]) + 0.85 x :func:`ssim_distance` (the L1 + SSIM of ARFlow's and
+    UFlow's first phase, before the census loss)."""
+    return 0.15 * (a - b).abs().mean(1, keepdim=True) / 255.0 + 0.85 * ssim_distance(a, b)
+
+
+def second_order_smoothness(flow: Tensor, img: Tensor, edge: float = 150.0) -> Tensor:
+    """Edge-aware second-order smoothness (scalar) of ``flow`` (B, 2, H, W, px) on the
+    1/4-resolution grid (the network's own output resolution), in pixels of that grid:
+    mean |f(x-1) - 2 f(x) + f(x+1)| over both directions, damped by ``exp(-edge * |image
+    gradient|)`` (1/4-resolution image in [0, 1]; the larger of the gradients on either side
+    of ``x``), as UFlow's."""
+    f = 0.25 * F.interpolate(flow, scale_factor=0.25, mode="area")
+    g = _gray(F.interpolate(img, scale_factor=0.25, mode="area"))
     loss = flow.new_zeros(())
     for dim in (2, 3):
-        df = flow.diff(dim=dim).abs().mean(1, keepdim=True)
-        di = g.diff(dim=dim).abs()
-        loss = loss + (df * torch.exp(-edge * di)).mean()
+        n = f.shape[dim]
+        d2 = (f.narrow(dim, 0, n - 2) - 2 * f.narrow(dim, 1, n - 2)
+              + f.narrow(dim, 2, n - 2)).abs().mean(1, keepdim=True)
+        gi = g.diff(dim=dim).abs()
+        di = torch.maximum(gi.narrow(dim, 0, n - 2), gi.narrow(dim, 1, n - 2))
+        loss = loss + (d2 * torch.exp(-edge * di)).mean()
     return loss / 2
 
 
 def photometric_loss(img1: Tensor, img2: Tensor, flow: Tensor, smooth: float,
-                     scales: Sequence[float] = (1.0,)) -> tuple[Tensor, dict[str, float]]:
-    """The self-supervised loss of ``flow`` (B, 2, H, W, px) for images (B, 3, H, W) BGR
-    [0, 255]: robust census distance of img1 and img2 warped back by the flow, over pixels
-    that stay inside the image, averaged over images and flow resized by each of ``scales``
-    (coarse scales widen the census window's reach: a 7 px window at 1/8 sees 56 px), plus
-    ``smooth`` x :func:`smoothness` at the first scale. Returns (loss, parts)."""
-    terms, sm = [], flow.new_zeros(())
-    for k, s in enumerate(scales):
+                     scales: Sequence[float] = (1.0,), warm: bool = False
+                     ) -> tuple[Tensor, dict[str, float]]:
+    """The self-supervised loss of ``flow`` (B, 2, H, W, px; the network's output upsampled
+    to the images' resolution) for images (B, 3, H, W) BGR [0, 255]: the distance of img1 and
+    img2 warped back by the flow, robust (``(d + 0.01)^0.4``), over pixels that stay inside the
+    image, averaged over images and flow resized by each of ``scales`` (coarse scales widen a
+    7 px census window's reach: at 1/8 it sees 56 px), plus ``smooth`` x
+    :func:`second_order_smoothness`. The distance: :func:`warmup_distance` (L1 + SSIM) while
+    ``warm``, else the census distance. The warped image is a function of the flow only (the
+    images are constants). Returns (loss, parts)."""
+    terms = []
+    for s in scales:
         a, b, f = img1, img2, flow
         if s != 1.0:
             a, b = (F.interpolate(x, scale_factor=s, mode="area") for x in (img1, img2))
             f = s * F.interpolate(flow, scale_factor=s, mode="area")
         m = inside(f)
-        dist = census_distance(census(a), census(warp(b, f)))
+        dist = (warmup_distance(a, warp(b, f)) if warm
+                else census_distance(census(a), census(warp(b, f))))
         terms.append(((dist + 0.01) ** 0.4 * m).sum() / m.sum().clamp(min=1.0))
-        if k == 0:
-            sm = smoothness(f, a)
     photo = torch.stack(terms).mean()
+    sm = second_order_smoothness(flow, img1)
     return photo + smooth * sm, {"photometric": float(photo.detach()),
-                                 "smoothness": float(sm.detach())}
+                                 "smoothness": float(sm.detach()), "warm-up": float(warm)}
 
 
 def supervised_loss(flow: Tensor, gt: Tensor, valid: Tensor) -> tuple[Tensor, dict[str, float]]:
@@ -190,17 +232,28 @@ def cache_gt(pairs: pd.DataFrame, dataroot: Path, version: str, scale: float, ou
     return files
 
 
-def draw_batch(data: FramePairs, step: int, seed: int, batch: int, crop: Sequence[int]
-               ) -> dict[str, Tensor]:
-    """The batch of training step ``step``: ``batch`` pairs and one random ``crop`` (h, w)
-    window each, drawn with ``(seed, step)``. Tensors: img1, img2 (B, 3, h, w) float BGR
+def draw_batch(data: FramePairs, step: int, seed: int, batch: int, crop: Sequence[int],
+               window: str = "crop") -> dict[str, Tensor]:
+    """The batch of training step ``step``: ``batch`` pairs drawn with ``(seed, step)``, each
+    as a random ``crop`` (h, w) window (``window="crop"``) or as the whole frame resized to
+    ``crop`` (``"frame"``: nothing leaves the picture but what leaves the camera's view; the
+    exact flow is resized with its vectors). Tensors: img1, img2 (B, 3, h, w) float BGR
     [0, 255]; with exact flow also gt (B, 2, h, w) px and valid (B, 1, h, w)."""
+    if window not in WINDOWS:
+        raise SelfFlowError(f"selfflow_window={window!r}; allowed: {WINDOWS}")
     rng = np.random.default_rng([seed, step])
     ch, cw = (int(c) for c in crop)
     out: dict[str, list[np.ndarray]] = {"img1": [], "img2": [], "gt": [], "valid": []}
     for i in rng.integers(0, len(data), size=batch):
         a, b, gt, valid = data.load(int(i))
         h, w = a.shape[:2]
+        if window == "frame":
+            a, b = (cv2.resize(x, (cw, ch), interpolation=cv2.INTER_AREA) for x in (a, b))
+            if gt is not None:
+                gt = resize_flow(gt, (ch, cw))
+                valid = cv2.resize(valid.astype(np.uint8), (cw, ch),
+                                   interpolation=cv2.INTER_NEAREST).astype(bool)
+            h, w = ch, cw
         if h < ch or w < cw:
             raise SelfFlowError(f"selfflow_crop={list(crop)} is larger than the training "
                                 f"images at flow_scale ({h}x{w}): use a smaller crop")
@@ -291,17 +344,30 @@ def save_state(obj: Any, path: Path) -> None:
         torch.save(obj, tmp)
 
 
+def step_loss(model: FastFlowNet, b: dict[str, Tensor], mode: str, smooth: float,
+              warm: bool) -> tuple[Tensor, dict[str, float]]:
+    """The loss of one batch ``b`` (:func:`draw_batch`) for ``mode``: photometric (with the
+    warm-up distance while ``warm``) on the flow upsampled to the batch's resolution, or
+    supervised by ``b``'s exact flow."""
+    flow = fastflownet_flow(model, b["img1"], b["img2"])
+    if mode == "supervised":
+        return supervised_loss(flow, b["gt"], b["valid"])
+    return photometric_loss(b["img1"], b["img2"], flow, smooth, PHOTOMETRIC_SCALES, warm)
+
+
 def train_flow(data: FramePairs, mode: str, work: Path, *, iters: int, batch: int, lr: float,
                crop: Sequence[int], smooth: float, seed: int,
                evaluate: Callable[[FastFlowNet], dict[str, float]] | None = None,
                eval_every: int = 0, progress: bool = True, desc: str = "train flow",
-               stop_after: int | None = None, device: Any = "cpu", init: Path | None = None
-               ) -> tuple[FastFlowNet, pd.DataFrame]:
+               stop_after: int | None = None, device: Any = "cpu", init: Path | None = None,
+               window: str = "crop", warmup: int = 0) -> tuple[FastFlowNet, pd.DataFrame]:
     """Train a FastFlowNet in ``work`` (resumable from ``work/last.pt``), from scratch or
     from the weights file ``init`` (a float16 or float32 state_dict).
 
     ``mode``: ``photometric`` or ``finetune`` (the photometric loss; ``finetune`` needs
-    ``init``) or ``supervised`` (``data`` must hold exact flow). Before the
+    ``init``) or ``supervised`` (``data`` must hold exact flow); ``window``: crops or whole
+    frames resized to ``crop`` (:func:`draw_batch`); ``warmup``: the photometric mode's first
+    steps use the L1 + SSIM distance instead of the census (:func:`photometric_loss`). Before the
     first step (step 0: the untrained network), every ``eval_every`` steps and after the
     last, ``evaluate(model)`` adds its metrics (``val_<name>``) to the history. ``stop_after``: end after that many steps (tests of resuming); ``device``: where
     the network trains (``auto``: CUDA when there is one). Returns the model
@@ -340,13 +406,10 @@ def train_flow(data: FramePairs, mode: str, work: Path, *, iters: int, batch: in
     try:
         for step in range(start, end):
             t0 = time.perf_counter()
-            b = {k: v.to(dev) for k, v in draw_batch(data, step, seed, batch, crop).items()}
-            flow = fastflownet_flow(model, b["img1"], b["img2"])
-            if mode in ("photometric", "finetune"):
-                loss, parts = photometric_loss(b["img1"], b["img2"], flow, smooth,
-                                               PHOTOMETRIC_SCALES)
-            else:
-                loss, parts = supervised_loss(flow, b["gt"], b["valid"])
+            b = {k: v.to(dev) for k, v in
+                 draw_batch(data, step, seed, batch, crop, window).items()}
+            loss, parts = step_loss(model, b, mode, smooth,
+                                    warm=mode == "photometric" and step < warmup)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
