@@ -313,12 +313,12 @@ def static_crops(objects: pd.DataFrame, pairs: pd.DataFrame, size: int, scale: f
         if pid not in cams:
             cams[pid] = _pair_geometry(p.loc[pid], (frame_boxes or {}).get(pid, ()))
         K, T1, T2, boxes = cams[pid]
+        own = frame_boxes is None or pid not in frame_boxes
         for d in depths:
             if d == "ground":
                 out[d][i] = geometry.static_flow_crop(win, size, K, T1, T2, [], ground_z,
                                                       image_size=IMAGE_SIZE, box2d=box2d[i])
                 continue
-            own = frame_boxes is None or pid not in frame_boxes
             out[d][i] = geometry.static_flow_crop(win, size, K, T1, T2,
                                                   _own_box(o, T1) if own else boxes, ground_z,
                                                   image_size=IMAGE_SIZE)

@@ -32,6 +32,7 @@ import pandas as pd
 from flowmod import dag
 from flowmod.artefacts import atomic_path
 from flowmod.crops import (
+    STATIC_DEPTHS,
     CropsError,
     crop_image,
     part_objects,
@@ -47,7 +48,7 @@ from flowmod.select import PARTS, frame_boxes_3d, objects_node, open_nuscenes
 STATIC, DEPLOYED, IMAGES = "static", "deployed", "images"
 #: The static-world flow a ``depth`` of :func:`read_context` names: ``boxes`` (annotated 3D
 #: boxes, an oracle) or ``ground`` (the 2D box's ground contact, deployable).
-DEPTHS = {"boxes": STATIC, "ground": DEPLOYED}
+DEPTHS = dict(zip(STATIC_DEPTHS, (STATIC, DEPLOYED), strict=True))
 
 
 def read_image(path: Path) -> np.ndarray:

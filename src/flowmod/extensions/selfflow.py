@@ -70,7 +70,8 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
         evaluate=functools.partial(score_model, data=val_data, scale=q.flow_scale),
         eval_every=q.selfflow_eval_every, progress=progress,
         desc=f"train fastflownet ({mode})", device=q.device, init=init,
-        window=q.selfflow_window, warmup=q.selfflow_warmup)
+        window=q.selfflow_window,
+        warmup=q.selfflow_warmup if mode == "photometric" else 0)
     save_state({k: v.cpu() for k, v in model.state_dict().items()}, work / "weights.pt")
     with atomic_path(work / "history.csv") as tmp:
         hist.to_csv(tmp, index=False)
