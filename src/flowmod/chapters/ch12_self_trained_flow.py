@@ -347,8 +347,8 @@ def shipped_headline(m: dict[str, Any] | None, table: pd.DataFrame | None,
 def shipped_note(params: Params, m: dict[str, Any] | None) -> str:
     """A line for the chapter: which weights this profile's ``fastflownet`` runs."""
     if m is None:
-        return (f"No shipped weights in `{WEIGHTS_DIR}`: `make flownet` makes them (hours on a "
-                "CPU, resumable).")
+        return (f"No shipped weights in `{WEIGHTS_DIR}`: `make flownet` makes them (about an "
+                "hour on a CPU, resumable).")
     where = ("this profile's `fastflownet` flow method runs them" if uses_shipped(params)
              else "this profile's `fastflownet` flow method does not run them "
                   "(`flow_methods`, `fastflownet_weights`)")
