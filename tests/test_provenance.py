@@ -185,10 +185,11 @@ def test_special_parameters(finished, tmp_path):
     off = finished.model_copy(update={"wide_methods": []})
     assert not_up_to_date(off) == set()
     assert set(nodes) - set(pipeline.nodes(off)) == {n for n in nodes if pipeline.chapter(n) == "11"}
-    # chapter 12's plan: one mode fewer drops its network, nothing else
+    # chapter 12's plan: fewer modes drop their networks, nothing else
     one = finished.model_copy(update={"selfflow_modes": ["photometric"]})
     assert not_up_to_date(one) == set()
-    assert set(nodes) - set(pipeline.nodes(one)) == {dag.Node("selfflow", None, "supervised")}
+    assert set(nodes) - set(pipeline.nodes(one)) == {dag.Node("selfflow", None, "supervised"),
+                                                     dag.Node("selfflow", None, "finetune")}
 
 
 #: Parameters read only by the flow networks' nodes, which a CPU profile does not have.
@@ -219,8 +220,9 @@ def test_status_explains_in_one_line(finished):
     assert "input flow[dis/keyframe] is stale" in next(
         ln for ln in text.splitlines() if "crops[dis/keyframe]" in ln)
     # the dis chain of chapters 03-08 (8 nodes: two fold models), chapter 10's dis residual
-    # (3 nodes) and chapter 11's dis chain (flow, crops, two models, predictions)
-    assert text.splitlines()[-1] == ("23 of 39 up to date; 16 to build (make run, or python "
+    # (3 nodes) and chapter 11's dis chain (flow, crops, two models, predictions); chapter 12's
+    # three networks do not read the dis flow
+    assert text.splitlines()[-1] == ("24 of 40 up to date; 16 to build (make run, or python "
                                      "-m flowmod.runner)")
     quiet = pipeline.format_status(p.model_copy(update={"extension_build": False}))
     assert quiet.splitlines()[-1].endswith(
