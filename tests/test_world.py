@@ -255,6 +255,27 @@ def test_gt_flow_warps_frame_two_onto_frame_one(smoke_world, smoke_nusc):
         assert np.abs(back - im1)[agents].mean() < 0.6 * np.abs(im2 - im1)[agents].mean()
 
 
+def test_agent_boxes_bound_the_agents_silhouettes_within_a_depth_range(smoke_world, smoke_nusc):
+    """The boxes pretraining focuses on (flowmod.flow.pretrain): every agent pixel of the
+    render lies in a box of [0, inf) m, a range's boxes are some of those, none nearer 0.1 m."""
+    root, version = smoke_world
+    _, samples = _day_scene(smoke_nusc)
+    tok = samples[0]["data"]["CAM_FRONT"]
+    every = world.agent_boxes(root, version, tok, 0.0, np.inf)
+    far = world.agent_boxes(root, version, tok, 20.0, 80.0)
+    assert len(every) > len(far) > 0 and len(world.agent_boxes(root, version, tok, 0, 0.1)) == 0
+    assert {tuple(b) for b in far} <= {tuple(b) for b in every}
+    sc, t = world.scene_of(root, version, tok)
+    sid = wr.render(wg.SceneGeometry(sc), t, textured=False).sid
+    covered = np.zeros(sid.shape, bool)
+    for x0, y0, x1, y1 in every.astype(int):
+        assert 0 <= x0 < x1 <= 1600 and 0 <= y0 < y1 <= 900
+        assert (sid[y0:y1, x0:x1] >= wg.SID_AGENT0).any()
+        covered[y0:y1, x0:x1] = True
+    assert covered[sid >= wg.SID_AGENT0].all()
+    assert not covered[(sid < wg.SID_AGENT0)].all()
+
+
 def test_gt_flow_of_pure_ego_translation_over_the_ground(smoke_world):
     """Level camera moving straight ahead by d over empty ground: for a ground pixel (u, v) at
     depth Z = f h / (v - cy), the new pixel is c + (p - c) Z / (Z - d) (pinhole formula)."""

@@ -19,6 +19,7 @@ from flowmod.world.source import ensure_world, is_generated_world, world_fingerp
 from flowmod.world.truth import (
     WORLD_FILE,
     WorldError,
+    agent_boxes,
     flow_between,
     gt_flow,
     is_synthetic,
@@ -31,6 +32,7 @@ __all__ = [
     "GENERATOR_VERSION",
     "WORLD_FILE",
     "WorldError",
+    "agent_boxes",
     "ensure_world",
     "flow_between",
     "generate_world",

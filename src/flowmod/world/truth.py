@@ -118,6 +118,25 @@ def gt_flow(
     return flow_between(geo, (ts1 - t0) / 1e6, (ts2 - t0) / 1e6)
 
 
+def agent_boxes(
+    dataroot: str | os.PathLike[str], version: str, sd_token: str, near: float, far: float
+) -> np.ndarray:
+    """(N, 4) float32 pixel boxes ``xmin, ymin, xmax, ymax`` (full resolution) of the agents
+    seen in frame ``sd_token`` whose median visible depth is in ``[near, far]`` m: the
+    silhouettes' bounding rectangles (what pretraining weights and centres windows on)."""
+    _, t = scene_of(dataroot, version, sd_token)
+    key = _world_key(dataroot, version)
+    si = load_world(*key)["_sd"][sd_token][0]
+    fr = wr.render(_geometry(*key, si), t, textured=False)
+    rows = []
+    for s in np.unique(fr.sid[fr.sid >= wg.SID_AGENT0]):
+        vv, uu = np.nonzero(fr.sid == s)
+        depth = float(np.median(1.0 / np.maximum(fr.invz[vv, uu], 1e-6)))
+        if near <= depth <= far:
+            rows.append((uu.min(), vv.min(), uu.max() + 1, vv.max() + 1))
+    return np.asarray(rows, np.float32).reshape(-1, 4)
+
+
 def flow_between(geo: Any, t1: float, t2: float) -> tuple[np.ndarray, np.ndarray]:
     """GT flow between scene times t1 and t2 (s) of a :class:`SceneGeometry` (see gt_flow)."""
     f1 = wr.render(geo, t1, textured=False)
