@@ -101,7 +101,7 @@ lab: env  ## JupyterLab on notebooks/ with the venv's kernel: run a chapter cell
 mutation: env  ## mutation testing of the modules whose numbers reach the book (mutmut; not part of make test)
 	$(PY) benchmarks/mutation.py
 
-flownet: env  ## train the shipped FastFlowNet weights from scratch (weights/fastflownet_synth; about 1 h on 2 CPU cores, resumable)
+flownet: env  ## train the shipped FastFlowNet weights from scratch (weights/fastflownet_synth; about 2 h on 2 CPU cores, resumable)
 	$(PY) -m flowmod.flow.pretrain $(if $(STEPS),--steps $(STEPS))
 
 bench: env  ## throughput and memory figures into benchmarks/results/ (never asserted)

@@ -4,7 +4,7 @@ schedule, the batches. Hand-made tensors; seconds."""
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import pandas as pd
@@ -52,8 +52,13 @@ def test_rate_halves_at_each_milestone():
         [4e-4, 4e-4, 2e-4, 2e-4, 1e-4, 1e-4])
 
 
+@dataclass
 class Pairs:
-    """Two hand-made pairs of 128 x 192 frames with a known flow (u = column index)."""
+    """Two hand-made pairs of 128 x 192 frames with a known flow (u = column index) and one
+    far box each (x 150-170, y 100-120 px)."""
+
+    scale: float = 0.5
+    focus_depth: tuple[float, float] = (20.0, 80.0)
 
     pairs = pd.DataFrame({"sd_token_1": ["a", "b"], "sd_token_2": ["c", "d"]})
 
@@ -64,7 +69,8 @@ class Pairs:
         flow = np.zeros((h, w, 2), np.float32)
         flow[..., 0] = np.arange(w)[None, :] + 1000 * i
         flow[..., 1] = 7.0
-        return img, img.copy(), flow, np.ones((h, w), bool)
+        return {"img1": img, "img2": img.copy(), "flow": flow, "valid": np.ones((h, w), bool),
+                "boxes": np.array([[150.0, 100.0, 170.0, 120.0]], np.float32)}
 
 
 def test_batches_are_drawn_from_seed_and_step_and_flips_negate_u():
@@ -85,6 +91,68 @@ def test_batches_are_drawn_from_seed_and_step_and_flips_negate_u():
     assert any(flips) and not all(flips)
     none = pt.draw_batch(Pairs(), replace(r, flip_p=0.0), 5)
     assert all(none["img1"][k, 0, 0, 0] < none["img1"][k, 0, 0, -1] for k in range(8))
+
+
+def test_focused_windows_hold_a_far_box_whose_pixels_weigh_more():
+    r = pt.Recipe(batch=16, crop=(64, 128), seed=2, focus_p=1.0, box_weight=9.0)
+    b = pt.draw_batch(Pairs(), r, 0)
+    heavy = (b["weight"] == 10.0).sum(dim=(1, 2, 3))
+    assert (heavy == 400).all(), "every window holds the whole 20 x 20 box, weighted 1 + 9"
+    assert set(b["weight"].unique().tolist()) == {1.0, 10.0}
+    plain = pt.draw_batch(Pairs(), replace(r, focus_p=0.0), 0)
+    assert (plain["weight"] == 10.0).sum(dim=(1, 2, 3)).lt(400).any(), "random windows miss it"
+    same = pt.draw_batch(Pairs(), replace(r, focus_p=0.0, box_weight=0.0), 0)
+    assert torch.equal(same["img1"], plain["img1"]), "the weight does not move the windows"
+    assert (same["weight"] == 1.0).all()
+
+
+def test_window_origin_holds_the_box_or_centres_on_a_larger_one():
+    rng = np.random.default_rng(0)
+    box = np.array([150.0, 100.0, 170.0, 120.0])
+    for _ in range(50):
+        y, x = pt.window_origin(rng, (128, 192), (64, 128), box)
+        assert y <= 100 and y + 64 >= 120 and x <= 150 and x + 128 >= 170
+        assert 0 <= y <= 64 and 0 <= x <= 64
+    big = np.array([10.0, 0.0, 190.0, 128.0])  # wider and taller than the window
+    assert pt.window_origin(rng, (128, 192), (64, 128), big) == (32, 36)
+    seen = {pt.window_origin(rng, (128, 192), (64, 128), None) for _ in range(200)}
+    assert min(y for y, _ in seen) < 8 and max(x for _, x in seen) > 56, "uniform without a box"
+
+
+def test_box_weights_follow_the_window_and_the_loss_weighs_cells_by_them():
+    wt = pt.box_weight_map(np.array([[10.0, 20.0, 14.0, 22.0]]), (8, 8), (18, 8), 4.0)
+    assert wt.sum() == 64 + 4 * 2 * 4 and (wt[2:4, 2:6] == 5.0).all() and wt[0, 0] == 1.0
+    h = w = 64
+    gt = torch.zeros(1, 2, h, w)
+    gt[:, 0, :32] = 20.0  # the top half moves 20 px, the bottom half stays
+    zero = [torch.zeros(1, 2, h >> k, w >> k) for k in pt.LEVELS]
+    valid = torch.ones(1, 1, h, w)
+    plain, parts = pt.pyramid_loss(zero, gt, valid, (1, 0, 0, 0, 0))
+    same, _ = pt.pyramid_loss(zero, gt, valid, (1, 0, 0, 0, 0), torch.full((1, 1, h, w), 3.0))
+    top = torch.ones(1, 1, h, w)
+    top[:, :, :32] = 3.0
+    heavy, parts_w = pt.pyramid_loss(zero, gt, valid, (1, 0, 0, 0, 0), top)
+    assert float(plain) == pytest.approx(10.0, abs=1e-3) and float(same) == pytest.approx(10.0, abs=1e-3)
+    assert float(heavy) == pytest.approx(15.0, abs=1e-3), "3 x 20 px + 1 x 0 px over 4"
+    assert parts_w["epe2"] == pytest.approx(parts["epe2"]), "the reported EPE is unweighted"
+
+
+def test_a_later_phase_starts_from_the_weights_the_previous_one_ended_with(tmp_path):
+    one = pt.Recipe(batch=2, crop=(64, 128), steps=2, lr=1e-3)
+    two = replace(one, seed=7, steps=2, lr=5e-4, focus_p=1.0, box_weight=4.0)
+    first = pt.run_schedule((one, two), Pairs(), tmp_path / "a", 2, None, progress=False)
+    both = pt.run_schedule((one, two), Pairs(), tmp_path / "b", 3, None, progress=False)
+    by_hand, _ = pt.train(two, Pairs(), tmp_path / "c", 1, None, False, first.state_dict())
+    assert all(torch.equal(both.state_dict()[k], by_hand.state_dict()[k])
+               for k in both.state_dict())
+    assert torch.load(tmp_path / "b" / "phase2" / "last.pt", weights_only=True)["step"] == 1
+    state, rows = pt.phase_histories((one, two), tmp_path / "b")
+    assert [r["step"] for r in rows] == [1, 2, 3], "steps count from the schedule's start"
+    with pytest.raises(pt.PretrainError, match="phase 2 reads frames at scale 1.0"):
+        pt.run_schedule((one, replace(two, scale=1.0)), Pairs(), tmp_path / "e", 3, None,
+                        progress=False)
+    with pytest.raises(pt.PretrainError, match="at least one step"):
+        pt.run_schedule((one, two), Pairs(), tmp_path / "d", 0, None, progress=False)
 
 
 def test_a_step_lowers_the_loss_on_its_batch_and_levels_match_forward():
@@ -146,19 +214,19 @@ def manifest() -> dict:
     return json.loads(f.read_text())
 
 
-def test_shipped_weights_are_the_recorded_float16_file_of_the_current_recipe(manifest):
+def test_shipped_weights_are_the_recorded_float16_file_of_the_current_schedule(manifest):
     w = SHIPPED / "weights.pt"
     assert file_digest(w) == manifest["sha256"], "weights.pt is not the file the manifest hashed"
     assert w.stat().st_size <= 10 * 2**20
     state = torch.load(w, map_location="cpu", weights_only=True)
     assert {v.dtype for v in state.values()} == {torch.float16}
     assert set(state) == set(FastFlowNet().state_dict())
-    assert manifest["recipe"] == json.loads(json.dumps(asdict(pt.Recipe()))), (
-        "the recipe changed since the weights were made: `make flownet` remakes them")
-    assert manifest["steps"] == pt.Recipe().steps, "the shipped weights end the schedule"
+    assert manifest["schedule"] == json.loads(json.dumps([asdict(p) for p in pt.SCHEDULE])), (
+        "the schedule changed since the weights were made: `make flownet` remakes them")
+    assert manifest["steps"] == sum(p.steps for p in pt.SCHEDULE), "they end the schedule"
     assert manifest["world"]["fingerprint"] and len(manifest["world"]["fingerprint"]) == 64
     val = manifest["validation"]
-    assert [c["step"] for c in val["curve"]][:2] == [0, pt.Recipe().eval_every]
+    assert [c["step"] for c in val["curve"]][:2] == [0, pt.SCHEDULE[0].eval_every]
     assert val["curve"][-1]["step"] == manifest["steps"]
 
 
@@ -170,10 +238,20 @@ def test_shipped_weights_reproduce_their_check_on_the_smoke_world(manifest, smok
     data = smoke_world[0].parents[1]
     smoke = load_profile("smoke", dataroot=str(data), n_jobs=1)
     threads = torch.get_num_threads()
-    got = pt.smoke_check(pt.Recipe(), SHIPPED / "weights.pt", smoke, tmp_path / "check")
+    got = pt.smoke_check(pt.SCHEDULE[0], SHIPPED / "weights.pt", smoke, tmp_path / "check")
     assert torch.get_num_threads() == threads, "the check leaves the thread count as it was"
     want = manifest["check"]
     assert got["world_id"] == want["world_id"] and got["steps"] == want["steps"]
     assert got["first_losses"] == pytest.approx(want["first_losses"], rel=1e-6, abs=0)
     for k in ("epe", "epe_boxes", "fl_all"):
         assert got["weights"][k] == pytest.approx(want["weights"][k], rel=1e-4), k
+
+
+def test_chapter_12_describes_every_phase_of_the_schedule(manifest):
+    from flowmod.chapters import ch12_self_trained_flow as ch12
+
+    t = ch12.recipe_table(manifest).set_index("")["shipped weights"]
+    assert t["schedule"].endswith("; 4000 steps") and "3500" in t["schedule"]
+    assert t["phase 2"].startswith("5000 more steps from the previous phase's weights")
+    assert "share 0.75" in t["phase 2"] and "20-80 m" in t["phase 2"] and "21x" in t["phase 2"]
+    assert len([k for k in t.index if k.startswith("phase")]) == len(pt.SCHEDULE) - 1

@@ -185,9 +185,19 @@ def uses_shipped(params: Params) -> bool:
                                                   ).resolve())
 
 
+def phase_text(p: dict[str, Any]) -> str:
+    """A later phase of the schedule in words (its steps, rate and focus)."""
+    near, far = p["focus_depth"]
+    return (f"{p['steps']} more steps from the previous phase's weights (a fresh Adam "
+            f"{p['lr']:g}, x{p['gamma']:g} at its steps "
+            f"{', '.join(str(x) for x in p['milestones'])}); a share {p['focus_p']:g} of the "
+            f"windows holds the box of an agent {near:g}-{far:g} m away, and box pixels "
+            f"weigh {1 + p['box_weight']:g}x in the loss")
+
+
 def recipe_table(m: dict[str, Any]) -> pd.DataFrame:
     """How the shipped weights were made, one row per fact, from their manifest."""
-    r, w = m["recipe"], m["world"]["dataroot_params"]
+    r, w = m["schedule"][0], m["world"]["dataroot_params"]
     rows = {
         "network": m["network"],
         "pretraining world": (f"{w['world_scenes']} scenes x {w['world_keyframes']} keyframes, "
@@ -201,7 +211,8 @@ def recipe_table(m: dict[str, Any]) -> pd.DataFrame:
         "loss": ("end-point error against the exact flow (valid pixels) at every decoder "
                  f"level, weights {', '.join(f'{x:g}' for x in r['level_weights'])}"),
         "schedule": (f"Adam {r['lr']:g}, x{r['gamma']:g} at steps "
-                     f"{', '.join(str(x) for x in r['milestones'])}; {m['steps']} steps"),
+                     f"{', '.join(str(x) for x in r['milestones'])}; {r['steps']} steps"),
+        **{f"phase {k}": phase_text(p) for k, p in enumerate(m["schedule"][1:], start=2)},
         "training time": (f"{m['train_seconds'] / 3600:.1f} h on {m['where']['device']} "
                           f"({m['where']['threads']} threads, {m['where']['machine']})"),
         "file": f"float16 state_dict, sha256 {m['sha256'][:12]}...",

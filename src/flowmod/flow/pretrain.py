@@ -17,6 +17,11 @@ validation scenes, overall and inside the far (Table-1, 30-70 m) vehicles' boxes
 DIS. The batch of step ``i`` is drawn with ``(seed, i)``; a killed run resumes from
 ``last.pt``.
 
+The shipped weights come from :data:`SCHEDULE`: phases of such recipes, each later phase
+starting from the weights its predecessor ended with (phase 2 places most windows on, and
+weights the loss in, the boxes of far agents, :func:`flowmod.world.agent_boxes`). Phase
+``k`` trains in ``<work>/phase<k>/``.
+
 ``python -m flowmod.flow.pretrain`` (``make flownet``) generates the world, trains, and
 publishes ``weights/fastflownet_synth/``: ``weights.pt`` (float16 state_dict, an ordinary
 ``fastflownet_weights`` file) and ``manifest.json`` (recipe, world fingerprint, steps, the
@@ -58,6 +63,7 @@ from flowmod.select import (
     open_nuscenes,
     scene_table,
 )
+from flowmod.world import agent_boxes
 from flowmod.world import ensure_world as ensure_world_data
 
 #: Where the shipped weights live (relative to the repository root).
@@ -103,6 +109,12 @@ class Recipe:
     eval_pairs: int = 24
     seed: int = 0
     threads: int = 2
+    #: share of windows placed so that a box of :attr:`focus_depth` lies inside (0: none)
+    focus_p: float = 0.0
+    #: extra loss weight of the pixels inside those boxes (0: every valid pixel alike)
+    box_weight: float = 0.0
+    #: agents whose median depth (m) is in this range make the boxes (the far vehicles')
+    focus_depth: tuple[float, float] = (20.0, 80.0)
 
     def world_params(self, dataroot: str) -> Any:
         """The :class:`flowmod.params.Params` of the pretraining world (sweeps everywhere)."""
@@ -111,6 +123,16 @@ class Recipe:
             "world_scenes": self.world_scenes, "world_keyframes": self.world_keyframes,
             "world_sweep_scenes": self.world_scenes, "world_vehicles": self.world_vehicles,
             "flow_scale": self.scale}, source="pretraining recipe")
+
+
+#: The shipped weights' schedule. Phase 1 learns flow from scratch on random windows; phase 2
+#: starts from its weights (a fresh optimiser) and turns to what the study measures: windows
+#: that hold a far (20-80 m) agent's box and those boxes' pixels weighted up in the loss.
+SCHEDULE: tuple[Recipe, ...] = (
+    Recipe(),
+    Recipe(seed=1, steps=5_000, lr=2e-4, milestones=(3_000, 4_000, 4_500), eval_every=500,
+           focus_p=0.75, box_weight=20.0),
+)
 
 
 # --- the loss (a pure function of tensors) ------------------------------------------------------
@@ -127,17 +149,20 @@ def level_target(gt: Tensor, valid: Tensor, level: int) -> tuple[Tensor, Tensor]
 
 
 def pyramid_loss(levels: Sequence[Tensor], gt: Tensor, valid: Tensor,
-                 weights: Sequence[float]) -> tuple[Tensor, dict[str, float]]:
+                 weights: Sequence[float], pixel_weight: Tensor | None = None
+                 ) -> tuple[Tensor, dict[str, float]]:
     """Weighted sum over decoder levels (finest first, units px / 20) of the mean end-point
-    error, px of the input, over valid cells. Returns (loss, {"epe2": finest level's EPE})."""
+    error, px of the input, over valid cells; with ``pixel_weight`` (B, 1, H, W) a weighted
+    mean (each cell weighted by its pixels' mean weight). Returns (loss, {"epe2": finest
+    level's unweighted EPE})."""
     loss, parts = gt.new_zeros(()), {}
     for lvl, flow, w in zip(LEVELS, levels, weights, strict=True):
         target, ok = level_target(gt, valid, lvl)
         err = torch.sqrt(((FFN_DIV_FLOW * flow - target) ** 2).sum(1, keepdim=True) + 1e-6)
-        epe = (err * ok).sum() / ok.sum().clamp(min=1.0)
-        loss = loss + w * epe
+        cell = ok if pixel_weight is None else ok * F.avg_pool2d(pixel_weight, 2 ** lvl)
+        loss = loss + w * (err * cell).sum() / cell.sum().clamp(min=1e-6)
         if lvl == LEVELS[0]:
-            parts["epe2"] = float(epe.detach())
+            parts["epe2"] = float((err * ok).sum().detach() / ok.sum().clamp(min=1.0))
     return loss, parts
 
 
@@ -212,6 +237,7 @@ class PairCache:
     version: str
     scale: float
     folder: Path
+    focus_depth: tuple[float, float] = Recipe.focus_depth
     _gt: GTFlow | None = field(default=None, repr=False)
 
     def _image(self, rel: str) -> np.ndarray:
@@ -226,53 +252,95 @@ class PairCache:
             np.save(tmp, img)
         return img
 
-    def _flow(self, i: int, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    def _flow(self, i: int, size: tuple[int, int]) -> dict[str, np.ndarray]:
         r = self.pairs.iloc[i]
-        f = self.folder / "flow" / f"{r.sd_token_1}_{r.sd_token_2}.npz"
+        f = self.folder / "flow" / f"{r.sd_token_1}_{r.sd_token_2}_{self._depth_key()}.npz"
         if f.is_file():
             z = np.load(f)
-            return z["flow"].astype(np.float32), z["valid"]
+            return {"flow": z["flow"].astype(np.float32), "valid": z["valid"],
+                    "boxes": z["boxes"]}
         self._gt = self._gt or GTFlow(self.dataroot, self.version)
         flow, valid = self._gt.estimate_tokens(r.sd_token_1, r.sd_token_2)
-        small = resize_flow(flow, size)
+        small = resize_flow(flow, size).astype(np.float16)
         vsmall = cv2.resize(valid.astype(np.uint8), size[::-1],
                             interpolation=cv2.INTER_NEAREST).astype(bool)
+        boxes = agent_boxes(self.dataroot, self.version, r.sd_token_1,
+                            *self.focus_depth) * np.float32(self.scale)
         f.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(f) as tmp:
-            np.savez(tmp, flow=small.astype(np.float16), valid=vsmall)
-        return small.astype(np.float16).astype(np.float32), vsmall
+            np.savez(tmp, flow=small, valid=vsmall, boxes=boxes)
+        return {"flow": small.astype(np.float32), "valid": vsmall, "boxes": boxes}
 
-    def load(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Pair ``i``: img1, img2 (h, w, 3) uint8, flow (h, w, 2) float32 px, valid (h, w)."""
+    def _depth_key(self) -> str:
+        return "{:g}-{:g}m".format(*self.focus_depth)
+
+    def load(self, i: int) -> dict[str, np.ndarray]:
+        """Pair ``i``: img1, img2 (h, w, 3) uint8, flow (h, w, 2) float32 px, valid (h, w)
+        bool and boxes (N, 4) px at the scale (agents of ``focus_depth`` in frame 1)."""
         r = self.pairs.iloc[i]
         a, b = self._image(r.path_1), self._image(r.path_2)
-        flow, valid = self._flow(i, a.shape[:2])
-        return a, b, flow, valid
+        return {"img1": a, "img2": b, **self._flow(i, a.shape[:2])}
+
+
+def window_origin(rng: np.random.Generator, size: tuple[int, int], crop: tuple[int, int],
+                  box: np.ndarray | None) -> tuple[int, int]:
+    """Top-left (y, x) of a ``crop`` window in a frame of ``size``: uniform, or, given a
+    ``box`` (xmin, ymin, xmax, ymax) px, uniform among the windows that hold it (as much of
+    it as the crop allows)."""
+    (h, w), (ch, cw) = size, crop
+    lo, hi = [0, 0], [h - ch, w - cw]
+    if box is not None:
+        for k, (a, b, c) in enumerate(((box[1], box[3], ch), (box[0], box[2], cw))):
+            first, last = int(np.ceil(b)) - c, int(np.floor(a))  # window holds [a, b)
+            if first > last:  # the box is larger than the crop: centre on it
+                first = last = int(round((a + b - c) / 2))
+            lo[k], hi[k] = max(first, 0), min(last, hi[k])
+            lo[k] = min(lo[k], hi[k])
+    return int(rng.integers(lo[0], hi[0] + 1)), int(rng.integers(lo[1], hi[1] + 1))
+
+
+def box_weight_map(boxes: np.ndarray, size: tuple[int, int], origin: tuple[int, int],
+                   weight: float) -> np.ndarray:
+    """(h, w) float32 loss weights of a window at ``origin`` (y, x): 1, plus ``weight``
+    inside ``boxes`` (N, 4) px of the frame."""
+    out = np.ones(size, np.float32)
+    for x0, y0, x1, y1 in boxes:
+        ys = slice(max(int(y0) - origin[0], 0), max(int(np.ceil(y1)) - origin[0], 0))
+        xs = slice(max(int(x0) - origin[1], 0), max(int(np.ceil(x1)) - origin[1], 0))
+        out[ys, xs] = 1.0 + weight
+    return out
 
 
 def draw_batch(data: PairCache, recipe: Recipe, step: int) -> dict[str, Tensor]:
     """The batch of ``step``, drawn with ``(seed, step)``: pairs, one ``crop`` window each
-    and a horizontal flip with ``flip_p`` (images mirrored, u negated). Tensors img1, img2
-    (B, 3, h, w) float BGR [0, 255], gt (B, 2, h, w) px, valid (B, 1, h, w)."""
+    (holding one of the pair's far boxes with ``focus_p``) and a horizontal flip with
+    ``flip_p`` (images mirrored, u negated). Tensors img1, img2 (B, 3, h, w) float BGR
+    [0, 255], gt (B, 2, h, w) px, valid (B, 1, h, w), weight (B, 1, h, w)."""
     rng = np.random.default_rng([recipe.seed, step])
     ch, cw = recipe.crop
-    out: dict[str, list[np.ndarray]] = {"img1": [], "img2": [], "gt": [], "valid": []}
+    out: dict[str, list[np.ndarray]] = {k: [] for k in ("img1", "img2", "gt", "valid",
+                                                        "weight")}
     for i in rng.integers(0, len(data.pairs), size=recipe.batch):
-        a, b, gt, valid = data.load(int(i))
-        h, w = a.shape[:2]
+        d = data.load(int(i))
+        h, w = d["img1"].shape[:2]
         if h < ch or w < cw:
             raise PretrainError(f"crop {recipe.crop} is larger than the frames at scale "
                                 f"{recipe.scale} ({h}x{w}): use a smaller crop")
-        y, x = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
+        box = None
+        if recipe.focus_p > 0 and rng.random() < recipe.focus_p and len(d["boxes"]):
+            box = d["boxes"][int(rng.integers(0, len(d["boxes"])))]
+        y, x = window_origin(rng, (h, w), (ch, cw), box)
         win = (slice(y, y + ch), slice(x, x + cw))
-        a, b, gt, valid = a[win], b[win], gt[win], valid[win]
+        a, b, gt, valid = d["img1"][win], d["img2"][win], d["flow"][win], d["valid"][win]
+        wt = box_weight_map(d["boxes"], (ch, cw), (y, x), recipe.box_weight)
         if rng.random() < recipe.flip_p:
-            a, b, valid = a[:, ::-1], b[:, ::-1], valid[:, ::-1]
+            a, b, valid, wt = a[:, ::-1], b[:, ::-1], valid[:, ::-1], wt[:, ::-1]
             gt = gt[:, ::-1] * np.array([-1.0, 1.0], np.float32)
         out["img1"].append(a.transpose(2, 0, 1))
         out["img2"].append(b.transpose(2, 0, 1))
         out["gt"].append(gt.transpose(2, 0, 1))
         out["valid"].append(valid[None])
+        out["weight"].append(wt[None])
     return {k: torch.from_numpy(np.ascontiguousarray(np.stack(v))).float()
             for k, v in out.items()}
 
@@ -291,7 +359,8 @@ def train_step(model: FastFlowNet, opt: torch.optim.Optimizer, batch: dict[str, 
         g["lr"] = learning_rate(recipe, step)
     x1, x2 = fastflownet_inputs(batch["img1"], batch["img2"])
     loss, parts = pyramid_loss(model.levels(x1, x2), batch["gt"], batch["valid"],
-                               recipe.level_weights)
+                               recipe.level_weights,
+                               batch["weight"] if recipe.box_weight else None)
     opt.zero_grad(set_to_none=True)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(model.parameters(), recipe.clip)
@@ -322,15 +391,20 @@ def _checkpoint(work: Path, model: FastFlowNet, opt: torch.optim.Optimizer, reci
 
 
 def train(recipe: Recipe, data: PairCache, work: Path, steps: int, heldout: HeldOut | None,
-          progress: bool = True) -> tuple[FastFlowNet, list[dict[str, float]]]:
-    """Train (or resume) to ``steps`` in ``work``; evaluate on ``heldout`` every
-    ``eval_every`` steps. Returns the model and the history (a row per step)."""
+          progress: bool = True, init: dict[str, Tensor] | None = None, desc: str = "pretrain"
+          ) -> tuple[FastFlowNet, list[dict[str, float]]]:
+    """Train (or resume) to ``steps`` in ``work`` from :func:`initial_model` or the state
+    ``init``; evaluate on ``heldout`` every ``eval_every`` steps. Returns the model and the
+    history (a row per step)."""
     torch.set_num_threads(recipe.threads)
+    work.mkdir(parents=True, exist_ok=True)
     model = initial_model(recipe)
+    if init is not None:
+        model.load_state_dict(init)
     opt = torch.optim.Adam(model.parameters(), lr=recipe.lr)
     start, rows = _resume(work, model, opt, recipe)
     model.train()
-    pbar = bar(total=steps, initial=start, desc="pretrain fastflownet", unit="step",
+    pbar = bar(total=steps, initial=start, desc=desc, unit="step",
                disable=not progress)
     for step in range(start, steps):
         t0 = time.perf_counter()
@@ -389,36 +463,49 @@ def initial_model(recipe: Recipe) -> FastFlowNet:
     return FastFlowNet().eval()
 
 
-def publish(recipe: Recipe, work: Path, out: Path, world_fp: str, heldout: HeldOut,
-            wall_seconds: float | None = None) -> dict[str, Any]:
-    """Publish ``work/last.pt`` as ``out/weights.pt`` (float16) with ``out/manifest.json``;
-    the validation errors are those of the float16 weights. Returns the manifest."""
-    state = torch.load(work / "last.pt", map_location="cpu", weights_only=True)
+def phase_histories(schedule: Sequence[Recipe], work: Path) -> tuple[dict, list[dict]]:
+    """The last phase's checkpoint state and every phase's history rows, steps counted from
+    the start of the schedule (phase ``k`` lives in ``work/phase<k+1>``)."""
+    rows: list[dict[str, float]] = []
+    for k in range(len(schedule)):
+        state = torch.load(work / f"phase{k + 1}" / "last.pt", map_location="cpu",
+                           weights_only=True)
+        done = sum(p.steps for p in schedule[:k])
+        rows += [{**r, "step": r["step"] + done} for r in state["history"]]
+    return state, rows
+
+
+def publish(schedule: Sequence[Recipe], work: Path, out: Path, world_fp: str,
+            heldout: HeldOut, wall_seconds: float | None = None) -> dict[str, Any]:
+    """Publish the last phase's ``last.pt`` as ``out/weights.pt`` (float16) with
+    ``out/manifest.json``; the validation errors are those of the float16 weights."""
+    state, rows = phase_histories(schedule, work)
+    first = schedule[0]
     model = FastFlowNet()
     model.load_state_dict(state["model"])
     out.mkdir(parents=True, exist_ok=True)
     with atomic_path(out / "weights.pt") as tmp:
         torch.save(half_state(model), tmp)
-    rows = state["history"]
-    final = score_model(load_half(out / "weights.pt"), heldout, recipe.scale)
+    final = score_model(load_half(out / "weights.pt"), heldout, first.scale)
     manifest = {
         "network": "FastFlowNet (flowmod.flow.architectures), trained from scratch here",
-        "recipe": asdict(recipe), "steps": int(state["step"]),
+        "schedule": [asdict(p) for p in schedule], "steps": int(rows[-1]["step"]),
         "world": {"fingerprint": world_fp, "dataroot_params":
-                  recipe.world_params("data/pretrain").model_dump(
+                  first.world_params("data/pretrain").model_dump(
                       include={"seed", "world_scenes", "world_keyframes",
                                "world_sweep_scenes", "world_vehicles"})},
         "validation": {"pairs": len(heldout.img1), "final_float16": final,
-                       "baselines": baselines(heldout, recipe.scale),
+                       "baselines": baselines(heldout, first.scale),
                        "curve": [{"step": 0, **{f"val_{k}": v for k, v in score_model(
-                           initial_model(recipe), heldout, recipe.scale).items()}},
+                           initial_model(first), heldout, first.scale).items()}},
                                  *curve(rows)]},
         "training_curve": loss_curve(rows),
         "first_losses": [r["loss"] for r in rows[:5]],
         "train_seconds": float(sum(r["seconds"] for r in rows)),
-        "wall_seconds": wall_seconds,
+        # the invocation that published (a resumed run: from its resumption only)
+        "last_invocation_wall_seconds": wall_seconds,
         "where": {"machine": platform.machine(), "processor": platform.processor(),
-                  "torch": torch.__version__, "threads": recipe.threads,
+                  "torch": torch.__version__, "threads": first.threads,
                   "device": "cpu", "python": platform.python_version()},
         "sha256": file_digest(out / "weights.pt"),
         "format": "float16 state_dict; load with torch.load(weights_only=True)",
@@ -470,29 +557,50 @@ def prepare(recipe: Recipe, dataroot: Path, work: Path, progress: bool = True
     return world_fp, data, validation_set(recipe, dataroot, split)
 
 
+def run_schedule(schedule: Sequence[Recipe], data: PairCache, work: Path, total: int,
+                 heldout: HeldOut | None, progress: bool = True) -> FastFlowNet:
+    """Train the phases in order (each resumable in ``work/phase<k>``, each later one from
+    the weights its predecessor ended with) until ``total`` steps of the whole schedule."""
+    done, init, model = 0, None, None
+    for k, recipe in enumerate(schedule, start=1):
+        steps = min(recipe.steps, total - done)
+        if steps <= 0:
+            break
+        if recipe.scale != data.scale:
+            raise PretrainError(f"phase {k} reads frames at scale {recipe.scale}, the pairs "
+                                f"were read at {data.scale}: give every phase one scale")
+        model, _ = train(recipe, replace(data, focus_depth=recipe.focus_depth),
+                         work / f"phase{k}", steps, heldout, progress, init,
+                         desc=f"pretrain fastflownet, phase {k}/{len(schedule)}")
+        init, done = model.state_dict(), done + steps
+    if model is None:
+        raise PretrainError(f"--steps {total}: train at least one step")
+    return model
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m flowmod.flow.pretrain``: train (resumable) and publish the weights."""
     ap = argparse.ArgumentParser(prog="python -m flowmod.flow.pretrain",
                                  description=main.__doc__)
-    ap.add_argument("--steps", type=int, default=Recipe.steps,
-                    help="train to this step (default: the recipe's schedule)")
+    ap.add_argument("--steps", type=int, default=sum(p.steps for p in SCHEDULE),
+                    help="train to this step of the whole schedule (default: all of it)")
     ap.add_argument("--dataroot", type=Path, default=repo_root() / "data" / "pretrain")
     ap.add_argument("--work", type=Path, default=repo_root() / "runs" / "pretrain")
     ap.add_argument("--out", type=Path, default=repo_root() / WEIGHTS_DIR)
     ap.add_argument("--publish-only", action="store_true",
-                    help="publish the last checkpoint as it is (its step) without training")
+                    help="publish the phases' last checkpoints as they are, without training")
     ap.add_argument("--check-only", action="store_true",
                     help="only (re)compute the manifest's smoke-world check of the weights")
     args = ap.parse_args(argv)
-    recipe, t0 = Recipe(), time.time()
+    recipe, t0 = SCHEDULE[0], time.time()
     args.work.mkdir(parents=True, exist_ok=True)
     if not args.check_only:
         world_fp, data, heldout = prepare(recipe, args.dataroot.resolve(), args.work)
         print(f"[pretrain] {len(data.pairs)} training pairs, {len(heldout.img1)} validation "
               "pairs", flush=True)
         if not args.publish_only:
-            train(recipe, data, args.work, args.steps, heldout)
-        m = publish(recipe, args.work, args.out, world_fp, heldout, time.time() - t0)
+            run_schedule(SCHEDULE, data, args.work, args.steps, heldout)
+        m = publish(SCHEDULE, args.work, args.out, world_fp, heldout, time.time() - t0)
         print(f"[pretrain] published {args.out}/weights.pt: step {m['steps']}, validation EPE "
               f"in far boxes {m['validation']['final_float16']['epe_boxes']:.2f} px", flush=True)
     smoke = load_profile("smoke", n_jobs=2)
