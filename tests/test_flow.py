@@ -515,6 +515,22 @@ def test_compute_flow_network_batches(tmp_path):
     np.testing.assert_allclose(f[..., 0], 20 * 0.05 * 70 / 128, rtol=1e-3)
 
 
+def test_new_weights_at_the_same_path_never_reuse_the_old_weights_flow(tmp_path):
+    """The pool once keyed network flow by the weights' path: `make flownet` then `make
+    book` reused the flow of the replaced weights (their sha256 now enters the pool)."""
+    root, pool, w = tmp_path / "data", tmp_path / "pool", tmp_path / "w.pt"
+    pairs = make_dataroot(root, n=2, size=(50, 70))
+    torch.save(_hand_set_fastflownet(0.05, 0.0).state_dict(), w)
+    kw = {"dataroot": root, **KW, "weights": str(w), "device": "cpu"}
+    old = fl.compute_flow(pairs, "fastflownet", pool, **kw)
+    assert fl.compute_flow(pairs, "fastflownet", pool, **kw)["computed"].sum() == 0
+    torch.save(_hand_set_fastflownet(0.10, 0.0).state_dict(), w)  # new weights, same path
+    new = fl.compute_flow(pairs, "fastflownet", pool, **kw)
+    assert new["computed"].all()
+    ratio = loaded(new, pool, "p1")[..., 0] / loaded(old, pool, "p1")[..., 0]
+    np.testing.assert_allclose(ratio, 2.0, rtol=1e-3)
+
+
 def test_gt_method_works_from_tokens(tmp_path, monkeypatch):
     calls = []
 

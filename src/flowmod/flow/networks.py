@@ -45,6 +45,7 @@ class _NetworkEstimator(FlowEstimator):
     """
 
     cpu_bound = False
+    file_options = ("weights",)
     weights_param: ClassVar[str] = ""
 
     def __init__(

@@ -105,6 +105,9 @@ class FlowEstimator:
     code_version: ClassVar[int] = 1
     inputs: ClassVar[Literal["images", "tokens"]] = "images"
     cpu_bound: ClassVar[bool] = True
+    #: Options naming a file (weights) whose content the flow depends on: a pool keys them
+    #: by their sha256 as well as their name.
+    file_options: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, scale: float = 1.0) -> None:
         if not (0.0 < float(scale) <= 4.0):

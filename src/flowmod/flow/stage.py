@@ -35,7 +35,7 @@ import pandas as pd
 from joblib import Parallel, delayed
 
 from flowmod import dag
-from flowmod.artefacts import atomic_path, fingerprint, read_manifest
+from flowmod.artefacts import atomic_path, file_digest, fingerprint, read_manifest
 from flowmod.flow.networks import estimator_options
 from flowmod.flow.registry import (
     REGISTRY,
@@ -135,6 +135,9 @@ def options_config(method: str, dtype: str, store_scale: float,
         raise TypeError(f"flow method {cls.name!r}: {e}") from None
     bound.apply_defaults()
     opts = {k: describe_option(v) for k, v in sorted(bound.arguments.items()) if k not in _NOT_CONFIG}
+    for k in cls.file_options:  # new content under an old name is another input
+        if isinstance(opts.get(k), str) and Path(opts[k]).expanduser().is_file():
+            opts[f"{k}_sha256"] = file_digest(Path(opts[k]).expanduser())
     return {"method": method, "code_version": cls.code_version, "dtype": dtype,
             "store_scale": float(store_scale), "options": opts}
 
