@@ -114,6 +114,21 @@ def pytest_configure(config):
         cv2.setNumThreads(1)
 
 
+@pytest.fixture(autouse=True)
+def _threads_unchanged():
+    """Every test leaves torch's and OpenCV's thread counts as it found them: they are
+    process-wide, and the classifier's training is bit-reproducible only on one thread count
+    (a test that changed it made a later test in the same worker compare two builds trained
+    on 1 and 2 threads)."""
+    import cv2
+    import torch
+
+    before = torch.get_num_threads(), cv2.getNumThreads()
+    yield
+    after = torch.get_num_threads(), cv2.getNumThreads()
+    assert after == before, f"this test changed the (torch, cv2) thread counts {before} -> {after}"
+
+
 #: Files that take minutes: each runs first within its group (longest first balances the two
 #: workers; a file started last on one worker would keep the other idle).
 LONG_FILES = ("test_paper_profile.py", "test_provenance.py", "test_chapter_runs.py",

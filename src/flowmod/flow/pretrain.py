@@ -36,7 +36,8 @@ import json
 import platform
 import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -395,8 +396,27 @@ def train(recipe: Recipe, data: PairCache, work: Path, steps: int, heldout: Held
           ) -> tuple[FastFlowNet, list[dict[str, float]]]:
     """Train (or resume) to ``steps`` in ``work`` from :func:`initial_model` or the state
     ``init``; evaluate on ``heldout`` every ``eval_every`` steps. Returns the model and the
-    history (a row per step)."""
-    torch.set_num_threads(recipe.threads)
+    history (a row per step). Runs on ``recipe.threads`` threads (the losses depend on it)
+    and gives the caller's thread count back."""
+    with torch_threads(recipe.threads):
+        return _train(recipe, data, work, steps, heldout, progress, init, desc)
+
+
+@contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """Run the block on ``n`` torch threads, then restore the caller's count (a process-wide
+    setting: left changed, it alters every later float reduction in the process)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def _train(recipe: Recipe, data: PairCache, work: Path, steps: int, heldout: HeldOut | None,
+           progress: bool, init: dict[str, Tensor] | None, desc: str
+           ) -> tuple[FastFlowNet, list[dict[str, float]]]:
     work.mkdir(parents=True, exist_ok=True)
     model = initial_model(recipe)
     if init is not None:
@@ -531,11 +551,7 @@ def smoke_check(recipe: Recipe, weights: Path, smoke: Params, work: Path) -> dic
     every = {s: "train" for s in frames}
     pairs = training_pairs(frames, every, recipe.max_gap, recipe.start_stride)
     data = PairCache(pairs, root, smoke.version, recipe.scale, work / "cache")
-    threads = torch.get_num_threads()
-    try:  # train() sets the recipe's thread count (the losses depend on it)
-        _, rows = train(recipe, data, work / "train", CHECK_STEPS, None, progress=False)
-    finally:
-        torch.set_num_threads(threads)
+    _, rows = train(recipe, data, work / "train", CHECK_STEPS, None, progress=False)
     held = validation_set(replace(recipe, eval_pairs=CHECK_PAIRS), root,
                           {s: "val" for s in frames})
     return {"world_id": smoke.world_id, "steps": CHECK_STEPS,
