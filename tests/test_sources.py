@@ -223,3 +223,21 @@ def test_make_lab_serves_the_notebooks_with_the_venvs_kernel(tmp_path):
     finally:
         os.killpg(proc.pid, signal.SIGTERM)
         proc.wait(timeout=30)
+
+
+def test_the_package_imports_without_the_heavy_optional_libraries():
+    """Every notebook and CLI process imports the pipeline and the chapter backends; the
+    devkit (with matplotlib and scikit-learn), torchvision (with torch._dynamo) and Ray cost
+    seconds at import and exit each, so the package imports them where they are used (the
+    book executes ~13 kernels and the tests ~50)."""
+    import subprocess
+    import sys
+
+    code = ("import importlib, pkgutil, sys\n"
+            "import flowmod.chapters, flowmod.pipeline, flowmod.runner, flowmod.report.viz\n"
+            "for m in pkgutil.iter_modules(flowmod.chapters.__path__):\n"
+            "    importlib.import_module('flowmod.chapters.' + m.name)\n"
+            "print(sorted({n.split('.')[0] for n in sys.modules}"
+            " & {'nuscenes', 'torchvision', 'sklearn', 'ray'}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout

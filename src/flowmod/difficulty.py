@@ -12,18 +12,20 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
 from joblib import Parallel, delayed
-from nuscenes.nuscenes import NuScenes
 
 from flowmod import dag, select
 from flowmod.artefacts import write_json
 from flowmod.params import TABLE1_CATEGORIES, Params, validate
 from flowmod.select import description_items
 from flowmod.world import gt_flow, is_generated_world, true_velocity
+
+if TYPE_CHECKING:
+    from nuscenes.nuscenes import NuScenes
 
 EXCLUDE = ("night", "rain", "lightning")
 #: Keyframe pairs (seeded sample) on which the difficulty node scores the naive rule: the

@@ -20,8 +20,6 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
-from torchvision.models import resnet18
-from torchvision.models.resnet import BasicBlock
 
 from flowmod.artefacts import CheckpointError, state_dict_mismatch
 from flowmod.environment import resolve_device
@@ -38,6 +36,8 @@ def motion_resnet18(in_channels: int = 2, width: int = 64) -> nn.Module:
     width, 2, 4 and 8 x width channels). Depth, blocks and strides are ResNet18's."""
     if in_channels < 1 or width < 1:
         raise ValueError(f"in_channels and width must be >= 1, got {in_channels}, {width}")
+    from torchvision.models import resnet18  # here: torchvision's import costs ~1 s
+
     m = resnet18(weights=None)
     if width != 64:
         _narrow(m, width)
@@ -49,6 +49,8 @@ def motion_resnet18(in_channels: int = 2, width: int = 64) -> nn.Module:
 def _narrow(m: nn.Module, width: int) -> None:
     """Give ResNet18 ``m`` stages of width, 2, 4, 8 x ``width`` channels (the layout and
     initialisation of torchvision's, whose state_dict keys it keeps)."""
+    from torchvision.models.resnet import BasicBlock
+
     m.bn1 = nn.BatchNorm2d(width)
     planes = [width, 2 * width, 4 * width, 8 * width]
     inplanes = width

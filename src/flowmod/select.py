@@ -23,18 +23,19 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
-from nuscenes.nuscenes import NuScenes
-from nuscenes.utils.geometry_utils import BoxVisibility, view_points
 from pyquaternion import Quaternion
 
 from flowmod import dag, labels, world
 from flowmod.artefacts import atomic_path
 from flowmod.params import Params
 from flowmod.progress import bar
+
+if TYPE_CHECKING:  # the devkit is imported where it is used (1-2 s: matplotlib, sklearn)
+    from nuscenes.nuscenes import NuScenes
 
 TABLES = (
     "attribute", "calibrated_sensor", "category", "ego_pose", "instance", "log", "map",
@@ -81,6 +82,8 @@ def open_nuscenes(dataroot: str | Path, version: str) -> NuScenes:
 
 @lru_cache(maxsize=1)
 def _load_nuscenes(dataroot: str, version: str, stamp: tuple) -> NuScenes:
+    from nuscenes.nuscenes import NuScenes
+
     return NuScenes(version=version, dataroot=dataroot, verbose=False)
 
 
@@ -311,6 +314,8 @@ def qualifying_boxes(
     (``get_sample_data`` with ``BoxVisibility.ALL``: all corners in front and inside the image;
     interpolated for sweeps).
     """
+    from nuscenes.utils.geometry_utils import BoxVisibility, view_points
+
     _, boxes, K = nusc.get_sample_data(sd["token"], box_vis_level=BoxVisibility.ALL)
     if not boxes:
         return {}
@@ -344,6 +349,8 @@ def frame_boxes(nusc, sd: dict) -> list[dict]:
     """Every annotated object of ``sd``'s frame (any category, any visibility) that has a
     corner in front of the camera and inside the image: instance token, category and the
     2D box of its corners in front of the camera, clipped to the image (px)."""
+    from nuscenes.utils.geometry_utils import BoxVisibility, view_points
+
     _, boxes, K = nusc.get_sample_data(sd["token"], box_vis_level=BoxVisibility.ANY)
     w, h = sd["width"], sd["height"]
     out = []

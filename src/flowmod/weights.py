@@ -20,8 +20,6 @@ import sys
 import urllib.error
 from pathlib import Path
 
-from torchvision.models import optical_flow as of
-
 from flowmod.flow import architectures as nets
 from flowmod.flow.networks import WEIGHTS_PARAM, cache_files
 
@@ -43,6 +41,8 @@ def available_networks() -> list[str]:
 def download() -> list[Path]:
     """Download the RAFT checkpoints of :data:`RAFT_WEIGHTS` with torchvision's hash check;
     :class:`ConnectionError` with one line when there is no network."""
+    from torchvision.models import optical_flow as of
+
     enums = {"raft_large": of.Raft_Large_Weights, "raft_small": of.Raft_Small_Weights}
     done = []
     for arch, member in RAFT_WEIGHTS:

@@ -13,14 +13,12 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 from matplotlib.patches import Rectangle
-from nuscenes.nuscenes import NuScenes
-from nuscenes.utils.geometry_utils import BoxVisibility
 from PIL import Image
 
 from flowmod.chapters.common import read_json
@@ -30,6 +28,9 @@ from flowmod.flow import flow_to_color
 from flowmod.params import Params
 from flowmod.select import open_nuscenes
 from flowmod.world import gt_flow
+
+if TYPE_CHECKING:
+    from nuscenes.nuscenes import NuScenes
 
 
 def _nusc(nusc_or_dataroot: Any, version: str) -> NuScenes:
@@ -51,6 +52,8 @@ def annotation_table(
     Columns: scene, usable (not night/rain), category, distance (m), visibility, speed (m/s,
     devkit ``box_velocity``), label, attribute.
     """
+    from nuscenes.utils.geometry_utils import BoxVisibility
+
     nusc = _nusc(nusc_or_dataroot, version)
     rows = []
     for scene in nusc.scene:
