@@ -49,7 +49,7 @@ def motion_resnet18(in_channels: int = 2, width: int = 64) -> nn.Module:
 def _narrow(m: nn.Module, width: int) -> None:
     """Give ResNet18 ``m`` stages of width, 2, 4, 8 x ``width`` channels (the layout and
     initialisation of torchvision's, whose state_dict keys it keeps)."""
-    from torchvision.models.resnet import BasicBlock
+    from torchvision.models.resnet import BasicBlock  # here: ~1 s to import
 
     m.bn1 = nn.BatchNorm2d(width)
     planes = [width, 2 * width, 4 * width, 8 * width]

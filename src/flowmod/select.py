@@ -82,7 +82,7 @@ def open_nuscenes(dataroot: str | Path, version: str) -> NuScenes:
 
 @lru_cache(maxsize=1)
 def _load_nuscenes(dataroot: str, version: str, stamp: tuple) -> NuScenes:
-    from nuscenes.nuscenes import NuScenes
+    from nuscenes.nuscenes import NuScenes  # here: the devkit costs ~1 s to import
 
     return NuScenes(version=version, dataroot=dataroot, verbose=False)
 

@@ -41,7 +41,7 @@ def available_networks() -> list[str]:
 def download() -> list[Path]:
     """Download the RAFT checkpoints of :data:`RAFT_WEIGHTS` with torchvision's hash check;
     :class:`ConnectionError` with one line when there is no network."""
-    from torchvision.models import optical_flow as of
+    from torchvision.models import optical_flow as of  # here: ~1 s to import
 
     enums = {"raft_large": of.Raft_Large_Weights, "raft_small": of.Raft_Small_Weights}
     done = []
