@@ -33,7 +33,7 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "device": ("cpu", set(), ()),
     "force": (True, set(), ()),
     "world_scenes": (5, {"world"}, ()),
-    "world_keyframes": (4, {"world"}, ()),
+    "world_keyframes": (3, {"world"}, ()),
     "world_sweep_scenes": (2, {"world"}, ()),
     "world_vehicles": (17, {"world"}, ()),
     "world_near_movers": (1, {"world"}, ()),
