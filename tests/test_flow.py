@@ -531,6 +531,41 @@ def test_new_weights_at_the_same_path_never_reuse_the_old_weights_flow(tmp_path)
     np.testing.assert_allclose(ratio, 2.0, rtol=1e-3)
 
 
+def test_null_weights_stand_for_the_cached_checkpoint_they_load(tmp_path, monkeypatch):
+    """``fastflownet_weights: null`` loads the first checkpoint found in the torch hub cache:
+    the flow node's fingerprint and the pool key that file's content, so a checkpoint
+    replaced in the cache, or a preferred one added, never gets the old flow."""
+    from flowmod import dag
+    from flowmod.flow.networks import cache_files, estimator_options
+    from flowmod.params import load_profile
+
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    p = load_profile("smoke", run_dir=str(tmp_path / "runs"), fastflownet_weights=None)
+    node = dag.Node("flow", "fastflownet", "keyframe")
+    assert dag.values(p, node)["fastflownet_weights"] is None, "nothing cached: as before"
+    assert estimator_options(p, "fastflownet")["weights"] is None
+    preferred, other = cache_files("fastflownet")[:2]
+    other.parent.mkdir(parents=True)
+    torch.save(_hand_set_fastflownet(0.05, 0.0).state_dict(), other)
+    first = dag.values(p, node)["fastflownet_weights"]
+    opts = estimator_options(p, "fastflownet")
+    assert opts["weights"] == other and first == {"sha256": fl.stage.file_digest(other)}
+    root, pool = tmp_path / "data", tmp_path / "pool"
+    pairs = make_dataroot(root, n=2, size=(50, 70))
+    kw = {**KW, "dataroot": root, **opts, "device": "cpu"}
+    old = fl.compute_flow(pairs, "fastflownet", pool, **kw)
+    torch.save(_hand_set_fastflownet(0.10, 0.0).state_dict(), other)  # replaced in the cache
+    assert dag.values(p, node)["fastflownet_weights"] != first
+    new = fl.compute_flow(pairs, "fastflownet", pool, **kw)
+    assert new["computed"].all()
+    ratio = loaded(new, pool, "p1")[..., 0] / loaded(old, pool, "p1")[..., 0]
+    np.testing.assert_allclose(ratio, 2.0, rtol=1e-3)
+    torch.save(_hand_set_fastflownet(0.20, 0.0).state_dict(), preferred)  # a preferred one
+    assert estimator_options(p, "fastflownet")["weights"] == preferred
+    assert dag.values(p, node)["fastflownet_weights"] == {
+        "sha256": fl.stage.file_digest(preferred)}
+
+
 def test_gt_method_works_from_tokens(tmp_path, monkeypatch):
     calls = []
 

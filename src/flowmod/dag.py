@@ -45,7 +45,7 @@ from flowmod.artefacts import (
     read_manifest,
     write_manifest,
 )
-from flowmod.params import Params
+from flowmod.params import FILE_DEFAULTS, Params
 
 #: Previous results kept per node (published results replaced by a rebuild).
 KEEP_VARIANTS = 2
@@ -170,14 +170,17 @@ def digest_cache(p: Params) -> Path:
 
 def values(p: Params, node: Node) -> dict[str, Any]:
     """``{parameter: value}`` of :func:`reads`; a ``file`` parameter contributes the sha256 of
-    the file it names (so a replaced weights file is a change, a renamed copy is not)."""
+    the file it names (so a replaced weights file is a change, a renamed copy is not), or,
+    left null, of the file its reader would find instead (:data:`FILE_DEFAULTS`)."""
     out: dict[str, Any] = {}
     for name in reads(node):
         v = getattr(p, name)
-        if _meta(name)["file"] and v:
-            path = p.path(v)
-            v = {"sha256": file_digest(path, digest_cache(p))} if path.is_file() else {
-                "missing": str(v)}
+        if _meta(name)["file"]:
+            path = p.path(v) if v else FILE_DEFAULTS.get(name, lambda: None)()
+            if path is not None and path.is_file():
+                v = {"sha256": file_digest(path, digest_cache(p))}
+            elif v:
+                v = {"missing": str(v)}
         out[name] = v
     return out
 

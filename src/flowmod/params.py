@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
 from typing import Any, Literal
@@ -67,6 +68,13 @@ def _field(default: Any = ..., *, read_by: tuple[str, ...] = (), role: str = "in
     if callable(default):
         return Field(default_factory=default, json_schema_extra=extra, **kw)
     return Field(default, json_schema_extra=extra, **kw)
+
+
+#: For a ``file`` parameter left null: the file its reader loads instead (a network's
+#: checkpoint found in the torch hub cache), or None. Registered by the module that does the
+#: search (``flowmod.flow.networks``); the found file's content enters fingerprints as a
+#: named file's would, so a checkpoint replaced in the cache makes its readers stale.
+FILE_DEFAULTS: dict[str, Callable[[], Path | None]] = {}
 
 
 #: Roles of a parameter (see :func:`_field`).

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -23,6 +24,7 @@ from flowmod.flow.registry import (
     resize_flow,
     resize_image,
 )
+from flowmod.params import FILE_DEFAULTS
 
 if TYPE_CHECKING:
     import torch
@@ -259,7 +261,9 @@ def estimator_options(params: Params, method: str) -> dict[str, Any]:
         opts["preset"] = params.dis_preset
     elif method in ("raft", "raft_small", "fastflownet"):
         value = getattr(params, WEIGHTS_PARAM[method], None)
-        opts["weights"] = params.path(value) if value else None
+        # null: the cache file the network would find, named, so that the pool keys it by
+        # content (``file_options``) like a given file; None when there is none
+        opts["weights"] = params.path(value) if value else cached_weights(method)
         opts["device"] = params.device
         if method != "fastflownet":
             opts["num_flow_updates"] = params.raft_iters
@@ -289,7 +293,16 @@ def weights_file(params: Params, method: str) -> Path | None:
     if value:
         given = params.path(value)
         return given if given.is_file() else None
+    return cached_weights(method)
+
+
+def cached_weights(method: str) -> Path | None:
+    """The first of :func:`cache_files` present (what the network loads with weights null)."""
     return next((f for f in cache_files(method) if f.is_file()), None)
+
+
+# a null *_weights parameter stands for the cached file: its content enters fingerprints
+FILE_DEFAULTS.update({param: partial(cached_weights, m) for m, param in WEIGHTS_PARAM.items()})
 
 
 def planned_methods(params: Params) -> tuple[list[str], list[str]]:
