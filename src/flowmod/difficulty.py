@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Iterable, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -24,19 +24,10 @@ from flowmod.params import TABLE1_CATEGORIES, Params, validate
 from flowmod.select import description_items
 from flowmod.world import gt_flow, is_generated_world, true_velocity
 
-if TYPE_CHECKING:
-    from nuscenes.nuscenes import NuScenes
-
 EXCLUDE = ("night", "rain", "lightning")
 #: Keyframe pairs (seeded sample) on which the difficulty node scores the naive rule: the
 #: exact flow of every pair would cost as much as the flow stage itself.
 DIFFICULTY_PAIRS = 240
-
-
-def _nusc(nusc_or_dataroot: Any, version: str) -> NuScenes:
-    if isinstance(nusc_or_dataroot, (str, os.PathLike)):
-        return select.open_nuscenes(nusc_or_dataroot, version)
-    return nusc_or_dataroot
 
 
 def usable(description: str, exclude: Iterable[str] = EXCLUDE) -> bool:
@@ -59,7 +50,7 @@ def distant_objects(
     """One row per (consecutive keyframe pair, vehicle qualifying in both keyframes): the
     paper's Table-1 objects of all usable scenes, selected by :mod:`flowmod.select` (the same
     code as the filtering stage), with the pair's sd_token_1/2 and timestamp_1/2 (us)."""
-    nusc = _nusc(nusc_or_dataroot, version)
+    nusc = select.as_nuscenes(nusc_or_dataroot, version)
     p = validate({"min_distance": min_distance, "max_distance": max_distance,
                   "categories": list(categories), "visibility_tokens": list(visibilities),
                   "exclude_descriptions": list(exclude), "speed_threshold": speed_threshold})
@@ -159,7 +150,7 @@ def naive_rule_report(
     forward-difference label. Returns a dict with the numbers and ``table`` (per object).
     ``max_pairs`` subsamples pairs (seeded) to save time.
     """
-    nusc = None if objects is not None else _nusc(nusc_or_dataroot, version)
+    nusc = None if objects is not None else select.as_nuscenes(nusc_or_dataroot, version)
     if dataroot is None:
         dataroot = (
             nusc_or_dataroot

@@ -19,6 +19,7 @@ closest previous keyframe.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -78,6 +79,14 @@ def open_nuscenes(dataroot: str | Path, version: str) -> NuScenes:
     stamp = tuple((f.name, f.stat().st_size, f.stat().st_mtime_ns)
                   for f in sorted(vdir.glob("*.json")))
     return _load_nuscenes(str(Path(dataroot).resolve()), version, stamp)
+
+
+def as_nuscenes(nusc_or_dataroot: Any, version: str) -> NuScenes:
+    """``nusc_or_dataroot`` itself when it is a loaded ``NuScenes``, else
+    :func:`open_nuscenes` of that dataroot."""
+    if isinstance(nusc_or_dataroot, (str, os.PathLike)):
+        return open_nuscenes(nusc_or_dataroot, version)
+    return nusc_or_dataroot
 
 
 @lru_cache(maxsize=1)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -26,17 +26,8 @@ from flowmod.dag import Node
 from flowmod.difficulty import usable
 from flowmod.flow import flow_to_color
 from flowmod.params import Params
-from flowmod.select import open_nuscenes
+from flowmod.select import as_nuscenes
 from flowmod.world import gt_flow
-
-if TYPE_CHECKING:
-    from nuscenes.nuscenes import NuScenes
-
-
-def _nusc(nusc_or_dataroot: Any, version: str) -> NuScenes:
-    if isinstance(nusc_or_dataroot, (str, os.PathLike)):
-        return open_nuscenes(nusc_or_dataroot, version)
-    return nusc_or_dataroot
 
 
 def difficulty(p: Params) -> dict[str, Any]:
@@ -54,7 +45,7 @@ def annotation_table(
     """
     from nuscenes.utils.geometry_utils import BoxVisibility
 
-    nusc = _nusc(nusc_or_dataroot, version)
+    nusc = as_nuscenes(nusc_or_dataroot, version)
     rows = []
     for scene in nusc.scene:
         ok = usable(scene["description"])
