@@ -4,7 +4,7 @@ schedule, the batches. Hand-made tensors; seconds."""
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import pandas as pd
@@ -60,14 +60,15 @@ class Pairs:
     scale: float = 0.5
     focus_depth: tuple[float, float] = (20.0, 80.0)
 
-    pairs = pd.DataFrame({"sd_token_1": ["a", "b"], "sd_token_2": ["c", "d"]})
+    pairs: pd.DataFrame = field(default_factory=lambda: pd.DataFrame(
+        {"sd_token_1": ["a", "b"], "sd_token_2": ["c", "d"], "gap": [1, 6]}))
 
     def load(self, i: int):
         h, w = 128, 192
         img = np.zeros((h, w, 3), np.uint8)
         img[..., 0] = np.arange(w, dtype=np.uint8)[None, :]
         flow = np.zeros((h, w, 2), np.float32)
-        flow[..., 0] = np.arange(w)[None, :] + 1000 * i
+        flow[..., 0] = np.arange(w)[None, :] + 1000 * "ab".index(self.pairs.sd_token_1.iloc[i])
         flow[..., 1] = 7.0
         return {"img1": img, "img2": img.copy(), "flow": flow, "valid": np.ones((h, w), bool),
                 "boxes": np.array([[150.0, 100.0, 170.0, 120.0]], np.float32)}
@@ -139,10 +140,11 @@ def test_box_weights_follow_the_window_and_the_loss_weighs_cells_by_them():
 
 def test_a_later_phase_starts_from_the_weights_the_previous_one_ended_with(tmp_path):
     one = pt.Recipe(batch=2, crop=(64, 128), steps=2, lr=1e-3)
-    two = replace(one, seed=7, steps=2, lr=5e-4, focus_p=1.0, box_weight=4.0)
+    two = replace(one, seed=7, steps=2, lr=5e-4, focus_p=1.0, box_weight=4.0, min_gap=6)
     first = pt.run_schedule((one, two), Pairs(), tmp_path / "a", 2, None, progress=False)
     both = pt.run_schedule((one, two), Pairs(), tmp_path / "b", 3, None, progress=False)
-    by_hand, _ = pt.train(two, Pairs(), tmp_path / "c", 1, None, False, first.state_dict())
+    by_hand, _ = pt.train(two, pt.phase_data(Pairs(), two), tmp_path / "c", 1, None, False,
+                          first.state_dict())
     assert all(torch.equal(both.state_dict()[k], by_hand.state_dict()[k])
                for k in both.state_dict())
     assert torch.load(tmp_path / "b" / "phase2" / "last.pt", weights_only=True)["step"] == 1
@@ -153,6 +155,16 @@ def test_a_later_phase_starts_from_the_weights_the_previous_one_ended_with(tmp_p
                         progress=False)
     with pytest.raises(pt.PretrainError, match="at least one step"):
         pt.run_schedule((one, two), Pairs(), tmp_path / "d", 0, None, progress=False)
+
+
+def test_a_phase_with_min_gap_trains_only_on_pairs_that_far_apart():
+    data = pt.phase_data(Pairs(), pt.Recipe(min_gap=6, focus_depth=(30.0, 70.0)))
+    assert data.pairs["sd_token_1"].tolist() == ["b"] and data.focus_depth == (30.0, 70.0)
+    assert len(pt.phase_data(Pairs(), pt.Recipe()).pairs) == 2, "min_gap 1: every pair"
+    b = pt.draw_batch(data, pt.Recipe(batch=6, crop=(64, 128), flip_p=0.0), 0)
+    assert (b["gt"][:, 0] >= 1000).all(), "every window comes from the pair 6 frames apart"
+    with pytest.raises(pt.PretrainError, match="min_gap 7 leaves no training pair"):
+        pt.phase_data(Pairs(), pt.Recipe(min_gap=7))
 
 
 def test_a_step_lowers_the_loss_on_its_batch_and_levels_match_forward():

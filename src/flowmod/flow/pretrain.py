@@ -91,6 +91,9 @@ class Recipe:
     val_every: int = 4
     scale: float = 0.5
     max_gap: int = 6
+    #: the phase trains on the pairs at least this many camera frames apart (keyframe pairs,
+    #: what the book scores, are 6 apart)
+    min_gap: int = 1
     #: a training pair starts every ``start_stride``-th camera frame
     start_stride: int = 4
     batch: int = 4
@@ -573,6 +576,16 @@ def prepare(recipe: Recipe, dataroot: Path, work: Path, progress: bool = True
     return world_fp, data, validation_set(recipe, dataroot, split)
 
 
+def phase_data(data: PairCache, recipe: Recipe) -> PairCache:
+    """The pairs a phase draws from: those at least ``min_gap`` frames apart, with the
+    phase's far-box depths."""
+    pairs = data.pairs[data.pairs["gap"] >= recipe.min_gap].reset_index(drop=True)
+    if pairs.empty:
+        raise PretrainError(f"min_gap {recipe.min_gap} leaves no training pair (max_gap "
+                            f"{recipe.max_gap}): lower it")
+    return replace(data, pairs=pairs, focus_depth=recipe.focus_depth)
+
+
 def run_schedule(schedule: Sequence[Recipe], data: PairCache, work: Path, total: int,
                  heldout: HeldOut | None, progress: bool = True) -> FastFlowNet:
     """Train the phases in order (each resumable in ``work/phase<k>``, each later one from
@@ -585,7 +598,7 @@ def run_schedule(schedule: Sequence[Recipe], data: PairCache, work: Path, total:
         if recipe.scale != data.scale:
             raise PretrainError(f"phase {k} reads frames at scale {recipe.scale}, the pairs "
                                 f"were read at {data.scale}: give every phase one scale")
-        model, _ = train(recipe, replace(data, focus_depth=recipe.focus_depth),
+        model, _ = train(recipe, phase_data(data, recipe),
                          work / f"phase{k}", steps, heldout, progress, init,
                          desc=f"pretrain fastflownet, phase {k}/{len(schedule)}")
         init, done = model.state_dict(), done + steps
