@@ -267,3 +267,6 @@ def test_chapter_12_describes_every_phase_of_the_schedule(manifest):
     assert t["phase 2"].startswith("5000 more steps from the previous phase's weights")
     assert "share 0.75" in t["phase 2"] and "20-80 m" in t["phase 2"] and "21x" in t["phase 2"]
     assert len([k for k in t.index if k.startswith("phase")]) == len(pt.SCHEDULE) - 1
+    assert "only the pairs" not in t["phase 2"] and "41x" not in t["phase 2"]
+    assert t["phase 4"].endswith("only the pairs 4 to 6 frames apart (keyframes: 6)")
+    assert t["phase 5"].endswith("only the pairs 6 frames apart (keyframes: 6)")

@@ -188,11 +188,14 @@ def uses_shipped(params: Params) -> bool:
 def phase_text(p: dict[str, Any]) -> str:
     """A later phase of the schedule in words (its steps, rate and focus)."""
     near, far = p["focus_depth"]
+    lo, hi = p.get("min_gap", 1), p["max_gap"]
+    apart = f"{lo}" if lo == hi else f"{lo} to {hi}"
+    pairs = f"; only the pairs {apart} frames apart (keyframes: 6)" if lo > 1 else ""
     return (f"{p['steps']} more steps from the previous phase's weights (a fresh Adam "
             f"{p['lr']:g}, x{p['gamma']:g} at its steps "
             f"{', '.join(str(x) for x in p['milestones'])}); a share {p['focus_p']:g} of the "
             f"windows holds the box of an agent {near:g}-{far:g} m away, and box pixels "
-            f"weigh {1 + p['box_weight']:g}x in the loss")
+            f"weigh {1 + p['box_weight']:g}x in the loss{pairs}")
 
 
 def recipe_table(m: dict[str, Any]) -> pd.DataFrame:

@@ -18,9 +18,10 @@ DIS. The batch of step ``i`` is drawn with ``(seed, i)``; a killed run resumes f
 ``last.pt``.
 
 The shipped weights come from :data:`SCHEDULE`: phases of such recipes, each later phase
-starting from the weights its predecessor ended with (phase 2 places most windows on, and
-weights the loss in, the boxes of far agents, :func:`flowmod.world.agent_boxes`). Phase
-``k`` trains in ``<work>/phase<k>/``.
+starting from the weights its predecessor ended with (later phases place most or all windows
+on, and weight the loss in, the boxes of far agents, :func:`flowmod.world.agent_boxes`, and
+the last ones train only on pairs ``min_gap`` or more frames apart). Phase ``k`` trains in
+``<work>/phase<k>/``.
 
 ``python -m flowmod.flow.pretrain`` (``make flownet``) generates the world, trains, and
 publishes ``weights/fastflownet_synth/``: ``weights.pt`` (float16 state_dict, an ordinary
@@ -129,13 +130,21 @@ class Recipe:
             "flow_scale": self.scale}, source="pretraining recipe")
 
 
-#: The shipped weights' schedule. Phase 1 learns flow from scratch on random windows; phase 2
-#: starts from its weights (a fresh optimiser) and turns to what the study measures: windows
-#: that hold a far (20-80 m) agent's box and those boxes' pixels weighted up in the loss.
+#: The shipped weights' schedule. Phase 1 learns flow from scratch on random windows; every
+#: later phase starts from its predecessor's weights (a fresh optimiser) and turns to what
+#: the study measures: windows that hold a far (20-80 m) agent's box and those boxes' pixels
+#: weighted up in the loss (phase 2: 3 windows in 4, x21; phases 3-5: every window, x41);
+#: phases 4 and 5 on the pairs as far apart as keyframes (4-6, then 6 frames), at lower rates.
 SCHEDULE: tuple[Recipe, ...] = (
     Recipe(),
     Recipe(seed=1, steps=5_000, lr=2e-4, milestones=(3_000, 4_000, 4_500), eval_every=500,
            focus_p=0.75, box_weight=20.0),
+    Recipe(seed=2, steps=4_000, lr=2e-4, milestones=(2_500, 3_250, 3_750), eval_every=500,
+           focus_p=1.0, box_weight=40.0),
+    Recipe(seed=3, steps=4_000, lr=1e-4, milestones=(2_000, 3_000, 3_500), eval_every=500,
+           focus_p=1.0, box_weight=40.0, min_gap=4),
+    Recipe(seed=4, steps=4_000, lr=5e-5, milestones=(2_000, 3_000, 3_500), eval_every=500,
+           focus_p=1.0, box_weight=40.0, min_gap=6),
 )
 
 
