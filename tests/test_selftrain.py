@@ -261,11 +261,12 @@ def test_the_papers_observation_is_answered_with_paired_numbers(smoke_built):
     from flowmod.chapters import common
 
     p = smoke_built
-    table = pd.DataFrame({"method": [ch12.SHIPPED, "dis (medium)"],
-                          "EPE in boxes (px)": [3.0, 1.0]})
-    assert ch12.observation(p, table) == {}, "no fastflownet chain in the smoke profile"
-    obs = ch12.observation(p, table, methods=("gt", "dis"))
-    assert obs["epe_boxes_minus_dis"] == 2.0
+    errors = pd.DataFrame({"scene": ["a", "a", "b", "c"], ch12.SHIPPED: [3.0, 2.0, 4.0, np.nan],
+                           "dis": [1.0, 0.0, 2.0, 1.0]})
+    assert ch12.observation(p, errors) == {}, "no fastflownet chain in the smoke profile"
+    obs = ch12.observation(p, errors, methods=("gt", "dis"))
+    assert obs["epe_boxes_minus_dis"] == {"diff": 2.0, "ci": (2.0, 2.0), "verdict": "A better",
+                                          "scenes": 3}
     want = ch07.comparisons(p).set_index("comparison").loc["gt - dis"]
     assert obs["test"]["ΔF1 (points)"] == want["ΔF1 (points)"]
     assert obs["test"]["95% CI over scenes (points)"] == want["95% CI over scenes (points)"]
@@ -273,17 +274,37 @@ def test_the_papers_observation_is_answered_with_paired_numbers(smoke_built):
     assert obs["general"]["objects"] == (general["distance"] <= p.general_max_distance).sum()
     words = ch12.observation_words(obs)
     assert "less accurate than DIS's (+2.00 px" in words and "on Table 4" in words
-    # the verdict in words: the paper's observation repeats only for a decided difference
-    # whose sign goes against the flows' accuracy
+    assert "over 3 scenes +2.00 to +2.00" in words
+    mixed = ch12.observation(p, errors.assign(dis=[6.0, 0.0, 2.0, 1.0]), methods=("gt", "dis"))
+    lo, hi = mixed["epe_boxes_minus_dis"]["ci"]
+    assert lo < 0 < hi and mixed["epe_boxes_minus_dis"]["verdict"] == "undecided"
+    # the verdict in words: the paper's observation repeats only where both differences are
+    # decided and the classifiers' goes against the flows' accuracy
     row = {"ΔF1 (points)": 4.0, "95% CI over scenes (points)": "1.0 to 7.0",
            "verdict": "A better", "detectable (points)": 3.0}
-    decided = {"epe_boxes_minus_dis": 2.0, "test": row, "general": row}
+    worse = {"diff": 2.0, "ci": (1.0, 3.0), "verdict": "A better", "scenes": 3}
+    decided = {"epe_boxes_minus_dis": worse, "test": row, "general": row}
     assert "observation repeats" in ch12.observation_words(decided)
-    assert "does not repeat" in ch12.observation_words({**decided, "epe_boxes_minus_dis": -1.0})
+    better = {"diff": -1.0, "ci": (-2.0, -0.5), "verdict": "B better", "scenes": 3}
+    assert "does not repeat" in ch12.observation_words({**decided, "epe_boxes_minus_dis": better})
+    tie = {"diff": -0.01, "ci": (-0.3, 0.3), "verdict": "undecided", "scenes": 3}
+    words = ch12.observation_words({**decided, "epe_boxes_minus_dis": tie})
+    assert "not told apart from DIS's" in words and "neither repeated nor contradicted" in words
     assert "cannot tell" in ch12.observation_words(
         {**decided, "test": {**row, "verdict": "undecided"}})
     assert "unknown" in ch12.observation_words({**decided, "epe_boxes_minus_dis": None})
     assert "cannot answer" in ch12.observation_words({})
+
+
+def test_group_mean_bootstrap_resamples_whole_scenes_and_skips_undefined_values():
+    from flowmod.metrics import group_mean_bootstrap
+
+    reps = group_mean_bootstrap([1.0, 1.0, 1.0, 5.0, np.nan], ["a", "a", "a", "b", "b"], n=400)
+    # a replicate draws scenes, not pairs: with a twice, 1.0; b twice, 5.0; one each, 2.0
+    assert set(np.round(reps, 6)) == {1.0, 2.0, 5.0}
+    assert np.isnan(group_mean_bootstrap([np.nan], ["a"], n=3)).all()
+    with pytest.raises(ValueError, match="groups has 1 values but values has 2"):
+        group_mean_bootstrap([1.0, 2.0], ["a"])
 
 
 def test_finetune_starts_from_its_weights_and_trains_on_the_test_scenes(smoke_built, tmp_path):
@@ -319,3 +340,14 @@ def test_finetune_starts_from_its_weights_and_trains_on_the_test_scenes(smoke_bu
                                    "run_dir": str(tmp_path / "runs")})
     with pytest.raises(selftrain.SelfFlowError, match="selfflow_init=.*none.pt.*make flownet"):
         init_weights(dag.StageParams(missing, dag.Node("selfflow", None, "finetune")))
+
+
+def test_world_words_compare_the_errors_at_the_precision_they_show():
+    row = {"Fl-all (%)": 30.0, "Fl-all in boxes (%)": 9.0, "s / pair": 0.1}
+    table = pd.DataFrame([{"method": ch12.SHIPPED, "EPE (px)": 10.3, "EPE in boxes (px)": 1.504,
+                           **row},
+                          {"method": "dis (medium)", "EPE (px)": 13.2,
+                           "EPE in boxes (px)": 1.51, **row}])
+    words = ch12.world_words(table, 16)
+    assert "10.3 px over the frame, lower than DIS's 13.2 px" in words
+    assert "1.5 px inside the far vehicles' boxes, equal to DIS's 1.5 px" in words

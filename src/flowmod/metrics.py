@@ -169,6 +169,25 @@ def scene_bootstrap(y_true: Any, y_prob: Any, groups: Any, n: int = 2000, seed: 
     return f1.mean(axis=1)
 
 
+def group_mean_bootstrap(values: Any, groups: Any, n: int = 2000, seed: int = 0
+                         ) -> np.ndarray:
+    """Bootstrap replicates of the mean of per-item ``values`` (N,) (a paired difference per
+    frame pair, say) with whole ``groups`` (scenes) resampled, as :func:`scene_bootstrap`
+    does for F1; NaN values are left out. Returns (n,) replicates, NaN when none is left."""
+    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    g = np.asarray(groups).reshape(-1)
+    if len(g) != len(v):
+        raise ValueError(f"groups has {len(g)} values but values has {len(v)}")
+    keep = ~np.isnan(v)
+    if not keep.any():
+        return np.full(n, np.nan)
+    _, idx = np.unique(g[keep], return_inverse=True)
+    sums, counts = np.bincount(idx, weights=v[keep]), np.bincount(idx).astype(np.float64)
+    k = len(sums)
+    w = np.random.default_rng(seed).multinomial(k, np.full(k, 1.0 / k), size=n)
+    return (w @ sums) / (w @ counts)
+
+
 def interval(replicates: Any, level: float = 0.95) -> tuple[float, float]:
     """Percentile interval of bootstrap replicates, over the defined (non-NaN) ones; (NaN,
     NaN) when none is defined."""

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -271,13 +271,15 @@ def draw_batch(data: FramePairs, step: int, seed: int, batch: int, crop: Sequenc
 @dataclass
 class HeldOut:
     """Held-out pairs at full resolution: images, exact flow and valid mask (None on real
-    data) and the boxes of their target vehicles (N, 4) px."""
+    data), the boxes of their target vehicles (N, 4) px and each pair's scene (the unit an
+    interval resamples; empty where unknown)."""
 
     img1: list[np.ndarray]
     img2: list[np.ndarray]
     gt: list[np.ndarray] | None
     valid: list[np.ndarray] | None
     boxes: list[np.ndarray]
+    scenes: list[str] = field(default_factory=list)
 
 
 def held_out(pairs: pd.DataFrame, objects: pd.DataFrame, dataroot: Path, version: str,
@@ -290,6 +292,7 @@ def held_out(pairs: pd.DataFrame, objects: pd.DataFrame, dataroot: Path, version
         h.img1.append(read_image(dataroot / r.path_1))
         h.img2.append(read_image(dataroot / r.path_2))
         h.boxes.append(objects.loc[objects["pair_id"] == r.pair_id, cols].to_numpy(float))
+        h.scenes.append(str(getattr(r, "scene", "")))
         if est is not None:
             flow, valid = est.estimate_tokens(r.sd_token_1, r.sd_token_2)
             h.gt.append(flow)
@@ -297,18 +300,27 @@ def held_out(pairs: pd.DataFrame, objects: pd.DataFrame, dataroot: Path, version
     return h
 
 
+def pair_metrics(estimate: Callable[[np.ndarray, np.ndarray], np.ndarray], data: HeldOut
+                 ) -> tuple[list[dict[str, float]], float]:
+    """:func:`flowmod.flow.metrics.flow_metrics` of ``estimate(img1, img2) -> (H, W, 2)`` px
+    on each held-out pair (none without exact flow), and the estimator's seconds in all (its
+    calls only, not the scoring)."""
+    rows, seconds = [], 0.0
+    for k in range(len(data.img1)):
+        t0 = time.perf_counter()
+        flow = estimate(data.img1[k], data.img2[k])
+        seconds += time.perf_counter() - t0
+        if data.gt is not None:
+            rows.append(flow_metrics(flow, data.gt[k], data.valid[k], data.boxes[k]))
+    return rows, seconds
+
+
 def score(estimate: Callable[[np.ndarray, np.ndarray], np.ndarray], data: HeldOut
           ) -> dict[str, float]:
     """Mean over the held-out pairs of EPE (px) and Fl-all (%), overall and inside the target
     vehicles' boxes, of ``estimate(img1, img2) -> (H, W, 2)`` px, and its seconds per pair
     (the estimator's calls only); NaN metrics without exact flow."""
-    rows, seconds = [], 0.0
-    for k in range(len(data.img1)):
-        t0 = time.perf_counter()
-        flow = estimate(data.img1[k], data.img2[k])
-        seconds += time.perf_counter() - t0  # the estimator only, not the scoring
-        if data.gt is not None:
-            rows.append(flow_metrics(flow, data.gt[k], data.valid[k], data.boxes[k]))
+    rows, seconds = pair_metrics(estimate, data)
     out = {"seconds_per_pair": seconds / max(len(data.img1), 1)}
     keys = ("epe", "epe_boxes", "fl_all", "fl_all_boxes")
     out.update({k: float(np.nanmean([r[k] for r in rows])) if rows else float("nan")
