@@ -144,6 +144,13 @@ def _as_models(y_true: Any, y_prob: Any) -> tuple[np.ndarray, np.ndarray]:
     return y, probs
 
 
+def scene_draws(k: int, n: int, seed: int) -> np.ndarray:
+    """(n, k) float64: how often each of ``k`` scenes is drawn in each of ``n`` bootstrap
+    replicates (k draws with replacement, seeded)."""
+    rng = np.random.default_rng(seed)
+    return rng.multinomial(k, np.full(k, 1.0 / k), size=n).astype(np.float64)
+
+
 def scene_bootstrap(y_true: Any, y_prob: Any, groups: Any, n: int = 2000, seed: int = 0,
                     threshold: float = 0.5) -> np.ndarray:
     """Bootstrap replicates of the whole-set F1 with whole *groups* (scenes) resampled.
@@ -162,9 +169,7 @@ def scene_bootstrap(y_true: Any, y_prob: Any, groups: Any, n: int = 2000, seed: 
     if len(y) == 0:
         return np.full(n, np.nan)
     tp, fp, fn = _counts(y, probs, g, threshold)
-    rng = np.random.default_rng(seed)
-    k = tp.shape[1]
-    w = rng.multinomial(k, np.full(k, 1.0 / k), size=n).astype(np.float64)  # (n, G)
+    w = scene_draws(tp.shape[1], n, seed)
     f1 = _prf(w @ tp.T, w @ fp.T, w @ fn.T)[2]  # (n, S)
     return f1.mean(axis=1)
 
@@ -183,8 +188,7 @@ def group_mean_bootstrap(values: Any, groups: Any, n: int = 2000, seed: int = 0
         return np.full(n, np.nan)
     _, idx = np.unique(g[keep], return_inverse=True)
     sums, counts = np.bincount(idx, weights=v[keep]), np.bincount(idx).astype(np.float64)
-    k = len(sums)
-    w = np.random.default_rng(seed).multinomial(k, np.full(k, 1.0 / k), size=n)
+    w = scene_draws(len(sums), n, seed)
     return (w @ sums) / (w @ counts)
 
 
