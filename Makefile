@@ -101,8 +101,8 @@ lab: env  ## JupyterLab on notebooks/ with the venv's kernel: run a chapter cell
 mutation: env  ## mutation testing of the modules whose numbers reach the book (mutmut; not part of make test)
 	$(PY) benchmarks/mutation.py
 
-flownet: env  ## train the shipped FastFlowNet weights from scratch (weights/fastflownet_synth; about 2 h on 2 CPU cores, resumable)
-	$(PY) -m flowmod.flow.pretrain $(if $(STEPS),--steps $(STEPS))
+flownet: env  ## train the shipped FastFlowNet weights from scratch (weights/fastflownet_synth; hours on 2 CPU cores, resumable; FROM_SHIPPED=1 trains only the phases the published file lacks)
+	$(PY) -m flowmod.flow.pretrain $(if $(STEPS),--steps $(STEPS)) $(if $(FROM_SHIPPED),--from-shipped)
 
 bench: env  ## throughput and memory figures into benchmarks/results/ (never asserted)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b; done

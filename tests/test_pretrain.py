@@ -10,10 +10,12 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+import torch.nn.functional as F
 
 from flowmod.artefacts import file_digest
 from flowmod.flow import pretrain as pt
 from flowmod.flow.architectures import FastFlowNet, fastflownet_inputs
+from flowmod.flow.selftrain import HeldOut
 from flowmod.params import load_profile
 from flowmod.paths import repo_root
 
@@ -136,6 +138,88 @@ def test_box_weights_follow_the_window_and_the_loss_weighs_cells_by_them():
     assert float(plain) == pytest.approx(10.0, abs=1e-3) and float(same) == pytest.approx(10.0, abs=1e-3)
     assert float(heavy) == pytest.approx(15.0, abs=1e-3), "3 x 20 px + 1 x 0 px over 4"
     assert parts_w["epe2"] == pytest.approx(parts["epe2"]), "the reported EPE is unweighted"
+
+
+def test_full_res_loss_scores_the_upsampled_flow_at_every_pixel():
+    torch.manual_seed(0)
+    coarse = torch.randn(1, 2, 16, 16)  # a level-2 output, px / 20
+    gt = 20 * F.interpolate(coarse, size=(64, 64), mode="bilinear", align_corners=False)
+    valid = torch.ones(1, 1, 64, 64)
+    levels = [coarse, *[torch.zeros(1, 2, 64 >> k, 64 >> k) for k in pt.LEVELS[1:]]]
+    exact, parts = pt.pyramid_loss(levels, gt, valid, (1, 0, 0, 0, 0), full_res=True)
+    cells, _ = pt.pyramid_loss(levels, gt, valid, (1, 0, 0, 0, 0))
+    assert float(exact) < 0.01 and parts["epe2"] < 0.01, "what inference upsamples is exact"
+    assert float(cells) > 1.0, "cell means of the upsampled field are not its cells"
+    gt = torch.zeros(1, 2, 64, 64)
+    gt[:, 0, 5, 5] = 10.0  # one pixel moves, inside a 4 x 4 cell
+    weight = torch.ones(1, 1, 64, 64)
+    weight[:, :, 5, 5] = 3.0
+    zero = [torch.zeros(1, 2, 64 >> k, 64 >> k) for k in pt.LEVELS]
+    one, _ = pt.pyramid_loss(zero, gt, valid, (1, 0, 0, 0, 0), weight, full_res=True)
+    assert float(one) == pytest.approx(30.0 / (4095 + 3), abs=2e-3), "weighted per pixel"
+    m, batch = FastFlowNet(), pt.draw_batch(Pairs(), pt.Recipe(batch=1, crop=(64, 128)), 0)
+    opt = torch.optim.SGD(m.parameters(), lr=0.0)
+    a = pt.train_step(m, opt, batch, pt.Recipe(), 0)["epe2"]
+    b = pt.train_step(m, opt, batch, pt.Recipe(full_res=True), 0)["epe2"]
+    assert a != b, "the recipe's full_res reaches the loss (a linear flow: barely)"
+
+
+def test_a_phase_with_ema_passes_on_the_average_of_its_weights(tmp_path):
+    r = pt.Recipe(batch=2, crop=(64, 128), lr=1e-3)
+    w = [pt.train(r, Pairs(), tmp_path / f"raw{n}", n, None, False)[0].state_dict()
+         for n in (1, 2)]
+    avg, _ = pt.train(replace(r, ema=0.5), Pairs(), tmp_path / "avg", 2, None, False)
+    assert all(torch.allclose(avg.state_dict()[k], (w[0][k] + w[1][k]) / 2, atol=1e-6)
+               for k in w[0]), "first step copied, second averaged with decay 0.5"
+    assert not all(torch.equal(avg.state_dict()[k], w[1][k]) for k in w[0])
+    state = torch.load(tmp_path / "avg" / "last.pt", weights_only=True)
+    assert all(torch.equal(pt.phase_result(state)[k], avg.state_dict()[k]) for k in w[0])
+    assert all(torch.equal(state["model"][k], w[1][k]) for k in w[0]), "training as without"
+    pt.train(replace(r, ema=0.5), Pairs(), tmp_path / "resumed", 1, None, False)
+    again, _ = pt.train(replace(r, ema=0.5), Pairs(), tmp_path / "resumed", 2, None, False)
+    assert all(torch.equal(again.state_dict()[k], avg.state_dict()[k]) for k in w[0])
+
+
+def test_a_phase_may_start_from_its_predecessor_rounded_to_float16(tmp_path):
+    one = pt.Recipe(batch=2, crop=(64, 128), steps=1, lr=1e-3)
+    two = replace(one, seed=7, lr=0.0)  # a step at rate 0 keeps the weights it starts from
+    first = pt.run_schedule((one,), Pairs(), tmp_path / "a", 1, None, progress=False)
+    plain = pt.run_schedule((one, two), Pairs(), tmp_path / "b", 2, None, progress=False)
+    half = pt.run_schedule((one, replace(two, init_float16=True)), Pairs(), tmp_path / "c",
+                           2, None, progress=False)
+    ref = first.state_dict()
+    assert all(torch.equal(plain.state_dict()[k], ref[k]) for k in ref)
+    assert all(torch.equal(half.state_dict()[k], ref[k].half().float()) for k in ref)
+    assert not all(torch.equal(half.state_dict()[k], ref[k]) for k in ref)
+
+
+def test_later_phases_continue_from_published_weights_as_from_scratch(tmp_path):
+    one = pt.Recipe(batch=2, crop=(64, 128), steps=2, lr=1e-3, eval_every=1)
+    two = replace(one, seed=7, steps=1, lr=5e-4, init_float16=True)
+    d = Pairs().load(1)
+    held = HeldOut([d["img1"]], [d["img2"]], [d["flow"]], [d["valid"]], [d["boxes"]], ["s"])
+    out = tmp_path / "weights"
+    pt.run_schedule((one,), Pairs(), tmp_path / "a", 2, held, progress=False)
+    first = pt.publish((one,), tmp_path / "a", out, "f" * 64, held)
+    prior = pt.shipped_phases((one, two), out)
+    assert prior[0] == 1 and prior[1]["sha256"] == first["sha256"]
+    init = pt.load_half(out / "weights.pt").state_dict()
+    cont = pt.run_schedule((one, two), Pairs(), tmp_path / "b", 3, held, progress=False,
+                           start=(1, init))
+    assert not (tmp_path / "b" / "phase1").exists(), "the published phase is not retrained"
+    whole = pt.run_schedule((one, two), Pairs(), tmp_path / "c", 3, held, progress=False)
+    assert all(torch.equal(cont.state_dict()[k], whole.state_dict()[k])
+               for k in whole.state_dict()), "bit-identical to the schedule from scratch"
+    m = pt.publish((one, two), tmp_path / "b", out, "f" * 64, held, prior=prior)
+    assert m["steps"] == 3 and [c["step"] for c in m["validation"]["curve"]] == [0, 1, 2, 3]
+    assert m["continued_from"]["phases"] == 1 and m["continued_from"]["sha256"] == first["sha256"]
+    assert m["first_losses"] == first["first_losses"] and len(m["training_curve"]) == 2
+    assert m["train_seconds"] > first["train_seconds"]
+    with pytest.raises(pt.PretrainError, match="not made by the first phases"):
+        pt.shipped_phases((replace(one, lr=1e-2), two), out)
+    (out / "weights.pt").write_bytes(b"edited")
+    with pytest.raises(pt.PretrainError, match="sha256 differs"):
+        pt.shipped_phases((one, two), out)
 
 
 def test_a_later_phase_starts_from_the_weights_the_previous_one_ended_with(tmp_path):

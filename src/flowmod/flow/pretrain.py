@@ -20,8 +20,13 @@ DIS. The batch of step ``i`` is drawn with ``(seed, i)``; a killed run resumes f
 The shipped weights come from :data:`SCHEDULE`: phases of such recipes, each later phase
 starting from the weights its predecessor ended with (later phases place most or all windows
 on, and weight the loss in, the boxes of far agents, :func:`flowmod.world.agent_boxes`, and
-the last ones train only on pairs ``min_gap`` or more frames apart). Phase ``k`` trains in
-``<work>/phase<k>/``.
+the last ones train only on pairs ``min_gap`` or more frames apart; a phase may score its
+finest level per pixel on the upsampled flow, ``full_res``, pass on a moving average of its
+weights, ``ema``, and start from its predecessor's weights rounded to float16 as published,
+``init_float16``). Phase ``k`` trains in ``<work>/phase<k>/``. ``--from-shipped`` takes the
+phases the published weights hold as done (their manifest's schedule, sha256 and world must
+match) and trains the later ones from that file: with ``init_float16`` on the first of them,
+bit-identical to the whole schedule from scratch.
 
 ``python -m flowmod.flow.pretrain`` (``make flownet``) generates the world, trains, and
 publishes ``weights/fastflownet_synth/``: ``weights.pt`` (float16 state_dict, an ordinary
@@ -49,6 +54,7 @@ import pandas as pd
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from flowmod.artefacts import atomic_path, file_digest, fingerprint, write_json
 from flowmod.flow.architectures import FFN_DIV_FLOW, FastFlowNet, fastflownet_inputs
@@ -120,6 +126,14 @@ class Recipe:
     box_weight: float = 0.0
     #: agents whose median depth (m) is in this range make the boxes (the far vehicles')
     focus_depth: tuple[float, float] = (20.0, 80.0)
+    #: the finest level's loss on its flow upsampled (bilinearly, as at inference) to the
+    #: window's pixels against the exact flow of each pixel, instead of on cell means
+    full_res: bool = False
+    #: decay of an exponential moving average of the weights, updated every step; the
+    #: phase's result (validated, passed on, published) is the average (0: the weights)
+    ema: float = 0.0
+    #: the phase starts from its predecessor's weights rounded to float16, as published
+    init_float16: bool = False
 
     def world_params(self, dataroot: str) -> Any:
         """The :class:`flowmod.params.Params` of the pretraining world (sweeps everywhere)."""
@@ -161,18 +175,33 @@ def level_target(gt: Tensor, valid: Tensor, level: int) -> tuple[Tensor, Tensor]
     return flow, (share > 0.5).float()
 
 
+def level_error(flow: Tensor, gt: Tensor, valid: Tensor, level: int, full_res: bool
+                ) -> tuple[Tensor, Tensor, int]:
+    """End-point error (px of the input) of decoder output ``flow`` (units px / 20) at
+    ``level`` against the exact flow ``gt`` (B, 2, H, W) px: per cell of the level (against
+    :func:`level_target`), or with ``full_res`` per pixel of the flow upsampled bilinearly to
+    (H, W). Returns (error, valid mask, cell side px), each (B, 1, ., .)."""
+    if full_res:
+        up = F.interpolate(flow, size=gt.shape[-2:], mode="bilinear", align_corners=False)
+        target, ok, side = gt, valid.float(), 1
+    else:
+        (target, ok), up, side = level_target(gt, valid, level), flow, 2 ** level
+    err = torch.sqrt(((FFN_DIV_FLOW * up - target) ** 2).sum(1, keepdim=True) + 1e-6)
+    return err, ok, side
+
+
 def pyramid_loss(levels: Sequence[Tensor], gt: Tensor, valid: Tensor,
-                 weights: Sequence[float], pixel_weight: Tensor | None = None
-                 ) -> tuple[Tensor, dict[str, float]]:
+                 weights: Sequence[float], pixel_weight: Tensor | None = None,
+                 full_res: bool = False) -> tuple[Tensor, dict[str, float]]:
     """Weighted sum over decoder levels (finest first, units px / 20) of the mean end-point
-    error, px of the input, over valid cells; with ``pixel_weight`` (B, 1, H, W) a weighted
-    mean (each cell weighted by its pixels' mean weight). Returns (loss, {"epe2": finest
+    error, px of the input, over valid cells (with ``full_res``, the finest level's over
+    valid pixels, :func:`level_error`); with ``pixel_weight`` (B, 1, H, W) a weighted mean
+    (each cell weighted by its pixels' mean weight). Returns (loss, {"epe2": the finest
     level's unweighted EPE})."""
     loss, parts = gt.new_zeros(()), {}
     for lvl, flow, w in zip(LEVELS, levels, weights, strict=True):
-        target, ok = level_target(gt, valid, lvl)
-        err = torch.sqrt(((FFN_DIV_FLOW * flow - target) ** 2).sum(1, keepdim=True) + 1e-6)
-        cell = ok if pixel_weight is None else ok * F.avg_pool2d(pixel_weight, 2 ** lvl)
+        err, ok, side = level_error(flow, gt, valid, lvl, full_res and lvl == LEVELS[0])
+        cell = ok if pixel_weight is None else ok * F.avg_pool2d(pixel_weight, side)
         loss = loss + w * (err * cell).sum() / cell.sum().clamp(min=1e-6)
         if lvl == LEVELS[0]:
             parts["epe2"] = float((err * ok).sum().detach() / ok.sum().clamp(min=1.0))
@@ -373,7 +402,8 @@ def train_step(model: FastFlowNet, opt: torch.optim.Optimizer, batch: dict[str, 
     x1, x2 = fastflownet_inputs(batch["img1"], batch["img2"])
     loss, parts = pyramid_loss(model.levels(x1, x2), batch["gt"], batch["valid"],
                                recipe.level_weights,
-                               batch["weight"] if recipe.box_weight else None)
+                               batch["weight"] if recipe.box_weight else None,
+                               recipe.full_res)
     opt.zero_grad(set_to_none=True)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(model.parameters(), recipe.clip)
@@ -381,8 +411,8 @@ def train_step(model: FastFlowNet, opt: torch.optim.Optimizer, batch: dict[str, 
     return {"loss": float(loss.detach()), **parts}
 
 
-def _resume(work: Path, model: FastFlowNet, opt: torch.optim.Optimizer, recipe: Recipe
-            ) -> tuple[int, list[dict[str, float]]]:
+def _resume(work: Path, model: FastFlowNet, opt: torch.optim.Optimizer, recipe: Recipe,
+            avg: AveragedModel | None) -> tuple[int, list[dict[str, float]]]:
     last = work / "last.pt"
     if not last.is_file():
         return 0, []
@@ -392,15 +422,33 @@ def _resume(work: Path, model: FastFlowNet, opt: torch.optim.Optimizer, recipe: 
                             "recipe it was made with")
     model.load_state_dict(state["model"])
     opt.load_state_dict(state["optim"])
+    if avg is not None:
+        avg.load_state_dict(state["average"])
     return int(state["step"]), list(state["history"])
 
 
 def _checkpoint(work: Path, model: FastFlowNet, opt: torch.optim.Optimizer, recipe: Recipe,
-                step: int, rows: list[dict[str, float]]) -> None:
+                step: int, rows: list[dict[str, float]], avg: AveragedModel | None) -> None:
+    state = {"model": model.state_dict(), "optim": opt.state_dict(), "step": step,
+             "history": rows, "recipe": json.dumps(asdict(recipe), sort_keys=True)}
+    if avg is not None:
+        state["average"] = avg.state_dict()
+        state["result"] = avg.module.state_dict()
     with atomic_path(work / "last.pt") as tmp:
-        torch.save({"model": model.state_dict(), "optim": opt.state_dict(), "step": step,
-                    "history": rows, "recipe": json.dumps(asdict(recipe), sort_keys=True)},
-                   tmp)
+        torch.save(state, tmp)
+
+
+def phase_result(state: dict[str, Any]) -> dict[str, Tensor]:
+    """The weights a phase's checkpoint passes on: the average where it keeps one."""
+    return state.get("result", state["model"])
+
+
+def weight_average(model: FastFlowNet, recipe: Recipe) -> AveragedModel | None:
+    """The exponential moving average of ``model``'s weights (``recipe.ema``), or None."""
+    if not recipe.ema:
+        return None
+    return AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(recipe.ema),
+                         use_buffers=True)
 
 
 def train(recipe: Recipe, data: PairCache, work: Path, steps: int, heldout: HeldOut | None,
@@ -434,7 +482,8 @@ def _train(recipe: Recipe, data: PairCache, work: Path, steps: int, heldout: Hel
     if init is not None:
         model.load_state_dict(init)
     opt = torch.optim.Adam(model.parameters(), lr=recipe.lr)
-    start, rows = _resume(work, model, opt, recipe)
+    avg = weight_average(model, recipe)
+    start, rows = _resume(work, model, opt, recipe, avg)
     model.train()
     pbar = bar(total=steps, initial=start, desc=desc, unit="step",
                disable=not progress)
@@ -442,17 +491,19 @@ def _train(recipe: Recipe, data: PairCache, work: Path, steps: int, heldout: Hel
         t0 = time.perf_counter()
         row = {"step": step + 1, **train_step(model, opt, draw_batch(data, recipe, step),
                                                recipe, step)}
+        if avg is not None:
+            avg.update_parameters(model)
         row["seconds"] = time.perf_counter() - t0
         if heldout is not None and (step + 1) % recipe.eval_every == 0:
-            row.update({f"val_{k}": v for k, v in
-                        score_model(model, heldout, recipe.scale).items()})
+            row.update({f"val_{k}": v for k, v in score_model(
+                model if avg is None else avg.module, heldout, recipe.scale).items()})
         rows.append(row)
         pbar.update(1)
         pbar.set_postfix(loss=f"{row['loss']:.2f}")
         if (step + 1) % CHECKPOINT_EVERY == 0 or step + 1 == steps:
-            _checkpoint(work, model, opt, recipe, step + 1, rows)
+            _checkpoint(work, model, opt, recipe, step + 1, rows, avg)
     pbar.close()
-    return model, rows
+    return (model if avg is None else avg.module), rows
 
 
 # --- publishing ----------------------------------------------------------------------------------------
@@ -495,11 +546,12 @@ def initial_model(recipe: Recipe) -> FastFlowNet:
     return FastFlowNet().eval()
 
 
-def phase_histories(schedule: Sequence[Recipe], work: Path) -> tuple[dict, list[dict]]:
-    """The last phase's checkpoint state and every phase's history rows, steps counted from
-    the start of the schedule (phase ``k`` lives in ``work/phase<k+1>``)."""
+def phase_histories(schedule: Sequence[Recipe], work: Path, first: int = 0
+                    ) -> tuple[dict, list[dict]]:
+    """The last phase's checkpoint state and the history rows of phases ``first + 1`` on,
+    steps counted from the start of the schedule (phase ``k`` lives in ``work/phase<k>``)."""
     rows: list[dict[str, float]] = []
-    for k in range(len(schedule)):
+    for k in range(first, len(schedule)):
         state = torch.load(work / f"phase{k + 1}" / "last.pt", map_location="cpu",
                            weights_only=True)
         done = sum(p.steps for p in schedule[:k])
@@ -507,18 +559,43 @@ def phase_histories(schedule: Sequence[Recipe], work: Path) -> tuple[dict, list[
     return state, rows
 
 
+def shipped_phases(schedule: Sequence[Recipe], out: Path) -> tuple[int, dict[str, Any]]:
+    """How many leading phases of ``schedule`` the published weights in ``out`` hold (their
+    manifest's schedule; keys it lacks at their defaults), and that manifest."""
+    try:
+        m = json.loads((out / "manifest.json").read_text())
+        ok = m["sha256"] == file_digest(out / "weights.pt")
+    except (OSError, ValueError, KeyError) as e:
+        raise PretrainError(f"no readable published weights in {out} ({e}): train from "
+                            "scratch, without --from-shipped") from None
+    made = [{**asdict(Recipe()), **r} for r in m["schedule"]]
+    mine = json.loads(json.dumps([asdict(p) for p in schedule]))
+    if not ok or len(made) > len(mine) or [json.loads(json.dumps(r)) for r in made] != \
+            mine[:len(made)]:
+        raise PretrainError(f"the weights in {out} were not made by the first phases of this "
+                            "schedule (or their sha256 differs): train from scratch, without "
+                            "--from-shipped")
+    return len(made), m
+
+
 def publish(schedule: Sequence[Recipe], work: Path, out: Path, world_fp: str,
-            heldout: HeldOut, wall_seconds: float | None = None) -> dict[str, Any]:
+            heldout: HeldOut, wall_seconds: float | None = None,
+            prior: tuple[int, dict[str, Any]] = (0, {})) -> dict[str, Any]:
     """Publish the last phase's ``last.pt`` as ``out/weights.pt`` (float16) with
-    ``out/manifest.json``; the validation errors are those of the float16 weights."""
-    state, rows = phase_histories(schedule, work)
-    first = schedule[0]
+    ``out/manifest.json``; the validation errors are those of the float16 weights. With
+    ``prior`` (:func:`shipped_phases`) the first phases' records come from the manifest of
+    the weights the later phases started from."""
+    (n, before), first = prior, schedule[0]
+    state, rows = phase_histories(schedule, work, n)
     model = FastFlowNet()
-    model.load_state_dict(state["model"])
+    model.load_state_dict(phase_result(state))
     out.mkdir(parents=True, exist_ok=True)
     with atomic_path(out / "weights.pt") as tmp:
         torch.save(half_state(model), tmp)
     final = score_model(load_half(out / "weights.pt"), heldout, first.scale)
+    start = before["validation"]["curve"] if n else [{"step": 0, **{
+        f"val_{k}": v for k, v in score_model(initial_model(first), heldout,
+                                                first.scale).items()}}]
     manifest = {
         "network": "FastFlowNet (flowmod.flow.architectures), trained from scratch here",
         "schedule": [asdict(p) for p in schedule], "steps": int(rows[-1]["step"]),
@@ -528,12 +605,11 @@ def publish(schedule: Sequence[Recipe], work: Path, out: Path, world_fp: str,
                                "world_sweep_scenes", "world_vehicles"})},
         "validation": {"pairs": len(heldout.img1), "final_float16": final,
                        "baselines": baselines(heldout, first.scale),
-                       "curve": [{"step": 0, **{f"val_{k}": v for k, v in score_model(
-                           initial_model(first), heldout, first.scale).items()}},
-                                 *curve(rows)]},
-        "training_curve": loss_curve(rows),
-        "first_losses": [r["loss"] for r in rows[:5]],
-        "train_seconds": float(sum(r["seconds"] for r in rows)),
+                       "curve": [*start, *curve(rows)]},
+        "training_curve": [*before.get("training_curve", []), *loss_curve(rows)],
+        "first_losses": before.get("first_losses") or [r["loss"] for r in rows[:5]],
+        "train_seconds": before.get("train_seconds", 0.0) + float(
+            sum(r["seconds"] for r in rows)),
         # the invocation that published (a resumed run: from its resumption only)
         "last_invocation_wall_seconds": wall_seconds,
         "where": {"machine": platform.machine(), "processor": platform.processor(),
@@ -542,6 +618,10 @@ def publish(schedule: Sequence[Recipe], work: Path, out: Path, world_fp: str,
         "sha256": file_digest(out / "weights.pt"),
         "format": "float16 state_dict; load with torch.load(weights_only=True)",
     }
+    if n:
+        manifest["continued_from"] = {"phases": n, "sha256": before["sha256"],
+                                      "where": before.get("continued_from", {}).get(
+                                          "where", before["where"])}
     write_json(out / "manifest.json", manifest)
     return manifest
 
@@ -596,17 +676,22 @@ def phase_data(data: PairCache, recipe: Recipe) -> PairCache:
 
 
 def run_schedule(schedule: Sequence[Recipe], data: PairCache, work: Path, total: int,
-                 heldout: HeldOut | None, progress: bool = True) -> FastFlowNet:
+                 heldout: HeldOut | None, progress: bool = True,
+                 start: tuple[int, dict[str, Tensor] | None] = (0, None)) -> FastFlowNet:
     """Train the phases in order (each resumable in ``work/phase<k>``, each later one from
-    the weights its predecessor ended with) until ``total`` steps of the whole schedule."""
-    done, init, model = 0, None, None
+    the weights its predecessor ended with) until ``total`` steps of the whole schedule;
+    ``start``: the first phases taken as done, and the weights they ended with."""
+    (skip, init), done, model = start, 0, None
     for k, recipe in enumerate(schedule, start=1):
         steps = min(recipe.steps, total - done)
-        if steps <= 0:
-            break
+        if k <= skip or steps <= 0:
+            done += recipe.steps
+            continue
         if recipe.scale != data.scale:
             raise PretrainError(f"phase {k} reads frames at scale {recipe.scale}, the pairs "
                                 f"were read at {data.scale}: give every phase one scale")
+        if recipe.init_float16 and init is not None:
+            init = {n: v.half().float() for n, v in init.items()}
         model, _ = train(recipe, phase_data(data, recipe),
                          work / f"phase{k}", steps, heldout, progress, init,
                          desc=f"pretrain fastflownet, phase {k}/{len(schedule)}")
@@ -629,16 +714,24 @@ def main(argv: list[str] | None = None) -> int:
                     help="publish the phases' last checkpoints as they are, without training")
     ap.add_argument("--check-only", action="store_true",
                     help="only (re)compute the manifest's smoke-world check of the weights")
+    ap.add_argument("--from-shipped", action="store_true",
+                    help="take the phases the published weights in --out hold as done and "
+                         "train the later ones from those weights")
     args = ap.parse_args(argv)
     recipe, t0 = SCHEDULE[0], time.time()
+    prior = shipped_phases(SCHEDULE, args.out) if args.from_shipped else (0, {})
     args.work.mkdir(parents=True, exist_ok=True)
     if not args.check_only:
         world_fp, data, heldout = prepare(recipe, args.dataroot.resolve(), args.work)
         print(f"[pretrain] {len(data.pairs)} training pairs, {len(heldout.img1)} validation "
               "pairs", flush=True)
+        if prior[0] and prior[1]["world"]["fingerprint"] != world_fp:
+            raise PretrainError(f"the weights in {args.out} were trained on another world "
+                                "than the recipe's: train from scratch, without --from-shipped")
         if not args.publish_only:
-            run_schedule(SCHEDULE, data, args.work, args.steps, heldout)
-        m = publish(SCHEDULE, args.work, args.out, world_fp, heldout, time.time() - t0)
+            init = load_half(args.out / "weights.pt").state_dict() if prior[0] else None
+            run_schedule(SCHEDULE, data, args.work, args.steps, heldout, start=(prior[0], init))
+        m = publish(SCHEDULE, args.work, args.out, world_fp, heldout, time.time() - t0, prior)
         print(f"[pretrain] published {args.out}/weights.pt: step {m['steps']}, validation EPE "
               f"in far boxes {m['validation']['final_float16']['epe_boxes']:.2f} px", flush=True)
     smoke = load_profile("smoke", n_jobs=2)
