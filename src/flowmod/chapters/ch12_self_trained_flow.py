@@ -192,11 +192,17 @@ def phase_text(p: dict[str, Any]) -> str:
     lo, hi = p.get("min_gap", 1), p["max_gap"]
     apart = f"{lo}" if lo == hi else f"{lo} to {hi}"
     pairs = f"; only the pairs {apart} frames apart (keyframes: 6)" if lo > 1 else ""
-    return (f"{p['steps']} more steps from the previous phase's weights (a fresh Adam "
+    start = ("the previous phase's weights as published (float16)" if p.get("init_float16")
+             else "the previous phase's weights")
+    finest = ("; the finest level's loss on its flow upsampled to every pixel (as inference "
+              "does)" if p.get("full_res") else "")
+    average = (f"; passes on the moving average of its weights (decay {p['ema']:g})"
+               if p.get("ema") else "")
+    return (f"{p['steps']} more steps from {start} (a fresh Adam "
             f"{p['lr']:g}, x{p['gamma']:g} at its steps "
             f"{', '.join(str(x) for x in p['milestones'])}); a share {p['focus_p']:g} of the "
             f"windows holds the box of an agent {near:g}-{far:g} m away, and box pixels "
-            f"weigh {1 + p['box_weight']:g}x in the loss{pairs}")
+            f"weigh {1 + p['box_weight']:g}x in the loss{pairs}{finest}{average}")
 
 
 def recipe_table(m: dict[str, Any]) -> pd.DataFrame:
