@@ -306,9 +306,10 @@ def observation(params: Params, data: HeldOut | pd.DataFrame | None,
     if errors is not None:
         diff = (errors[SHIPPED] - errors["dis"]).to_numpy(float)
         ci = interval(group_mean_bootstrap(diff, errors["scene"], seed=params.seed))
+        # the scenes the interval resamples: those with a defined difference
         out["epe_boxes_minus_dis"] = {"diff": float(np.nanmean(diff)), "ci": ci,
-                                      "verdict": verdict(ci),
-                                      "scenes": int(errors["scene"].nunique())}
+                                      "verdict": verdict(ci), "scenes": int(
+                                          errors["scene"][~np.isnan(diff)].nunique())}
     for name, label in (("test", "Table 3"), ("general", "Table 4")):
         a, b = (scored(common.results(params, m, name)[0], name, params.general_max_distance)
                 for m in methods)
