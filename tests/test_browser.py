@@ -162,6 +162,23 @@ def test_cli_lists_problems_and_exits_nonzero(tmp_path, capsys):
     assert browser.main([str(tmp_path / "nothing-here")]) == 2
 
 
+def test_cli_does_not_reopen_a_book_unchanged_since_it_passed(tmp_path, capsys):
+    site = make_site(tmp_path / "html", broken=False)
+    args = [str(site), "--screenshot", str(tmp_path / "s.png"),
+            "--screenshots", str(tmp_path / "shots")]
+    assert browser.main(args) == 0 and "not reopened" not in capsys.readouterr().out
+    assert browser.main(args) == 0 and "not reopened" in capsys.readouterr().out
+    (tmp_path / "shots" / "index.png").unlink()
+    assert browser.main(args) == 0 and "not reopened" not in capsys.readouterr().out
+    assert (tmp_path / "shots" / "index.png").is_file(), "the check ran and made it again"
+    (site / "page2.html").unlink()  # an edited book is checked again, and fails
+    assert browser.main(args) == 1 and not browser.passed_stamp(site).exists()
+    make_site(tmp_path / "html", broken=False)
+    assert browser.main(args) == 0
+    assert browser.main([*args, "--force"]) == 0
+    assert "not reopened" not in capsys.readouterr().out
+
+
 def png_size(path):
     data = path.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR", path

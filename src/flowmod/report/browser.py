@@ -16,6 +16,8 @@ the system Chromium, driven by Playwright (no browser is downloaded). It reports
   host-resolver rule stops anything the routing misses.
 
 It saves a 1280x900 PNG of ``index.html`` and, given a folder, a full-page PNG of every page.
+The CLI records a passing check beside the book (:func:`passed_stamp`) and does not reopen a
+book whose files and screenshots are unchanged since (``make book`` with nothing changed).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import argparse
 import contextlib
 import functools
 import http.server
+import json
 import os
 import shutil
 import sys
@@ -40,7 +43,7 @@ from playwright.sync_api import BrowserContext, Request, Response, Route, sync_p
 from playwright.sync_api import Error as PlaywrightError
 from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
-from flowmod.artefacts import atomic_path
+from flowmod.artefacts import atomic_path, file_digest, fingerprint, write_json
 from flowmod.paths import repo_root
 
 __all__ = ["BookReport", "BrowserError", "ChromiumNotFound", "Problem", "assert_book_ok",
@@ -447,8 +450,36 @@ def assert_book_ok(html_dir: str | os.PathLike[str],
     return report
 
 
+def passed_stamp(html_dir: Path) -> Path:
+    """Where the CLI records the last passing check of ``html_dir`` (beside it)."""
+    return html_dir.parent / f".{html_dir.name}.browser-check.json"
+
+
+def _chromium_or_none() -> str | None:
+    try:
+        return find_chromium()
+    except ChromiumNotFound:
+        return None
+
+
+def check_key(html_dir: Path, outputs: list[Path | None]) -> dict[str, Any]:
+    """What a passing check vouches for: every file of the book by content, the browser
+    binary, and the screenshots it wrote (path and content)."""
+    files = sorted(p for p in html_dir.rglob("*") if p.is_file())
+    shots = [p for o in outputs if o is not None
+             for p in ([o] if o.suffix == ".png" else sorted(o.rglob("*.png")))]
+    return {"book": fingerprint([(p.relative_to(html_dir).as_posix(), file_digest(p))
+                                 for p in files], n=64),
+            "chromium": _chromium_or_none(),
+            "screenshots": fingerprint([(str(p), file_digest(p)) for p in shots
+                                        if p.is_file()], n=64),
+            "outputs": [str(o) for o in outputs]}
+
+
 def main(argv: list[str] | None = None) -> int:
-    """CLI: 0 if the book is fine, 1 with the list of problems, 2 if it cannot be checked."""
+    """CLI: 0 if the book is fine, 1 with the list of problems, 2 if it cannot be checked.
+    A book whose every file, and whose screenshots, are as when it last passed is not
+    opened again (``--force`` reopens it)."""
     ap = argparse.ArgumentParser(prog="python -m flowmod.report.browser",
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("html_dir", type=Path, nargs="?", default=repo_root() / "build" / "html",
@@ -459,7 +490,18 @@ def main(argv: list[str] | None = None) -> int:
                     help="folder for a full-page PNG of every page, named after it "
                          "(default: none; `make book` uses build/screenshots)")
     ap.add_argument("--page-timeout", type=float, default=30, help="seconds per page load")
+    ap.add_argument("--force", action="store_true",
+                    help="check even a book unchanged since it last passed")
     args = ap.parse_args(argv)
+    html = args.html_dir.resolve()
+    shot = args.screenshot or html.parent / "book-screenshot.png"
+    stamp, outputs = passed_stamp(html), [shot, args.screenshots]
+    if not args.force and html.is_dir() and stamp.is_file():
+        with contextlib.suppress(ValueError):
+            if json.loads(stamp.read_text()) == check_key(html, outputs):
+                print(f"browser check: {html} is as when it last passed (its files and "
+                      "screenshots): not reopened; --force reopens it")
+                return 0
     try:
         report = check_book(args.html_dir, args.screenshot, args.screenshots,
                             page_timeout=args.page_timeout)
@@ -467,6 +509,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{type(e).__name__}: {e}", file=sys.stderr)
         return 2
     print(report.format(), file=sys.stdout if report.ok else sys.stderr)
+    if report.ok:
+        write_json(stamp, check_key(html, outputs))
+    else:
+        stamp.unlink(missing_ok=True)
     return 0 if report.ok else 1
 
 
