@@ -354,3 +354,7 @@ def test_chapter_12_describes_every_phase_of_the_schedule(manifest):
     assert "only the pairs" not in t["phase 2"] and "41x" not in t["phase 2"]
     assert t["phase 4"].endswith("only the pairs 4 to 6 frames apart (keyframes: 6)")
     assert t["phase 5"].endswith("only the pairs 6 frames apart (keyframes: 6)")
+    assert t["phase 6"].startswith("4000 more steps from the previous phase's weights as "
+                                   "published (float16)")
+    assert "flow upsampled to every pixel" in t["phase 6"] and "(decay 0.999)" in t["phase 6"]
+    assert "upsampled" not in t["phase 5"] and "average" not in t["phase 5"]
