@@ -463,13 +463,17 @@ def _chromium_or_none() -> str | None:
 
 
 def check_key(html_dir: Path, outputs: list[Path | None]) -> dict[str, Any]:
-    """What a passing check vouches for: every file of the book by content, the browser
-    binary, and the screenshots it wrote (path and content)."""
+    """What a passing check vouches for: every file of the book by content (``_sources``,
+    downloads a page only links to, and ``.doctrees``, Sphinx's cache, by name: Sphinx
+    rewrites them on every build), the browser binary, and the screenshots it wrote."""
     files = sorted(p for p in html_dir.rglob("*") if p.is_file())
+    by_name = {"_sources", ".doctrees"}
     shots = [p for o in outputs if o is not None
              for p in ([o] if o.suffix == ".png" else sorted(o.rglob("*.png")))]
-    return {"book": fingerprint([(p.relative_to(html_dir).as_posix(), file_digest(p))
-                                 for p in files], n=64),
+    rel = [p.relative_to(html_dir) for p in files]
+    return {"book": fingerprint([(r.as_posix(), "" if r.parts[0] in by_name
+                                  else file_digest(p)) for r, p in zip(rel, files, strict=True)],
+                                 n=64),
             "chromium": _chromium_or_none(),
             "screenshots": fingerprint([(str(p), file_digest(p)) for p in shots
                                         if p.is_file()], n=64),
