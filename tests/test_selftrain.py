@@ -274,7 +274,7 @@ def test_the_papers_observation_is_answered_with_paired_numbers(smoke_built):
     assert obs["general"]["objects"] == (general["distance"] <= p.general_max_distance).sum()
     words = ch12.observation_words(obs)
     assert "less accurate than DIS's (+2.00 px" in words and "on Table 4" in words
-    assert "over 3 scenes +2.00 to +2.00" in words
+    assert "over 2 scenes +2.00 to +2.00" in words
     mixed = ch12.observation(p, errors.assign(dis=[6.0, 0.0, 2.0, 1.0]), methods=("gt", "dis"))
     lo, hi = mixed["epe_boxes_minus_dis"]["ci"]
     assert lo < 0 < hi and mixed["epe_boxes_minus_dis"]["verdict"] == "undecided"
