@@ -46,6 +46,23 @@ def test_every_notebook_ran(smoke_run):
     assert on_disk["status"] == "ok" and on_disk["profile"] == "smoke"
 
 
+def test_a_rerun_with_nothing_changed_reuses_every_notebook_and_the_page(smoke_run):
+    """The no-change rerun of `make book`: every executed copy is reused, each keeps the time
+    and seconds of its execution, and the Reproduce page comes out byte for byte the same (a
+    page that changed would send Sphinx and the browser check over the book again)."""
+    first = smoke_run["record"]
+    overrides = {"run_dir": str(smoke_run["base"] / "runs"), "dataroot": str(smoke_run["data"])}
+    again = runner.run("smoke", overrides, out_dir=smoke_run["executed"])
+    assert all(v.get("reused") for v in again["notebooks"].values())
+    for stem, rec in first["notebooks"].items():
+        assert rec["seconds"] > 0 and rec["executed"], stem
+        assert (again["notebooks"][stem]["seconds"], again["notebooks"][stem]["executed"]) == (
+            rec["seconds"], rec["executed"]), stem
+    assert book.reproduce_page(again) == book.reproduce_page(first)
+    total = sum(v["seconds"] for v in first["notebooks"].values())
+    assert f"| notebooks, total | {total:.0f} s |" in book.reproduce_page(again)
+
+
 def test_setup_records_profile_and_environment(smoke_run):
     g = glue_of(smoke_run, "00_setup")
     assert g["profile"] == "smoke"

@@ -9,7 +9,8 @@ The profile is validated (with the overrides) before anything runs. Each noteboo
 the parameters its ``parameters`` cell declares; its executed copy goes to ``--out``
 (``build/executed/`` by default). The run stops at the first failing notebook and prints its
 error; ``run_info.json`` beside the executed notebooks records the profile, the parameters,
-package versions, the git commit and the seconds each notebook took. While a notebook runs,
+package versions, the git commit, and when each notebook was executed and the seconds it took
+(a reused executed copy keeps those of its execution, stamped in its metadata). While a notebook runs,
 the progress of its stages (items done / total, rate, ETA) is echoed to the terminal through
 :mod:`flowmod.progress`'s side channel; the book's pages never show it.
 """
@@ -45,6 +46,9 @@ from flowmod.paths import repo_root
 from flowmod.report.book import check_executed
 from flowmod.select import SelectionError, check_dataroot
 from flowmod.world import source as world_source
+
+#: how run records and executed copies write times
+TIME_FORMAT = "%Y-%m-%d %H:%M:%S %Z"
 
 
 class NotebookFailed(RuntimeError):
@@ -162,21 +166,22 @@ def notebook_fingerprint(nb: Path, values: dict[str, Any], p: Params,
                         "code": code_digest(), "device": device})
 
 
-def _executed_fingerprint(target: Path) -> str | None:
-    """The fingerprint an executed copy was stamped with (None if absent or failed)."""
+def _executed_stamp(target: Path) -> dict[str, Any]:
+    """What an executed copy was stamped with: its ``fingerprint``, the ``seconds`` its
+    execution took and when it ``executed`` (empty if absent, unreadable or failed)."""
     if not target.is_file():
-        return None
+        return {}
     try:
         nb = nbformat.read(str(target), as_version=4)
         check_executed(target)
     except Exception:  # noqa: BLE001 - any unreadable or failed copy is simply not reusable
-        return None
-    return nb.metadata.get("flowmod", {}).get("fingerprint")
+        return {}
+    return dict(nb.metadata.get("flowmod", {}))
 
 
-def _stamp(target: Path, fp: str | None) -> None:
+def _stamp(target: Path, fp: str | None, seconds: float, executed: str) -> None:
     nb = nbformat.read(str(target), as_version=4)
-    nb.metadata["flowmod"] = {"fingerprint": fp}
+    nb.metadata["flowmod"] = {"fingerprint": fp, "seconds": seconds, "executed": executed}
     with atomic_path(target) as tmp:
         nbformat.write(nb, str(tmp))
 
@@ -244,7 +249,7 @@ def _record(plan: Plan, profile: str | Path, overrides: dict[str, Any] | None,
         "overrides": overrides or {}, "parameters": plan.p.model_dump(),
         "commit": environment.git_commit(),
         "versions": environment.versions().set_index("package")["version"].to_dict(),
-        "device": plan.device, "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "device": plan.device, "started": time.strftime(TIME_FORMAT),
         "notebooks": {}, "status": "running",
     }
     info_path = plan.out_dir / "run_info.json"
@@ -263,9 +268,11 @@ def execute(nb: Path, values: dict[str, Any], plan: Plan, kernel: str, ipc: Path
     fingerprint matches); returns its record. :class:`NotebookFailed` if a cell raised."""
     target, p = plan.out_dir / nb.name, plan.p
     fp = notebook_fingerprint(nb, values, p, plan.device)
-    if fp is not None and not p.force and _executed_fingerprint(target) == fp:
+    stamp = _executed_stamp(target)
+    if fp is not None and not p.force and stamp.get("fingerprint") == fp:
         print(f"[flowmod] {nb.name} up to date (executed copy reused)", flush=True)
-        return {"status": "ok", "seconds": 0.0, "reused": True}
+        return {"status": "ok", "seconds": stamp.get("seconds", 0.0),
+                "executed": stamp.get("executed"), "reused": True}
     print(f"[flowmod] {nb.name} ...", flush=True)
     t0 = time.perf_counter()
     try:
@@ -279,10 +286,10 @@ def execute(nb: Path, values: dict[str, Any], plan: Plan, kernel: str, ipc: Path
             f"{nb.name} failed in cell {e.exec_count}: {e.ename}: {e.evalue}\n"
             f"executed copy with the traceback: {target}",
             round(time.perf_counter() - t0, 1)) from None
-    seconds = time.perf_counter() - t0
-    _stamp(target, notebook_fingerprint(nb, values, p, plan.device))
+    seconds, executed = round(time.perf_counter() - t0, 1), time.strftime(TIME_FORMAT)
+    _stamp(target, notebook_fingerprint(nb, values, p, plan.device), seconds, executed)
     print(f"[flowmod] {nb.name} ok ({seconds:.1f} s)", flush=True)
-    return {"status": "ok", "seconds": round(seconds, 1)}
+    return {"status": "ok", "seconds": seconds, "executed": executed}
 
 
 def run(
@@ -329,7 +336,7 @@ def _execute_all(plan: Plan, profile: str | Path, overrides: dict[str, Any] | No
     finally:
         shutil.rmtree(ipc, ignore_errors=True)
     record["status"] = "ok"
-    record["finished"] = time.strftime("%Y-%m-%d %H:%M:%S %Z")
+    record["finished"] = time.strftime(TIME_FORMAT)
     write_json(info_path, record)
     return record
 

@@ -144,13 +144,14 @@ def reproduce_page(info: dict[str, Any]) -> str:
     versions = pd.DataFrame(
         [{"package": k, "version": v} for k, v in info["versions"].items()]
     )
+    runs = info["notebooks"]
     timings = pd.DataFrame(
-        [{"notebook": k, "status": v["status"] + (" (executed copy reused: nothing it depends "
-                                                  "on changed)" if v.get("reused") else ""),
-          "seconds": v["seconds"]}
-         for k, v in info["notebooks"].items()]
+        [{"notebook": k, "executed": v.get("executed") or "not recorded",
+          "seconds": v["seconds"]} for k, v in runs.items()]
     )
-    total = sum(v["seconds"] for v in info["notebooks"].values())
+    total = sum(v["seconds"] for v in runs.values())
+    times = sorted(v["executed"] for v in runs.values() if v.get("executed"))
+    executed = f"{times[0]} to {times[-1]}" if times else "not recorded"
     over = " ".join(f"--set {k}={json.dumps(v)}" for k, v in info.get("overrides", {}).items())
     device = ", ".join(f"{k}: {v}" for k, v in info["device"].items())
     return f"""# Reproduce
@@ -162,7 +163,7 @@ This page is written from the record of the run that produced this book
 |---|---|
 | profile | `{info["profile"]}` |
 | git commit | `{info["commit"]}` |
-| started | {info["started"]} |
+| notebooks executed | {executed} |
 | device | {device} |
 | notebooks, total | {total:.0f} s |
 
@@ -176,6 +177,11 @@ make book PROFILE={info["profile"]}
 ```
 
 ## Seconds per notebook
+
+A notebook is executed again only when something it depends on changed (its cells, its
+parameters, the library's code, the data it reads); otherwise its executed copy is reused, and
+its row gives when that copy was executed and the seconds it took then. So this page changes
+only with what it reports.
 
 {timings.to_markdown(index=False)}
 
