@@ -272,11 +272,17 @@ def build(executed: Path, out: Path, staging: Path | None = None) -> Path:
         pages_extra = staging.parent / "book-media"
         _sync(media, pages_extra / "media", keep=set())
         env["FLOWMOD_PAGES_EXTRA"] = str(pages_extra)
-    cmd = [sys.executable, "-m", "sphinx", "-W", "-n", "--keep-going", "-q", "-b", "html",
-           str(staging), str(out)]
-    proc = subprocess.run(cmd, env=env)
-    if proc.returncode != 0:
-        raise BookError(f"sphinx-build failed (exit {proc.returncode}); see the warnings above")
+    cmd = [sys.executable, "-m", "sphinx", "-W", "-n", "--keep-going", "-q", "-b", "html"]
+    # Into an empty folder, Sphinx links myst-nb's stylesheet before the file exists, so
+    # without its ``?v=`` checksum; a later build adds it and rewrites every page (and a
+    # rewritten book sends the browser check over it again). A fresh build therefore writes
+    # every page a second time (``-a``), so that a rerun with nothing changed finds them.
+    passes = [[]] if (out / ".doctrees").is_dir() else [[], ["-a"]]
+    for extra in passes:
+        proc = subprocess.run([*cmd, *extra, str(staging), str(out)], env=env)
+        if proc.returncode != 0:
+            raise BookError(f"sphinx-build failed (exit {proc.returncode}); "
+                            "see the warnings above")
     return out / "index.html"
 
 
