@@ -17,14 +17,14 @@ import subprocess
 import sys
 import time
 
-from flowmod import dag
+from flowmod import pipeline
 from flowmod.artefacts import write_json
 from flowmod.params import load_profile
 from flowmod.paths import repo_root
 
 
 def manifests(p) -> dict[str, float | None]:
-    return {str(n): (dag.recorded(p, n) or {}).get("written") for n in dag.nodes(p)}
+    return {str(n): (pipeline.recorded(p, n) or {}).get("written") for n in pipeline.nodes(p)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     root = repo_root()
     p = load_profile(args.profile)
-    stale_before = [str(s.node) for s in dag.status(p) if s.state != "up to date"]
+    stale_before = [str(s.node) for s in pipeline.status(p) if s.state != "up to date"]
     before = manifests(p)
     t0 = time.perf_counter()
     proc = subprocess.run(shlex.split(args.make) + [f"PROFILE={args.profile}"], cwd=root)
