@@ -15,8 +15,12 @@ library's own functions in a fresh subprocess (``--one STAGE FACTOR ...``):
   ``num_workers=0``, no ``record``) on a train subset (128 objects at 1x: one batch),
   validating on a val subset (256 at 1x); ``epochs=1`` is the only bound train_model has,
   so the work grows with the factor (~1-3 min of the ~2-4 min total on 2 CPU cores);
-* evaluate: ``evaluate.predict_seeds`` on the test split with the published model of seed 0
-  (the prediction step of ``evaluate.run``; the geometric baseline is not measured).
+* evaluate: ``evaluate.predict_models`` on the test split with the published model of seed 0
+  (the prediction step of the evaluate stage; the geometric baseline is not measured).
+
+A run cross-validated over scene folds (the demo profile) has folds, not splits: fold 0
+serves as the test split (with the model of fold 0, which never saw it), fold 1 as train and
+fold 2 (else 1) as val.
 
 Each subprocess reports its peak RSS (``ru_maxrss``), its RSS right after its imports
 (baseline), the growth between the two, wall seconds and objects/s; also the peak
@@ -113,7 +117,7 @@ def run_one(stage: str, factor: int, data: Path, profile: str, method: str, devi
     import torch
 
     from flowmod import crops, evaluate, train
-    from flowmod.flow import FlowReader
+    from flowmod.chapters.common import flow_reader
     from flowmod.params import load_profile
 
     base_peak = _maxrss_mb()
@@ -125,7 +129,7 @@ def run_one(stage: str, factor: int, data: Path, profile: str, method: str, devi
     extra: dict[str, Any] = {}
     if stage == "crops":
         objects = pd.read_parquet(data / "objects.parquet")
-        reader = FlowReader(p, method, "keyframe")
+        reader = flow_reader(p, method, "keyframe")
         info = crops.build_crops(
             objects, lambda pid: reader.load(pid.split(SEP, 1)[0]), data / "built",
             size=p.crop_size, scale=p.crop_scale, splits=["test"], progress=False)
@@ -135,14 +139,13 @@ def run_one(stage: str, factor: int, data: Path, profile: str, method: str, devi
         tx, tdf = crops.read_crops(data, "train")
         vx, vdf = crops.read_crops(data, "val")
         train.train_model(
-            tx, tdf, vx, vdf, data / "train_out", epochs=1, batch_size=p.batch_size, lr=p.lr,
-            momentum=p.momentum, weight_decay=p.weight_decay, step_size=p.step_size,
-            gamma=p.gamma, hflip_p=p.hflip_p, num_workers=0, seed=p.seed, device=device,
-            amp=None if p.amp == "off" else p.amp, resume=False, progress=False)
+            tx, tdf, vx, vdf, data / "train_out", train.TrainSettings.of(p), seed=p.seed,
+            resume=False, progress=False, epochs=1, num_workers=0, device=device)
         n = len(tdf)
         extra["val_objects"] = len(vdf)
     elif stage == "evaluate":
-        preds = evaluate.predict_seeds([("s0", Path(model), model_amp)], data, "test", device)
+        x, df = crops.read_crops(data, "test")
+        preds = evaluate.predict_models([("s0", Path(model), model_amp)], x, df, device)
         n = len(preds)
     else:
         raise SystemExit(f"unknown stage {stage!r}; one of {STAGES}")
@@ -176,12 +179,24 @@ class NoRun(Exception):
     """No built run to take the base objects from."""
 
 
+def source_splits(folder: Path) -> dict[str, str]:
+    """The published crop files that serve as train, val and test: the splits themselves,
+    or, for a run cross-validated over folds, folds 1, 2 (else 1) and 0."""
+    if (folder / "test.npy").is_file():
+        return {"train": "train", "val": "val", "test": "test"}
+    folds = sorted(q.stem for q in folder.glob("f[0-9]*.npy") if q.stem[1:].isdigit())
+    if len(folds) < 2:
+        raise FileNotFoundError(f"{folder}: neither train/val/test crops nor two folds")
+    return {"train": folds[1], "val": folds[2 if len(folds) > 2 else 1], "test": folds[0]}
+
+
 def find_source(profiles: list[str], method: str | None) -> dict[str, Any]:
     """The first profile whose run has published crops and flow of ``method`` (default: its
-    first estimated flow method); its model of seed 0 if published."""
-    from flowmod import dag, train
+    first estimated flow method); the published model that never saw its test objects (seed 0,
+    or fold 0's), if any."""
+    from flowmod import dag, pipeline
+    from flowmod.chapters.common import flow_reader, model_path
     from flowmod.crops import read_crops
-    from flowmod.flow import FlowReader
     from flowmod.params import ProfileError, load_profile
 
     why = []
@@ -189,27 +204,29 @@ def find_source(profiles: list[str], method: str | None) -> dict[str, Any]:
         try:
             p = load_profile(name)
             m = method or next((x for x in p.flow_methods if x != "gt"), p.flow_methods[0])
-            folder = dag.published(p, dag.Node("crops", m, "keyframe"))
-            for split in ("train", "val", "test"):
+            folder = pipeline.published(p, dag.Node("crops", m, "keyframe"))
+            splits = source_splits(folder)
+            for split in splits.values():
                 read_crops(folder, split)
-            reader = FlowReader(p, m, "keyframe")
+            reader = flow_reader(p, m, "keyframe")
             first = reader.index["pair_id"].iloc[0]
             if not reader.path(first).is_file():
                 raise FileNotFoundError(f"flow file {reader.path(first)} missing")
         except (ProfileError, dag.MissingInput, OSError, ValueError, KeyError) as e:
             why.append(f"{name}: {type(e).__name__}: {e}")
             continue
+        part = "s0" if splits["test"] == "test" else splits["test"]
         model, amp = None, None
         try:
-            model = train.model_path(p, m, "s0")
-            rec = dag.recorded(p, dag.Node("train", m, "s0")) or {}
+            model = model_path(p, m, part)
+            rec = pipeline.recorded(p, dag.Node("train", m, part)) or {}
             amp = None if rec.get("amp", "off") in (None, "off") else rec["amp"]
             if not model.is_file():
                 model = None
         except dag.MissingInput:
             model = None
         return {"profile": name, "params": p, "method": m, "crops": folder, "model": model,
-                "model_amp": amp, "run": str(p.run_path)}
+                "model_amp": amp, "run": str(p.run_path), "splits": splits}
     raise NoRun("\n  ".join(why))
 
 
@@ -259,15 +276,22 @@ def prepare(stage: str, factor: int, src: dict[str, Any], args: argparse.Namespa
     """The replicated inputs of one stage at one factor, in ``data``."""
     import pandas as pd
 
+    from flowmod.chapters.common import flow_reader
     from flowmod.crops import read_crops
 
     data.mkdir(parents=True)
-    folder = src["crops"]
+    folder, splits = src["crops"], src["splits"]
     if stage == "crops":
         # the test split's objects as the crops stage received them (the crop index is the
         # objects table sorted by pair), each pair copied ``factor`` times under a new id
-        _, df = read_crops(folder, "test")
+        _, df = read_crops(folder, splits["test"])
+        df = df.assign(split="test")
+        # a run in crops mode keeps the flow of some pairs only
+        stored = set(flow_reader(src["params"], src["method"], "keyframe").pair_ids)
         pairs = df["pair_id"].drop_duplicates()
+        pairs = pairs[pairs.isin(stored)]
+        if pairs.empty:
+            raise RuntimeError(f"no test pair of {folder} has its flow stored")
         if args.base_crops_pairs > 0:
             pairs = pairs.iloc[: args.base_crops_pairs]
         sub = df[df["pair_id"].isin(set(pairs))].reset_index(drop=True)
@@ -275,11 +299,12 @@ def prepare(stage: str, factor: int, src: dict[str, Any], args: argparse.Namespa
             data / "objects.parquet", index=False)
     elif stage == "train":
         for split, k in (("train", args.base_train), ("val", args.base_val)):
-            n = len(read_crops(folder, split)[1])
-            replicate_split(folder, split, _subset(n, k), factor, data)
+            n = len(read_crops(folder, splits[split])[1])
+            replicate_split(folder, splits[split], _subset(n, k), factor, data, name=split)
     elif stage == "evaluate":
-        n = len(read_crops(folder, "test")[1])
-        replicate_split(folder, "test", _subset(n, args.base_eval), factor, data)
+        n = len(read_crops(folder, splits["test"])[1])
+        replicate_split(folder, splits["test"], _subset(n, args.base_eval), factor, data,
+                        name="test")
     else:
         raise ValueError(stage)
 
