@@ -1,0 +1,60 @@
+"""The benchmarks run by hand, never in the tests, so a renamed library function breaks them
+unseen: every name they take from flowmod must exist."""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import types
+from pathlib import Path
+
+import pytest
+
+from flowmod.paths import repo_root
+
+BENCHMARKS = sorted((repo_root() / "benchmarks").glob("*.py"))
+
+
+def _imported(module: str, name: str) -> object | None:
+    """``from module import name``: the object, or None where there is no such name."""
+    mod = importlib.import_module(module)
+    if hasattr(mod, name):
+        return getattr(mod, name)
+    try:
+        return importlib.import_module(f"{module}.{name}")
+    except ModuleNotFoundError:
+        return None
+
+
+def unresolved(source: str) -> list[str]:
+    """The flowmod names that ``source`` imports or reads as ``module.attr`` and that do not
+    exist, each with its line."""
+    tree = ast.parse(source)
+    bound: dict[str, object] = {}
+    missing = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "flowmod":
+            for alias in node.names:
+                obj = _imported(node.module, alias.name)
+                if obj is None:
+                    missing.append(f"{node.module}.{alias.name} (line {node.lineno})")
+                else:
+                    bound[alias.asname or alias.name] = obj
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
+            obj = bound.get(node.value.id)
+            if isinstance(obj, types.ModuleType) and not hasattr(obj, node.attr):
+                missing.append(f"{obj.__name__}.{node.attr} (line {node.lineno})")
+    return missing
+
+
+def test_a_renamed_function_is_found():
+    src = "from flowmod import dag, pipeline\nfrom flowmod.crops import read_crops, nope\n" \
+          "pipeline.published\ndag.published\n"
+    assert unresolved(src) == ["flowmod.crops.nope (line 2)", "flowmod.dag.published (line 4)"]
+
+
+@pytest.mark.parametrize("path", BENCHMARKS, ids=lambda p: p.name)
+def test_every_flowmod_name_a_benchmark_uses_exists(path: Path):
+    assert BENCHMARKS, "the benchmarks folder holds scripts"
+    assert unresolved(path.read_text()) == []
