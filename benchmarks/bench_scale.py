@@ -226,7 +226,8 @@ def find_source(profiles: list[str], method: str | None) -> dict[str, Any]:
         except dag.MissingInput:
             model = None
         return {"profile": name, "params": p, "method": m, "crops": folder, "model": model,
-                "model_amp": amp, "run": str(p.run_path), "splits": splits}
+                "model_amp": amp, "run": str(p.run_path), "splits": splits,
+                "flow_pairs": set(reader.pair_ids)}
     raise NoRun("\n  ".join(why))
 
 
@@ -276,7 +277,6 @@ def prepare(stage: str, factor: int, src: dict[str, Any], args: argparse.Namespa
     """The replicated inputs of one stage at one factor, in ``data``."""
     import pandas as pd
 
-    from flowmod.chapters.common import flow_reader
     from flowmod.crops import read_crops
 
     data.mkdir(parents=True)
@@ -287,9 +287,8 @@ def prepare(stage: str, factor: int, src: dict[str, Any], args: argparse.Namespa
         _, df = read_crops(folder, splits["test"])
         df = df.assign(split="test")
         # a run in crops mode keeps the flow of some pairs only
-        stored = set(flow_reader(src["params"], src["method"], "keyframe").pair_ids)
         pairs = df["pair_id"].drop_duplicates()
-        pairs = pairs[pairs.isin(stored)]
+        pairs = pairs[pairs.isin(src["flow_pairs"])]
         if pairs.empty:
             raise RuntimeError(f"no test pair of {folder} has its flow stored")
         if args.base_crops_pairs > 0:
