@@ -194,8 +194,8 @@ def test_a_phase_may_start_from_its_predecessor_rounded_to_float16(tmp_path):
 
 
 def test_later_phases_continue_from_published_weights_as_from_scratch(tmp_path):
-    one = pt.Recipe(batch=2, crop=(64, 128), steps=2, lr=1e-3, eval_every=1)
-    two = replace(one, seed=7, steps=1, lr=5e-4, init_float16=True)
+    one = pt.Recipe(batch=2, crop=(64, 128), steps=2, lr=1e-3, eval_every=1, scale=1.0)
+    two = replace(one, seed=7, steps=1, lr=5e-4, init_float16=True, scale=0.5)
     d = Pairs().load(1)
     held = HeldOut([d["img1"]], [d["img2"]], [d["flow"]], [d["valid"]], [d["boxes"]], ["s"])
     out = tmp_path / "weights"
@@ -212,6 +212,10 @@ def test_later_phases_continue_from_published_weights_as_from_scratch(tmp_path):
                for k in whole.state_dict()), "bit-identical to the schedule from scratch"
     m = pt.publish((one, two), tmp_path / "b", out, "f" * 64, held, prior=prior)
     assert m["steps"] == 3 and [c["step"] for c in m["validation"]["curve"]] == [0, 1, 2, 3]
+    assert first["scale"] == 1.0 and m["scale"] == 0.5, "the last phase's scale"
+    assert [c.get("val_scale") for c in m["validation"]["curve"]] == [None, 1.0, 1.0, 0.5]
+    at_half = pt.score_model(pt.load_half(out / "weights.pt"), held, 0.5)
+    assert m["validation"]["final_float16"]["epe"] == pytest.approx(at_half["epe"])
     assert m["continued_from"]["phases"] == 1 and m["continued_from"]["sha256"] == first["sha256"]
     assert m["first_losses"] == first["first_losses"] and len(m["training_curve"]) == 2
     assert m["train_seconds"] > first["train_seconds"]
@@ -234,11 +238,29 @@ def test_a_later_phase_starts_from_the_weights_the_previous_one_ended_with(tmp_p
     assert torch.load(tmp_path / "b" / "phase2" / "last.pt", weights_only=True)["step"] == 1
     state, rows = pt.phase_histories((one, two), tmp_path / "b")
     assert [r["step"] for r in rows] == [1, 2, 3], "steps count from the schedule's start"
-    with pytest.raises(pt.PretrainError, match="phase 2 reads frames at scale 1.0"):
-        pt.run_schedule((one, replace(two, scale=1.0)), Pairs(), tmp_path / "e", 3, None,
-                        progress=False)
+    assert pt.phase_data(Pairs(), replace(two, scale=1.0)).scale == 1.0, "its own scale"
     with pytest.raises(pt.PretrainError, match="at least one step"):
         pt.run_schedule((one, two), Pairs(), tmp_path / "d", 0, None, progress=False)
+
+
+def test_the_pair_cache_keeps_each_scale_apart(smoke_world, tmp_path):
+    """A phase at another scale reads the frames again at its scale (images, exact flow in px
+    of that scale, boxes), never the files decoded at another."""
+    root, version = smoke_world
+    frames = pt.scene_frames(root, version)
+    pairs = pt.training_pairs(frames, dict.fromkeys(frames, "train"), 1, 1000).head(1)
+    half = pt.PairCache(pairs, root, version, 0.5, tmp_path)
+    a = half.load(0)
+    quarter = pt.phase_data(half, pt.Recipe(scale=0.25))
+    b = quarter.load(0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scale-0.25", "scale-0.5"]
+    assert b["img1"].shape[:2] == tuple(round(s / 2) for s in a["img1"].shape[:2])
+    assert b["boxes"] * 2 == pytest.approx(a["boxes"])
+    ok = b["valid"] & a["valid"][::2, ::2]
+    ratio = np.abs(b["flow"][ok]).mean() / np.abs(a["flow"][::2, ::2][ok]).mean()
+    assert ratio == pytest.approx(0.5, abs=0.05), "px of the frames at that scale"
+    again = quarter.load(0)
+    assert all(np.array_equal(again[k], b[k]) for k in b), "read back from its cache"
 
 
 def test_a_phase_with_min_gap_trains_only_on_pairs_that_far_apart():

@@ -23,7 +23,9 @@ on, and weight the loss in, the boxes of far agents, :func:`flowmod.world.agent_
 the last ones train only on pairs ``min_gap`` or more frames apart; a phase may score its
 finest level per pixel on the upsampled flow, ``full_res``, pass on a moving average of its
 weights, ``ema``, and start from its predecessor's weights rounded to float16 as published,
-``init_float16``). Phase ``k`` trains in ``<work>/phase<k>/``. ``--from-shipped`` takes the
+``init_float16``, and read the frames at a scale of its own, ``scale``: the published
+weights are scored, and meant to run, at the last phase's). Phase ``k`` trains in
+``<work>/phase<k>/``. ``--from-shipped`` takes the
 phases the published weights hold as done (their manifest's schedule, sha256 and world must
 match) and trains the later ones from that file: with ``init_float16`` on the first of them,
 bit-identical to the whole schedule from scratch.
@@ -281,7 +283,8 @@ def validation_set(recipe: Recipe, dataroot: Path, split: dict[str, str]) -> Hel
 @dataclass
 class PairCache:
     """Training pairs read at the recipe's scale, decoded once and kept as ``.npy`` in
-    ``folder``: images (h, w, 3) uint8 BGR, exact flow (h, w, 2) float16 px, valid (h, w)."""
+    ``folder/scale-<scale>``: images (h, w, 3) uint8 BGR, exact flow (h, w, 2) float16 px,
+    valid (h, w)."""
 
     pairs: pd.DataFrame
     dataroot: Path
@@ -291,8 +294,12 @@ class PairCache:
     focus_depth: tuple[float, float] = Recipe.focus_depth
     _gt: GTFlow | None = field(default=None, repr=False)
 
+    def _at_scale(self) -> Path:
+        """Where the files at :attr:`scale` live (one folder per scale)."""
+        return self.folder / f"scale-{self.scale:g}"
+
     def _image(self, rel: str) -> np.ndarray:
-        f = self.folder / "images" / (Path(rel).stem + ".npy")
+        f = self._at_scale() / "images" / (Path(rel).stem + ".npy")
         if f.is_file():
             return np.load(f)
         img = read_image(self.dataroot / rel)
@@ -305,7 +312,7 @@ class PairCache:
 
     def _flow(self, i: int, size: tuple[int, int]) -> dict[str, np.ndarray]:
         r = self.pairs.iloc[i]
-        f = self.folder / "flow" / f"{r.sd_token_1}_{r.sd_token_2}_{self._depth_key()}.npz"
+        f = self._at_scale() / "flow" / f"{r.sd_token_1}_{r.sd_token_2}_{self._depth_key()}.npz"
         if f.is_file():
             z = np.load(f)
             return {"flow": z["flow"].astype(np.float32), "valid": z["valid"],
@@ -505,7 +512,8 @@ def _train(recipe: Recipe, data: PairCache, work: Path, steps: int, heldout: Hel
         row["seconds"] = time.perf_counter() - t0
         if heldout is not None and (step + 1) % recipe.eval_every == 0:
             row.update({f"val_{k}": v for k, v in score_model(
-                model if avg is None else avg.module, heldout, recipe.scale).items()})
+                model if avg is None else avg.module, heldout, recipe.scale).items()},
+                val_scale=recipe.scale)
         rows.append(row)
         pbar.update(1)
         pbar.set_postfix(loss=f"{row['loss']:.2f}")
@@ -594,26 +602,28 @@ def publish(schedule: Sequence[Recipe], work: Path, out: Path, world_fp: str,
     ``out/manifest.json``; the validation errors are those of the float16 weights. With
     ``prior`` (:func:`shipped_phases`) the first phases' records come from the manifest of
     the weights the later phases started from."""
-    (n, before), first = prior, schedule[0]
+    (n, before), first, last = prior, schedule[0], schedule[-1]
     state, rows = phase_histories(schedule, work, n)
     model = FastFlowNet()
     model.load_state_dict(phase_result(state))
     out.mkdir(parents=True, exist_ok=True)
     with atomic_path(out / "weights.pt") as tmp:
         torch.save(half_state(model), tmp)
-    final = score_model(load_half(out / "weights.pt"), heldout, first.scale)
+    final = score_model(load_half(out / "weights.pt"), heldout, last.scale)
     start = before["validation"]["curve"] if n else [{"step": 0, **{
         f"val_{k}": v for k, v in score_model(initial_model(first), heldout,
                                                 first.scale).items()}}]
     manifest = {
         "network": "FastFlowNet (flowmod.flow.architectures), trained from scratch here",
         "schedule": [asdict(p) for p in schedule], "steps": int(rows[-1]["step"]),
+        # the frame scale the weights were last trained at, and are scored and run at
+        "scale": last.scale,
         "world": {"fingerprint": world_fp, "dataroot_params":
                   first.world_params("data/pretrain").model_dump(
                       include={"seed", "world_scenes", "world_keyframes",
                                "world_sweep_scenes", "world_vehicles"})},
         "validation": {"pairs": len(heldout.img1), "final_float16": final,
-                       "baselines": baselines(heldout, first.scale),
+                       "baselines": baselines(heldout, last.scale),
                        "curve": [*start, *curve(rows)]},
         "training_curve": [*before.get("training_curve", []), *loss_curve(rows)],
         "first_losses": before.get("first_losses") or [r["loss"] for r in rows[:5]],
@@ -675,13 +685,13 @@ def prepare(recipe: Recipe, dataroot: Path, work: Path, progress: bool = True
 
 
 def phase_data(data: PairCache, recipe: Recipe) -> PairCache:
-    """The pairs a phase draws from: those at least ``min_gap`` frames apart, with the
-    phase's far-box depths."""
+    """The pairs a phase draws from: those at least ``min_gap`` frames apart, read at the
+    phase's scale, with the phase's far-box depths."""
     pairs = data.pairs[data.pairs["gap"] >= recipe.min_gap].reset_index(drop=True)
     if pairs.empty:
         raise PretrainError(f"min_gap {recipe.min_gap} leaves no training pair (max_gap "
                             f"{recipe.max_gap}): lower it")
-    return replace(data, pairs=pairs, focus_depth=recipe.focus_depth)
+    return replace(data, pairs=pairs, focus_depth=recipe.focus_depth, scale=recipe.scale)
 
 
 def run_schedule(schedule: Sequence[Recipe], data: PairCache, work: Path, total: int,
@@ -696,9 +706,6 @@ def run_schedule(schedule: Sequence[Recipe], data: PairCache, work: Path, total:
         if k <= skip or steps <= 0:
             done += recipe.steps
             continue
-        if recipe.scale != data.scale:
-            raise PretrainError(f"phase {k} reads frames at scale {recipe.scale}, the pairs "
-                                f"were read at {data.scale}: give every phase one scale")
         if recipe.init_float16 and init is not None:
             init = {n: v.half().float() for n, v in init.items()}
         model, _ = train(recipe, phase_data(data, recipe),
