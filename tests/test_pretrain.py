@@ -380,5 +380,7 @@ def test_chapter_12_describes_every_phase_of_the_schedule(manifest):
                                    "published (float16)")
     assert "flow upsampled to every pixel" in t["phase 6"] and "(decay 0.999)" in t["phase 6"]
     assert "upsampled" not in t["phase 5"] and "average" not in t["phase 5"]
+    assert t["phase 8"].endswith("frames read at scale 0.75 (before: 0.5)")
+    assert "scale" not in t["phase 7"], "a phase at its predecessor's scale says nothing"
     assert t["phase 7"].startswith("4000 more steps from the previous phase's weights as "
                                    "published (float16) (a fresh Adam 5e-05,")

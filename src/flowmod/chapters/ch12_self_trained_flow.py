@@ -186,8 +186,9 @@ def uses_shipped(params: Params) -> bool:
                                                   ).resolve())
 
 
-def phase_text(p: dict[str, Any]) -> str:
-    """A later phase of the schedule in words (its steps, rate and focus)."""
+def phase_text(p: dict[str, Any], scale_before: float) -> str:
+    """A later phase of the schedule in words (its steps, rate, focus, and its frame scale
+    where it differs from ``scale_before``, the previous phase's)."""
     near, far = p["focus_depth"]
     lo, hi = p.get("min_gap", 1), p["max_gap"]
     apart = f"{lo}" if lo == hi else f"{lo} to {hi}"
@@ -198,11 +199,13 @@ def phase_text(p: dict[str, Any]) -> str:
               "does)" if p.get("full_res") else "")
     average = (f"; passes on the moving average of its weights (decay {p['ema']:g})"
                if p.get("ema") else "")
+    scale = (f"; frames read at scale {p['scale']:g} (before: {scale_before:g})"
+             if p["scale"] != scale_before else "")
     return (f"{p['steps']} more steps from {start} (a fresh Adam "
             f"{p['lr']:g}, x{p['gamma']:g} at its steps "
             f"{', '.join(str(x) for x in p['milestones'])}); a share {p['focus_p']:g} of the "
             f"windows holds the box of an agent {near:g}-{far:g} m away, and box pixels "
-            f"weigh {1 + p['box_weight']:g}x in the loss{pairs}{finest}{average}")
+            f"weigh {1 + p['box_weight']:g}x in the loss{pairs}{finest}{average}{scale}")
 
 
 def recipe_table(m: dict[str, Any]) -> pd.DataFrame:
@@ -222,7 +225,8 @@ def recipe_table(m: dict[str, Any]) -> pd.DataFrame:
                  f"level, weights {', '.join(f'{x:g}' for x in r['level_weights'])}"),
         "schedule": (f"Adam {r['lr']:g}, x{r['gamma']:g} at steps "
                      f"{', '.join(str(x) for x in r['milestones'])}; {r['steps']} steps"),
-        **{f"phase {k}": phase_text(p) for k, p in enumerate(m["schedule"][1:], start=2)},
+        **{f"phase {k}": phase_text(p, m["schedule"][k - 2]["scale"])
+           for k, p in enumerate(m["schedule"][1:], start=2)},
         "training time": (f"{m['train_seconds'] / 3600:.1f} h on {m['where']['device']} "
                           f"({m['where']['threads']} threads, {m['where']['machine']})"),
         "file": f"float16 state_dict, sha256 {m['sha256'][:12]}...",
