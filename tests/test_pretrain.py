@@ -381,6 +381,13 @@ def test_chapter_12_describes_every_phase_of_the_schedule(manifest):
     assert "flow upsampled to every pixel" in t["phase 6"] and "(decay 0.999)" in t["phase 6"]
     assert "upsampled" not in t["phase 5"] and "average" not in t["phase 5"]
     assert t["phase 8"].endswith("frames read at scale 0.75 (before: 0.5)")
+    v = ch12.validation_table(manifest).set_index("method")["frame scale"]
+    assert v["dis (medium)"] == v.iloc[-1] == manifest["scale"] == pt.SCHEDULE[-1].scale
+    assert v["fastflownet, step 0 (untrained)"] == pt.SCHEDULE[0].scale
+    at = {s: load_profile("demo", flow_scale=s) for s in (manifest["scale"], 0.5)}
+    assert "not validated" not in ch12.shipped_note(at[manifest["scale"]], manifest)
+    assert "at scale 0.75; this profile computes flow at 0.5" in ch12.shipped_note(at[0.5],
+                                                                                 manifest)
     assert "scale" not in t["phase 7"], "a phase at its predecessor's scale says nothing"
     assert t["phase 7"].startswith("4000 more steps from the previous phase's weights as "
                                    "published (float16) (a fresh Adam 5e-05,")

@@ -234,20 +234,22 @@ def recipe_table(m: dict[str, Any]) -> pd.DataFrame:
     return pd.DataFrame({"": list(rows), "shipped weights": list(rows.values())})
 
 
-def _metric_row(name: str, v: dict[str, float]) -> dict[str, Any]:
-    return {"method": name, "EPE (px)": round(v["epe"], 2),
+def _metric_row(name: str, v: dict[str, float], scale: float) -> dict[str, Any]:
+    return {"method": name, "frame scale": scale, "EPE (px)": round(v["epe"], 2),
             "EPE in boxes (px)": round(v["epe_boxes"], 2),
             "Fl-all (%)": round(v["fl_all"], 1), "Fl-all in boxes (%)": round(v["fl_all_boxes"], 1)}
 
 
 def validation_table(m: dict[str, Any]) -> pd.DataFrame:
     """The pretraining world's validation pairs: the baselines, the untrained network (step
-    0) and the shipped float16 weights."""
-    val = m["validation"]
-    rows = [_metric_row(k, v) for k, v in val["baselines"].items()]
+    0, at the first phase's frame scale) and the shipped float16 weights (at the last
+    phase's, as the baselines)."""
+    val, first = m["validation"], m["schedule"][0]["scale"]
+    last = m.get("scale", first)
+    rows = [_metric_row(k, v, last) for k, v in val["baselines"].items()]
     step0 = {k[4:]: v for k, v in val["curve"][0].items() if k.startswith("val_")}
-    rows.append(_metric_row("fastflownet, step 0 (untrained)", step0))
-    rows.append(_metric_row(f"{SHIPPED}, step {m['steps']}", val["final_float16"]))
+    rows.append(_metric_row("fastflownet, step 0 (untrained)", step0, first))
+    rows.append(_metric_row(f"{SHIPPED}, step {m['steps']}", val["final_float16"], last))
     return pd.DataFrame(rows)
 
 
@@ -404,8 +406,14 @@ def shipped_note(params: Params, m: dict[str, Any] | None) -> str:
     where = ("this profile's `fastflownet` flow method runs them" if uses_shipped(params)
              else "this profile's `fastflownet` flow method does not run them "
                   "(`flow_methods`, `fastflownet_weights`)")
-    return (f"Shipped weights: `{WEIGHTS_DIR}/weights.pt`, {m['steps']} steps, sha256 "
+    text = (f"Shipped weights: `{WEIGHTS_DIR}/weights.pt`, {m['steps']} steps, sha256 "
             f"`{m['sha256'][:12]}`; {where}.")
+    trained = m.get("scale", m["schedule"][0]["scale"])
+    if trained != params.flow_scale:
+        text += (f" They were trained last on frames at scale {trained:g}; this profile "
+                 f"computes flow at {params.flow_scale:g} (`flow_scale`), where they were "
+                 "not validated.")
+    return text
 
 
 def shipped_example(params: Params, data: HeldOut, k: int = 0) -> dict[str, np.ndarray]:
