@@ -175,6 +175,9 @@ SCHEDULE: tuple[Recipe, ...] = (
     Recipe(seed=7, steps=3_000, lr=1e-4, milestones=(1_500, 2_250, 2_750), eval_every=500,
            focus_p=1.0, box_weight=40.0, min_gap=4, full_res=True, ema=0.999,
            init_float16=True, scale=0.75),
+    Recipe(seed=8, steps=4_000, lr=1e-4, milestones=(2_000, 3_000, 3_500), eval_every=500,
+           focus_p=1.0, box_weight=40.0, min_gap=4, full_res=True, ema=0.999,
+           init_float16=True, scale=0.75),
 )
 
 
@@ -656,11 +659,12 @@ CHECK_STEPS = 3
 CHECK_PAIRS = 4
 
 
-def smoke_check(recipe: Recipe, weights: Path, smoke: Params, work: Path) -> dict[str, Any]:
+def smoke_check(recipe: Recipe, weights: Path, smoke: Params, work: Path, scale: float
+                ) -> dict[str, Any]:
     """What a test repeats in seconds on the smoke world (every test session generates it):
     the losses of the recipe's first :data:`CHECK_STEPS` steps from scratch on its pairs (so
     a change of the recipe's code shows), and the shipped float16 weights' errors on
-    :data:`CHECK_PAIRS` of its keyframe pairs (so other weights show)."""
+    :data:`CHECK_PAIRS` of its keyframe pairs at frame ``scale`` (so other weights show)."""
     shutil.rmtree(work, ignore_errors=True)  # from scratch, every time
     root = smoke.dataroot_path
     frames = scene_frames(root, smoke.version)
@@ -670,9 +674,9 @@ def smoke_check(recipe: Recipe, weights: Path, smoke: Params, work: Path) -> dic
     _, rows = train(recipe, data, work / "train", CHECK_STEPS, None, progress=False)
     held = validation_set(replace(recipe, eval_pairs=CHECK_PAIRS), root,
                           {s: "val" for s in frames})
-    return {"world_id": smoke.world_id, "steps": CHECK_STEPS,
+    return {"world_id": smoke.world_id, "steps": CHECK_STEPS, "scale": scale,
             "first_losses": [r["loss"] for r in rows],
-            "weights": score_model(load_half(weights), held, recipe.scale)}
+            "weights": score_model(load_half(weights), held, scale)}
 
 
 def prepare(recipe: Recipe, dataroot: Path, work: Path, progress: bool = True
@@ -758,7 +762,8 @@ def main(argv: list[str] | None = None) -> int:
     smoke = load_profile("smoke", n_jobs=2)
     ensure_world_data(smoke)
     manifest = json.loads((args.out / "manifest.json").read_text())
-    manifest["check"] = smoke_check(recipe, args.out / "weights.pt", smoke, args.work / "check")
+    manifest["check"] = smoke_check(recipe, args.out / "weights.pt", smoke, args.work / "check",
+                                    SCHEDULE[-1].scale)
     write_json(args.out / "manifest.json", manifest)
     print(f"[pretrain] smoke-world check: {manifest['check']}", flush=True)
     return 0
