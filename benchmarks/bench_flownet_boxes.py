@@ -7,13 +7,15 @@ On the pretraining recipe's validation pairs (``flowmod.flow.pretrain.validation
 24 keyframe pairs of its validation scenes, the world ``make flownet`` generates under
 ``--data``), three measurements, each against DIS (medium) on the same pairs:
 
-* per far box (the 30-70 m vehicles of Table 1): the mean and the median pixel EPE of each
-  method, grouped into quartiles of the box's median exact motion (px): is the gap a few
-  large-motion failures or a floor at every motion?
+* per far box (the 30-70 m vehicles of Table 1), both methods at the frame scale the
+  weights were last trained at (their manifest's ``scale``): the mean and the median pixel
+  EPE of each method, grouped into quartiles of the box's median exact motion (px): is the
+  gap a few large-motion failures or a floor at every motion? And the per-pair box EPE
+  difference, FastFlowNet minus DIS, with a 95 % interval over the validation scenes;
 * the resolution floor: the exact flow averaged over cells of 2, 4 and 8 px and bilinearly
-  upsampled, scored like a method (FastFlowNet at ``flow_scale`` 0.5 predicts at 1/4 of the
-  half-size frame, cells of 8 px);
-* the inference scale: both methods at each of ``--scales`` (the network was trained at 0.5).
+  upsampled, scored like a method (FastFlowNet predicts at 1/4 of its input: at scale 0.5
+  cells of 8 px of the full frame, at 0.75 of 5.3 px);
+* the inference scale: both methods at each of ``--scales``.
 
 Prints the tables and writes ``benchmarks/results/flownet_boxes.json``. Measures only.
 """
@@ -41,6 +43,7 @@ from flowmod.flow.pretrain import (
     validation_set,
 )
 from flowmod.flow.selftrain import HeldOut, score
+from flowmod.metrics import group_mean_bootstrap
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -99,14 +102,23 @@ def main() -> None:
     version = r.world_params(str(root)).version
     h = validation_set(r, root, scene_split(list(scene_frames(root, version)), r.val_every))
     model = load_half(Path(a.weights))
-    ffn = FastFlowNetFlow(model=model, device=torch.device("cpu"), scale=r.scale)
-    dis = DISFlow("medium", scale=r.scale)
-    rows = []
+    manifest = Path(a.weights).with_name("manifest.json")
+    scale = json.loads(manifest.read_text()).get("scale", r.scale) if manifest.is_file() \
+        else r.scale
+    ffn = FastFlowNetFlow(model=model, device=torch.device("cpu"), scale=scale)
+    dis = DISFlow("medium", scale=scale)
+    rows, diff = [], []
     for k in range(len(h.img1)):
-        rows += per_box(ffn.estimate(h.img1[k], h.img2[k]), dis.estimate(h.img1[k], h.img2[k]),
-                        h.gt[k], h.valid[k], h.boxes[k])
-    out = {"weights": a.weights, "pairs": len(h.img1), "boxes": len(rows),
+        fa, fb = ffn.estimate(h.img1[k], h.img2[k]), dis.estimate(h.img1[k], h.img2[k])
+        rows += per_box(fa, fb, h.gt[k], h.valid[k], h.boxes[k])
+        diff.append(flow_metrics(fa, h.gt[k], h.valid[k], h.boxes[k])["epe_boxes"]
+                    - flow_metrics(fb, h.gt[k], h.valid[k], h.boxes[k])["epe_boxes"])
+    reps = group_mean_bootstrap(diff, h.scenes, seed=23)
+    out = {"weights": a.weights, "scale": scale, "pairs": len(h.img1), "boxes": len(rows),
            "quartiles": quartiles(rows),
+           "paired_box_epe": {"ffn_minus_dis": float(np.nanmean(diff)),
+                              "ci95_over_scenes": np.nanpercentile(reps, [2.5, 97.5]).tolist(),
+                              "scenes": len(set(h.scenes))},
            "resolution_floor": {c: resolution_floor(h, c) for c in (2, 4, 8)}, "scales": {}}
     for s in (float(x) for x in a.scales.split(",")):
         t0 = time.perf_counter()
@@ -114,11 +126,16 @@ def main() -> None:
         out["scales"][s] = {"fastflownet": score(est.estimate, h),
                             "dis": score(DISFlow("medium", scale=s).estimate, h),
                             "seconds": time.perf_counter() - t0}
-    print(f"{out['boxes']} far boxes on {out['pairs']} pairs; box EPE px by motion quartile:")
+    print(f"{out['boxes']} far boxes on {out['pairs']} pairs, both methods at scale {scale}; "
+          "box EPE px by motion quartile:")
     for q in out["quartiles"]:
         print(f"  motion {q['motion_px'][0]}-{q['motion_px'][1]} px: mean FFN "
               f"{q['ffn_mean']:.2f} DIS {q['dis_mean']:.2f}; median FFN {q['ffn_median']:.2f} "
               f"DIS {q['dis_median']:.2f}")
+    d = out["paired_box_epe"]
+    print(f"box EPE per pair, FFN - DIS: {d['ffn_minus_dis']:+.2f} px (95 % over the "
+          f"{d['scenes']} scenes {d['ci95_over_scenes'][0]:+.2f} to "
+          f"{d['ci95_over_scenes'][1]:+.2f})")
     for c, v in out["resolution_floor"].items():
         print(f"exact flow through {c} px cells: EPE {v['epe']:.2f}, box EPE {v['epe_boxes']:.2f}")
     for s, v in out["scales"].items():
