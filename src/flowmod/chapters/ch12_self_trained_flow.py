@@ -234,8 +234,12 @@ def recipe_table(m: dict[str, Any]) -> pd.DataFrame:
     return pd.DataFrame({"": list(rows), "shipped weights": list(rows.values())})
 
 
-def _metric_row(name: str, v: dict[str, float], scale: float) -> dict[str, Any]:
-    return {"method": name, "frame scale": scale, "EPE (px)": round(v["epe"], 2),
+def _metric_row(name: str, v: dict[str, float], scale: float | None = None
+                ) -> dict[str, Any]:
+    """A table row of ``v``'s metrics (with the frame ``scale`` they were scored at, if
+    given)."""
+    return {"method": name, **({} if scale is None else {"frame scale": scale}),
+            "EPE (px)": round(v["epe"], 2),
             "EPE in boxes (px)": round(v["epe_boxes"], 2),
             "Fl-all (%)": round(v["fl_all"], 1), "Fl-all in boxes (%)": round(v["fl_all_boxes"], 1)}
 
