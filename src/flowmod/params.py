@@ -188,7 +188,7 @@ class Params(BaseModel):
     flow_networks: list[Literal["raft", "raft_small", "fastflownet"]] = _field(
         list, role="plan",
         description="networks the runner adds to flow_methods when their weights are present")
-    flow_scale: float = _field(0.5, gt=0.0, le=1.0, read_by=(*_FLOW, "selfflow"),
+    flow_scale: float = _field(0.75, gt=0.0, le=1.0, read_by=(*_FLOW, "selfflow"),
                                description="image scale at which flow is computed and stored")
     dis_preset: Literal["ultrafast", "fast", "medium"] = _field(
         "medium", read_by=_FLOW, methods=("dis",), description="OpenCV DIS preset")
