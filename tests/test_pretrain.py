@@ -383,6 +383,18 @@ def test_chapter_12_describes_every_phase_of_the_schedule(manifest):
     assert "flow upsampled to every pixel" in t["phase 6"] and "(decay 0.999)" in t["phase 6"]
     assert "upsampled" not in t["phase 5"] and "average" not in t["phase 5"]
     assert t["phase 8"].endswith("frames read at scale 0.75 (before: 0.5)")
+    starts = np.cumsum([0] + [p.steps for p in pt.SCHEDULE])
+    assert ch12.scale_changes(manifest) == [
+        (int(starts[k]), p.scale) for k, p in enumerate(pt.SCHEDULE)
+        if k and p.scale != pt.SCHEDULE[k - 1].scale] == [(29000, 0.75)]
+    from flowmod.report import viz
+
+    fig = viz.pretrain_curves(*ch12.curves(manifest), manifest["validation"]["baselines"],
+                              ch12.scale_changes(manifest))
+    for ax in fig.axes:  # each panel marks where the frames grew
+        assert [list(ln.get_xdata()) for ln in ax.lines if ln.get_linestyle() == ":"
+                and ln.get_color() == "0.5"] == [[29000, 29000]]
+        assert "frames at 0.75" in [t.get_text() for t in ax.texts]
     v = ch12.validation_table(manifest).set_index("method")["frame scale"]
     assert v["dis (medium)"] == v.iloc[-1] == manifest["scale"] == pt.SCHEDULE[-1].scale
     assert v["fastflownet, step 0 (untrained)"] == pt.SCHEDULE[0].scale

@@ -257,6 +257,17 @@ def validation_table(m: dict[str, Any]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def scale_changes(m: dict[str, Any]) -> list[tuple[int, float]]:
+    """(step of the whole schedule, new frame scale) where a phase reads frames at another
+    scale than its predecessor."""
+    out, done = [], 0
+    for before, p in zip(m["schedule"], m["schedule"][1:], strict=False):
+        done += before["steps"]
+        if p["scale"] != before["scale"]:
+            out.append((done, p["scale"]))
+    return out
+
+
 def curves(m: dict[str, Any]) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(training curve: step, loss, epe2 per block of steps; validation curve: step, val_*)."""
     return pd.DataFrame(m["training_curve"]), pd.DataFrame(m["validation"]["curve"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -330,12 +331,19 @@ def flow_training_curves(histories: dict[str, pd.DataFrame],
 
 
 def pretrain_curves(train: pd.DataFrame, val: pd.DataFrame,
-                    references: dict[str, dict[str, float]]) -> plt.Figure:
+                    references: dict[str, dict[str, float]],
+                    scale_changes: Sequence[tuple[int, float]] = ()) -> plt.Figure:
     """The shipped network's training: ``train`` (step, loss per block of steps; left) and
     the validation end-point error overall and inside the far vehicles' boxes (``val``:
     step, val_epe, val_epe_boxes; step 0 the untrained network), with each of
-    ``references`` (name -> {epe, epe_boxes} px) as a horizontal line."""
+    ``references`` (name -> {epe, epe_boxes} px) as a horizontal line and each of
+    ``scale_changes`` (step, new frame scale) as a labelled vertical line."""
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.3))
+    for ax in axes:
+        for step, scale in scale_changes:
+            ax.axvline(step, color="0.5", ls=":", lw=1)
+            ax.annotate(f"frames at {scale:g}", (step, 1.0), xycoords=("data", "axes fraction"),
+                        xytext=(2, -10), textcoords="offset points", fontsize=7, color="0.3")
     axes[0].plot(train["step"], train["loss"], color="C0")
     axes[0].set(xlabel="step", ylabel="loss (mean per block)", title="training loss",
                 yscale="log")
