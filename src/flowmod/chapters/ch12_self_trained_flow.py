@@ -248,8 +248,7 @@ def validation_table(m: dict[str, Any]) -> pd.DataFrame:
     """The pretraining world's validation pairs: the baselines, the untrained network (step
     0, at the first phase's frame scale) and the shipped float16 weights (at the last
     phase's, as the baselines)."""
-    val, first = m["validation"], m["schedule"][0]["scale"]
-    last = m.get("scale", first)
+    val, first, last = m["validation"], m["schedule"][0]["scale"], m["scale"]
     rows = [_metric_row(k, v, last) for k, v in val["baselines"].items()]
     step0 = {k[4:]: v for k, v in val["curve"][0].items() if k.startswith("val_")}
     rows.append(_metric_row("fastflownet, step 0 (untrained)", step0, first))
@@ -423,9 +422,8 @@ def shipped_note(params: Params, m: dict[str, Any] | None) -> str:
                   "(`flow_methods`, `fastflownet_weights`)")
     text = (f"Shipped weights: `{WEIGHTS_DIR}/weights.pt`, {m['steps']} steps, sha256 "
             f"`{m['sha256'][:12]}`; {where}.")
-    trained = m.get("scale", m["schedule"][0]["scale"])
-    if trained != params.flow_scale:
-        text += (f" They were trained last on frames at scale {trained:g}; this profile "
+    if m["scale"] != params.flow_scale:
+        text += (f" They were trained last on frames at scale {m['scale']:g}; this profile "
                  f"computes flow at {params.flow_scale:g} (`flow_scale`), where they were "
                  "not validated.")
     return text
