@@ -302,7 +302,7 @@ def test_comparison_table_interval_in_points():
     r = {"delta_f1": 0.15, "ci": (0.1, 0.2), "per_seed": [0.15], "p_not_better": 0.0,
          "n_scenes": 3, "n": 30}
     t = ev.comparison_table({"A - B": r})
-    assert t.loc[0, "95% CI over scenes (points)"] == "10.0 to 20.0"
+    assert t.loc[0, "95% CI, scenes and seeds (points)"] == "10.0 to 20.0"
     assert list(t.columns) == ev.COMPARISON_COLUMNS
     empty = ev.comparison_table({})
     assert len(empty) == 0 and list(empty.columns) == ev.COMPARISON_COLUMNS, "columns kept"
@@ -480,11 +480,11 @@ def test_undefined_numbers_are_shown_as_a_dash():
     nan = float("nan")
     t = ev.table3({"dis": {"f1": nan, "precision": 0.0, "recall": nan, "f1_min": nan,
                            "f1_max": nan, "seeds": 2, "ci": (nan, nan)}})
-    assert t.loc[0, "seed range (%)"] == "-" and t.loc[0, "F1 95% CI, scenes (%)"] == "-"
+    assert t.loc[0, "seed range (%)"] == "-" and t.loc[0, "F1 95% CI, scenes and seeds (%)"] == "-"
     assert np.isnan(t.loc[0, "F1 (%)"]) and t.loc[0, "P (%)"] == 0.0
     c = ev.comparison_table({"a - b": {"delta_f1": 0.1, "ci": (nan, 0.2), "per_seed": [nan, 0.1],
                                        "p_not_better": nan, "n_scenes": 1, "n": 3}})
-    assert c.loc[0, "95% CI over scenes (points)"] == "-"
+    assert c.loc[0, "95% CI, scenes and seeds (points)"] == "-"
     assert c.loc[0, "per seed (points)"] == "-, +10.0"
     assert ev.span(0.105, 0.2) == "10.5-20.0" and ev.points(0.5, "+.1f") == "+50.0"
 
@@ -504,3 +504,74 @@ def test_false_alarm_rate_uses_the_strict_threshold_of_every_other_number():
     assert ev.false_alarm_rate([0, 0, 0, 0, 1], [0.5, 0.51, 0.2, 0.9, 0.1]) == 0.5
     assert ev.false_alarm_rate([0, 0], [0.5, 0.3], threshold=0.4) == 0.5
     assert np.isnan(ev.false_alarm_rate([1, 1], [0.9, 0.1]))
+
+
+# --- training seeds in the interval (issue 38) ------------------------------------------------
+
+
+def _identical_scenes(n_scenes: int = 20):
+    """Scenes that are copies of one another (so resampling them moves nothing) and three
+    seeds that disagree: all of an interval's width is training noise."""
+    y = np.tile([1, 1, 0, 0], n_scenes)
+    g = np.repeat(np.arange(n_scenes), 4)
+    seeds = np.array([np.tile(row, n_scenes) for row in
+                      ([0.9, 0.9, 0.1, 0.1], [0.9, 0.1, 0.1, 0.1], [0.9, 0.9, 0.9, 0.1])])
+    return y, seeds, g
+
+
+def test_the_interval_counts_training_seeds_not_only_scenes():
+    y, seeds, g = _identical_scenes()
+    f1 = [ev.metrics(y, p)["f1"] for p in seeds]  # 1, 2/3, 0.8
+    lo, hi = ev.bootstrap_f1_ci(y, seeds, g)
+    assert lo < np.mean(f1) - 0.02 and hi > np.mean(f1) + 0.02  # seeds resampled
+    assert lo >= min(f1) - 1e-9 and hi <= max(f1) + 1e-9
+    one = ev.bootstrap_f1_ci(y, seeds[:1], g)  # one seed: nothing left to resample
+    assert one == (pytest.approx(f1[0]), pytest.approx(f1[0]))
+    s = ev.seed_summary(y, seeds, g)
+    assert s["seed_sd"] == pytest.approx(np.std(f1, ddof=1)) and s["training_seeds"] == 3
+    assert np.isnan(ev.seed_summary(y, seeds[:1], g)["seed_sd"])
+
+
+def test_a_single_seed_keeps_the_scene_bootstrap():
+    y, p, g = _scenes()
+    w = ev.scene_draws(len(np.unique(g)), 2000, 0)
+    tp, fp, fn = ev._counts(y, p[None], g, 0.5)
+    want = ev._prf(w @ tp.T, w @ fp.T, w @ fn.T)[2][:, 0]
+    assert np.allclose(ev.scene_bootstrap(y, p, g), want, equal_nan=True)
+
+
+def test_seeds_are_drawn_within_each_fold_and_paired_across_methods():
+    d = ev.seed_draws(3, 2, 500, seed=4)
+    assert d.shape == (500, 2, 3) and set(np.unique(d)) == {0, 1, 2}
+    assert (d[:, 0] != d[:, 1]).any()  # the folds' seeds are drawn apart
+    assert (d == ev.seed_draws(3, 2, 500, seed=4)).all()
+    assert (ev.seed_draws(1, 2, 5, seed=4) == 0).all()
+    y, seeds, g = _identical_scenes()
+    folds = (g >= 10).astype(int)
+    # seeds that agree in fold 0 and disagree in fold 1: the width comes from fold 1 alone
+    calm = seeds.copy()
+    calm[:, folds == 0] = seeds[0, folds == 0]
+    wide = ev.bootstrap_f1_ci(y, seeds, g, folds=folds)
+    narrow = ev.bootstrap_f1_ci(y, calm, g, folds=folds)
+    assert narrow[1] - narrow[0] < wide[1] - wide[0]
+    # a method against itself: the same scenes and seeds drawn, every replicate 0
+    c = ev.paired_comparison(y, seeds, seeds, g, folds=folds)
+    assert c["ci"] == (0.0, 0.0) and c["training_seeds"] == [3, 3]
+    # against a constant (no training noise) the interval is the seeds' spread
+    c = ev.paired_comparison(y, seeds, np.full(len(y), 0.9), g)
+    assert c["ci"][0] < c["delta_f1"] < c["ci"][1]
+
+
+def test_chance_reference_and_balanced_accuracy():
+    y = np.array([1, 0, 0, 0])
+    assert ev.always_moving_f1(y) == pytest.approx(2 / 5)  # 2P / (2P + N), P 1, N 3
+    assert np.isnan(ev.always_moving_f1([0, 0]))
+    assert ev.balanced_accuracy(y, np.ones(4)) == 0.5  # a constant answer
+    assert ev.balanced_accuracy(y, [0.9, 0.9, 0.1, 0.1]) == pytest.approx((1 + 2 / 3) / 2)
+    assert np.isnan(ev.balanced_accuracy([1, 1], [0.9, 0.1]))
+    s = ev.seed_summary(y, [[0.9, 0.9, 0.1, 0.1], [0.9, 0.1, 0.1, 0.1]], [0, 0, 1, 1])
+    assert s["always_moving_f1"] == pytest.approx(0.4)
+    assert s["balanced_accuracy"] == pytest.approx(((1 + 2 / 3) / 2 + 1) / 2)
+    t = ev.table3({"x": s})
+    assert t.loc[0, "always moving F1 (%)"] == "40.0" and t.loc[0, "training seeds"] == 2
+    assert t.loc[0, "balanced accuracy (%)"] == "91.7" and ev.CI_COLUMN in t

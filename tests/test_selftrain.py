@@ -269,7 +269,7 @@ def test_the_papers_observation_is_answered_with_paired_numbers(smoke_built):
                                           "scenes": 2}, "scene c has no defined difference"
     want = ch07.comparisons(p).set_index("comparison").loc["gt - dis"]
     assert obs["test"]["ΔF1 (points)"] == want["ΔF1 (points)"]
-    assert obs["test"]["95% CI over scenes (points)"] == want["95% CI over scenes (points)"]
+    assert obs["test"]["95% CI, scenes and seeds (points)"] == want["95% CI, scenes and seeds (points)"]
     general = common.results(p, "dis", "general")[0]
     assert obs["general"]["objects"] == (general["distance"] <= p.general_max_distance).sum()
     words = ch12.observation_words(obs)
@@ -280,7 +280,7 @@ def test_the_papers_observation_is_answered_with_paired_numbers(smoke_built):
     assert lo < 0 < hi and mixed["epe_boxes_minus_dis"]["verdict"] == "undecided"
     # the verdict in words: the paper's observation repeats only where both differences are
     # decided and the classifiers' goes against the flows' accuracy
-    row = {"ΔF1 (points)": 4.0, "95% CI over scenes (points)": "1.0 to 7.0",
+    row = {"ΔF1 (points)": 4.0, "95% CI, scenes and seeds (points)": "1.0 to 7.0",
            "verdict": "A better", "detectable (points)": 3.0}
     worse = {"diff": 2.0, "ci": (1.0, 3.0), "verdict": "A better", "scenes": 3}
     decided = {"epe_boxes_minus_dis": worse, "test": row, "general": row}

@@ -26,11 +26,15 @@ def test_table3_every_cell():
     want = pd.DataFrame({
         "Method": ["dis", "one seed", "bare"],
         "F1 (%)": [81.2, 50.0, 12.5],
+        "seed SD (points)": ["-", "-", "-"],
         "seed range (%)": ["75.1-84.7", "", ""],
         "seeds": [3, 1, ""],
+        "training seeds": ["", "", ""],
         "P (%)": [90.5, 25.0, 6.7],
         "R (%)": [73.5, 100.0, 95.0],
-        "F1 95% CI, scenes (%)": ["60.5-91.5", "", ""],
+        "balanced accuracy (%)": ["-", "-", "-"],
+        "always moving F1 (%)": ["-", "-", "-"],
+        "F1 95% CI, scenes and seeds (%)": ["60.5-91.5", "", ""],
         "scenes": [6, "", ""],
         "objects": [409, "", ""],
         "vehicles": [47, "", ""],
@@ -48,7 +52,7 @@ def test_comparison_table_every_cell():
                          "n_scenes": 5, "n": 409}}
     want = pd.DataFrame({
         "comparison": ["gt - dis"], "ΔF1 (points)": [3.1],
-        "95% CI over scenes (points)": ["-1.5 to 8.5"],
+        "95% CI, scenes and seeds (points)": ["-1.5 to 8.5"],
         "verdict": ["undecided"], "detectable (points)": [float("nan")],
         "per seed (points)": ["+2.0, -1.1, +5.0"],
         "replicates with A <= B (%)": [12.3], "scenes": [5], "objects": [409],

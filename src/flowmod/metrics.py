@@ -151,16 +151,46 @@ def scene_draws(k: int, n: int, seed: int) -> np.ndarray:
     return rng.multinomial(k, np.full(k, 1.0 / k), size=n).astype(np.float64)
 
 
+def seed_draws(models: int, strata: int, n: int, seed: int) -> np.ndarray:
+    """(n, strata, models) int64: which of ``models`` training seeds each replicate draws
+    (``models`` draws with replacement) in each stratum (fold), seeded; the identity when
+    there is one model (nothing to resample)."""
+    if models == 1:
+        return np.zeros((n, strata, 1), dtype=np.int64)
+    rng = np.random.default_rng([int(seed), 1])
+    return rng.integers(0, models, size=(n, strata, models))
+
+
+def _scene_strata(g: np.ndarray, folds: Any) -> np.ndarray:
+    """(G,) the fold of each scene (0 everywhere without folds); a scene lies in one fold."""
+    uniq, gi = np.unique(g, return_inverse=True)
+    if folds is None:
+        return np.zeros(len(uniq), dtype=np.int64)
+    f = np.asarray(folds).reshape(-1)
+    if len(f) != len(g):
+        raise ValueError(f"folds has {len(f)} values but groups has {len(g)}")
+    _, fi = np.unique(f, return_inverse=True)
+    out = np.zeros(len(uniq), dtype=np.int64)
+    out[gi] = fi
+    return out
+
+
 def scene_bootstrap(y_true: Any, y_prob: Any, groups: Any, n: int = 2000, seed: int = 0,
-                    threshold: float = 0.5) -> np.ndarray:
-    """Bootstrap replicates of the whole-set F1 with whole *groups* (scenes) resampled.
+                    threshold: float = 0.5, folds: Any = None) -> np.ndarray:
+    """Bootstrap replicates of the whole-set F1, whole *groups* (scenes) and training seeds
+    resampled (a two-level bootstrap).
 
     Objects of one scene are not independent (one vehicle appears in many consecutive
     pairs; a scene shares its light, traffic and ego motion), so the unit resampled is the
     scene: each replicate draws as many scenes as there are, with replacement, and keeps all
     their objects. y_prob: (N,) or (S, N) for S models (training seeds) scored on the same
-    objects; a replicate's value is the mean over models of their F1 on the drawn scenes,
-    NaN where the drawn scenes hold no mover (F1 undefined; not 0). Returns (n,) replicates.
+    objects. Training is the second source of noise: each replicate also draws S of the S
+    seeds with replacement (:func:`seed_draws`), separately in each fold (``folds``: the
+    fold of each object; the seed-k models of two folds are separate trainings), and its
+    value is the mean over the drawn seeds of their F1 on the drawn scenes; NaN where the
+    drawn scenes hold no mover (F1 undefined; not 0). Two calls with the same ``seed`` and
+    the same S draw the same scenes and seeds, so their difference is paired on both.
+    Returns (n,) replicates.
     """
     y, probs = _as_models(y_true, y_prob)
     g = np.asarray(groups).reshape(-1)
@@ -168,9 +198,13 @@ def scene_bootstrap(y_true: Any, y_prob: Any, groups: Any, n: int = 2000, seed: 
         raise ValueError(f"groups has {len(g)} values but y_true has {len(y)}")
     if len(y) == 0:
         return np.full(n, np.nan)
-    tp, fp, fn = _counts(y, probs, g, threshold)
-    w = scene_draws(tp.shape[1], n, seed)
-    f1 = _prf(w @ tp.T, w @ fp.T, w @ fn.T)[2]  # (n, S)
+    tp, fp, fn = _counts(y, probs, g, threshold)  # (S, G) each
+    strata = _scene_strata(g, folds)
+    w = scene_draws(tp.shape[1], n, seed)  # (n, G)
+    pick = seed_draws(len(probs), int(strata.max()) + 1, n, seed)[:, strata, :]  # (n, G, S)
+    cols = np.arange(tp.shape[1])[None, :, None]
+    tp_r, fp_r, fn_r = (np.einsum("rg,rgs->rs", w, c[pick, cols]) for c in (tp, fp, fn))
+    f1 = _prf(tp_r, fp_r, fn_r)[2]  # (n, S): drawn seeds on drawn scenes
     return f1.mean(axis=1)
 
 
@@ -233,45 +267,84 @@ def verdict(ci: tuple[float, float]) -> str:
 
 
 def bootstrap_f1_ci(y_true: Any, y_prob: Any, groups: Any, n: int = 2000, seed: int = 0,
-                    threshold: float = 0.5, level: float = 0.95) -> tuple[float, float]:
-    """Scene-level percentile bootstrap interval of the (seed-mean) F1; see
-    :func:`scene_bootstrap`."""
-    return interval(scene_bootstrap(y_true, y_prob, groups, n, seed, threshold), level)
+                    threshold: float = 0.5, level: float = 0.95, folds: Any = None
+                    ) -> tuple[float, float]:
+    """Percentile bootstrap interval of the (seed-mean) F1 over scenes and training seeds;
+    see :func:`scene_bootstrap`."""
+    return interval(scene_bootstrap(y_true, y_prob, groups, n, seed, threshold, folds), level)
 
 
-def _per_fold(y: np.ndarray, p: np.ndarray, folds: np.ndarray, threshold: float
+def _per_fold(y: np.ndarray, probs: np.ndarray, folds: np.ndarray, threshold: float
               ) -> list[dict[str, Any]]:
-    """:func:`metrics` of each fold's rows (cross-validation: each fold by its own model)."""
-    return [metrics(y[folds == k], p[folds == k], threshold) for k in np.unique(folds)]
+    """Each fold's scores (cross-validation: each fold's rows by its own models): precision,
+    recall and F1 the means over the S training seeds (probs (S, N)), tp, fp, fn their sums
+    divided by S."""
+    out = []
+    for k in np.unique(folds):
+        ms = [metrics(y[folds == k], p[folds == k], threshold) for p in probs]
+        out.append({key: float(np.mean([m[key] for m in ms]))
+                    for key in ("f1", "precision", "recall", "tp", "fp", "fn")})
+    return out
+
+
+def seed_sd(values: Any) -> float:
+    """Standard deviation (ddof 1) of per-seed scores; NaN with fewer than two defined."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v[~np.isnan(v)]
+    return float(v.std(ddof=1)) if v.size > 1 else float("nan")
+
+
+def always_moving_f1(y_true: Any) -> float:
+    """The chance reference: F1 of calling every object moving, 2P / (2P + N) for P movers
+    and N still objects (its recall is 1, its precision the share of movers); NaN without
+    a mover."""
+    y = labels01(y_true)
+    return float(_prf(y.sum(), len(y) - y.sum(), 0)[2])
+
+
+def balanced_accuracy(y_true: Any, y_prob: Any, threshold: float = 0.5) -> float:
+    """The mean of the recalls of the moving and of the still class (0.5 for any constant
+    answer, whatever the share of movers); NaN without an object of either class."""
+    m = metrics(y_true, y_prob, threshold)
+    if not m["n_moving"] or not m["n_still"]:
+        return float("nan")
+    return (m["tp"] / m["n_moving"] + m["tn"] / m["n_still"]) / 2
 
 
 def seed_summary(y_true: Any, y_prob: Any, groups: Any, instances: Any = None, n: int = 2000,
                  seed: int = 0, threshold: float = 0.5, level: float = 0.95,
                  folds: Any = None) -> dict[str, Any]:
     """Scores of S models (training seeds) on the same objects: per-seed precision, recall
-    and F1; their mean, min and max; the scene-level interval of the mean F1; and what the
-    interval resamples: number of scenes, objects and (if given) vehicle instances.
+    and F1; their mean, min and max, the seeds' standard deviation (``seed_sd``); the
+    interval of the mean F1 over scenes and seeds (:func:`scene_bootstrap`); the chance
+    reference (:func:`always_moving_f1`) and the balanced accuracy; and what the interval
+    resamples: number of scenes, objects and (if given) vehicle instances.
 
-    With ``folds`` (the fold of each object; y_prob one row: each object predicted by its
-    fold's model), F1, precision and recall are pooled over every object and the per-seed
-    entries, min and max are the folds' (each fold's F1 on its own objects)."""
+    With ``folds`` (the fold of each object; each object predicted by its fold's models,
+    row s of y_prob by the seed-s ones), precision, recall and F1 are pooled over every
+    object per seed, and the per-unit entries, min and max are the folds' (each fold's
+    seed-mean F1 on its own objects)."""
     y, probs = _as_models(y_true, y_prob)
-    per = [metrics(y, p, threshold) for p in probs]
-    pooled = per
-    if folds is not None:
-        per = _per_fold(y, probs[0], np.asarray(folds), threshold)
+    pooled = [metrics(y, p, threshold) for p in probs]
+    per = pooled if folds is None else _per_fold(y, probs, np.asarray(folds), threshold)
     f1 = np.array([m["f1"] for m in per], dtype=float)
     defined = f1[~np.isnan(f1)]  # a fold without movers has no F1
     out: dict[str, Any] = {
         "seeds": len(per), "unit": "fold" if folds is not None else "seed",
+        "training_seeds": len(probs),
         "f1": float(np.mean([m["f1"] for m in pooled])),
+        "seed_sd": seed_sd([m["f1"] for m in pooled]),
         "f1_min": float(defined.min()) if defined.size else float("nan"),
         "f1_max": float(defined.max()) if defined.size else float("nan"),
         "precision": float(np.mean([m["precision"] for m in pooled])),
         "recall": float(np.mean([m["recall"] for m in pooled])),
+        "balanced_accuracy": float(np.mean([balanced_accuracy(y, p, threshold)
+                                            for p in probs])),
+        "always_moving_f1": always_moving_f1(y),
         "per_seed": [{k: m[k] for k in ("f1", "precision", "recall", "tp", "fp", "fn")}
                      for m in per],
-        "ci": bootstrap_f1_ci(y, probs, groups, n, seed, threshold, level), "level": level,
+        "ci": bootstrap_f1_ci(y, probs, groups, n, seed, threshold, level, folds),
+        "level": level,
         "n": len(y), "n_moving": int(y.sum()), "n_scenes": int(len(np.unique(groups))),
     }
     if instances is not None:
@@ -283,22 +356,23 @@ def paired_comparison(y_true: Any, prob_a: Any, prob_b: Any, groups: Any, n: int
                       seed: int = 0, threshold: float = 0.5, level: float = 0.95,
                       folds: Any = None) -> dict[str, Any]:
     """Method A minus method B on the same objects: the difference of their seed-mean F1,
-    its scene-level interval (the same resampled scenes for both methods, so what they share
-    cancels), the per-seed differences (seed k of A against seed k of B; with ``folds``, as
-    :func:`seed_summary`, fold k's), the share of replicates in which A is not better and
-    the number of replicates left out because their scenes hold no mover (F1 undefined for
-    both); and ``detectable``, the smallest difference these scenes would resolve
-    (:func:`detectable`), for a question the interval leaves open."""
+    its interval over scenes and training seeds (:func:`scene_bootstrap`: the same scenes
+    and the same seed indices drawn for both methods, so what they share cancels), the
+    per-seed differences (seed k of A against seed k of B; with ``folds``, as
+    :func:`seed_summary`, fold k's seed-mean), the share of replicates in which A is not
+    better and the number of replicates left out because their scenes hold no mover (F1
+    undefined for both); and ``detectable``, the smallest difference these scenes would
+    resolve (:func:`detectable`), for a question the interval leaves open."""
     y, pa = _as_models(y_true, prob_a)
     _, pb = _as_models(y_true, prob_b)
-    ra = scene_bootstrap(y, pa, groups, n, seed, threshold)
-    rb = scene_bootstrap(y, pb, groups, n, seed, threshold)  # same seed: same draws
+    ra = scene_bootstrap(y, pa, groups, n, seed, threshold, folds)
+    rb = scene_bootstrap(y, pb, groups, n, seed, threshold, folds)  # same seed: same draws
     fa = np.array([metrics(y, p, threshold)["f1"] for p in pa])
     fb = np.array([metrics(y, p, threshold)["f1"] for p in pb])
     if folds is not None:
         f = np.asarray(folds)
-        per = [a["f1"] - b["f1"] for a, b in zip(_per_fold(y, pa[0], f, threshold),
-                                                   _per_fold(y, pb[0], f, threshold),
+        per = [a["f1"] - b["f1"] for a, b in zip(_per_fold(y, pa, f, threshold),
+                                                   _per_fold(y, pb, f, threshold),
                                                    strict=True)]
     else:
         k = min(len(fa), len(fb))
@@ -307,7 +381,7 @@ def paired_comparison(y_true: Any, prob_a: Any, prob_b: Any, groups: Any, n: int
     defined = d[~np.isnan(d)]
     return {"delta_f1": float(fa.mean() - fb.mean()), "ci": interval(d, level),
             "detectable": detectable(d, level),
-            "per_seed": per,
+            "per_seed": per, "training_seeds": [len(pa), len(pb)],
             "p_not_better": float(np.mean(defined <= 0)) if defined.size else float("nan"),
             "undefined_replicates": int(d.size - defined.size),
             "unit": "fold" if folds is not None else "seed",
@@ -317,15 +391,16 @@ def paired_comparison(y_true: Any, prob_a: Any, prob_b: Any, groups: Any, n: int
 def breakdown(
     df: pd.DataFrame, y_true: Any, y_prob: Any, by: str = "category", *,
     bins: Sequence[float] | None = None, threshold: float = 0.5, groups: Any = None,
-    n_boot: int = 1000, seed: int = 0,
+    n_boot: int = 1000, seed: int = 0, folds: Any = None,
 ) -> pd.DataFrame:
     """Metrics per group of objects: one row per value of ``df[by]``.
 
     ``by='distance'`` groups by distance bins (m, default :data:`DISTANCE_BINS`; empty bins
     dropped); any other column groups by its values. y_prob: (N,) or (S, N) for S training
     seeds (scores are means over seeds). With ``groups`` (the scene of each object), each
-    row also gets the scene-level 95 % interval of its F1 (``ci_lo``, ``ci_hi``) and its
-    number of scenes. Columns: the group, n, n_moving, precision, recall, f1, accuracy
+    row also gets the 95 % interval of its F1 over scenes and seeds (``ci_lo``, ``ci_hi``;
+    seeds resampled within ``folds``, the fold of each object, if given) and its number of
+    scenes. Columns: the group, n, n_moving, precision, recall, f1, accuracy
     (and ci_lo, ci_hi, scenes).
     """
     y, probs = _as_models(y_true, y_prob)
@@ -349,8 +424,9 @@ def breakdown(
                **{m: float(np.mean([x[m] for x in ms]))
                   for m in ("precision", "recall", "f1", "accuracy")}}
         if g is not None:
-            row["ci_lo"], row["ci_hi"] = bootstrap_f1_ci(y[i], probs[:, i], g[i], n_boot, seed,
-                                                         threshold)
+            row["ci_lo"], row["ci_hi"] = bootstrap_f1_ci(
+                y[i], probs[:, i], g[i], n_boot, seed, threshold,
+                folds=None if folds is None else np.asarray(folds)[i])
             row["scenes"] = int(len(np.unique(g[i])))
         rows.append(row)
     if g is not None:
@@ -372,14 +448,16 @@ def span(lo: Any, hi: Any, sep: str = "-") -> str:
 
 def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
     """The paper's Table 3 from per-method results (:func:`seed_summary` dicts, or any dict
-    with f1, precision, recall and optionally f1_min/f1_max, seeds, ci, n, n_scenes,
-    n_instances; a mapping method -> such a dict also works).
+    with f1, precision, recall and optionally f1_min/f1_max, seeds, training_seeds, seed_sd,
+    ci, balanced_accuracy, always_moving_f1, n, n_scenes, n_instances; a mapping method ->
+    such a dict also works).
 
-    Columns: Method, F1 (%) (mean over training seeds), seed range (%) (of F1), seeds,
-    P (%) and R (%) (precision and recall, means over seeds), F1 95% CI, scenes (%) (whole
-    test scenes resampled), scenes, objects, vehicles; percentages to 0.1. Cross-validated
-    results (``unit`` fold) give F1, P and R pooled over the folds and ``fold range (%)``,
-    ``folds`` instead.
+    Columns: Method, F1 (%) (mean over training seeds), seed SD (points; "-" for one seed),
+    seed range (%) (of F1), seeds, P (%) and R (%) (precision and recall, means over
+    seeds), balanced accuracy (%) (prevalence-free), always moving F1 (%) (the chance
+    reference), F1 95% CI (%) (whole test scenes and training seeds resampled), scenes,
+    objects, vehicles; percentages to 0.1. Cross-validated results (``unit`` fold) give
+    F1, P and R pooled over the folds and ``fold range (%)``, ``folds`` instead.
     """
     if isinstance(rows, Mapping):
         rows = [{"method": k, **v} for k, v in rows.items()]
@@ -392,13 +470,16 @@ def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) 
         out.append({
             "Method": r["method"],
             "F1 (%)": round(100 * float(r["f1"]), 1),
+            "seed SD (points)": points(r.get("seed_sd", float("nan"))),
             f"{unit} range (%)": (span(lo, hi)
                                   if lo is not None and r.get("seeds", 1) > 1 else ""),
             f"{unit}s": r.get("seeds", ""),
+            "training seeds": r.get("training_seeds", ""),
             "P (%)": round(100 * float(r["precision"]), 1),
             "R (%)": round(100 * float(r["recall"]), 1),
-            "F1 95% CI, scenes (%)": (
-                span(*ci) if ci is not None else ""),
+            "balanced accuracy (%)": points(r.get("balanced_accuracy", float("nan"))),
+            "always moving F1 (%)": points(r.get("always_moving_f1", float("nan"))),
+            CI_COLUMN: span(*ci) if ci is not None else "",
             "scenes": r.get("n_scenes", ""),
             "objects": r.get("n", ""),
             "vehicles": r.get("n_instances", ""),
@@ -406,8 +487,12 @@ def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) 
     return pd.DataFrame(out, columns=list(out[0]) if out else ["Method"])
 
 
+#: The interval column of :func:`table3`: what it resamples.
+CI_COLUMN = "F1 95% CI, scenes and seeds (%)"
+
+
 #: Columns of :func:`comparison_table` (also when it has no row).
-COMPARISON_COLUMNS = ["comparison", "ΔF1 (points)", "95% CI over scenes (points)",
+COMPARISON_COLUMNS = ["comparison", "ΔF1 (points)", "95% CI, scenes and seeds (points)",
                       "verdict", "detectable (points)", "per seed (points)",
                       "replicates with A <= B (%)", "scenes", "objects"]
 
@@ -427,14 +512,15 @@ def comparison_table(rows: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
         out.append({
             "comparison": name,
             "ΔF1 (points)": round(100 * r["delta_f1"], 1),
-            "95% CI over scenes (points)": span(*r["ci"], sep=" to "),
+            "95% CI, scenes and seeds (points)": span(*r["ci"], sep=" to "),
             "verdict": verdict(r["ci"]),
             "detectable (points)": round(100 * r.get("detectable", float("nan")), 1),
             f"per {unit} (points)": ", ".join(points(d, "+.1f") for d in r["per_seed"]),
             "replicates with A <= B (%)": round(100 * r["p_not_better"], 1),
             "scenes": r["n_scenes"], "objects": r["n"],
         })
-    return pd.DataFrame(out, columns=[c.replace("seed", unit) for c in COMPARISON_COLUMNS])
+    return pd.DataFrame(out, columns=[c.replace("per seed", f"per {unit}")
+                                      for c in COMPARISON_COLUMNS])
 
 
 # --- the original code's protocol, for comparison --------------------------------------------

@@ -86,10 +86,10 @@ def built_note(what: str, done: list[str], planned: int, others: str, flag: str)
 
 def difference_words(row: Any) -> str:
     """A paired comparison's row (:func:`flowmod.metrics.comparison_table`) in words: ``+1.2
-    F1 points (95 % interval over scenes -0.5 to 2.9)``, and when it leaves the question
+    F1 points (95 % interval over scenes and training seeds -0.5 to 2.9)``, and when it leaves the question
     open, the smallest difference these scenes would detect."""
-    text = (f"{row['ΔF1 (points)']:+.1f} F1 points (95 % interval over scenes "
-            f"{row['95% CI over scenes (points)']}")
+    text = (f"{row['ΔF1 (points)']:+.1f} F1 points (95 % interval over scenes and training "
+            f"seeds {row['95% CI, scenes and seeds (points)']}")
     if "verdict" in row and row["verdict"] == "undecided":
         text += (f"; undecided: these scenes would detect {row['detectable (points)']:.1f} "
                  "points or more")
