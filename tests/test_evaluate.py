@@ -112,7 +112,8 @@ def test_table4_rows_format_each_ranges_seed_summary(tmp_path):
     assert list(t["vehicles"]) == ["0-50 m (Table 4)"] * 2 + ["beyond 50 m"]
     assert list(t.columns) == ["method", "vehicles", "scored against", "objects", "scenes",
                                "F1 (%)", "seed range (%)", "P (%)", "R (%)",
-                               "F1 95% CI, scenes (%)"]
+                               "seed SD (points)", "balanced accuracy (%)",
+                               "always moving F1 (%)", "F1 95% CI, scenes and seeds (%)"]
     for row, d, col in ((t.iloc[0], df[~far], "label"), (t.iloc[1], df[~far].iloc[3:], "true_label"),
                         (t.iloc[2], df[far], "true_label")):
         s = ev.seed_summary(d[col], evaluate.seed_probs(d), d["scene"])
@@ -121,11 +122,13 @@ def test_table4_rows_format_each_ranges_seed_summary(tmp_path):
             want = round(100 * s[key], 1)
             assert row[name] == want or (np.isnan(want) and np.isnan(row[name])), name
         assert row["seed range (%)"] == ev.span(s["f1_min"], s["f1_max"])
-        assert row["F1 95% CI, scenes (%)"] == ev.span(*s["ci"])
-    assert np.isnan(t.iloc[2]["F1 (%)"]) and t.iloc[2]["F1 95% CI, scenes (%)"] == "-", \
+        assert row["F1 95% CI, scenes and seeds (%)"] == ev.span(*s["ci"])
+        assert row["seed SD (points)"] == ev.points(s["seed_sd"])
+        assert row["always moving F1 (%)"] == ev.points(ev.always_moving_f1(d[col]))
+    assert np.isnan(t.iloc[2]["F1 (%)"]) and t.iloc[2]["F1 95% CI, scenes and seeds (%)"] == "-", \
         "all still: F1 undefined"
     assert all(t[c].dtype.kind == "f" for c in ("F1 (%)", "P (%)", "R (%)")), "one decimal"
-    assert t.iloc[0]["seed range (%)"] != t.iloc[0]["F1 95% CI, scenes (%)"]
+    assert t.iloc[0]["seed range (%)"] != t.iloc[0]["F1 95% CI, scenes and seeds (%)"]
 
 
 def test_defaults_are_the_documented_seed_and_batch_size():

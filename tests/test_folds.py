@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from flowmod import crops, evaluate, metrics
-from flowmod.params import ProfileError, load_profile, validate
+from flowmod.params import load_profile, validate
 from flowmod.select import SelectionError, assign_folds, fold_roles, with_folds
 
 SCENES = [f"s{i:02d}" for i in range(40)]
@@ -108,15 +108,51 @@ def test_a_predictions_table_of_folds_is_scored_by_fold():
                        "ann_token": list("wxyz")})
     s = evaluate.score(df)
     assert s["unit"] == "fold" and s["f1_min"] == 0.0 and s["f1_max"] == 1.0
-    assert evaluate.fold_of(df.assign(prob_s0=0.5)) is None  # seed columns: seeds
+    assert evaluate.fold_of(df.assign(prob_s0=0.5)) is not None  # seeds per fold: still folds
+    assert evaluate.fold_of(df[df["fold"] == 1]) is None  # one fold's rows: one set of models
     r = evaluate.original_protocol(df, [np.array([[0.9, 0.1]]), np.array([[0.9, 0.1]])], 2)
     assert r["models"] == "folds" and r["per_seed_clean"] == [1.0, 0.0]
     assert r["per_seed_original"] == [1.0, 1.0]  # each fold's epochs on its own rows
 
 
-def test_folds_and_seeds_are_one_or_the_other():
-    assert load_profile("demo").folds == 3 and load_profile("demo").seeds == 1
+def test_seeds_per_fold_are_scored_per_seed_and_pooled_over_folds():
+    df = pd.DataFrame({"label": [1, 0, 1, 0], "fold": [0, 0, 1, 1],
+                       "prob_s0": [0.9, 0.1, 0.2, 0.1], "prob_s1": [0.9, 0.9, 0.9, 0.1],
+                       "scene": ["a", "a", "b", "b"], "ann_token": list("wxyz")})
+    df = df.assign(prob=df["prob_s0"])
+    s = evaluate.score(df)
+    f_s0 = metrics.metrics(df["label"], df["prob_s0"])["f1"]
+    f_s1 = metrics.metrics(df["label"], df["prob_s1"])["f1"]
+    assert s["training_seeds"] == 2 and s["unit"] == "fold" and s["seeds"] == 2
+    assert s["f1"] == pytest.approx((f_s0 + f_s1) / 2)
+    assert s["seed_sd"] == pytest.approx(abs(f_s0 - f_s1) / np.sqrt(2))
+    # fold 1: seed 0 F1 0, seed 1 F1 1 -> its range entry is their mean
+    assert s["f1_min"] == pytest.approx(0.5 * (0.0 + 1.0))
+    parts = ["f0s0", "f0s1", "f1s0", "f1s1"]
+    ep = [np.array([[0.9, 0.1]])] * 4
+    r = evaluate.original_protocol(df, ep, 2, parts=parts)
+    assert r["per_seed_clean"] == [1.0, pytest.approx(2 / 3), 0.0, 1.0]
+
+
+def test_the_training_parts_of_seeds_and_folds():
+    from flowmod.train import part_index, part_seed, part_seed_offset, seed_parts
+
+    p = load_profile("demo")
+    assert seed_parts(p.model_copy(update={"seeds": 2, "folds": 2})) == [
+        "f0s0", "f0s1", "f1s0", "f1s1"]
+    assert seed_parts(p.model_copy(update={"seeds": 1, "folds": 3})) == ["f0", "f1", "f2"]
+    assert seed_parts(p.model_copy(update={"seeds": 2, "folds": 1})) == ["s0", "s1"]
+    assert [part_index(x) for x in ("f2s1", "dis/f1", "s3", "residual/f0s2")] == [2, 1, 3, 0]
+    assert [part_seed(x) for x in ("f2s1", "f1", "s3", "residual/f0s2")] == [1, 0, 3, 2]
+    offsets = [part_seed_offset(x) for x in seed_parts(p.model_copy(update={"seeds": 3}))]
+    assert offsets[:4] == [0, 100, 200, 1] and len(set(offsets)) == len(offsets)
+    with pytest.raises(ValueError, match="not a training part"):
+        part_index("keyframe")
+
+
+def test_folds_and_seeds_combine():
+    demo = load_profile("demo")
+    assert demo.folds == 3 and demo.seeds == 3
     assert load_profile("paper", dataroot="/x").folds == 1
-    with pytest.raises(ProfileError, match="folds=3 with seeds=3: cross-validation trains one"):
-        validate({"folds": 3, "seeds": 3})
+    assert validate({"folds": 3, "seeds": 2}).seeds == 2
     assert validate({"folds": 1, "seeds": 3}).seeds == 3

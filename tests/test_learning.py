@@ -67,6 +67,54 @@ def test_load_model_refuses_another_architecture(tmp_path) -> None:
         load_model(tmp_path / "list.pt")
 
 
+def test_input_scalings_of_the_flow_channels() -> None:
+    from flowmod.model import CLIP_PX, scale_input
+
+    rng = np.random.default_rng(1)
+    x = torch.from_numpy(rng.normal(40, 30, (3, 4, 8, 8)).astype(np.float32))
+    before = x.clone()
+    c = scale_input(x, "centred", (0, 1))
+    assert torch.equal(x, before)  # a new tensor
+    assert torch.equal(c[:, 2:], x[:, 2:])  # the other channels as they are
+    med = x[:, :2].flatten(2).median(dim=2).values
+    assert torch.allclose(c[:, :2], x[:, :2] - med[..., None, None])
+    assert scale_input(x, "clipped")[:, :2].abs().max() == CLIP_PX < x[:, :2].abs().max()
+    assert torch.allclose(scale_input(x, "log")[:, 0], torch.sign(x[:, 0]) * torch.log1p(x[:, 0].abs()))
+    assert torch.allclose(scale_input(x, "centred-log")[:, :2],
+                          scale_input(c, "log")[:, :2], atol=1e-6)
+    assert scale_input(x, "raw") is x
+    with pytest.raises(ValueError, match="input mode 'median'"):
+        scale_input(x, "median")
+
+
+def test_a_centred_network_ignores_each_crop_s_common_flow(tmp_path) -> None:
+    """The network scales its own input, and its weights carry how: a loaded model of a
+    centred run answers the same to a crop and to the crop plus any constant flow."""
+    from flowmod.model import input_mode_of
+
+    torch.manual_seed(0)
+    model = motion_resnet18(2, 8, "centred").eval()
+    path = tmp_path / "centred.pt"
+    torch.save(model.state_dict(), path)
+    loaded = load_model(path)
+    assert input_mode_of(loaded) == "centred" and input_mode_of(motion_resnet18(2, 8)) == "raw"
+    x = torch.randn(4, 2, 32, 32)
+    shift = torch.tensor([120.0, -35.0])[None, :, None, None] * torch.arange(1, 5.0)[:, None,
+                                                                                      None, None]
+    with torch.inference_mode():
+        assert torch.allclose(loaded(x), loaded(x + shift), atol=1e-4)
+        assert torch.allclose(loaded(x), model(x))
+        raw = motion_resnet18(2, 8).eval()
+        raw.load_state_dict({k: v for k, v in model.state_dict().items()
+                             if not k.startswith("input_")})
+        assert not torch.allclose(raw(x), raw(x + shift), atol=1e-2)
+    assert not any(k.startswith("input_") for k in motion_resnet18().state_dict())  # paper's
+    bad = dict(model.state_dict(), input_mode=torch.tensor(17))
+    torch.save(bad, tmp_path / "bad.pt")
+    with pytest.raises(CheckpointError, match="known input scalings"):
+        load_model(tmp_path / "bad.pt")
+
+
 # --- training ---------------------------------------------------------------------------------
 
 N, S = 64, 32
@@ -334,8 +382,8 @@ def test_training_batches_are_flipped_with_u_negated(data, tmp_path, monkeypatch
     tx, tdf, vx, vdf = data
     seen: list[torch.Tensor] = []
 
-    def recording_model(in_channels=2, width=64):
-        model = motion_resnet18(in_channels, width)
+    def recording_model(in_channels=2, width=64, *scaling):
+        model = motion_resnet18(in_channels, width, *scaling)
         model.register_forward_pre_hook(
             lambda mod, args: seen.append(args[0].detach().clone()) if mod.training else None)
         return model
@@ -450,3 +498,19 @@ def test_paired_comparison_draws_the_same_scenes_for_both() -> None:
     a = ev.scene_bootstrap(y, good, scenes, n=2000, seed=0)
     b = ev.scene_bootstrap(y, worse, scenes, n=2000, seed=1)  # unpaired draws
     assert np.subtract(*ev.interval(a - b)[::-1]) > 2 * (hi - lo)
+
+
+def test_train_settings_take_every_training_parameter() -> None:
+    """Each training parameter of a profile reaches the trainer (none falls back to a
+    default: the smoke and demo profiles share several values with the defaults)."""
+    from flowmod.params import load_profile
+    from flowmod.train import TrainSettings
+
+    values = dict(epochs=5, batch_size=7, lr=0.02, momentum=0.8, weight_decay=0.003,
+                  step_size=4, gamma=0.77, hflip_p=0.25, num_workers=2, device="cpu",
+                  model_width=16, input_scaling="log")
+    s = TrainSettings.of(load_profile("demo").model_copy(update={**values, "amp": "bf16"}))
+    got = {k: getattr(s, {"model_width": "width", "input_scaling": "input_mode"}.get(k, k))
+           for k in values}
+    assert got == values and s.amp == "bf16"
+    assert TrainSettings.of(load_profile("demo").model_copy(update={"amp": "off"})).amp is None

@@ -119,7 +119,7 @@ def test_extension_parameters_are_checked():
 
 def test_chapter10_nodes_and_their_inputs():
     p = load_profile("smoke", extension_inputs=["residual", "images"],
-                     extension_methods=["dis"], seeds=2, folds=1)
+                     extension_methods=["dis"], extension_seeds=2, folds=1)
     ten = [str(n) for n in pipeline.nodes(p) if pipeline.GRAPH.stage(n).chapter == "10"]
     assert ten == ["context[keyframe]", "context[general]", "xtrain[dis/residual/s0]",
                    "xtrain[dis/residual/s1]", "xtrain[images/s0]", "xtrain[images/s1]",
@@ -259,11 +259,12 @@ def test_chapter10_headline_asks_the_profiles_questions_in_order():
         "comparison": ["gt: residual - gt: flow", "dis: residual - dis: flow",
                        "images - gt: flow"],
         "ΔF1 (points)": [9.0, -1.0, 5.0],
-        "95% CI over scenes (points)": ["2.0 to 15.0", "-3.0 to 1.0", "1.0 to 9.0"]})
+        "95% CI, scenes and seeds (points)": ["2.0 to 15.0", "-3.0 to 1.0", "1.0 to 9.0"]})
     assert ch10.headline(p, paired) == (
         "against the raw dis flow, paired on the test scenes: residual" + ch10.ORACLE_NOTE
-        + " -1.0 F1 points (95 % interval over scenes -3.0 to 1.0); images (no flow; "
-        "against gt flow) +5.0 F1 points (95 % interval over scenes 1.0 to 9.0)")
+        + " -1.0 F1 points (95 % interval over scenes and training seeds -3.0 to 1.0); images "
+        "(no flow; against gt flow) +5.0 F1 points (95 % interval over scenes and training "
+        "seeds 1.0 to 9.0)")
     swapped = ch10.headline(p.model_copy(update={"extension_inputs": ["images", "residual"]}),
                             paired)
     assert swapped.index("images") < swapped.index("residual")

@@ -23,11 +23,13 @@ from flowmod.crops import (
     read_samples,
 )
 from flowmod.metrics import (
+    CI_COLUMN,
     apply_threshold,
     fit_threshold,
     metrics,
     paired_comparison,
     paper_protocol_f1,
+    points,
     seed_summary,
     span,
     thin_still,
@@ -35,7 +37,7 @@ from flowmod.metrics import (
 from flowmod.metrics import breakdown as metrics_breakdown
 from flowmod.model import load_model, predict, resolve_device
 from flowmod.params import Params
-from flowmod.train import EPOCH_PROBS, part_index, seed_parts
+from flowmod.train import EPOCH_PROBS, part_index, part_seed, seed_parts
 
 #: The original code's batch size (Table 2), over which its per-batch F1 was averaged: the
 #: original protocol is replayed with it whatever batch this study's models trained with.
@@ -59,27 +61,39 @@ def models_of(b: dag.Build, stage: str, method: str) -> list[tuple[str, Path, st
 
 def predict_models(models: list[tuple[str, Any, str | None]], x: Any, df: pd.DataFrame,
                    device: Any = "auto", in_channels: int | None = 2, folds: int = 1
-                   ) -> pd.DataFrame:  # pragma: no mutate block
+                   ) -> pd.DataFrame:
     """``df`` (the rows of ``x``: (N, C, S, S)) with the models' probabilities (models:
     part, best.pt, amp); ``in_channels`` as :func:`flowmod.model.load_model` (None: the
     checkpoint's). Each model predicts in the precision it was trained and selected in.
     Seeds (one split): ``prob_<part>`` of every model on every row and ``prob`` = the
-    first's (the single model the figures show). Cross-validation (``folds`` > 1): ``prob``
-    only, each row predicted by the model of its fold (``df.fold``), which never saw it."""
+    first's (the single model the figures show). Cross-validation (``folds`` > 1): each row
+    predicted by the models of its fold (``df.fold``), which never saw it: ``prob`` alone
+    with one model a fold; with several training seeds a fold (parts ``f<k>s<j>``),
+    ``prob_s<j>`` by the seed-j models and ``prob`` = ``prob_s0``."""
     if folds > 1:
-        prob = np.full(len(df), np.nan)
-        fold = df["fold"].to_numpy()
-        for part, path, amp in models:
-            rows = np.flatnonzero(fold == part_index(part))
-            if rows.size:
-                model = load_model(path, resolve_device(device), in_channels)
-                prob[rows] = predict(model, x[rows], device=device, amp=amp)
-        return df.assign(prob=prob)
+        return df.assign(**_fold_probs(models, x, df, device, in_channels))
     probs = {}
     for part, path, amp in models:
         model = load_model(path, resolve_device(device), in_channels)
         probs[f"prob_{part}"] = predict(model, x, device=device, amp=amp)
     return df.assign(**probs, prob=probs[f"prob_{models[0][0]}"])
+
+
+def _fold_probs(models: list[tuple[str, Any, str | None]], x: Any, df: pd.DataFrame,
+                device: Any, in_channels: int | None) -> dict[str, np.ndarray]:
+    """Cross-validation: per training seed j, every row's probability by its fold's seed-j
+    model (``prob`` with one seed a fold, else ``prob_s<j>`` and ``prob``)."""
+    fold = df["fold"].to_numpy()
+    seeds = sorted({part_seed(part) for part, _, _ in models})
+    out = {j: np.full(len(df), np.nan) for j in seeds}
+    for part, path, amp in models:
+        rows = np.flatnonzero(fold == part_index(part))
+        if rows.size:
+            model = load_model(path, resolve_device(device), in_channels)
+            out[part_seed(part)][rows] = predict(model, x[rows], device=device, amp=amp)
+    if len(seeds) == 1:
+        return {"prob": out[seeds[0]]}
+    return {**{f"prob_s{j}": out[j] for j in seeds}, "prob": out[seeds[0]]}
 
 
 def scored_rows(read: SplitReader, folds: int, part: str = "keyframe"
@@ -101,7 +115,8 @@ def scored_crops(folder: Any, folds: int, part: str = "keyframe") -> tuple[Any, 
 
 def seed_columns(df: pd.DataFrame) -> list[str]:
     """The per-seed probability columns of a predictions table."""
-    return sorted(c for c in df.columns if c.startswith("prob_s"))
+    cols = [c for c in df.columns if c.startswith("prob_s") and c[6:].isdigit()]
+    return sorted(cols, key=lambda c: int(c[6:]))
 
 
 def seed_probs(df: pd.DataFrame) -> np.ndarray:
@@ -127,8 +142,11 @@ def paired(a: pd.DataFrame, b: pd.DataFrame, what: str, seed: int = 0) -> dict[s
 
 
 def fold_of(df: pd.DataFrame) -> np.ndarray | None:
-    """The fold of each row of a cross-validated predictions table (None for seeds)."""
-    return df["fold"].to_numpy() if "fold" in df and not seed_columns(df) else None
+    """The fold of each row of a cross-validated predictions table whose rows span several
+    folds (None for one split, or rows of one fold: one set of models scored them)."""
+    if "fold" not in df or df["fold"].nunique() < 2:
+        return None
+    return df["fold"].to_numpy()
 
 
 def score(df: pd.DataFrame, label_col: str = "label", seed: int = 0) -> dict[str, Any]:
@@ -140,22 +158,29 @@ def score(df: pd.DataFrame, label_col: str = "label", seed: int = 0) -> dict[str
 
 
 def original_protocol(df: pd.DataFrame, epoch_probs: list[np.ndarray],
-                      batch_size: int = ORIGINAL_BATCH) -> dict[str, Any]:
+                      batch_size: int = ORIGINAL_BATCH, parts: list[str] | None = None
+                      ) -> dict[str, Any]:
     """What the original code would report for each model: the best over epochs (the epoch
     chosen on the reported set) of F1 averaged per batch (of the original's 128, whatever
     batch the models trained with) on its test rows with still
     objects thinned 1 of 2; beside the clean number (best validation epoch, whole set).
     ``epoch_probs``: per model, (epochs, N) probabilities saved during training, on every
-    row of ``df`` (seeds) or on its fold's rows in order (cross-validation)."""
+    row of ``df`` (seeds) or on its fold's rows in order (cross-validation); ``parts``: the
+    models' training parts (default: the k-th is fold k's, or seed k's)."""
     fold = fold_of(df)
     y_all = df["label"].to_numpy().astype(np.int64)
     if fold is None:  # every seed on every row
         clean = [metrics(y_all, p)["f1"] for p in seed_probs(df)]
         units = [(y_all, ep) for ep in epoch_probs]
     else:  # each fold's model on its own rows
-        clean = [metrics(y_all[fold == k], df["prob"].to_numpy()[fold == k])["f1"]
-                 for k in range(len(epoch_probs))]
-        units = [(y_all[fold == k], ep) for k, ep in enumerate(epoch_probs)]
+        names = parts or [f"f{k}" for k in range(len(epoch_probs))]
+        cols = seed_columns(df)
+        clean, units = [], []
+        for part, ep in zip(names, epoch_probs, strict=True):
+            rows = fold == part_index(part)
+            prob = df[cols[part_seed(part)] if cols else "prob"].to_numpy()
+            clean.append(metrics(y_all[rows], prob[rows])["f1"])
+            units.append((y_all[rows], ep))
     original = []
     for y, ep in units:
         keep = thin_still(y)
@@ -232,7 +257,8 @@ def build_evaluate(b: dag.Build, progress: bool) -> dict[str, Any]:  # pragma: n
     epochs = [np.load(path.parent / EPOCH_PROBS) for _, path, _ in models]
     write_frames(b.dir, {"baseline": base},
                  {"scores": {"split": "test", **score(preds, seed=q.seed)},
-                  "baseline": base_s, "original": original_protocol(preds, epochs)})
+                  "baseline": base_s,
+                  "original": original_protocol(preds, epochs, parts=[p for p, _, _ in models])})
     return {"n": len(preds), "seeds": len(models)}
 
 
@@ -289,7 +315,10 @@ def table4(preds: Mapping[str, pd.DataFrame], max_distance: float) -> pd.DataFra
                              f"{s['unit']} range (%)": span(s["f1_min"], s["f1_max"]),
                              "P (%)": round(100 * s["precision"], 1),
                              "R (%)": round(100 * s["recall"], 1),
-                             "F1 95% CI, scenes (%)": span(*s["ci"])})
+                             "seed SD (points)": points(s["seed_sd"]),
+                             "balanced accuracy (%)": points(s["balanced_accuracy"]),
+                             "always moving F1 (%)": points(s["always_moving_f1"]),
+                             CI_COLUMN: span(*s["ci"])})
     return pd.DataFrame(rows)
 
 
@@ -325,7 +354,7 @@ def breakdown(df: pd.DataFrame, by: str, bins: Any = None) -> pd.DataFrame:
     """:func:`flowmod.metrics.breakdown` of a predictions table: every training seed (F1 the
     mean over seeds), with the scene-level interval and the object count of each group."""
     return metrics_breakdown(df, df["label"], seed_probs(df), by=by, bins=bins,
-                      groups=df["scene"].to_numpy())
+                             groups=df["scene"].to_numpy(), folds=fold_of(df))
 
 
 def failure_shares(tagged: pd.DataFrame) -> pd.DataFrame:  # pragma: no mutate block

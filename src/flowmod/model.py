@@ -13,7 +13,7 @@ channel count from the checkpoint.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,14 +28,56 @@ from flowmod.metrics import sigmoid
 #: Parameters of torchvision's resnet18 (3 input channels, 1000 classes).
 RESNET18_PARAMS = 11_689_512
 
+#: How the flow channels of a crop are scaled before the network sees them (the recipe's
+#: ``crop_input``): ``raw`` px as stored (the paper); ``centred``: each crop's median (per
+#: channel, over its S x S pixels) subtracted, so the window's background, mostly static
+#: world, reads about 0 and the ego motion's flow at that place in the frame cancels;
+#: ``clipped``: values limited to +-:data:`CLIP_PX`; ``log``: sign(x) log(1 + |x|);
+#: ``centred-log``: centred, then log.
+INPUT_MODES = ("raw", "centred", "clipped", "log", "centred-log")
+#: The bound of the ``clipped`` input, px (the far vehicles' flow is a few px to tens).
+CLIP_PX = 50.0
 
-def motion_resnet18(in_channels: int = 2, width: int = 64) -> nn.Module:
+
+def scale_input(x: torch.Tensor, mode: str, channels: Sequence[int] = (0, 1)) -> torch.Tensor:
+    """The input ``mode`` (:data:`INPUT_MODES`) of crops ``x`` (B, C, S, S), px: the flow
+    ``channels`` scaled, the others as they are; a new tensor (``x`` is never changed)."""
+    if mode not in INPUT_MODES:
+        raise ValueError(f"input mode {mode!r}: use one of {', '.join(INPUT_MODES)}")
+    idx = list(channels)
+    if mode == "raw" or not idx:
+        return x
+    out = x.clone()
+    f = out[:, idx].float()
+    if mode in ("centred", "centred-log"):
+        f = f - f.flatten(2).median(dim=2).values[..., None, None]
+    if mode == "clipped":
+        f = f.clamp(-CLIP_PX, CLIP_PX)
+    if mode in ("log", "centred-log"):
+        f = torch.sign(f) * torch.log1p(f.abs())
+    out[:, idx] = f.to(out.dtype)
+    return out
+
+
+def _scale_hook(module: nn.Module, args: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor]:
+    mode = INPUT_MODES[int(module.input_mode)]
+    return (scale_input(args[0], mode, module.input_channels.tolist()),)
+
+
+def motion_resnet18(in_channels: int = 2, width: int = 64, input_mode: str = "raw",
+                    flow_channels: Sequence[int] = (0, 1)) -> nn.Module:
     """ResNet18 for (B, C, S, S) crops -> (B, 1) logits (any S >= 32; C = 2: flow u, v).
 
     ``width``: channels of the first stage (64: the paper's network; its stages have
-    width, 2, 4 and 8 x width channels). Depth, blocks and strides are ResNet18's."""
+    width, 2, 4 and 8 x width channels). Depth, blocks and strides are ResNet18's.
+    ``input_mode`` (:data:`INPUT_MODES`, other than ``raw``): the network scales its
+    ``flow_channels`` itself (:func:`scale_input`, a forward pre-hook), and its state_dict
+    records how (buffers ``input_mode``, ``input_channels``), so every reader of the
+    weights (training, evaluation, ``flowmod.predict``) feeds it stored crops alike."""
     if in_channels < 1 or width < 1:
         raise ValueError(f"in_channels and width must be >= 1, got {in_channels}, {width}")
+    if input_mode not in INPUT_MODES:
+        raise ValueError(f"input mode {input_mode!r}: use one of {', '.join(INPUT_MODES)}")
     from torchvision.models import resnet18  # here: torchvision's import costs ~1 s
 
     m = resnet18(weights=None)
@@ -43,7 +85,20 @@ def motion_resnet18(in_channels: int = 2, width: int = 64) -> nn.Module:
         _narrow(m, width)
     m.conv1 = nn.Conv2d(in_channels, width, kernel_size=7, stride=2, padding=3, bias=False)
     m.fc = nn.Linear(m.fc.in_features, 1)
+    if input_mode != "raw":
+        bad = [c for c in flow_channels if not 0 <= c < in_channels]
+        if bad:
+            raise ValueError(f"flow channels {bad} outside the input's {in_channels}")
+        m.register_buffer("input_mode", torch.tensor(INPUT_MODES.index(input_mode)))
+        m.register_buffer("input_channels", torch.tensor(list(flow_channels), dtype=torch.long))
+        m.register_forward_pre_hook(_scale_hook)
     return m
+
+
+def input_mode_of(model: nn.Module) -> str:
+    """The input scaling a network applies (:data:`INPUT_MODES`; ``raw`` without one)."""
+    code = getattr(model, "input_mode", None)
+    return "raw" if code is None else INPUT_MODES[int(code)]
 
 
 def _narrow(m: nn.Module, width: int) -> None:
@@ -90,6 +145,17 @@ def _state_dict_of(obj: object, path: Path) -> dict[str, torch.Tensor]:
     return obj
 
 
+def _input_scaling(state: dict[str, torch.Tensor], path: Path) -> tuple[str, list[int]]:
+    """(input mode, flow channels) a checkpoint's network was trained with (raw: none)."""
+    code, chans = state.get("input_mode"), state.get("input_channels")
+    if code is None:
+        return "raw", [0, 1]
+    if code.numel() != 1 or not 0 <= int(code) < len(INPUT_MODES) or chans is None:
+        raise CheckpointError(f"{path}: input_mode {code.tolist()} is not one of "
+                              f"{len(INPUT_MODES)} known input scalings; retrain the model")
+    return INPUT_MODES[int(code)], [int(c) for c in chans.reshape(-1).tolist()]
+
+
 def check_state_dict(state: dict[str, torch.Tensor], model: nn.Module, source: str) -> None:
     """Raise :class:`CheckpointError` listing missing/unexpected keys and shape mismatches."""
     problems = state_dict_mismatch(state, model.state_dict())
@@ -123,7 +189,8 @@ def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu",
     shaped = conv1 is not None and conv1.ndim == 4
     if in_channels is None:
         in_channels = int(conv1.shape[1]) if shaped else 2
-    model = motion_resnet18(in_channels, int(conv1.shape[0]) if shaped else 64)
+    model = motion_resnet18(in_channels, int(conv1.shape[0]) if shaped else 64,
+                            *_input_scaling(state, path))
     check_state_dict(state, model, str(path))
     model.load_state_dict(state)
     return model.to(resolve_device(device)).eval()

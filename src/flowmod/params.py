@@ -247,14 +247,26 @@ class Params(BaseModel):
                               description="channels of the ResNet18's first stage (64: the "
                                           "paper's; the demo's 32 trains ~4x faster; stages "
                                           "have 1, 2, 4, 8 x this)")
-    seeds: int = _field(1, ge=1, le=20, role="plan",
-                        description="training runs per flow method on one split (folds 1), "
-                                    "seeds seed .. seed+seeds-1")
+    input_scaling: Literal["raw", "centred", "clipped", "log", "centred-log"] = _field(
+        "log", read_by=_TRAIN,
+        description="how the classifier scales its flow channels (raw: the paper's px; "
+                    "centred: each crop's median subtracted; clipped: to +-50 px; log: "
+                    "sign(x) log(1+|x|); centred-log); chosen on the validation folds")
+    seeds: int = _field(3, ge=1, le=20, role="plan",
+                        description="training runs per flow method and fold (the paper's "
+                                    "single split: seeds seed .. seed+seeds-1; fold k: seed "
+                                    "seed+k+100j for j < seeds); every interval resamples "
+                                    "them with the scenes")
+    extension_seeds: int = _field(
+        1, ge=1, le=20, role="plan",
+        description="training seeds per fold of the chains beyond the paper (chapters 10 "
+                    "and 11); their intervals resample the Table 3 chains' seeds and "
+                    "these")
     folds: int = _field(
         3, ge=1, le=10, read_by=_FOLDS,
-        description="cross-validation over scenes: each fold's model (seed seed+k) trains on "
-                    "the other folds and is scored on its own, so every scene is a test "
-                    "scene; 1 = the paper's single train/val/test split (then `seeds` models)")
+        description="cross-validation over scenes: each fold's models train on the other "
+                    "folds and are scored on its own, so every scene is a test scene; 1 = "
+                    "the paper's single train/val/test split")
     amp: Literal["off", "bf16", "fp16"] = _field(
         "off", read_by=_TRAIN,
         description="mixed precision for training and every prediction of its models")
@@ -348,11 +360,6 @@ class Params(BaseModel):
             )
         if abs(sum(self.split_fractions) - 1.0) > 1e-6:
             raise ValueError(f"split_fractions={self.split_fractions} must sum to 1")
-        if self.folds > 1 and self.seeds > 1:
-            raise ValueError(
-                f"folds={self.folds} with seeds={self.seeds}: cross-validation trains one "
-                "model per fold (seed seed+k); set seeds: 1, or folds: 1 for several seeds "
-                "on the paper's single split")
         if not self.categories:
             raise ValueError("categories is empty: give at least one nuScenes category name")
         if not self.dataroot:

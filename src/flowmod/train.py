@@ -252,6 +252,8 @@ class TrainSettings:
     eval_batch_size: int = 256
     #: channels of the network's first stage (64: the paper's ResNet18)
     width: int = 64
+    #: how the network scales the flow channels (:data:`flowmod.model.INPUT_MODES`)
+    input_mode: str = "raw"
 
     @classmethod
     def of(cls, q: StageParams | Params) -> TrainSettings:
@@ -259,7 +261,8 @@ class TrainSettings:
         return cls(epochs=q.epochs, batch_size=q.batch_size, lr=q.lr, momentum=q.momentum,
                    weight_decay=q.weight_decay, step_size=q.step_size, gamma=q.gamma,
                    hflip_p=q.hflip_p, amp=None if q.amp == "off" else q.amp,
-                   num_workers=q.num_workers, device=q.device, width=q.model_width)
+                   num_workers=q.num_workers, device=q.device, width=q.model_width,
+                   input_mode=q.input_scaling)
 
 
 @dataclass
@@ -278,9 +281,10 @@ class _Run:
 
 
 def _new_run(s: TrainSettings, channels: int, seed: int, dev: torch.device,
-             amp_mode: str | None) -> _Run:
+             amp_mode: str | None, flow_channels: Sequence[int]) -> _Run:
     torch.manual_seed(seed)
-    model = motion_resnet18(channels, s.width).to(dev, memory_format=torch.channels_last)
+    model = motion_resnet18(channels, s.width, s.input_mode, flow_channels)
+    model = model.to(dev, memory_format=torch.channels_last)
     opt = torch.optim.SGD(model.parameters(), lr=s.lr, momentum=s.momentum,
                           weight_decay=s.weight_decay)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=s.step_size, gamma=s.gamma)
@@ -364,7 +368,8 @@ def _train_epoch(run: _Run, ds: CropDataset, s: TrainSettings, seed: int, epoch:
 
 
 def _config(s: TrainSettings, seed: int, amp_mode: str | None, train_x: Any, y_tr: np.ndarray,
-            y_va: np.ndarray, channels: int, flip_negate: Sequence[int]) -> dict[str, Any]:
+            y_va: np.ndarray, channels: int, flip_negate: Sequence[int],
+            flow_channels: Sequence[int] = (0, 1)) -> dict[str, Any]:
     """What a checkpoint must have been made with to be resumed."""
     config = {
         "batch_size": int(s.batch_size), "lr": float(s.lr), "momentum": float(s.momentum),
@@ -378,6 +383,8 @@ def _config(s: TrainSettings, seed: int, amp_mode: str | None, train_x: Any, y_t
         config.update(channels=channels, flip_negate=[int(c) for c in flip_negate])
     if s.width != 64:  # as the paper's network's config
         config.update(width=int(s.width))
+    if s.input_mode != "raw":  # as the paper's input's config
+        config.update(input_mode=s.input_mode, flow_channels=[int(c) for c in flow_channels])
     return config
 
 
@@ -400,14 +407,16 @@ def train_model(
     out_dir: str | os.PathLike[str], settings: TrainSettings | None = None, *,
     seed: int = 0, label_col: str = "label", resume: bool = True, progress: bool = True,
     record: Any | None = None, desc: str = "train", in_channels: int = 2,
-    flip_negate: Sequence[int] = (0,), **overrides: Any,
+    flip_negate: Sequence[int] = (0,), flow_channels: Sequence[int] = (0, 1),
+    **overrides: Any,
 ) -> pd.DataFrame:
     """Train motion_resnet18 on crops; select the epoch with the best validation F1.
 
     train_x, val_x: (N, C, S, S) crops (float16 memmaps from :func:`flowmod.crops.read_crops`
     or any array-like with ``shape`` and ``x[indices]``), pixels; C = ``in_channels``: 2 (u,
     v) for the paper's input, others for chapter 10's inputs, whose horizontal flip negates
-    the channels ``flip_negate`` (the horizontal flow components); train_df, val_df: their
+    the channels ``flip_negate`` (the horizontal flow components) and whose input scaling
+    (``settings.input_mode``) applies to ``flow_channels``; train_df, val_df: their
     indices with ``label_col`` (1 moving, 0 still). ``settings``: Table 2
     (:class:`TrainSettings`; ``overrides`` replace single fields, e.g. ``epochs=2``). With
     ``resume`` and an ``out_dir/last.pt`` of the same settings, training continues after its
@@ -429,9 +438,10 @@ def train_model(
     amp_dtype = {"bf16": torch.bfloat16, "fp16": torch.float16, None: None}[amp_mode]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    config = _config(s, seed, amp_mode, train_x, y_tr, y_va, channels, flip_negate)
+    config = _config(s, seed, amp_mode, train_x, y_tr, y_va, channels, flip_negate,
+                     flow_channels)
     with _deterministic(dev):
-        run = _new_run(s, channels, seed, dev, amp_mode)
+        run = _new_run(s, channels, seed, dev, amp_mode, flow_channels)
         if resume and (out / "last.pt").is_file():
             _resume(run, out / "last.pt", config, dev)
         ds = CropDataset(train_x, y_tr)
@@ -480,18 +490,52 @@ def _end_epoch(run: _Run, epoch: int, train_loss: float, lr_now: float, t0: floa
 
 # --- the stages that train a seed (chapters 06, 10, 11) ---------------------------------------
 
-def seed_parts(p: Params | StageParams) -> list[str]:
-    """The parts of a training stage: one per fold (``f0`` .. ``f<folds-1>``) with
-    cross-validation, else one per training seed (``s0`` .. ``s<seeds-1>``)."""
+def seed_parts(p: Params | StageParams, seeds: int | None = None) -> list[str]:
+    """The parts of a training stage: with cross-validation one per fold (``f0`` ..
+    ``f<folds-1>``) and, with several training seeds, one per fold and seed (``f<k>s<j>``);
+    without, one per training seed (``s0`` .. ``s<seeds-1>``). ``seeds``: the training
+    seeds (default ``p.seeds``, Table 3's; chapters 10 and 11 pass ``extension_seeds``)."""
+    n = p.seeds if seeds is None else int(seeds)
     if p.folds > 1:
-        return [f"f{k}" for k in range(p.folds)]
-    return [f"s{k}" for k in range(p.seeds)]
+        if n == 1:
+            return [f"f{k}" for k in range(p.folds)]
+        return [f"f{k}s{j}" for k in range(p.folds) for j in range(n)]
+    return [f"s{k}" for k in range(n)]
+
+
+def extension_parts(p: Params | StageParams) -> list[str]:
+    """The training parts of the chains beyond the paper (chapters 10 and 11)."""
+    return seed_parts(p, p.extension_seeds)
+
+
+def _part_name(part: str) -> str:
+    name = str(part).rsplit("/", 1)[-1]
+    if not (len(name) > 1 and name[0] in "fs"):
+        raise ValueError(f"{part!r} is not a training part (s<j>, f<k> or f<k>s<j>)")
+    return name
 
 
 def part_index(part: str) -> int:
-    """k of a training part ``.../s<k>`` or ``.../f<k>`` (its seed is ``seed + k``; ``f<k>``
-    is also the fold it is tested on)."""
-    return int(str(part).rsplit("/", 1)[-1][1:])
+    """k of a training part ``.../s<k>``, ``.../f<k>`` or ``.../f<k>s<j>``: with folds the
+    fold it is tested on, else its seed index."""
+    name = _part_name(part)
+    return int(name[1:].split("s", 1)[0])
+
+
+def part_seed(part: str) -> int:
+    """j, the training seed index of a part (``s<j>``, ``f<k>s<j>``; 0 for ``f<k>``)."""
+    name = _part_name(part)
+    if name[0] == "s":
+        return int(name[1:])
+    return int(name[1:].split("s", 1)[1]) if "s" in name[1:] else 0
+
+
+def part_seed_offset(part: str) -> int:
+    """What a part adds to the profile's ``seed`` to seed its training: k for ``s<k>`` and
+    ``f<k>`` (as before seeds per fold existed), ``k + 100 j`` for ``f<k>s<j>`` (folds are
+    at most 10, so no two parts share a seed)."""
+    return part_index(part) + 100 * part_seed(part) if _part_name(part)[0] == "f" \
+        else part_index(part)
 
 
 def seed_index(node: dag.Node) -> int:
@@ -501,22 +545,25 @@ def seed_index(node: dag.Node) -> int:
 
 def train_seed(b: dag.Build, train: tuple[Any, pd.DataFrame], val: tuple[Any, pd.DataFrame],
                progress: bool, what: str, record: Any | None = None, in_channels: int = 2,
-               flip_negate: Sequence[int] = (0,)) -> dict[str, Any]:
+               flip_negate: Sequence[int] = (0,), flow_channels: Sequence[int] = (0, 1)
+               ) -> dict[str, Any]:
     """Train the model of a training node (``b``: ``train``, ``xtrain`` or ``wtrain``) in its
-    building folder, seed ``seed + k``, with the profile's Table 2 settings (resumable); then
+    building folder, seed ``seed +`` :func:`part_seed_offset`, with the profile's Table 2
+    settings (resumable); then
     keep what a published model needs: ``best.pt`` in float16 (no test decision changes, see
     the differences page), no ``last.pt`` (the resumable checkpoint, twice best.pt, is only
     needed while building). Returns the manifest's training fields."""
     q = b.params
-    seed = q.seed + seed_index(b.node)
+    seed = q.seed + part_seed_offset(str(b.node.part))
     work = b.start(fresh=q.force)
     h = train_model(*train, *val, work, TrainSettings.of(q), seed=seed, record=record,
                     resume=True, progress=progress, desc=f"train {what} seed {seed}",
-                    in_channels=in_channels, flip_negate=flip_negate)
+                    in_channels=in_channels, flip_negate=flip_negate,
+                    flow_channels=flow_channels)
     half_weights(work / "best.pt")
     (work / "last.pt").unlink(missing_ok=True)
     return {"best_epoch": int(h.attrs["best_epoch"]), "best_f1": float(h.attrs["best_f1"]),
-            "seed": seed, "amp": q.amp}
+            "seed": seed, "amp": q.amp, "input_scaling": q.input_scaling}
 
 
 def recipe(b: dag.Build, method: str, part: str = "keyframe") -> dict[str, Any]:

@@ -40,10 +40,12 @@ def table2(params: Params) -> pd.DataFrame:
         ("Scheduler", "Gamma", params.gamma),
         ("Training", "Epochs", params.epochs),
         ("Training", "Horizontal flip p", params.hflip_p),
-        ("Training", "Models per flow method", f"{params.folds} (one per fold)"
+        ("Training", "Models per flow method",
+         f"{params.folds * params.seeds} ({params.folds} folds x {params.seeds} seeds)"
          if params.folds > 1 else f"{params.seeds} (seeds)"),
         ("Training", "Mixed precision", params.amp),
         ("Input", "Crop size (px)", params.crop_size),
+        ("Input", "Flow channels scaled", params.input_scaling),
         ("Network", "ResNet18 first-stage channels", params.model_width),
     ], columns=["Function", "Hyperparameter", "Setting"])
 

@@ -15,10 +15,10 @@ from flowmod.dag import Node
 from flowmod.evaluate import fold_of, paired, scored, seed_probs
 from flowmod.extensions.context import read_context
 from flowmod.extensions.inputs import VARIANTS, chains
-from flowmod.metrics import comparison_table, seed_summary, span
+from flowmod.metrics import comparison_table, points, seed_summary, span
 from flowmod.params import Params
 from flowmod.select import SPLITS
-from flowmod.train import seed_parts
+from flowmod.train import extension_parts
 
 
 def built(params: Params) -> list[tuple[str | None, str]]:
@@ -50,7 +50,8 @@ def table(params: Params, rows_of: list[tuple[str | None, str]] | None = None,
           split: str = "test") -> pd.DataFrame:
     """Method x input x F1 on the keyframe test split (``split="test"``) or on the
     generalisation set within Table 4's range (``"general"``): mean over training seeds,
-    their range, the scene-level 95 % interval of the mean, precision and recall.
+    their range and SD, the 95 % interval of the mean over scenes and seeds, precision and
+    recall.
     ``rows_of``: the chains (default :func:`rows`)."""
     out = []
     for m, v in (rows(params) if rows_of is None else rows_of):
@@ -60,7 +61,8 @@ def table(params: Params, rows_of: list[tuple[str | None, str]] | None = None,
         out.append({"flow method": m or "-", "input": v, "channels": VARIANTS[v].channels,
                      "F1 (%)": round(100 * s["f1"], 1),
                      f"{s['unit']}s (%)": span(s["f1_min"], s["f1_max"]),
-                     "95% CI, scenes (%)": span(*s["ci"]),
+                     "seed SD (points)": points(s["seed_sd"]),
+                     "95% CI, scenes and seeds (%)": span(*s["ci"]),
                      "P (%)": round(100 * s["precision"], 1),
                      "R (%)": round(100 * s["recall"], 1)})
     return pd.DataFrame(out)
@@ -155,7 +157,7 @@ def built_note(params: Params, done: list[tuple[str | None, str]]) -> str:
                 "`extension_inputs=[residual]`) and run `make extensions`.")
     todo = [c for c in chains(params) if c not in done]
     return common.built_note("Chains built", [f"{m or 'no flow'}/{v}" for m, v in done],
-                             len(chains(params)), f"{len(todo) * len(seed_parts(params))} models",
+                             len(chains(params)), f"{len(todo) * len(extension_parts(params))} models",
                              "extension_build")
 
 
@@ -194,7 +196,7 @@ def headline(params: Params, paired_test: pd.DataFrame) -> str:
         parts.append(f"{v}{oracle}{on} {common.difference_words(r)}")
     if not parts:
         return ("not built in this run (make extensions trains them: "
-                f"{len(chains(params)) * len(seed_parts(params))} models)" if params.extension_inputs else
+                f"{len(chains(params)) * len(extension_parts(params))} models)" if params.extension_inputs else
                 "not part of this profile (extension_inputs is empty)")
     return f"against the raw {main} flow, paired on the test scenes: " + "; ".join(parts)
 

@@ -14,9 +14,9 @@ from flowmod.crops import part_splits
 from flowmod.dag import Node
 from flowmod.evaluate import breakdown, paired, scored, seed_probs
 from flowmod.evaluate import table4 as evaluate_table4
-from flowmod.metrics import comparison_table, false_alarm_rate, metrics
+from flowmod.metrics import CI_COLUMN, comparison_table, false_alarm_rate, metrics
 from flowmod.params import Params
-from flowmod.train import seed_parts
+from flowmod.train import extension_parts
 
 #: Distance bins of the chapter's breakdowns (m): Table 4's range and beyond it.
 EDGES = (0, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100.01)
@@ -140,7 +140,7 @@ def built_note(params: Params, done: list[str]) -> str:
     todo = [m for m in params.wide_methods if m not in done]
     return common.built_note("Methods trained on all distances", done,
                              len(params.wide_methods),
-                             f"{', '.join(todo)}; {len(todo) * len(seed_parts(params))} models",
+                             f"{', '.join(todo)}; {len(todo) * len(extension_parts(params))} models",
                              "extension_build")
 
 
@@ -155,14 +155,14 @@ def headline(params: Params, table: pd.DataFrame, done: list[str],
     main = next((m for m in done if m != "gt"), done[0] if done else None)
     if main is None:
         return ("not built in this run (make extensions trains them: "
-                f"{len(params.wide_methods) * len(seed_parts(params))} models)")
+                f"{len(params.wide_methods) * len(extension_parts(params))} models)")
     t = table[table["vehicles"].str.endswith("(Table 4)")
               & (table["scored against"] == "paper rule (previous keyframe)")].set_index(
         "method")
     wide, paper = t.loc[label(main, True)], t.loc[label(main, False)]
     return (f"trained on every distance up to {params.general_max_distance:g} m instead of "
             f"30-70 m keyframes only, the {main} classifier reaches Table 4 F1 "
-            f"{wide['F1 (%)']:.1f} % (interval over scenes {wide['F1 95% CI, scenes (%)']} %) "
+            f"{wide['F1 (%)']:.1f} % (interval over scenes and seeds {wide[CI_COLUMN]} %) "
             f"against {paper['F1 (%)']:.1f} %" + (
                 f": {common.difference_words(paired.iloc[done.index(main)])}"
                 if paired is not None and len(paired) == len(done) else ""))

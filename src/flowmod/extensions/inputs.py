@@ -39,7 +39,7 @@ from flowmod.evaluate import predict_splits, scored_rows
 from flowmod.extensions.context import read_context
 from flowmod.params import Params
 from flowmod.select import PARTS
-from flowmod.train import seed_index, seed_parts, train_seed
+from flowmod.train import extension_parts, seed_index, train_seed
 
 
 @dataclass(frozen=True)
@@ -56,6 +56,11 @@ class Variant:
     doc: str
     #: the static-world flow's depth (:data:`flowmod.extensions.context.DEPTHS`)
     depth: str = "boxes"
+
+    @property
+    def flow_channels(self) -> tuple[int, ...]:
+        """The channels that hold flow, px (what the recipe's ``input_scaling`` scales)."""
+        return tuple(range(4 if self.name == "flow+static" else 2)) if self.flow else ()
 
 
 VARIANTS: dict[str, Variant] = {v.name: v for v in (
@@ -201,7 +206,8 @@ def build_xtrain(b: dag.Build, progress: bool) -> dict[str, Any]:
     train, val = (fold_inputs(v, ctx, crops_dir, b.params.folds, seed_index(b.node), role)
                   for role in ("train", "val"))
     info = train_seed(b, train, val, progress, f"{m + ' ' if m else ''}{v}",
-                      in_channels=VARIANTS[v].channels, flip_negate=VARIANTS[v].negate)
+                      in_channels=VARIANTS[v].channels, flip_negate=VARIANTS[v].negate,
+                      flow_channels=VARIANTS[v].flow_channels)
     return {**info, "input": v, "channels": VARIANTS[v].channels}
 
 
@@ -216,7 +222,7 @@ def build_xevaluate(b: dag.Build, progress: bool) -> dict[str, Any]:
         splits[split] = scored_inputs(v, b.input_dir(dag.Node("context", None, part)),
                                       crops_dir, b.params.folds, part)
     predict_splits(b, "xtrain", chain_key(m, v), splits, in_channels=None)
-    return {"seeds": b.params.seeds, "input": v}
+    return {"seeds": b.params.extension_seeds, "input": v}
 
 
 def _xtrain_inputs(node: dag.Node, p: Params) -> tuple[dag.Node, ...]:
@@ -227,7 +233,7 @@ def _xtrain_inputs(node: dag.Node, p: Params) -> tuple[dag.Node, ...]:
 
 def _xevaluate_inputs(node: dag.Node, p: Params) -> tuple[dag.Node, ...]:
     m, v = _chain(node)
-    models = tuple(dag.Node("xtrain", m, f"{v}/{k}") for k in seed_parts(p))
+    models = tuple(dag.Node("xtrain", m, f"{v}/{k}") for k in extension_parts(p))
     flow = tuple(dag.Node("crops", m, part) for part in PARTS) if m else ()
     return (*models, *flow, *(dag.Node("context", None, part) for part in PARTS))
 
@@ -236,7 +242,7 @@ def _xevaluate_inputs(node: dag.Node, p: Params) -> tuple[dag.Node, ...]:
 XTRAIN = dag.Stage(
     "xtrain", 1, "10", "extensions/models/{key}", "a classifier on another input",
     nodes=lambda p: [dag.Node("xtrain", m, f"{v}/{k}") for m, v in chains(p)
-                     for k in seed_parts(p)],
+                     for k in extension_parts(p)],
     inputs=_xtrain_inputs, build=build_xtrain, gate="extension_build")
 #: Chapter 10: a chain's seeds on the test split and the generalisation set.
 XEVALUATE = dag.Stage(

@@ -32,7 +32,7 @@ from flowmod import dag
 from flowmod.crops import fold_crops
 from flowmod.evaluate import predict_splits, scored_crops
 from flowmod.select import PARTS, WIDE, open_nuscenes, select_wide, write_tables
-from flowmod.train import recipe, seed_index, seed_parts, train_seed
+from flowmod.train import extension_parts, recipe, seed_index, train_seed
 
 # --- the stages --------------------------------------------------------------------------------
 
@@ -63,7 +63,7 @@ def build_wgeneralise(b: dag.Build, progress: bool) -> dict[str, Any]:
     splits = {split: scored_crops(b.input_dir(dag.Node("crops", m, part)), b.params.folds, part)
               for split, part in (("general", "general"), ("test", "keyframe"))}
     frames = predict_splits(b, "wtrain", m, splits)
-    return {"seeds": b.params.seeds, "general": len(frames["general"]),
+    return {"seeds": b.params.extension_seeds, "general": len(frames["general"]),
             "test": len(frames["test"])}
 
 
@@ -77,7 +77,7 @@ WIDE_STAGE = dag.Stage(
 WTRAIN = dag.Stage(
     "wtrain", 1, "11", "extensions/wide/models/{method}/{part}",
     "a classifier trained on all distances",
-    nodes=lambda p: [dag.Node("wtrain", m, k) for m in p.wide_methods for k in seed_parts(p)],
+    nodes=lambda p: [dag.Node("wtrain", m, k) for m in p.wide_methods for k in extension_parts(p)],
     inputs=lambda n, p: (dag.Node("crops", n.method, WIDE),), build=build_wtrain,
     gate="extension_build")
 #: Chapter 11: its seeds on the generalisation set and the keyframe test split.
@@ -85,7 +85,7 @@ WGENERALISE = dag.Stage(
     "wgeneralise", 1, "11", "extensions/wide/metrics/{method}",
     "its generalisation and test predictions",
     nodes=lambda p: [dag.Node("wgeneralise", m) for m in p.wide_methods],
-    inputs=lambda n, p: (*(dag.Node("wtrain", n.method, k) for k in seed_parts(p)),
+    inputs=lambda n, p: (*(dag.Node("wtrain", n.method, k) for k in extension_parts(p)),
                          *(dag.Node("crops", n.method, part) for part in PARTS),
                          dag.Node("general")),
     build=build_wgeneralise, gate="extension_build")
