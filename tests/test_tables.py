@@ -107,3 +107,22 @@ def test_velocity_speed_label_on_exact_values():
     assert labels.motion_label(np.array([2.5]), threshold=3.0).tolist() == [0]
     with pytest.raises(ValueError, match=r"timestamps must increase from frame 1 to frame 2"):
         labels.velocity(p1, p2, 5, 5)
+
+
+def test_chapter07_answer_says_decided_only_when_the_interval_excludes_0():
+    from flowmod.chapters import ch07_evaluation as ch07
+
+    table = ev.comparison_table({
+        "gt - dis": {"delta_f1": 0.03, "ci": (0.01, 0.05), "detectable": 0.02,
+                     "per_seed": [0.03], "p_not_better": 0.0, "n_scenes": 9, "n": 90},
+        "dis - farneback": {"delta_f1": -0.01, "ci": (-0.03, 0.01), "detectable": 0.03,
+                            "per_seed": [-0.01], "p_not_better": 0.8, "n_scenes": 9, "n": 90},
+        "gt: classifier - oracle rule": {
+            "delta_f1": -0.04, "ci": (-0.06, -0.02), "detectable": 0.02, "per_seed": [-0.04],
+            "p_not_better": 1.0, "n_scenes": 9, "n": 90}})
+    words = ch07.answer(table).split("; gt: classifier")
+    assert words[0].startswith("gt - dis: +3.0 F1 points (95 % interval over scenes and "
+                               "training seeds 1.0 to 5.0), decided: the first is better")
+    assert "dis - farneback: -1.0 F1 points" in words[0] and "undecided" in words[0]
+    assert words[0].count(", decided: ") == 1
+    assert words[1].endswith("decided: the second is better.")

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from flowmod.chapters.common import headline_method, read_json, results
+from flowmod.chapters.common import difference_words, headline_method, read_json, results
 from flowmod.dag import Node
 from flowmod.evaluate import paired
 from flowmod.metrics import comparison_table
@@ -50,6 +50,19 @@ def comparisons(params: Params) -> pd.DataFrame:
             preds[m], results(params, m, "baseline")[0], f"{m}'s classifier and rule",
             seed=params.seed)
     return comparison_table(rows)
+
+
+def answer(table: pd.DataFrame) -> str:
+    """The paired comparisons (:func:`comparisons`) in words, each with its interval over
+    scenes and training seeds and whether it decides (the interval excludes 0)."""
+    out = []
+    for _, row in table.iterrows():
+        words = difference_words(row)
+        if row["verdict"] != "undecided":
+            words += f", decided: {'the first' if row['verdict'] == 'A better' else 'the second'}"
+            words += " is better"
+        out.append(f"{row['comparison']}: {words}")
+    return "; ".join(out) + "."
 
 
 def protocols(params: Params) -> pd.DataFrame:
