@@ -174,17 +174,18 @@ def test_published_protocol_replays_the_original_batch_not_the_training_one(smok
 
     from flowmod import dag, pipeline
     from flowmod.chapters import common
-    from flowmod.train import EPOCH_PROBS
+    from flowmod.train import EPOCH_PROBS, seed_parts
 
     p = smoke_built
     assert p.batch_size != evaluate.ORIGINAL_BATCH == 128
     folder = pipeline.published(p, dag.Node("evaluate", "dis"))
     got = json.loads((folder / "original.json").read_text())
     preds = common.results(p, "dis", "test")[0]
-    epochs = [np.load(common.model_path(p, "dis", part).parent / EPOCH_PROBS)
-              for part in ("f0", "f1")]
-    want = evaluate.original_protocol(preds, epochs, 128)
+    parts = seed_parts(p)
+    assert parts == ["f0s0", "f0s1", "f1s0", "f1s1"]  # the smoke's two seeds a fold
+    epochs = [np.load(common.model_path(p, "dis", part).parent / EPOCH_PROBS) for part in parts]
+    want = evaluate.original_protocol(preds, epochs, 128, parts=parts)
     assert got["per_seed_original"] == pytest.approx(want["per_seed_original"])
     assert got["original"] == pytest.approx(want["original"])
     assert got["original"] != pytest.approx(
-        evaluate.original_protocol(preds, epochs, p.batch_size)["original"])
+        evaluate.original_protocol(preds, epochs, p.batch_size, parts=parts)["original"])

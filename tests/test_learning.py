@@ -514,3 +514,12 @@ def test_train_settings_take_every_training_parameter() -> None:
            for k in values}
     assert got == values and s.amp == "bf16"
     assert TrainSettings.of(load_profile("demo").model_copy(update={"amp": "off"})).amp is None
+
+
+def test_an_empty_checkpoint_is_one_clear_error(tmp_path) -> None:
+    """A 0-byte best.pt (a copy cut short): torch's EOFError has no message; the error still
+    names the file and what to do."""
+    path = tmp_path / "best.pt"
+    path.write_bytes(b"")
+    with pytest.raises(CheckpointError, match=r"best.pt: not a readable checkpoint .*retrain"):
+        load_model(path)

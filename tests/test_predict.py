@@ -89,7 +89,7 @@ def test_cli_errors_name_the_problem(case, call_main):
     broken.write_bytes(b"not an image")
     proc = cli(broken, case["f2"], "--boxes", case["boxes"], "--model", case["model"])
     assert proc.returncode == 2 and "broken.jpg" in proc.stderr
-    gt_model = pipeline.node_dir(case["params"], dag.Node("train", "gt", "f0")) / "best.pt"
+    gt_model = pipeline.node_dir(case["params"], dag.Node("train", "gt", "f0s0")) / "best.pt"
     proc = cli(case["f1"], case["f2"], "--boxes", case["boxes"], "--model", gt_model)
     assert proc.returncode == 2 and "exact flow (gt)" in proc.stderr
 

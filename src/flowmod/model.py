@@ -182,7 +182,8 @@ def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu",
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - torch raises many kinds for a damaged file
         raise CheckpointError(
-            f"{path}: not a readable checkpoint ({type(e).__name__}: {str(e).splitlines()[0]}); "
+            f"{path}: not a readable checkpoint ({type(e).__name__}: "
+            f"{(str(e).splitlines() or ['empty file'])[0]}); "
             "the file may be cut short or not a model: copy it again or retrain") from None
     state = _state_dict_of(obj, path)
     conv1 = state.get("conv1.weight")

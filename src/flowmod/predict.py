@@ -1,7 +1,7 @@
 """Apply a trained classifier to your own frames.
 
     python -m flowmod.predict FRAME1 FRAME2 --boxes BOXES.csv \\
-        --model runs/demo/models/dis/s0/best.pt [--out annotated.png] [--device auto]
+        --model runs/demo/models/dis/f0s0/best.pt [--out annotated.png] [--device auto]
 
 The flow method and its options, how flow was stored, and the crop geometry are taken from
 the model's recorded recipe (the ``manifest.json`` beside ``best.pt``), so the frames are
@@ -51,7 +51,8 @@ def read_recipe(model: Path) -> dict[str, Any]:
     man = model.parent / "manifest.json"
     if not man.is_file():
         raise PredictError(f"{man} not found: --model must be a best.pt published by the "
-                           "training stage (runs/<profile>/models/<method>/s<k>/best.pt)")
+                           "training stage (runs/<profile>/models/<method>/<part>/best.pt, part f<k>s<j>, f<k> "
+                           "or s<k>)")
     rec = json.loads(man.read_text())
     if rec.get("recipe"):
         return rec["recipe"]
