@@ -275,3 +275,34 @@ def test_generalisation_boxes_and_labels_against_the_devkit(smoke_nusc, selectio
     boxes = selection.boxes
     assert set(boxes["pair_id"]) == set(gen["pair_id"])
     assert len(boxes) > len(gen), "every annotated object of the frame, not only the targets"
+
+
+def test_object_rows_label_by_equation_1_at_the_threshold_itself():
+    """The selection labels through labels.motion_label: exactly 2.0 m/s is moving (>=), and
+    a box without a devkit velocity has box label -1 (unknown)."""
+    import numpy as np
+
+    from flowmod import select
+    from flowmod.params import load_profile
+
+    class Devkit:
+        def __init__(self, box_v):
+            self.box_v = box_v
+
+        def box_velocity(self, token):
+            return self.box_v
+
+        def get(self, table, token):
+            return {"name": "vehicle.moving"}
+
+    p = load_profile("smoke")
+    sc = select.pd.Series({"scene": "s0", "split": "f0"})
+    c = select.Candidate("a", "vehicle.car", 40.0, (0, 0, 10, 10), (0, 0, 40))
+    ann = {"token": "a", "visibility_token": "4", "attribute_tokens": ["m"]}
+    for v, want in (((p.speed_threshold, 0, 0), 1), ((np.nextafter(p.speed_threshold, 0), 0, 0), 0)):
+        row = select._object_row(Devkit(np.array(v)), "p", sc, "keyframe", "i", c, ann,
+                                 np.array(v), p)
+        assert (row["label"], row["box_label"]) == (want, want), v
+    row = select._object_row(Devkit(np.full(3, np.nan)), "p", sc, "keyframe", "i", c, ann,
+                             np.array([3.0, 0, 0]), p)
+    assert (row["label"], row["box_label"]) == (1, -1)

@@ -43,9 +43,7 @@ def speed(v: np.ndarray) -> np.ndarray:
 def motion_label(speeds: np.ndarray, threshold: float = 2.0) -> np.ndarray:
     """1 (moving) where ``speed >= threshold`` (m/s), else 0 (still); NaN speeds -> -1."""
     s = np.asarray(speeds, dtype=np.float64)
-    out = (s >= threshold).astype(np.int8)
-    out[np.isnan(s)] = -1
-    return out
+    return np.where(np.isnan(s), -1, s >= threshold).astype(np.int8)
 
 
 def attribute_motion(attribute: str) -> str:

@@ -467,9 +467,9 @@ def _object_row(nusc, pair_id, sc, kind, inst, c: Candidate, ann: dict, v, p: Pa
         "size_w": c.size[0], "size_l": c.size[1], "size_h": c.size[2],
         "qw": c.rotation[0], "qx": c.rotation[1], "qy": c.rotation[2], "qz": c.rotation[3],
         "vx": float(v[0]), "vy": float(v[1]), "vz": float(v[2]), "speed": spd,
-        "label": int(spd >= p.speed_threshold),
+        "label": int(labels.motion_label(spd, p.speed_threshold)),
         "attribute": _attribute(nusc, ann), "box_speed": box_speed,
-        "box_label": int(box_speed >= p.speed_threshold) if np.isfinite(box_speed) else -1,
+        "box_label": int(labels.motion_label(box_speed, p.speed_threshold)),
     }
 
 
