@@ -89,6 +89,19 @@ def test_classical_recover_known_flow(method, opts, tol_shift, tol_affine):
         assert fl.epe(flow, gt, mask=inner(gt.shape)) < tol
 
 
+@pytest.mark.parametrize("method", ["dis", "farneback"])
+def test_classical_flow_reads_frames_as_bgr(method):
+    """Frames are BGR (as cv2.imread gives them): gray weighs R (channel 2) 0.299 and B
+    (channel 0) 0.114. A texture moving right in R and another moving left in B: the flow
+    follows R. Read as RGB, B would weigh 0.299 and the flow would point left."""
+    a1, a2, _ = affine_pair(120, 160, np.eye(2), (3.0, 0.0), seed=2)
+    b1, b2, _ = affine_pair(120, 160, np.eye(2), (-3.0, 0.0), seed=3)
+    img1 = np.dstack([b1[..., 0], np.full(b1.shape[:2], 128, np.uint8), a1[..., 0]])
+    img2 = np.dstack([b2[..., 0], np.full(b2.shape[:2], 128, np.uint8), a2[..., 0]])
+    u = fl.get_estimator(method).estimate(img1, img2)[..., 0][inner((120, 160))]
+    assert np.median(u) > 1.0, np.median(u)
+
+
 def test_scale_option_returns_full_size_flow_in_full_size_pixels():
     img1, img2, gt = SHIFT
     flow = fl.get_estimator("dis", preset="medium", scale=0.5).estimate(img1, img2)
