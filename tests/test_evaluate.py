@@ -189,3 +189,77 @@ def test_published_protocol_replays_the_original_batch_not_the_training_one(smok
     assert got["original"] == pytest.approx(want["original"])
     assert got["original"] != pytest.approx(
         evaluate.original_protocol(preds, epochs, p.batch_size, parts=parts)["original"])
+
+
+# --- which model scores which rows, and what each model and rule is fitted on ----------------
+
+
+def test_each_fold_s_rows_are_scored_by_its_own_seed_models(monkeypatch):
+    """Cross-validation: a row of fold k gets the probability of model f<k>s<j> in column
+    prob_s<j>, never another fold's (which trained on it). Stub models: a model's
+    'probability' is its part's code."""
+    code = {"f0s0": 0.01, "f0s1": 0.02, "f1s0": 0.11, "f1s1": 0.12, "f2s0": 0.21, "f2s1": 0.22}
+    monkeypatch.setattr(evaluate, "load_model", lambda path, dev, ch: path)
+    monkeypatch.setattr(evaluate, "predict",
+                        lambda model, x, **kw: np.full(len(x), code[model]))
+    df = pd.DataFrame({"fold": [2, 0, 1, 0, 2], "label": [1, 0, 1, 0, 1]})
+    models = [(part, part, None) for part in sorted(code)]
+    out = evaluate.predict_models(models, np.zeros((5, 2, 4, 4)), df, "cpu", folds=3)
+    assert out["prob_s0"].tolist() == [0.21, 0.01, 0.11, 0.01, 0.21]
+    assert out["prob_s1"].tolist() == [0.22, 0.02, 0.12, 0.02, 0.22]
+    assert out["prob"].tolist() == out["prob_s0"].tolist()
+    one = evaluate.predict_models([(p, p, None) for p in ("f0s0", "f1s0", "f2s0")],
+                                  np.zeros((5, 2, 4, 4)), df, "cpu", folds=3)
+    assert "prob_s0" not in one and one["prob"].tolist() == [0.21, 0.01, 0.11, 0.01, 0.21]
+
+
+def test_the_geometric_rule_is_fitted_on_each_fold_s_training_rows(monkeypatch):
+    """The rule's threshold comes from fold k's training rows (never its test rows): here
+    the training rows put the best threshold near 1 m/s, the test rows near 5."""
+    from flowmod import geometry
+
+    rows = []
+    for k in range(2):
+        for role, fast, slow in (("train", 1.5, 0.5), ("test", 6.0, 4.0)):
+            for i in range(4):
+                rows.append({"fold": k, "role": role, "label": i % 2, "scene": f"s{k}{i}",
+                             "residual_speed": fast if i % 2 else slow})
+    objects = pd.DataFrame(rows)
+
+    def gather(read, folds, k, role, part="keyframe"):
+        want = "test" if role == "test" else "train"
+        sub = objects[(objects["fold"] == k) & (objects["role"] == want)]
+        return [np.zeros(len(sub))], sub.drop(columns="residual_speed")
+
+    monkeypatch.setattr(evaluate, "gather_fold", gather)
+    monkeypatch.setattr(geometry, "residual_scores", lambda sub, pairs, smp: pd.DataFrame(
+        {"residual_speed": objects.loc[
+            (objects["fold"] == sub["fold"].iloc[0])
+            & (objects["role"] == sub["role"].iloc[0]), "residual_speed"].to_numpy()}))
+    test, s = evaluate.geometric_baseline(pd.DataFrame(), None, folds=2)
+    assert s["thresholds_m_s"] == [pytest.approx(1.0)] * 2
+    assert test["prob"].tolist() == [1.0] * 8  # 4.0 and 6.0 m/s both above 1.0
+
+
+def test_the_training_stage_chooses_on_validation_rows_and_only_records_test(monkeypatch):
+    """train.build hands the trainer fold k's training rows to fit, its validation rows to
+    choose the epoch on, and its test rows only to record (never scored in training)."""
+    from types import SimpleNamespace
+
+    from flowmod import dag, train
+
+    seen = {}
+    monkeypatch.setattr(train, "fold_crops",
+                        lambda folder, folds, k, role: (f"{role} x of fold {k}", role))
+    monkeypatch.setattr(train, "recipe", lambda b, m: {})
+
+    def fake_train_seed(b, tr, va, progress, what, record=None, **kw):
+        seen.update(train=tr, val=va, record=record)
+        return {}
+
+    monkeypatch.setattr(train, "train_seed", fake_train_seed)
+    b = SimpleNamespace(node=dag.Node("train", "dis", "f1s2"), params=SimpleNamespace(folds=3),
+                        input_dir=lambda node: node)
+    train.build(b, progress=False)
+    assert seen == {"train": ("train x of fold 1", "train"), "val": ("val x of fold 1", "val"),
+                    "record": "test x of fold 1"}
