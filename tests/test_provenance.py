@@ -524,3 +524,25 @@ def test_gc_knows_the_other_generated_worlds(finished, tmp_path, capsys):
     assert runner.main([*args, "--worlds"]) == 0
     own = finished.model_copy(update={"dataroot": str(data)}).dataroot_path
     assert not other.exists() and (own / "v1.0-synth" / "scene.json").is_file()
+
+
+def test_published_files_are_readable_as_the_umask_allows(tmp_path):
+    """Issue 41: mkstemp's 0600 survived the rename, so other users of a shared run folder
+    or dataroot could not read any artefact."""
+    import os
+
+    import numpy as np
+
+    from flowmod.artefacts import atomic_path, write_json
+
+    old = os.umask(0o022)
+    try:
+        write_json(tmp_path / "a.json", {"x": 1})
+        with atomic_path(tmp_path / "b.npy") as tmp:
+            np.save(tmp, np.zeros(3))
+        assert {oct(p.stat().st_mode & 0o777) for p in tmp_path.iterdir()} == {"0o644"}
+        os.umask(0o077)
+        write_json(tmp_path / "c.json", {"x": 1})
+        assert (tmp_path / "c.json").stat().st_mode & 0o777 == 0o600
+    finally:
+        os.umask(old)
