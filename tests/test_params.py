@@ -168,3 +168,50 @@ def test_a_second_run_on_one_folder_stops_with_one_line_and_a_killed_holder_free
     t0 = time.monotonic()
     with folder_lock(run_dir, "after the kill"):
         assert time.monotonic() - t0 < 1.0
+
+
+def test_a_bad_override_is_blamed_on_set_not_on_the_profile(tmp_path):
+    """Issue 41: ``--set epochs=-1`` was reported as an error of params/smoke.yaml."""
+    from flowmod.params import ProfileError, load_profile
+
+    with pytest.raises(ProfileError) as e:
+        load_profile("smoke", epochs=-1)
+    assert str(e.value).startswith("--set epochs=-1: ") and "smoke.yaml" not in str(e.value)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("profile: bad\nepochs: -1\n")
+    with pytest.raises(ProfileError) as e:
+        load_profile(bad, lr=-1.0)
+    msg = str(e.value)
+    assert msg.startswith("--set lr=-1.0: ") and f"{bad}: epochs=-1: " in msg
+
+
+def test_runner_faults_are_one_line(tmp_path, monkeypatch, capsys):
+    """Issue 41: a run folder that is a file, Ctrl-C and a full disk each end in one line
+    naming the thing (no traceback); a dry --gc of a missing run folder creates nothing."""
+    import errno
+
+    from flowmod import runner
+
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    assert runner.main(["--profile", "smoke", "--set", f"run_dir={afile}", "--only", "00",
+                        "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(afile) in err[0] and "a file stands where a folder" in err[0]
+    nothere = tmp_path / "nothere"
+    assert runner.main(["--profile", "smoke", "--set", f"run_dir={nothere}", "--gc",
+                        "--dry-run"]) == 0
+    assert not nothere.exists() and "nothing to free" in capsys.readouterr().out
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(runner, "run", interrupted)
+    assert runner.main(["--profile", "smoke"]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "interrupted" in err[0] and "resumes" in err[0]
+    full = OSError(errno.ENOSPC, "No space left on device", "/runs/demo/crops/x.npy")
+    assert runner.os_error_line(full).startswith("no space left on the device of "
+                                                 "/runs/demo/crops/x.npy")
+    ro = OSError(errno.EROFS, "Read-only file system", "/mnt/ro/runs")
+    assert "cannot write /mnt/ro/runs" in runner.os_error_line(ro)

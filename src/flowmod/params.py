@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from functools import lru_cache
 from pathlib import Path
 from typing import Any, Literal
@@ -481,30 +481,38 @@ def _read_generation(path: str, mtime_ns: int, size: int) -> dict[str, Any] | No
     return {"generator_version": rec.get("version"), **old} if isinstance(old, dict) else None
 
 
-def _format_error(err: ValidationError, source: str) -> str:
-    lines = []
+def _format_error(err: ValidationError, source: str, overridden: Iterable[str] = ()) -> str:
+    """One line naming every bad key; a key given with ``--set`` (``overridden``) is blamed
+    on that option, not on the profile file (``source``)."""
+    by_set, by_file = [], []
     for e in err.errors():
         key = ".".join(str(x) for x in e["loc"]) or "(profile)"
         msg = e["msg"].removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
             allowed = ", ".join(sorted(Params.model_fields))
-            lines.append(f"unknown key {key!r}; allowed keys: {allowed}")
+            line = f"unknown key {key!r}; allowed keys: {allowed}"
         elif e["loc"]:
-            lines.append(f"{key}={e.get('input')!r}: {msg}")
+            line = f"{key}={e.get('input')!r}: {msg}"
         else:
-            lines.append(msg)
-    return f"{source}: " + "; ".join(lines)
+            line = msg
+        (by_set if e["loc"] and str(e["loc"][0]) in set(overridden) else by_file).append(line)
+    parts = [f"--set {line}" for line in by_set]
+    if by_file:
+        parts.append(f"{source}: " + "; ".join(by_file))
+    return "; ".join(parts)
 
 
-def validate(values: dict[str, Any], source: str = "parameters") -> Params:
+def validate(values: dict[str, Any], source: str = "parameters",
+             overridden: Iterable[str] = ()) -> Params:
     """Validate a (possibly partial) mapping of parameters; missing keys take defaults.
 
-    Raises :class:`ProfileError` naming every bad key and what is allowed.
+    Raises :class:`ProfileError` naming every bad key and what is allowed, and whether it
+    came from the profile (``source``) or from an override (``overridden``: their keys).
     """
     try:
         return Params.model_validate(values)
     except ValidationError as err:
-        raise ProfileError(_format_error(err, source)) from None
+        raise ProfileError(_format_error(err, source, overridden)) from None
 
 
 def profile_path(name_or_path: str | Path) -> Path:
@@ -537,7 +545,7 @@ def load_profile(name_or_path: str | Path, **overrides: Any) -> Params:
     """Read and validate a profile, with optional overrides (e.g. ``epochs=2``)."""
     data = read_profile(name_or_path)
     data.update(overrides)
-    return validate(data, source=str(profile_path(name_or_path)))
+    return validate(data, source=str(profile_path(name_or_path)), overridden=overrides)
 
 
 def from_notebook(namespace: dict[str, Any]) -> Params:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import hashlib
 import json
 import os
@@ -384,6 +385,9 @@ def _parser() -> argparse.ArgumentParser:
 
 def _gc(args: argparse.Namespace) -> None:
     p = resolve_profile(args.profile, parse_overrides(args.overrides))
+    if not p.run_path.exists():  # nothing to free, and a dry run creates nothing
+        print(f"{p.run_path}: no run folder; nothing to free")
+        return
     with folder_lock(p.run_path, "runner --gc", wait=args.wait):
         n, size = pipeline.collect_garbage(p, dry_run=args.dry_run, variants=args.variants,
                                            worlds=args.worlds)
@@ -412,7 +416,29 @@ def main(argv: list[str] | None = None) -> int:
     except NotebookFailed as e:
         print(f"NotebookFailed: {e}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        print("interrupted: finished artefacts are kept; the same command resumes",
+              file=sys.stderr)
+        return 130
+    except OSError as e:
+        print(os_error_line(e), file=sys.stderr)
+        return 2
     return 0
+
+
+def os_error_line(e: OSError) -> str:
+    """One line for an unusable folder or file: what, where, and what to do."""
+    where = e.filename or "a file of the run"
+    if e.errno == errno.ENOSPC:
+        return (f"no space left on the device of {where}: free some (make gc, or remove old "
+                "runs) or point run_dir / --out elsewhere, then rerun: finished work is kept")
+    if e.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+        return (f"cannot write {where} ({e.strerror}): give a writable run_dir (--set "
+                "run_dir=...) or --out")
+    if e.errno in (errno.ENOTDIR, errno.EEXIST):
+        return (f"{where}: a file stands where a folder is needed ({e.strerror}); remove it "
+                "or choose another run_dir / --out")
+    return f"{where}: {e.strerror or e}"
 
 
 if __name__ == "__main__":
