@@ -14,7 +14,10 @@ selection for every scaling; the comparison between scalings is paired on (fold,
 
 Writes ``benchmarks/results/ablation-<date>.json`` and prints a table: per method and
 scaling, the mean validation F1 over folds and seeds, its SD, and the mean paired difference
-against ``raw`` with its SD over (fold, seed). Reported, never asserted.
+against ``raw`` with its SD over (fold, seed). With ``--record`` it also writes
+``benchmarks/ablation.json``, the dated record chapter 06 shows (rows, the rule and its
+choice: the scaling with the highest mean validation F1 over every method's folds and
+seeds). Reported, never asserted.
 """
 
 from __future__ import annotations
@@ -36,6 +39,10 @@ from flowmod.model import INPUT_MODES
 from flowmod.params import load_profile
 from flowmod.paths import repo_root
 from flowmod.train import TrainSettings, train_model
+
+#: The rule that picks the recipe, fixed before any run (and quoted by chapter 06).
+RULE = ("the input scaling with the highest mean validation F1 over every method's folds and "
+        "seeds")
 
 
 def _overrides(pairs: list[str]) -> dict:
@@ -95,6 +102,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="TrainSettings fields to replace (epochs=12, width=64)")
+    ap.add_argument("--record", action="store_true",
+                    help="also write benchmarks/ablation.json, the record chapter 06 shows")
     args = ap.parse_args(argv)
     modes = ["raw", *[m for m in args.modes if m != "raw"]]
     t0 = time.perf_counter()
@@ -106,7 +115,27 @@ def main(argv: list[str] | None = None) -> int:
     write_json(path, {"date": date, "settings": args.set, "seconds": time.perf_counter() - t0,
                       "rows": df.to_dict("records"), "summary": table.to_dict("records")})
     print(f"written: {path}")
+    if args.record:
+        write_record(df, args.set, time.perf_counter() - t0)
     return 0
+
+
+def choose(df: pd.DataFrame) -> str:
+    """:data:`RULE` applied to the rows."""
+    return str(df.groupby("mode", sort=False)["val_f1"].mean().idxmax())
+
+
+def write_record(df: pd.DataFrame, settings: list[str], seconds: float) -> None:
+    """``benchmarks/ablation.json``: what chapter 06 shows of this run."""
+    import subprocess
+
+    root = repo_root()
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root,
+                            capture_output=True, text=True).stdout.strip()
+    write_json(root / "benchmarks" / "ablation.json", {
+        "date": time.strftime("%Y-%m-%d"), "commit": commit, "settings": settings,
+        "seconds": round(seconds), "rule": RULE, "choice": choose(df),
+        "rows": df.drop(columns="seconds").to_dict("records")})
 
 
 if __name__ == "__main__":

@@ -126,3 +126,20 @@ def test_chapter07_answer_says_decided_only_when_the_interval_excludes_0():
     assert "dis - farneback: -1.0 F1 points" in words[0] and "undecided" in words[0]
     assert words[0].count(", decided: ") == 1
     assert words[1].endswith("decided: the second is better.")
+
+
+def test_chapter06_shows_the_validation_choice_of_the_input():
+    """The committed record's choice is the rule applied to its rows, the table's last row
+    is the mean the rule compares, and a profile trained otherwise is named as such."""
+    from flowmod.chapters import ch06_training as ch06
+    from flowmod.params import load_profile
+
+    rec = ch06.ablation_record()
+    t = ch06.ablation_table(rec)
+    last = t.iloc[-1].drop(["method", "fold"]).astype(float)
+    assert last.idxmax() == rec["choice"] == load_profile("demo").input_scaling
+    rows = pd.DataFrame(rec["rows"])
+    assert last["raw"] == round(100 * rows.loc[rows["mode"] == "raw", "val_f1"].mean(), 1)
+    assert "no test row read" in ch06.ablation_words(rec, load_profile("demo"))
+    other = ch06.ablation_words(rec, load_profile("paper", dataroot="/x"))
+    assert "trains with **raw** instead" in other

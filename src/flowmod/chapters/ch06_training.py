@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import json
+from typing import Any
+
 import numpy as np
 import pandas as pd
 
 from flowmod import pipeline
 from flowmod.dag import Node
 from flowmod.params import Params
+from flowmod.paths import repo_root
 from flowmod.train import seed_parts
 
 
@@ -67,3 +71,47 @@ def summary(histories: dict[str, list[pd.DataFrame]]) -> pd.DataFrame:
                          "last train loss": round(float(h["train_loss"].iloc[-1]), 4),
                          "training (s)": round(float(h["seconds"].sum()), 1)})
     return pd.DataFrame(rows)
+
+
+# --- the input scaling, chosen on validation (benchmarks/ablation.md) ------------------------
+
+#: The dated record of the choice (written by ``benchmarks/bench_ablation.py --record``).
+ABLATION_RECORD = "benchmarks/ablation.json"
+
+
+def ablation_record() -> dict[str, Any]:
+    """The committed record of the validation-only choice of the input scaling: date,
+    commit, the rule, its choice and one row per (method, mode, fold, seed)."""
+    return json.loads((repo_root() / ABLATION_RECORD).read_text())
+
+
+def ablation_table(record: dict[str, Any]) -> pd.DataFrame:
+    """Validation F1 (%) of the chosen epoch, per method and fold (rows) and input scaling
+    (columns), then each method's mean and the mean over methods; the rule's choice is the
+    column with the highest last row."""
+    df = pd.DataFrame(record["rows"]).assign(val=lambda d: 100 * d["val_f1"])
+    modes = list(dict.fromkeys(df["mode"]))
+    folds = df.pivot_table(index=["method", "fold"], columns="mode", values="val",
+                           sort=False)[modes]
+    means = df.groupby(["method", "mode"], sort=False)["val"].mean().unstack()[modes]
+    means.index = pd.MultiIndex.from_tuples([(m, "mean") for m in means.index])
+    overall = df.groupby("mode", sort=False)["val"].mean()[modes].to_frame("all").T
+    overall.index = pd.MultiIndex.from_tuples([("every method", "mean")])
+    out = pd.concat([folds.rename(index=str, level=1), means, overall]).round(1)
+    return out.rename_axis(index=["method", "fold"]).reset_index()
+
+
+def ablation_words(record: dict[str, Any], params: Params) -> str:
+    """What the record decided and whether this run follows it."""
+    df = pd.DataFrame(record["rows"])
+    by = df.groupby("mode", sort=False)["val_f1"].mean()
+    best, raw = by.idxmax(), by.get("raw", float("nan"))
+    text = (f"The rule ({record['rule']}) chose **{record['choice']}**: mean validation F1 "
+            f"{100 * by[best]:.1f} % against {100 * raw:.1f} % for the raw flow, over "
+            f"{df['fold'].nunique()} folds x {df['seed'].nunique()} seed(s) of "
+            f"{', '.join(dict.fromkeys(df['method']))} (run of {record['date']}, commit "
+            f"{record['commit']}; no test row read).")
+    if params.input_scaling != record["choice"]:
+        text += (f" This run's profile trains with **{params.input_scaling}** instead "
+                 "(its own choice, not this record's).")
+    return text
