@@ -263,3 +263,35 @@ def test_the_training_stage_chooses_on_validation_rows_and_only_records_test(mon
     train.build(b, progress=False)
     assert seen == {"train": ("train x of fold 1", "train"), "val": ("val x of fold 1", "val"),
                     "record": "test x of fold 1"}
+
+
+def test_box_masks_cover_the_box_inside_its_window():
+    from flowmod.chapters import ch07_evaluation as ch07
+
+    df = pd.DataFrame({"xmin": [100.0, 0.0], "ymin": [100.0, 0.0], "xmax": [130.0, 60.0],
+                       "ymax": [130.0, 20.0]})
+    m = ch07.box_masks(df, 30, 3.0)
+    rows, cols = np.flatnonzero(m[0].any(1)), np.flatnonzero(m[0].any(0))
+    assert (rows.min(), rows.max(), cols.min(), cols.max()) == (9, 19, 9, 19)  # central third
+    rows, cols = np.flatnonzero(m[1].any(1)), np.flatnonzero(m[1].any(0))
+    # a 60 x 20 box, window 180 px from (-59, -79): columns 59-120 and rows 79-100 of it
+    assert (cols.min(), cols.max()) == (9, 19) and (rows.min(), rows.max()) == (13, 16)
+    assert m[1].sum() == 11 * 4
+
+
+def test_crop_errors_compare_each_object_s_crops(smoke_built):
+    """Against itself the exact flow has no error; DIS's errors are positive, inside and
+    around the box, on Table 3's rows in its order."""
+    from flowmod.chapters import ch07_evaluation as ch07
+    from flowmod.chapters.common import results
+
+    p = smoke_built
+    same = ch07.crop_errors(p, "gt")
+    assert (same[["epe_box", "epe_around"]].to_numpy() == 0).all()
+    dis = ch07.crop_errors(p, "dis")
+    assert dis["ann_token"].tolist() == results(p, "dis", "test")[0]["ann_token"].tolist()
+    assert (dis["epe_around"] > 0).mean() > 0.9 and (dis["epe_box"] >= 0).all()
+    t = ch07.error_explanation(p, "dis", "gt")
+    assert t.loc[0, "gt"] == 0.0 and t.loc[0, "dis"] == round(dis["epe_box"].median(), 2)
+    share = (dis["epe_box"] > 0) + 0.5 * (dis["epe_box"] == 0)
+    assert t.loc[0, "objects where dis errs more (%)"] == round(100 * share.mean(), 1)

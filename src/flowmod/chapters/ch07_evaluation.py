@@ -8,10 +8,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from flowmod import pipeline
 from flowmod.chapters.common import difference_words, headline_method, read_json, results
+from flowmod.crops import crop_windows
 from flowmod.dag import Node
-from flowmod.evaluate import paired
-from flowmod.metrics import comparison_table
+from flowmod.evaluate import paired, scored_crops, seed_probs
+from flowmod.metrics import comparison_table, group_mean_bootstrap, interval
 from flowmod.metrics import table3 as metrics_table3
 from flowmod.params import Params
 
@@ -111,3 +113,99 @@ def numbers(params: Params) -> dict[str, Any]:
                headline_baseline_f1=out[f"baseline_f1_{head}"],
                protocol_gap=round(100 * float(np.mean(gaps)), 1))
     return out
+
+
+# --- why one flow method's classifier trails another's: the flow error in and around the box ---
+
+
+def box_masks(df: pd.DataFrame, size: int, scale: float) -> np.ndarray:
+    """(N, S, S) bool: the pixels of each object's crop (the paper's window, ``scale`` times
+    the box's longer side, resized to S x S) that lie inside its 2D box."""
+    boxes = df[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float)
+    win = crop_windows(boxes, scale).astype(float)
+    lo = (boxes[:, :2] - win[:, :2]) / win[:, 2:3] * size
+    hi = (boxes[:, 2:] + 1 - win[:, :2]) / win[:, 2:3] * size
+    a, b = np.clip(np.floor(lo), 0, size).astype(int), np.clip(np.ceil(hi), 0, size).astype(int)
+    mask = np.zeros((len(df), size, size), bool)
+    for i, (c0, r0, c1, r1) in enumerate(np.hstack([a, b])):
+        mask[i, r0:r1, c0:c1] = True
+    return mask
+
+
+def crop_errors(params: Params, method: str, reference: str = "gt") -> pd.DataFrame:
+    """Per scored object (the rows of Table 3, in its order): the end-point error (px of the
+    flow grid) of ``method``'s flow crop against ``reference``'s (the exact flow) inside the
+    object's box (``epe_box``) and in the rest of the window around it (``epe_around``)."""
+    folder = {m: pipeline.published(params, Node("crops", m, "keyframe"))
+              for m in (method, reference)}
+    xm, dm = scored_crops(folder[method], params.folds)
+    xr, dr = scored_crops(folder[reference], params.folds)
+    if not dm["ann_token"].reset_index(drop=True).equals(dr["ann_token"].reset_index(drop=True)):
+        raise ValueError(f"{method} and {reference} crops hold different objects")
+    err = np.linalg.norm(np.asarray(xm, np.float32) - np.asarray(xr, np.float32), axis=1)
+    inside = box_masks(dm, err.shape[-1], params.crop_scale)
+    box = (err * inside).sum((1, 2)) / np.maximum(inside.sum((1, 2)), 1)
+    around = (err * ~inside).sum((1, 2)) / np.maximum((~inside).sum((1, 2)), 1)
+    return dm[["ann_token", "scene", "label", "distance", "speed"]].assign(
+        epe_box=box, epe_around=around).reset_index(drop=True)
+
+
+def _right(params: Params, method: str) -> np.ndarray:
+    """(N,) whether the seed-mean probability of ``method``'s classifiers is on the right
+    side of 0.5 for each object of Table 3."""
+    df = results(params, method, "test")[0]
+    return (seed_probs(df).mean(axis=0) > 0.5).astype(int) == df["label"].to_numpy()
+
+
+def error_explanation(params: Params, a: str, b: str) -> pd.DataFrame:
+    """Method ``a`` against ``b`` on the same objects: the median crop error inside the box
+    and around it (px; means are ruled by the few windows on near road) and the share of
+    objects whose error is larger with ``a`` than with ``b`` (%, 50 when neither is worse),
+    with its interval over scenes; then both classifiers' accuracy (seed-mean probability)
+    by thirds of ``a``'s error around the box (the thirds' edges in px)."""
+    ea, eb = crop_errors(params, a), crop_errors(params, b)
+    rows = []
+    for col, name in (("epe_box", "flow error inside the box, median (px)"),
+                      ("epe_around", "flow error around the box, median (px)")):
+        worse = (ea[col] > eb[col]).astype(float) + 0.5 * (ea[col] == eb[col])
+        lo, hi = interval(group_mean_bootstrap(worse, ea["scene"], seed=params.seed))
+        rows.append({"quantity": name, a: round(float(ea[col].median()), 2),
+                     b: round(float(eb[col].median()), 2),
+                     f"objects where {a} errs more (%)": round(100 * float(worse.mean()), 1),
+                     "95% CI over scenes (%)": f"{100 * lo:.1f}-{100 * hi:.1f}"})
+    ra, rb = _right(params, a), _right(params, b)
+    edges = np.quantile(ea["epe_around"], [0, 1 / 3, 2 / 3, 1])
+    third = np.clip(np.searchsorted(edges, ea["epe_around"], side="right") - 1, 0, 2)
+    for k in range(3):
+        sel = third == k
+        rows.append({"quantity": f"classifier accuracy (%), {a}'s error around the box "
+                                 f"{edges[k]:.1f}-{edges[k + 1]:.1f} px ({int(sel.sum())} "
+                                 "objects)",
+                     a: round(100 * float(ra[sel].mean()), 1),
+                     b: round(100 * float(rb[sel].mean()), 1),
+                     f"objects where {a} errs more (%)": "",
+                     "95% CI over scenes (%)": ""})
+    return pd.DataFrame(rows)
+
+
+def network_pair(params: Params) -> tuple[str, str] | None:
+    """(network flow method, DIS) for :func:`error_explanation` when the profile has both
+    and the exact flow to measure them against; else None."""
+    nets = [m for m in params.flow_methods if m not in ("gt", "dis", "farneback")]
+    if not nets or not {"gt", "dis"} <= set(params.flow_methods):
+        return None
+    return nets[0], "dis"
+
+
+def explanation_words(table: pd.DataFrame, a: str, b: str) -> str:
+    """:func:`error_explanation` in words (every number from the table)."""
+    share = f"objects where {a} errs more (%)"
+    box, around = table.iloc[0], table.iloc[1]
+    acc = table.iloc[2:]
+    gaps = [f"{r[a]:.1f} against {r[b]:.1f} %" for _, r in acc.iterrows()]
+    return (f"Inside the box, {a}'s flow errs more than {b}'s on {box[share]:.1f} % of the "
+            f"objects (95 % over scenes {box['95% CI over scenes (%)']} %; medians "
+            f"{box[a]:.2f} and {box[b]:.2f} px); around the box, on {around[share]:.1f} % "
+            f"({around['95% CI over scenes (%)']} %; medians {around[a]:.2f} and "
+            f"{around[b]:.2f} px). By thirds of {a}'s error around the box, from the smallest, "
+            f"the classifiers are right for {', '.join(gaps)} of the objects ({a} against {b}).")
