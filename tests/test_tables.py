@@ -143,3 +143,18 @@ def test_chapter06_shows_the_validation_choice_of_the_input():
     assert "no test row read" in ch06.ablation_words(rec, load_profile("demo"))
     other = ch06.ablation_words(rec, load_profile("paper", dataroot="/x"))
     assert "trains with **raw** instead" in other
+
+
+def test_the_landing_page_quotes_decided_comparisons_as_decided():
+    from flowmod.chapters import ch07_evaluation as ch07
+    from flowmod.params import load_profile
+
+    row = {"detectable": 0.02, "per_seed": [0.0], "p_not_better": 0.0, "n_scenes": 9, "n": 90}
+    table = ev.comparison_table({
+        "gt - dis": {**row, "delta_f1": 0.022, "ci": (0.002, 0.044)},
+        "dis: classifier - oracle rule": {**row, "delta_f1": 0.021, "ci": (-0.009, 0.05)}})
+    w = ch07.landing_words(table, load_profile("demo"))
+    assert w["exact_vs_headline"].endswith("0.2 to 4.4), decided")
+    assert w["headline_vs_oracle"].endswith("or more)") and "undecided" in w["headline_vs_oracle"]
+    assert ch07.landing_words(table.iloc[:1], load_profile("demo"))["headline_vs_oracle"] == (
+        "not in this profile")

@@ -209,3 +209,33 @@ def explanation_words(table: pd.DataFrame, a: str, b: str) -> str:
             f"({around['95% CI over scenes (%)']} %; medians {around[a]:.2f} and "
             f"{around[b]:.2f} px). By thirds of {a}'s error around the box, from the smallest, "
             f"the classifiers are right for {', '.join(gaps)} of the objects ({a} against {b}).")
+
+
+def network_section(params: Params) -> tuple[pd.DataFrame, str]:
+    """Chapter 07's explanation of the network row: (:func:`error_explanation` of
+    :func:`network_pair`, its words); an empty table and a sentence saying why without a
+    network beside DIS and the exact flow."""
+    pair = network_pair(params)
+    if pair is None:
+        return (pd.DataFrame(columns=["quantity"]),
+                "This profile has no network flow beside DIS and the exact flow.")
+    table = error_explanation(params, *pair)
+    return table, explanation_words(table, *pair)
+
+
+def landing_words(table: pd.DataFrame, params: Params) -> dict[str, str]:
+    """What the landing page quotes of the paired comparisons (:func:`comparisons`): the
+    headline method's classifier against the oracle rule on its flow and, when the profile
+    has the exact flow, the exact flow against the headline method; each in words with its
+    interval over scenes and seeds, and whether it decides."""
+    head = headline_method(params)
+    rows = table.set_index("comparison")
+
+    def words(name: str) -> str:
+        if name not in rows.index:
+            return "not in this profile"
+        row = rows.loc[name]
+        return difference_words(row) + ("" if row["verdict"] == "undecided" else ", decided")
+
+    return {"headline_vs_oracle": words(f"{head}: classifier - oracle rule"),
+            "exact_vs_headline": words(f"gt - {head}")}
