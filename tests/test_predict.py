@@ -29,7 +29,7 @@ def case(smoke_built, tmp_path_factory):
     boxes = tmp / "boxes.csv"
     objs[["xmin", "ymin", "xmax", "ymax"]].to_csv(boxes, index=False)
     # the model that scored this pair in chapter 07: its fold's
-    fold = f"f{int(objs['fold'].iloc[0])}"
+    fold = f"f{int(objs['fold'].iloc[0])}" + ("s0" if p.seeds > 1 else "")
     model = pipeline.node_dir(p, dag.Node("train", "dis", fold)) / "best.pt"
     return {"f1": p.dataroot_path / pair.path_1, "f2": p.dataroot_path / pair.path_2,
             "boxes": boxes, "model": model, "objs": objs, "tmp": tmp, "params": p}

@@ -71,6 +71,7 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "hflip_p": (0.3, {"train", "xtrain", "wtrain"}, ()),
     "model_width": (24, {"train", "xtrain", "wtrain"}, ()),
     "amp": ("bf16", {"train", "xtrain", "wtrain"}, ()),
+    "input_scaling": ("raw", {"train", "xtrain", "wtrain"}, ()),
     "general_beyond_distance": (80.0, {"general"}, ()),
     "raft_iters": (12, {"flow", "crops"}, ("raft", "raft_small")),
     "num_workers": (1, set(), ()),
@@ -95,6 +96,7 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
 }
 #: Parameters whose change is not "some stages read another value" (checked on their own).
 SPECIAL = {"run_dir", "dataroot", "synthetic", "version", "flow_methods", "seeds", "folds",
+           "extension_seeds",
            "extension_inputs",
            "extension_methods", "wide_methods", "selfflow_modes"}
 
@@ -171,7 +173,8 @@ def test_special_parameters(finished, tmp_path):
     three = finished.model_copy(update={"folds": 3})
     assert not_up_to_date(three) == set(pipeline.nodes(three)) - {
         dag.Node("world"), dag.Node("difficulty")}
-    assert dag.Node("train", "dis", "f2") in pipeline.nodes(three)
+    assert dag.Node("train", "dis", "f2s1") in pipeline.nodes(three)  # two seeds a fold
+    assert dag.Node("xtrain", "dis", "residual/f2") in pipeline.nodes(three)  # one (extension)
     assert dag.Node("train", "dis", "s0") in pipeline.nodes(
         finished.model_copy(update={"folds": 1, "seeds": 2}))
     # chapter 10's plan: one input fewer drops its nodes and changes nothing else; one method
@@ -219,10 +222,10 @@ def test_status_explains_in_one_line(finished):
     assert "stale" in line and "dis_preset: 'medium' -> 'fast'" in line
     assert "input flow[dis/keyframe] is stale" in next(
         ln for ln in text.splitlines() if "crops[dis/keyframe]" in ln)
-    # the dis chain of chapters 03-08 (8 nodes: two fold models), chapter 10's dis residual
-    # (3 nodes) and chapter 11's dis chain (flow, crops, two models, predictions); chapter 12's
-    # three networks do not read the dis flow
-    assert text.splitlines()[-1] == ("24 of 40 up to date; 16 to build (make run, or python "
+    # the dis chain of chapters 03-08 (10 nodes: two folds x two seeds), chapter 10's dis
+    # residual (3 nodes) and chapter 11's dis chain (flow, crops, two models, predictions);
+    # chapter 12's three networks do not read the dis flow
+    assert text.splitlines()[-1] == ("26 of 44 up to date; 18 to build (make run, or python "
                                      "-m flowmod.runner)")
     quiet = pipeline.format_status(p.model_copy(update={"extension_build": False}))
     assert quiet.splitlines()[-1].endswith(
@@ -295,7 +298,7 @@ def test_reruns_recompute_exactly_what_changed_and_match_a_fresh_run(finished, t
         direct = {n for n in pipeline.nodes(p) if name in dag.reads(n)}
         assert rerun(p) == downstream(p, direct), name
     # the crop change retrained the models and chapter 07 scores the new ones
-    rec = pipeline.recorded(p, dag.Node("train", "dis", "f0"))
+    rec = pipeline.recorded(p, dag.Node("train", "dis", "f0s0"))
     assert rec["inputs"]["crops[dis/keyframe]"] == pipeline.recorded(
         p, dag.Node("crops", "dis", "keyframe"))["fingerprint"]
     # the same parameters from scratch (same world) give the same numbers
@@ -501,7 +504,7 @@ def test_train_stage_chooses_the_epoch_on_validation(finished, tmp_path, monkeyp
         return real(train_x, train_df, val_x, val_df, out_dir, *args, **kw)
 
     monkeypatch.setattr(train, "train_model", spy)
-    pipeline.GRAPH.build_node(p, dag.Node("train", "dis", "f0"))
+    pipeline.GRAPH.build_node(p, dag.Node("train", "dis", "f0s0"))
     folder = pipeline.node_dir(p, dag.Node("crops", "dis", "keyframe"))
     assert seen == {"train": {(1, False)}, "val": {(1, True)},
                     "record": len(crops.read_crops(folder, "f0")[1])}
