@@ -131,3 +131,19 @@ def test_cli_damaged_inputs_give_one_line(case, call_main):
     cut.write_bytes(jpg[: len(jpg) * 2 // 3])
     line = err(case["f1"], cut, "--boxes", case["boxes"], "--model", case["model"])
     assert "truncated JPEG" in line and str(cut) in line
+
+
+def test_a_broken_manifest_and_an_out_that_is_no_image_are_one_line(tmp_path, call_main):
+    """Issue 41: both ended in a traceback (the second after printing the results); both
+    are now refused before any work."""
+    model = tmp_path / "f0s0" / "best.pt"
+    model.parent.mkdir()
+    model.write_bytes(b"x")
+    (model.parent / "manifest.json").write_text('{"recipe": ')
+    frames = [tmp_path / "a.jpg", tmp_path / "b.jpg"]
+    proc = call_main(predict.main, *frames, "--boxes", tmp_path / "b.csv", "--model", model)
+    line = one_line(proc)
+    assert "manifest.json: not a readable manifest" in line and "retrain" in line
+    proc = call_main(predict.main, *frames, "--boxes", tmp_path / "b.csv", "--model", model,
+                     "--out", tmp_path / "out.txt")
+    assert "--out" in one_line(proc) and "no image writer for .txt" in one_line(proc)

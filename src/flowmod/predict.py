@@ -51,9 +51,16 @@ def read_recipe(model: Path) -> dict[str, Any]:
     man = model.parent / "manifest.json"
     if not man.is_file():
         raise PredictError(f"{man} not found: --model must be a best.pt published by the "
-                           "training stage (runs/<profile>/models/<method>/<part>/best.pt, part f<k>s<j>, f<k> "
-                           "or s<k>)")
-    rec = json.loads(man.read_text())
+                           "training stage (runs/<profile>/models/<method>/<part>/best.pt, "
+                           "part f<k>s<j>, f<k> or s<k>)")
+    try:
+        rec = json.loads(man.read_text())
+    except ValueError as e:  # JSONDecodeError, or bytes that are not text
+        raise PredictError(f"{man}: not a readable manifest ({e}); copy the model's folder "
+                           "again or retrain it") from None
+    if not isinstance(rec, dict):
+        raise PredictError(f"{man}: not a model manifest (a JSON object); copy the model's "
+                           "folder again or retrain it")
     if rec.get("recipe"):
         return rec["recipe"]
     method = rec["node"].split("[", 1)[1].split("/", 1)[0]
@@ -131,6 +138,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default="auto")
     args = ap.parse_args(argv)
     try:
+        if args.out and not cv2.haveImageWriter(str(args.out)):
+            raise PredictError(f"--out {args.out}: no image writer for "
+                               f"{args.out.suffix or 'a name without extension'}; give a .png "
+                               "or .jpg path")
         if not args.model.is_file():
             raise PredictError(f"model not found: {args.model}")
         recipe = read_recipe(args.model)
