@@ -147,3 +147,21 @@ def test_a_broken_manifest_and_an_out_that_is_no_image_are_one_line(tmp_path, ca
     proc = call_main(predict.main, *frames, "--boxes", tmp_path / "b.csv", "--model", model,
                      "--out", tmp_path / "out.txt")
     assert "--out" in one_line(proc) and "no image writer for .txt" in one_line(proc)
+
+
+def test_predict_imports_without_notebook_packages():
+    """A server that installs flowmod for inference only has no IPython or matplotlib: the
+    predict CLI must import without them (issue 40)."""
+    code = (
+        "import sys\n"
+        "class Block:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] in ('IPython', 'matplotlib'):\n"
+        "            raise ImportError(f'blocked: {name}')\n"
+        "sys.meta_path.insert(0, Block())\n"
+        "import flowmod.predict\n"
+        "print('ok', 'IPython' in sys.modules, 'matplotlib' in sys.modules)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-800:]
+    assert r.stdout.split() == ["ok", "False", "False"]

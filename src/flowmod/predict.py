@@ -37,7 +37,7 @@ from flowmod.flow.networks import estimator_options
 from flowmod.flow.store import roundtrip
 from flowmod.model import load_model, predict
 from flowmod.params import validate
-from flowmod.report.viz import draw_boxes, label_colors
+from flowmod.report.draw import draw_boxes, label_colors
 from flowmod.train import recipe_from
 
 

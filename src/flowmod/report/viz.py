@@ -18,6 +18,7 @@ from flowmod.artefacts import atomic_path
 from flowmod.crops import crop_image
 from flowmod.flow import flow_to_color
 from flowmod.metrics import metrics, pr_curve
+from flowmod.report.draw import draw_boxes, label_colors
 from flowmod.report.video import side_by_side
 
 #: The pipeline stages in data-flow order: (chapter, label, artefact).
@@ -80,32 +81,6 @@ def pipeline_figure() -> plt.Figure:
     ax.axis("off")
     fig.tight_layout()
     return fig
-
-
-#: Box colours (BGR for OpenCV): the paper's Figure 2 convention, blue = still, red = moving.
-STILL_BGR = (255, 120, 0)
-MOVING_BGR = (0, 0, 255)
-OTHER_BGR = (0, 200, 255)
-
-
-def draw_boxes(
-    image: np.ndarray, boxes: np.ndarray, colors: list[tuple[int, int, int]] | None = None,
-    texts: list[str] | None = None, thickness: int = 3,
-) -> np.ndarray:
-    """A copy of ``image`` (H, W, 3) uint8 BGR with ``boxes`` (N, 4) xmin, ymin, xmax, ymax px
-    drawn as rectangles, optionally with a label above each."""
-    out = image.copy()
-    for i, (x0, y0, x1, y1) in enumerate(np.asarray(boxes, dtype=float).round().astype(int)):
-        c = colors[i] if colors else OTHER_BGR
-        cv2.rectangle(out, (x0, y0), (x1, y1), c, thickness)
-        if texts:
-            cv2.putText(out, texts[i], (x0, max(y0 - 6, 12)), cv2.FONT_HERSHEY_SIMPLEX, 0.8, c, 2)
-    return out
-
-
-def label_colors(labels: np.ndarray) -> list[tuple[int, int, int]]:
-    """Figure-2 colours for 0/1 labels (blue still, red moving)."""
-    return [MOVING_BGR if int(v) == 1 else STILL_BGR for v in labels]
 
 
 def frames_grid(images: list[np.ndarray], titles: list[str], ncols: int = 2,
