@@ -91,7 +91,7 @@ def bench_loader_and_training(size: int, n: int, batch: int, steps: int, tmp: Pa
     opt = torch.optim.SGD(model.parameters(), lr=0.01, momentum=0.9, weight_decay=0.01)
     loss_fn = torch.nn.BCEWithLogitsLoss()
     xb, yb = ds[batches[0]]
-    xb = xb.contiguous(memory_format=torch.channels_last)
+    xb = xb.float().contiguous(memory_format=torch.channels_last)
 
     for amp in (None, "bf16"):
         def step(amp=amp) -> None:

@@ -428,8 +428,40 @@ def test_dataset_reopens_memmaps_in_workers(tmp_path) -> None:
     blob = pickle.dumps(ds)
     assert len(blob) < 1000  # the array is not pickled, only its file name
     xb, yb = pickle.loads(blob)[[4, 1]]
-    assert xb.dtype == torch.float32 and xb[:, 0, 0, 0].tolist() == [4.0, 1.0]
+    assert xb.dtype == torch.float16 and xb[:, 0, 0, 0].tolist() == [4.0, 1.0]  # as stored
     assert yb.tolist() == [1.0, 1.0]
+
+
+def test_training_batches_from_the_device_or_streamed_are_the_same(tmp_path) -> None:
+    """Crops that fit are held on the device and batched there; larger ones stream from
+    their memmap: both give float32 batches equal to the stored crops (issue 40)."""
+    from flowmod.train import ResidentCrops, StreamedCrops, crop_source
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(0, 40, (9, 2, 6, 6)).astype(np.float16)
+    np.save(tmp_path / "x.npy", x)
+    xm = np.load(tmp_path / "x.npy", mmap_mode="r")
+    y = (np.arange(9) % 2).astype(np.float32)
+    cpu = torch.device("cpu")
+    resident = crop_source(xm, y, cpu, resident_bytes=x.nbytes)
+    streamed = crop_source(xm, y, cpu, resident_bytes=x.nbytes - 1)
+    assert isinstance(resident, ResidentCrops) and isinstance(streamed, StreamedCrops)
+    plan = [np.array([0, 3, 8]), np.array([1, 2, 4, 5]), np.array([6, 7])]
+    for (xa, ya), (xb, yb), idx in zip(resident.batches(plan), streamed.batches(plan), plan,
+                                       strict=True):
+        assert xa.dtype == xb.dtype == torch.float32
+        np.testing.assert_array_equal(xa.numpy(), x[idx].astype(np.float32))
+        assert torch.equal(xa, xb) and torch.equal(ya, yb) and ya.tolist() == y[idx].tolist()
+
+
+def test_training_streamed_gives_the_weights_of_training_on_the_device(data, run_a, tmp_path
+                                                                       ) -> None:
+    tx, tdf, vx, vdf = data
+    out_a, hist_a = run_a
+    hist_b = train_model(tx, tdf, vx, vdf, tmp_path, **KW, resident_bytes=0)
+    cols = [c for c in HISTORY_COLUMNS if c != "seconds"]
+    pd.testing.assert_frame_equal(hist_a[cols], hist_b[cols], check_exact=True)
+    _assert_same_weights(_state(out_a / "last.pt"), _state(tmp_path / "last.pt"))
 
 
 def test_published_weights_in_float16_predict_as_the_float32_ones(data, run_a, tmp_path) -> None:

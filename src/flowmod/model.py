@@ -222,8 +222,9 @@ def predict_logits(
     try:
         with torch.inference_mode():
             for sl in _batches(len(x), batch_size):
-                xb = torch.from_numpy(np.asarray(x[sl], dtype=np.float32))
-                xb = xb.to(dev, non_blocking=True).contiguous(memory_format=torch.channels_last)
+                xb = torch.from_numpy(np.ascontiguousarray(x[sl]))  # stored dtype: fewer bytes
+                xb = xb.to(dev, non_blocking=True).float()  # to move; converted there
+                xb = xb.contiguous(memory_format=torch.channels_last)
                 with torch.autocast(dev.type, dtype=dtype, enabled=dtype is not None):
                     logits = model(xb)
                 out[sl] = logits.float().reshape(-1).cpu().numpy()

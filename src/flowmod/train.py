@@ -105,10 +105,11 @@ def check_split(
 
 
 class CropDataset(Dataset):
-    """Batches of crops: ``ds[indices] -> (x (B, C, S, S) float32, y (B,) float32)``.
+    """Batches of crops: ``ds[indices] -> (x (B, C, S, S), y (B,) float32)``, x in the
+    crops' stored dtype (float16 for memmaps: half the bytes to move; the training loop
+    converts on the device).
 
-    x is read from a float16 memmap (or any array) and converted per batch; a memmap is
-    re-opened by file name in DataLoader workers instead of being pickled whole.
+    A memmap is re-opened by file name in DataLoader workers instead of being pickled whole.
     """
 
     def __init__(self, x: Any, y: np.ndarray) -> None:
@@ -120,7 +121,7 @@ class CropDataset(Dataset):
 
     def __getitem__(self, idx: Sequence[int]) -> tuple[torch.Tensor, torch.Tensor]:
         idx = np.asarray(idx)
-        xb = torch.from_numpy(np.asarray(self.x[idx], dtype=np.float32))
+        xb = torch.from_numpy(np.ascontiguousarray(self.x[idx]))
         return xb, torch.from_numpy(self.y[idx])
 
     def __getstate__(self) -> dict[str, Any]:
@@ -136,6 +137,63 @@ class CropDataset(Dataset):
             _, fn, dt, shape, offset = x
             state["x"] = np.memmap(fn, dtype=np.dtype(dt), mode="r", shape=shape, offset=offset)
         self.__dict__.update(state)
+
+
+#: Training crops of at most this many bytes are copied to the device once and batched
+#: there (the demo's: 13 MB a fold); larger ones stream from their memmap (DataLoader
+#: workers, pinned memory on CUDA). On CUDA also at most a quarter of the free memory.
+RESIDENT_BYTES = 2 * 1024**3
+
+
+class ResidentCrops:
+    """Training crops held on the device as one tensor in their stored dtype: a batch is an
+    ``index_select`` there, converted to float32 there (no per-batch host work)."""
+
+    def __init__(self, x: Any, y: np.ndarray, dev: torch.device) -> None:
+        self.x = torch.from_numpy(np.array(x)).to(dev)
+        self.y = torch.from_numpy(np.asarray(y, dtype=np.float32)).to(dev)
+        self.dev = dev
+
+    def __len__(self) -> int:
+        return len(self.y)
+
+    def batches(self, plan: Sequence[np.ndarray]) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+        """(x (B, C, S, S) float32, y (B,)) on the device, per index array of ``plan``."""
+        for idx in plan:
+            i = torch.from_numpy(np.asarray(idx, dtype=np.int64)).to(self.dev)
+            yield self.x.index_select(0, i).float(), self.y.index_select(0, i)
+
+
+class StreamedCrops:
+    """Training crops read per batch from their array (a memmap) on the host, through a
+    DataLoader (``workers`` processes; pinned memory on CUDA), converted on the device."""
+
+    def __init__(self, x: Any, y: np.ndarray, dev: torch.device, workers: int = 0) -> None:
+        self.ds, self.dev, self.workers = CropDataset(x, y), dev, int(workers)
+
+    def __len__(self) -> int:
+        return len(self.ds)
+
+    def batches(self, plan: Sequence[np.ndarray]) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+        """(x (B, C, S, S) float32, y (B,)) on the device, per index array of ``plan``."""
+        loader = DataLoader(self.ds, batch_size=None, sampler=plan, num_workers=self.workers,
+                            pin_memory=self.dev.type == "cuda")
+        for xb, yb in loader:
+            yield (xb.to(self.dev, non_blocking=True).float(),
+                   yb.to(self.dev, non_blocking=True))
+
+
+def crop_source(x: Any, y: np.ndarray, dev: torch.device, workers: int = 0,
+                resident_bytes: int = RESIDENT_BYTES) -> ResidentCrops | StreamedCrops:
+    """Where training batches come from: the whole array on the device when it fits
+    (``resident_bytes``; on CUDA also a quarter of the free memory), else streamed."""
+    nbytes = int(np.prod(x.shape)) * np.dtype(getattr(x, "dtype", np.float32)).itemsize
+    limit = int(resident_bytes)
+    if dev.type == "cuda":
+        limit = min(limit, torch.cuda.mem_get_info(dev)[0] // 4)
+    if nbytes <= limit:
+        return ResidentCrops(x, y, dev)
+    return StreamedCrops(x, y, dev, workers)
 
 
 def epoch_plan(
@@ -254,6 +312,8 @@ class TrainSettings:
     width: int = 64
     #: how the network scales the flow channels (:data:`flowmod.model.INPUT_MODES`)
     input_mode: str = "raw"
+    #: training crops up to this size (bytes) are held on the device (:func:`crop_source`)
+    resident_bytes: int = RESIDENT_BYTES
 
     @classmethod
     def of(cls, q: StageParams | Params) -> TrainSettings:
@@ -327,23 +387,20 @@ def _checkpoint(run: _Run, path: Path, config: dict[str, Any], dev: torch.device
     }, path)
 
 
-def _train_epoch(run: _Run, ds: CropDataset, s: TrainSettings, seed: int, epoch: int,
+def _train_epoch(run: _Run, ds: ResidentCrops | StreamedCrops, s: TrainSettings, seed: int, epoch: int,
                  dev: torch.device, amp_dtype: Any, flip_negate: Sequence[int],
                  desc: str, progress: bool) -> float:
     """One epoch of SGD over ``ds`` in the order and with the flips of :func:`epoch_plan`;
     returns the mean training loss."""
     batches, flips = epoch_plan(len(ds), s.batch_size, s.hflip_p, seed, epoch)
-    loader = DataLoader(ds, batch_size=None, sampler=batches, num_workers=s.num_workers,
-                        pin_memory=dev.type == "cuda")
     run.model.train()
     loss_fn = nn.BCEWithLogitsLoss()
     loss_sum = torch.zeros((), dtype=torch.float64, device=dev)
     n_seen, pos = 0, 0
-    inner = tqdm(loader, desc=f"{desc}, epoch {epoch}", unit="batch", leave=False,
-                 disable=not progress)
+    inner = tqdm(ds.batches(batches), desc=f"{desc}, epoch {epoch}", unit="batch",
+                 leave=False, disable=not progress, total=len(batches))
     for i, (xb, yb) in enumerate(inner):
         b = len(yb)
-        xb, yb = xb.to(dev, non_blocking=True), yb.to(dev, non_blocking=True)
         fb = torch.from_numpy(flips[pos : pos + b]).to(dev)
         pos += b
         if bool(fb.any()):
@@ -444,7 +501,7 @@ def train_model(
         run = _new_run(s, channels, seed, dev, amp_mode, flow_channels)
         if resume and (out / "last.pt").is_file():
             _resume(run, out / "last.pt", config, dev)
-        ds = CropDataset(train_x, y_tr)
+        ds = crop_source(train_x, y_tr, dev, s.num_workers, s.resident_bytes)
         bar = tqdm(range(run.epoch + 1, s.epochs + 1), desc=desc, unit="epoch",
                    disable=not progress, initial=run.epoch, total=s.epochs)
         for epoch in bar:
