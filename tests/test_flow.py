@@ -241,12 +241,18 @@ def _hand_set_fastflownet(bu: float, bv: float) -> fn.FastFlowNet:
     return m.eval()
 
 
-@pytest.mark.parametrize(("h", "w", "scale"), [(150, 200, 1.0), (97, 131, 1.0), (150, 200, 0.5)])
-def test_fastflownet_output_scaling_chain(h, w, scale):
+@pytest.mark.parametrize(("h", "w", "scale"), [(150, 200, 1.0), (97, 131, 1.0), (150, 200, 0.5),
+                                               (97, 131, 0.5)])
+@pytest.mark.parametrize("on_device", [False, True])
+def test_fastflownet_output_scaling_chain(h, w, scale, on_device):
+    """Host resizing (OpenCV) and device resizing (torch, what a GPU runs) scale the flow
+    alike; ``on_device`` forces the device path on the CPU."""
     est = fl.get_estimator("fastflownet", model=_hand_set_fastflownet(0.1, -0.05),
                            device="cpu", scale=scale)
+    est.device_resize = on_device
     img = texture(h, w)
-    flow = est.estimate(img, img)
+    flow = est.estimate_batch([img], [img])[0]
+    assert flow.shape == (h, w, 2) and flow.dtype == np.float32
     hs, ws = round(h * scale), round(w * scale)
     h64, w64 = 64 * -(-hs // 64), 64 * -(-ws // 64)
     # x20, times the 64-multiple resize ratio, times the `scale` resize ratio
@@ -265,6 +271,14 @@ def test_fastflownet_random_weights_equivariances():
     batch = est.estimate_batch([a1, b1], [a2, b2])
     for s, b in zip(single, batch, strict=True):
         np.testing.assert_allclose(s, b, atol=1e-4)
+    est.scale, est.device_resize = 0.5, True  # frames and flow resized by torch, as on a GPU
+    on_device = est.estimate_batch([a1, b1], [a2, b2])
+    est.device_resize = False
+    on_host = est.estimate_batch([a1, b1], [a2, b2])
+    for d, h in zip(on_device, on_host, strict=True):
+        assert d.shape == h.shape == a1.shape[:2] + (2,)
+        assert np.abs(d - h).mean() < 0.1 * np.abs(h).mean() + 1e-3  # interpolation only
+    est.scale = 1.0
     brighter = est.estimate(a1 + np.uint8(9), a2 + np.uint8(9))  # textures stay in 10..245
     np.testing.assert_allclose(brighter, single[0], atol=1e-3 * max(1.0, np.abs(single[0]).max()))
 
