@@ -4,6 +4,8 @@ unseen: every name they take from flowmod must exist."""
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 import importlib
 import types
 from pathlib import Path
@@ -61,3 +63,34 @@ def test_the_benchmarks_are_found():
 @pytest.mark.parametrize("path", BENCHMARKS, ids=lambda p: p.name)
 def test_every_flowmod_name_a_benchmark_uses_exists(path: Path):
     assert unresolved(path.read_text()) == []
+
+
+def _run_quick(script: str, out: Path) -> str:
+    r = subprocess.run([sys.executable, str(repo_root() / "benchmarks" / script), "--quick",
+                        "--out", str(out)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-1500:]
+    return out.read_text()
+
+
+def test_the_gpu_benchmark_runs_on_the_cpu_in_seconds(tmp_path):
+    """bench_gpu.py is the script a session lent a GPU runs (issue 40): its --quick form runs
+    every section on the CPU and writes the report with a measured row for each case."""
+    text = _run_quick("bench_gpu.py", tmp_path / "gpu.md")
+    assert text.startswith("# What a GPU buys") and "Device: cpu" in text
+    flow = [r for r in text.splitlines() if r.startswith(("| fastflownet", "| raft_small"))]
+    assert len(flow) == 2 * 2 * 2  # methods x flow scales x batches
+    assert all(float(r.split("|")[4]) > 0 for r in flow)  # ms a pair
+    train = [r for r in text.splitlines() if r.startswith("|        16 |")]
+    assert len(train) == 1 and int(train[0].split("|")[-2]) > 0  # crops/s
+    assert "skipped (--quick)" in text
+
+
+def test_the_loader_benchmark_times_every_input_path(tmp_path):
+    import json
+
+    _run_quick("bench_loader.py", tmp_path / "loader.json")
+    rows = json.loads((tmp_path / "loader.json").read_text())["rows"]
+    assert [r["path"] for r in rows] == ["streamed float16, workers=0",
+                                         "resident, cpu (float32, flipped)",
+                                         "host float32 (before issue 40)"]
+    assert all(r["crops"] == 256 and r["crops_per_s"] > 0 for r in rows)
