@@ -33,24 +33,34 @@ def test_device_that_does_not_exist_is_rejected_before_work(tmp_path):
 
 
 def test_failing_notebook_stops_the_run_and_is_never_rendered(tmp_path):
+    """A notebook that fails stops the run; its copy with the traceback goes to failed/,
+    and the previous good executed copy stays in place (papermill writes a hidden running
+    copy that replaces it only on success)."""
     nbs = tmp_path / "notebooks"
     nbs.mkdir()
+    good = nbformat.read(runner.notebooks()[0], as_version=4)
+    nbformat.write(good, nbs / "00_setup.ipynb")
+    executed = tmp_path / "executed"
+    kw = dict(out_dir=executed, notebooks_dir=nbs)
+    runner.run("smoke", {"run_dir": str(tmp_path / "runs")}, **kw)
+    before = (executed / "00_setup.ipynb").read_bytes()
     nb = nbformat.read(runner.notebooks()[0], as_version=4)
     nb.cells.append(nbformat.v4.new_code_cell('raise ValueError("boom in a cell")'))
     nbformat.write(nb, nbs / "00_setup.ipynb")
-    nbformat.write(nbformat.read(runner.notebooks()[0], as_version=4), nbs / "01_later.ipynb")
-    executed = tmp_path / "executed"
-    with pytest.raises(NotebookFailed, match=r"00_setup.ipynb failed in cell \d+: ValueError: boom"):
-        runner.run("smoke", {"run_dir": str(tmp_path / "runs")}, out_dir=executed,
-                   notebooks_dir=nbs)
+    nbformat.write(good, nbs / "01_later.ipynb")
+    with pytest.raises(NotebookFailed, match=r"00_setup.ipynb failed in cell \d+: ValueError: "
+                       r"boom(.|\n)*failed/00_setup.ipynb; the previous good copy is kept"):
+        runner.run("smoke", {"run_dir": str(tmp_path / "runs")}, **kw)
     assert not (executed / "01_later.ipynb").exists(), "the run must stop at the first failure"
+    assert (executed / "00_setup.ipynb").read_bytes() == before
+    assert sorted(p.name for p in executed.glob(".*.ipynb")) == [], "no running copy left"
     info = json.loads((executed / "run_info.json").read_text())
     assert info["status"] == "failed" and info["notebooks"]["00_setup"]["status"] == "failed"
     with pytest.raises(book.BookError, match="did not finish"):
         book.build(executed, tmp_path / "html")
     # even with a doctored run record, the failed notebook itself is refused
     with pytest.raises(book.BookError, match="failed when it ran"):
-        book.check_executed(executed / "00_setup.ipynb")
+        book.check_executed(executed / "failed" / "00_setup.ipynb")
     assert not (tmp_path / "html").exists()
 
 

@@ -180,6 +180,11 @@ def _executed_stamp(target: Path) -> dict[str, Any]:
     return dict(nb.metadata.get("flowmod", {}))
 
 
+def _running_copy(target: Path) -> Path:
+    """Where a notebook is executed before it replaces ``target`` (same folder, hidden)."""
+    return target.with_name(f".{target.stem}.running.ipynb")
+
+
 def _stamp(target: Path, fp: str | None, seconds: float, executed: str) -> None:
     nb = nbformat.read(str(target), as_version=4)
     nb.metadata["flowmod"] = {"fingerprint": fp, "seconds": seconds, "executed": executed}
@@ -276,19 +281,28 @@ def execute(nb: Path, values: dict[str, Any], plan: Plan, kernel: str, ipc: Path
                 "executed": stamp.get("executed"), "reused": True}
     print(f"[flowmod] {nb.name} ...", flush=True)
     t0 = time.perf_counter()
+    running, failed = _running_copy(target), plan.out_dir / "failed" / nb.name
     try:
         with _echo_progress(plan.out_dir / ".progress.log", nb.stem):
             papermill.execute_notebook(
-                str(nb), str(target), parameters=values, kernel_name=kernel,
+                str(nb), str(running), parameters=values, kernel_name=kernel,
                 cwd=str(nb.parent), progress_bar=False, log_output=False,
                 kernel_manager_class=_kernel_manager(ipc))
     except papermill.PapermillExecutionError as e:
+        failed.parent.mkdir(exist_ok=True)
+        os.replace(running, failed)
+        kept = "; the previous good copy is kept" if target.is_file() else ""
         raise NotebookFailed(
             f"{nb.name} failed in cell {e.exec_count}: {e.ename}: {e.evalue}\n"
-            f"executed copy with the traceback: {target}",
+            f"executed copy with the traceback: {failed}{kept}",
             round(time.perf_counter() - t0, 1)) from None
+    except BaseException:  # interrupted or papermill itself failed: no half-run copy stays
+        running.unlink(missing_ok=True)
+        raise
     seconds, executed = round(time.perf_counter() - t0, 1), time.strftime(TIME_FORMAT)
-    _stamp(target, notebook_fingerprint(nb, values, p, plan.device), seconds, executed)
+    _stamp(running, notebook_fingerprint(nb, values, p, plan.device), seconds, executed)
+    os.replace(running, target)  # the good copy is replaced only by a good copy
+    failed.unlink(missing_ok=True)
     print(f"[flowmod] {nb.name} ok ({seconds:.1f} s)", flush=True)
     return {"status": "ok", "seconds": seconds, "executed": executed}
 
