@@ -4,9 +4,9 @@ unseen: every name they take from flowmod must exist."""
 from __future__ import annotations
 
 import ast
+import importlib
 import subprocess
 import sys
-import importlib
 import types
 from pathlib import Path
 
