@@ -532,6 +532,26 @@ def test_compute_flow_reports_bad_images_before_starting(tmp_path):
     assert not list((tmp_path / "pool").rglob("*.npy"))
 
 
+def test_a_jpeg_whose_data_is_corrupt_but_whose_end_survives_is_refused(tmp_path, capfd):
+    """Zeroed bytes in the middle of a JPEG keep its end marker, and OpenCV decodes it with
+    only libjpeg's "Corrupt JPEG data" on stderr: that warning makes it corrupt (issue 41)."""
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (90, 160, 3), dtype=np.uint8), (5, 5), 0)
+    data = bytearray(cv2.imencode(".jpg", img)[1].tobytes())
+    good, bad = tmp_path / "good.jpg", tmp_path / "bad.jpg"
+    good.write_bytes(bytes(data))
+    data[len(data) // 3 : len(data) // 3 + 200] = bytes(200)
+    bad.write_bytes(bytes(data))
+    assert bad.read_bytes().endswith(b"\xff\xd9") and cv2.imread(str(bad)) is not None
+    assert "Corrupt JPEG data" in capfd.readouterr().err  # what OpenCV alone gives
+    assert fl.read_image(good).shape == (90, 160, 3)
+    with pytest.raises(fl.ImageError, match=r"image corrupt \(Corrupt JPEG data.*bad.jpg"):
+        fl.read_image(bad)
+    with pytest.raises(fl.ImageError, match=r"1 of 2 images.*bad.jpg \(corrupt: Corrupt JPEG"):
+        fl.check_images([good, bad])
+    assert "Corrupt JPEG" not in capfd.readouterr().err  # said once, in the error
+
+
 def test_compute_flow_network_batches(tmp_path):
     root = tmp_path / "data"
     pairs = make_dataroot(root, n=3, size=(50, 70))

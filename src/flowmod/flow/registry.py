@@ -9,6 +9,10 @@ resized by this factor, then resize the flow back, multiplying u and v by the si
 from __future__ import annotations
 
 import os
+import re
+import sys
+import tempfile
+import threading
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -42,12 +46,44 @@ class NotSyntheticError(ValueError):
 # --------------------------------------------------------------------------------------------
 
 
+#: What libjpeg says of data it decodes anyway (OpenCV only prints it): a corrupt image.
+_DECODER_WARNING = re.compile(r"(Corrupt JPEG data|Premature end of JPEG|Invalid JPEG|"
+                              r"Bogus|Warning: unknown JFIF)[^\n]*")
+_STDERR = threading.Lock()
+
+
+def decode(path: str | os.PathLike[str], flags: int = cv2.IMREAD_COLOR
+           ) -> tuple[np.ndarray | None, str | None]:
+    """``cv2.imread(path, flags)`` and the decoder's first complaint (libjpeg's "Corrupt
+    JPEG data ..." warnings go to the process's stderr, which is captured meanwhile and
+    passed on otherwise unchanged); None where it had none."""
+    with _STDERR, tempfile.TemporaryFile() as cap:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        try:
+            os.dup2(cap.fileno(), 2)
+            img = cv2.imread(str(path), flags)
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        cap.seek(0)
+        said = cap.read().decode(errors="replace")
+    found = _DECODER_WARNING.search(said)
+    rest = _DECODER_WARNING.sub("", said).strip()
+    if rest:
+        print(rest, file=sys.stderr)
+    return img, found.group(0).strip() if found else None
+
+
 def read_image(path: str | os.PathLike[str]) -> np.ndarray:
-    """Read an image as cv2.imread does: (H, W, 3) uint8 BGR; :class:`ImageError` if unusable."""
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    """Read an image as cv2.imread does: (H, W, 3) uint8 BGR; :class:`ImageError` if it is
+    missing, cannot be decoded, or decodes with the decoder's warnings (corrupt data)."""
+    img, warning = decode(path)
     if img is None:
         what = "missing" if not Path(path).is_file() else "cannot be decoded"
         raise ImageError(f"image {what}: {path}")
+    if warning:
+        raise ImageError(f"image corrupt ({warning}): {path}; restore the file from the data set")
     return img
 
 

@@ -42,6 +42,7 @@ from flowmod.flow.registry import (
     FlowEstimator,
     ImageError,
     available_methods,
+    decode,
     describe_option,
     read_image,
 )
@@ -89,9 +90,10 @@ def _image_problem(path: Path) -> str | None:
         return "truncated JPEG (no end marker)"
     if head.startswith(_PNG_SIG) and b"IEND" not in tail:
         return "truncated PNG (no IEND chunk)"
-    if cv2.imread(str(path), cv2.IMREAD_REDUCED_GRAYSCALE_8) is None:
+    img, warning = decode(path, cv2.IMREAD_REDUCED_GRAYSCALE_8)
+    if img is None:
         return "cannot be decoded"
-    return None
+    return f"corrupt: {warning}" if warning else None
 
 
 def check_images(paths: Sequence[str | os.PathLike[str]], n_jobs: int = 2, show: int = 5) -> None:
