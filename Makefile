@@ -20,6 +20,7 @@ PYTEST_ARGS ?=
 TEST_WORKERS ?= 2
 GC         ?=
 LAB_PORT   ?= 8888
+LAB_KERNELS ?= $(VENV)
 
 RUN_SET    := $(if $(DATAROOT),--set dataroot=$(DATAROOT)) $(foreach s,$(SET),--set $(s))
 
@@ -94,9 +95,9 @@ weights: env  ## download RAFT's checkpoints (needs internet; never run by other
 	$(PY) -m flowmod.weights
 
 lab: env  ## JupyterLab on notebooks/ with the venv's kernel: run a chapter cell by cell (LAB_PORT=8888)
-	@$(PY) -m ipykernel install --sys-prefix --name python3 --display-name 'Python 3 (flowmod)' >/dev/null  # argv: this venv's python
-	$(VENV)/bin/jupyter lab --notebook-dir=notebooks --no-browser --ip=127.0.0.1 --port=$(LAB_PORT) \
-	  $(if $(filter 0,$(shell id -u)),--allow-root)
+	@$(PY) -m ipykernel install --prefix $(LAB_KERNELS) --name python3 --display-name 'Python 3 (flowmod)' >/dev/null  # argv: this venv's python
+	JUPYTER_PATH=$(abspath $(LAB_KERNELS))/share/jupyter $(VENV)/bin/jupyter lab --notebook-dir=notebooks \
+	  --no-browser --ip=127.0.0.1 --port=$(LAB_PORT) $(if $(filter 0,$(shell id -u)),--allow-root)
 
 mutation: env  ## mutation testing of the modules whose numbers reach the book (mutmut; not part of make test)
 	$(PY) benchmarks/mutation.py

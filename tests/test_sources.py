@@ -2,6 +2,7 @@
 
 import re
 from importlib import metadata
+from pathlib import Path
 
 import nbformat
 import papermill
@@ -177,8 +178,23 @@ def test_every_chapter_ends_with_try_it(nb_path):
         assert "--set" in cmd, f"{cmd}: a 'Try it' changes one parameter"
 
 
+def _venv_state() -> dict[str, tuple[bytes, int]]:
+    """What ``make lab`` could rewrite in the venv: its kernelspecs and the editable
+    install's files (which checkout the venv's flowmod points to)."""
+    import sys
+
+    prefix = Path(sys.prefix)
+    files = [*prefix.glob("share/jupyter/kernels/*/kernel.json"),
+             *prefix.glob("lib/python*/site-packages/*flowmod*"),
+             *prefix.glob("lib/python*/site-packages/flowmod-*.dist-info/*")]
+    return {str(f): (f.read_bytes(), f.stat().st_mtime_ns) for f in files if f.is_file()}
+
+
 def test_make_lab_serves_the_notebooks_with_the_venvs_kernel(tmp_path):
-    """``make lab`` starts JupyterLab on notebooks/ whose python3 kernel is this venv's."""
+    """``make lab`` starts JupyterLab on notebooks/ whose python3 kernel is this venv's. The
+    test leaves the environment as it found it: the kernelspec goes to a scratch folder
+    (``LAB_KERNELS``) and ``make -o env`` does not reinstall the venv (from a second
+    checkout sharing it, that would re-point its editable flowmod)."""
     import json
     import os
     import re
@@ -193,7 +209,9 @@ def test_make_lab_serves_the_notebooks_with_the_venvs_kernel(tmp_path):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     env = {**os.environ, "JUPYTER_RUNTIME_DIR": str(tmp_path / "rt")}
-    proc = subprocess.Popen(["make", "--no-print-directory", "lab", f"LAB_PORT={port}"],
+    before = _venv_state()
+    proc = subprocess.Popen(["make", "--no-print-directory", "-o", "env", "lab",
+                             f"LAB_PORT={port}", f"LAB_KERNELS={tmp_path / 'kernels'}"],
                             cwd=repo_root(), env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True)
     try:
@@ -220,9 +238,11 @@ def test_make_lab_serves_the_notebooks_with_the_venvs_kernel(tmp_path):
         assert spec["argv"][0] == sys.executable, spec["argv"]  # the venv's interpreter
         names = {c["name"] for c in get("/api/contents/")["content"]}
         assert {nb.name for nb in notebooks()} <= names
+        assert (tmp_path / "kernels" / "share/jupyter/kernels/python3/kernel.json").is_file()
     finally:
         os.killpg(proc.pid, signal.SIGTERM)
         proc.wait(timeout=30)
+    assert _venv_state() == before, "make lab's test changed the venv"
 
 
 def test_the_package_imports_without_the_heavy_optional_libraries():
