@@ -22,7 +22,17 @@ import torch
 from flowmod import flow as fl
 from flowmod.flow import architectures as fn
 
-torch.set_num_threads(1)  # the test machine is shared
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """The networks here run on one thread (the test machine is shared), and the thread
+    count is restored afterwards: a module-level setting changed it for whichever test
+    happened to import this module first (test_crops does, without xdist)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
 
 
 # --------------------------------------------------------------------------------------------
