@@ -23,7 +23,6 @@ from flowmod import flow as fl
 from flowmod.flow import architectures as fn
 
 
-
 @pytest.fixture(autouse=True, scope="module")
 def _one_thread():
     """The networks here run on one thread (the test machine is shared), and the thread
