@@ -258,6 +258,25 @@ def test_book_builds_offline_with_warnings_as_errors(smoke_run, tmp_path):
     pages = {p: p.read_bytes() for p in out.glob("*.html")}
     book.build(smoke_run["executed"], out)
     assert [p.name for p in pages if p.read_bytes() != pages[p]] == []
+    # a build that fails (a dangling reference: Sphinx -W) or finds another build at work
+    # leaves the published book as it was: it builds into a copy swapped in on success
+    import shutil
+
+    from flowmod.lock import FolderBusy, file_lock
+
+    broken = tmp_path / "broken"
+    shutil.copytree(smoke_run["executed"], broken)
+    nb = nbformat.read(broken / "00_setup.ipynb", as_version=4)
+    nb.cells.append(nbformat.v4.new_markdown_cell("See {ref}`no-such-label`."))
+    nbformat.write(nb, broken / "00_setup.ipynb")
+    with pytest.raises(book.BookError, match="the published book is unchanged"):
+        book.build(broken, out)
+    assert [p.name for p in pages if p.read_bytes() != pages[p]] == []
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".html")) == [
+        ".html.lock"]
+    with file_lock(tmp_path / ".html.lock", "another build"), \
+            pytest.raises(FolderBusy, match=r"html is in use by pid \d+ \(another build"):
+        book.build(smoke_run["executed"], out)
     # and in a real browser: every page loads, every image resolves, no request leaves
     # localhost (headless Chromium, installed by `make browser`)
     from flowmod.report import browser

@@ -23,6 +23,7 @@ from typing import Any
 import nbformat
 import pandas as pd
 
+from flowmod.lock import FolderBusy, file_lock
 from flowmod.paths import repo_root
 
 
@@ -252,16 +253,39 @@ def _sync(src: Path, dst: Path, keep: set[str]) -> None:
 
 
 def build(executed: Path, out: Path, staging: Path | None = None) -> Path:
-    """Assemble and run Sphinx (warnings are errors); returns ``out/index.html``."""
+    """Assemble and run Sphinx (warnings are errors); returns ``out/index.html``.
+
+    One build per ``out`` at a time (a lock file beside it). The book is built into a
+    copy of ``out`` (``.<out>.building``, modification times kept, so Sphinx rewrites only
+    what changed) that replaces ``out`` only when Sphinx succeeds: a build that fails or is
+    killed leaves the published book as it was.
+    """
     out = Path(out).resolve()
     staging = Path(staging or out.parent / "book-src").resolve()
-    info = assemble(Path(executed), staging)
-    es5 = find_mathjax()
-    if es5 is None:
-        raise BookError(
-            "MathJax is not vendored (build/vendor/node_modules/mathjax/es5 missing): run "
-            "`make env` (it runs `npm install --prefix build/vendor mathjax@3`)"
-        )
+    with file_lock(out.with_name(f".{out.name}.lock"), "python -m flowmod.report.book",
+                   what=out):
+        info = assemble(Path(executed), staging)
+        es5 = find_mathjax()
+        if es5 is None:
+            raise BookError(
+                "MathJax is not vendored (build/vendor/node_modules/mathjax/es5 missing): run "
+                "`make env` (it runs `npm install --prefix build/vendor mathjax@3`)"
+            )
+        work = out.with_name(f".{out.name}.building")
+        shutil.rmtree(work, ignore_errors=True)  # what a killed build left
+        if out.is_dir():
+            shutil.copytree(out, work, symlinks=True)
+        try:
+            _sphinx(staging, work, _sphinx_env(staging, es5, info))
+        except BaseException:
+            shutil.rmtree(work, ignore_errors=True)
+            raise
+        _publish(work, out)
+    return out / "index.html"
+
+
+def _sphinx_env(staging: Path, es5: Path, info: dict[str, Any]) -> dict[str, str]:
+    """The environment Sphinx runs in: where the vendored MathJax and the run's media are."""
     extra = staging.parent / "book-extra"
     _sync(es5, extra / "_vendor" / "mathjax", keep=set())
     env = {**os.environ, "FLOWMOD_MATHJAX_EXTRA": str(extra)}
@@ -272,6 +296,11 @@ def build(executed: Path, out: Path, staging: Path | None = None) -> Path:
         pages_extra = staging.parent / "book-media"
         _sync(media, pages_extra / "media", keep=set())
         env["FLOWMOD_PAGES_EXTRA"] = str(pages_extra)
+    return env
+
+
+def _sphinx(staging: Path, out: Path, env: dict[str, str]) -> None:
+    """sphinx-build of ``staging`` into ``out`` (doctrees in ``out/.doctrees``)."""
     cmd = [sys.executable, "-m", "sphinx", "-W", "-n", "--keep-going", "-q", "-b", "html"]
     # Into an empty folder, Sphinx links myst-nb's stylesheet before the file exists, so
     # without its ``?v=`` checksum; a later build adds it and rewrites every page (and a
@@ -282,8 +311,17 @@ def build(executed: Path, out: Path, staging: Path | None = None) -> Path:
         proc = subprocess.run([*cmd, *extra, str(staging), str(out)], env=env)
         if proc.returncode != 0:
             raise BookError(f"sphinx-build failed (exit {proc.returncode}); "
-                            "see the warnings above")
-    return out / "index.html"
+                            "see the warnings above; the published book is unchanged")
+
+
+def _publish(work: Path, out: Path) -> None:
+    """Swap the built ``work`` in as ``out``; the previous book is removed only after."""
+    old = out.with_name(f".{out.name}.old")
+    shutil.rmtree(old, ignore_errors=True)
+    if out.exists():
+        os.replace(out, old)
+    os.replace(work, out)
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -294,8 +332,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         index = build(args.executed, args.out)
-    except BookError as e:
-        print(f"BookError: {e}", file=sys.stderr)
+    except (BookError, FolderBusy) as e:
+        print(f"{type(e).__name__}: {e}", file=sys.stderr)
         return 1
     print(f"book: {index}")
     return 0
