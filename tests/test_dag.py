@@ -178,6 +178,38 @@ def test_a_failed_build_keeps_the_published_result_and_its_fingerprint(toy, tmp_
     assert len(building) == 1 and (building[0] / "half.json").is_file(), "kept to resume"
 
 
+def test_a_damaged_published_file_is_reported_and_rebuilt(toy):
+    """Manifests record each output's size and sha256: a file cut short, changed in place
+    (same size) or removed makes its node "damaged" (status names the file), no longer
+    current, and rebuilt by the next build; nothing of it is kept as a variant (issue 41)."""
+    import os
+
+    g, p = toy
+    g.build(p)
+    node = dag.Node("select")
+    folder = g.node_dir(p, node)
+    out = folder / "out.json"
+    good = out.read_bytes()
+    rec = g.recorded(p, node)
+    assert rec["files"] == {"out.json": {"size": len(good), "sha256": dag.file_digest(out)}}
+    assert g.current(p, node) and dag.damage(folder, rec) is None
+    for harm, words in (
+            (lambda: out.write_bytes(good[:-3]), f"bytes, {len(good)} when it was built"),
+            (lambda: out.write_bytes(good.replace(b"v1", b"v7")), "same size, other content"),
+            (lambda: out.unlink(), "out.json is missing")):
+        harm()
+        st = {str(s.node): s for s in g.status(p)}["select"]
+        assert st.state == "damaged" and str(out) in st.why and words in st.why, st.why
+        assert not g.current(p, node)
+        CALLS.clear()
+        g.build(p, ["02"])
+        assert CALLS == ["select"] and out.read_bytes() == good
+        assert states(g, p)["select"] == "up to date"
+    assert not list(folder.parent.glob(".select.variant-*")), "a damaged copy is not kept"
+    os.utime(out, ns=(1, 1))  # a new time alone, same bytes: read again, still intact
+    assert states(g, p)["select"] == "up to date"
+
+
 def test_force_rebuilds_and_a_missing_input_names_the_chapter(toy):
     g, p = toy
     with pytest.raises(dag.MissingInput, match=r"train\[s0\] reads select.*chapter 02"):

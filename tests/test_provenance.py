@@ -323,6 +323,41 @@ def test_reruns_recompute_exactly_what_changed_and_match_a_fresh_run(finished, t
     assert sorted((run / "flow" / "dis" / "pool").rglob("*.npy")) == pools
 
 
+def test_a_damaged_crops_file_is_reported_and_rebuilt_not_scored(finished, tmp_path):
+    """20 crops zeroed in place (same size, a copied run folder or a bad disk): --status
+    says "damaged" naming the file, the chapter that builds the node runs again (its
+    notebook fingerprint changes), and the next build restores the crops byte for byte
+    before anything is scored (issue 41)."""
+    import numpy as np
+
+    from flowmod import environment, runner
+
+    run = tmp_path / "runs"
+    shutil.copytree(finished.run_path, run, symlinks=True)
+    p = finished.model_copy(update={"run_dir": str(run)})
+    node = dag.Node("crops", "dis", "keyframe")
+    arrays = sorted(f for f in pipeline.node_dir(p, node).glob("*.npy")
+                    if np.load(f, mmap_mode="r").ndim == 4)
+    target = arrays[0]
+    good = target.read_bytes()
+    nb = next(n for n in runner.notebooks() if n.stem.startswith("05"))
+    values, device = runner.notebook_parameters(nb, p), environment.device_info("cpu")
+    clean_fp = runner.notebook_fingerprint(nb, values, p, device)
+    x = np.load(target, mmap_mode="r+")
+    x[:20] = 0
+    x.flush()
+    del x
+    assert target.stat().st_size == len(good) and target.read_bytes() != good
+    st = {s.node: s for s in pipeline.status(p)}[node]
+    assert st.state == "damaged" and str(target) in st.why and "same size" in st.why
+    assert "damaged" in pipeline.format_status(p) and str(target) in pipeline.format_status(p)
+    assert runner.notebook_fingerprint(nb, values, p, device) != clean_fp
+    assert rerun(p) == {node}
+    assert target.read_bytes() == good
+    assert runner.notebook_fingerprint(nb, values, p, device) == clean_fp
+    assert scores(p) == scores(finished)
+
+
 def test_another_world_in_the_same_run_folder_recomputes_flow(finished, tmp_path):
     """The old bug: pair ids repeat across worlds, so flow was reused from the last world."""
     run = tmp_path / "runs"

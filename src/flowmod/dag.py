@@ -239,8 +239,9 @@ def swap_in(src: Path, final: Path) -> None:  # pragma: no mutate block
             shutil.rmtree(aside)
         os.replace(final, aside)
     os.replace(src, final)
-    if aside is not None and old is None:
-        shutil.rmtree(aside, ignore_errors=True)
+    new = read_manifest(final / "manifest.json")
+    if aside is not None and (old is None or (new and new["fingerprint"] == old["fingerprint"])):
+        shutil.rmtree(aside, ignore_errors=True)  # nothing to restore it for
     kept = sorted(final.parent.glob(f".{final.name}.variant-*"), key=_manifest_mtime)
     for d in kept[:-KEEP_VARIANTS] if KEEP_VARIANTS else kept:
         shutil.rmtree(d, ignore_errors=True)
@@ -255,6 +256,34 @@ def results(final: Path) -> list[Path]:
     """A node's published folder and its kept variants (those that exist), newest first."""
     kept = sorted(final.parent.glob(f".{final.name}.variant-*"), key=lambda d: -_manifest_mtime(d))
     return [d for d in (final, *kept) if (d / "manifest.json").is_file()]
+
+
+def output_files(folder: Path, cache: Path | None = None) -> dict[str, dict[str, Any]]:
+    """``{relative path: {"size": bytes, "sha256": hex}}`` of the files a node published in
+    ``folder`` (all but its manifest and hidden files), recorded in its manifest."""
+    out = {}
+    for f in sorted(folder.rglob("*")):
+        rel = f.relative_to(folder)
+        if f.is_file() and rel.name != "manifest.json" and not any(
+                part.startswith(".") for part in rel.parts):
+            out[rel.as_posix()] = {"size": f.stat().st_size, "sha256": file_digest(f, cache)}
+    return out
+
+
+def damage(folder: Path, rec: Mapping[str, Any] | None, cache: Path | None = None) -> str | None:
+    """What is wrong with the files a manifest ``rec`` recorded in ``folder`` (the first
+    missing, resized or changed file), or None (also for manifests that record none)."""
+    for rel, want in (rec or {}).get("files", {}).items():
+        f = folder / rel
+        try:
+            size = f.stat().st_size
+        except OSError:
+            return f"{f} is missing"
+        if size != want["size"]:
+            return f"{f} has {size} bytes, {want['size']} when it was built (cut short?)"
+        if file_digest(f, cache) != want["sha256"]:
+            return f"{f} changed since it was built (same size, other content)"
+    return None
 
 
 @contextlib.contextmanager
@@ -320,7 +349,7 @@ class Build:
         """Write the manifest into the building folder and make it the published one; the
         previous result becomes a variant. Returns the published folder."""
         write_manifest(self.dir / "manifest.json", {**self.payload, "fingerprint": self.fingerprint,
-                                                    **info})
+                                                    **info, "files": output_files(self.dir)})
         swap_in(self.dir, self.final)
         for fn in self._after:
             fn()
@@ -334,7 +363,7 @@ class NodeStatus:
     """One line of :meth:`Graph.status`."""
 
     node: Node
-    state: str  # "up to date" | "stale" | "missing"
+    state: str  # "up to date" | "stale" | "missing" | "damaged"
     why: str
     path: Path
     fingerprint: str | None = None
@@ -450,7 +479,9 @@ class Graph:
             if self.stage(node).source is not None:
                 state, why = self.stage(node).source.status(p)
             elif rec is not None and fp is not None and rec["fingerprint"] == fp:
-                state, why = "up to date", ""
+                broken = damage(path, rec, digest_cache(p))
+                state, why = ("damaged", f"{broken}; the next run rebuilds it") if broken \
+                    else ("up to date", "")
             else:
                 waiting = [i for i in self.inputs(node, p) if out[i].state != "up to date"]
                 state, why = self._stale(p, node, rec, fp, exp, waiting)
@@ -493,7 +524,8 @@ class Graph:
         fp = fingerprint(pl)
         final = self.node_dir(p, node)
         current = read_manifest(final / "manifest.json")
-        up = not p.force and current is not None and current["fingerprint"] == fp
+        up = (not p.force and current is not None and current["fingerprint"] == fp
+              and damage(final, current, digest_cache(p)) is None)
         b = Build(self, node, StageParams(p, node), recs, pl, fp, final, up)
         if not up and not p.force and (variant_dir(final, fp) / "manifest.json").is_file():
             swap_in(variant_dir(final, fp), final)
@@ -536,7 +568,14 @@ class Graph:
         if rec is None:
             return False
         exp = self.expected(p, [node])
-        return exp[node] is not None and rec.get("fingerprint") == exp[node]
+        return (exp[node] is not None and rec.get("fingerprint") == exp[node]
+                and self.damaged(p, node) is None)
+
+    def damaged(self, p: Params, node: Node) -> str | None:
+        """What is wrong with ``node``'s published files (:func:`damage`), or None."""
+        if self.stage(node).source is not None:
+            return None
+        return damage(self.node_dir(p, node), self.recorded(p, node), digest_cache(p))
 
     def built(self, p: Params, node: Node) -> bool:  # pragma: no mutate block
         """:meth:`current` for ``node`` and, recursively, for every input of its chapter (a

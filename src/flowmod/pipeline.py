@@ -99,6 +99,10 @@ def current(p: Params, node: dag.Node) -> bool:
     return GRAPH.current(p, node)
 
 
+def damaged(p: Params, node: dag.Node) -> str | None:
+    return GRAPH.damaged(p, node)
+
+
 def built(p: Params, node: dag.Node) -> bool:
     return GRAPH.built(p, node)
 
