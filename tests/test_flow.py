@@ -514,6 +514,28 @@ def test_pair_keys_follow_the_data_not_the_pair_id(tmp_path):
         fl.stage.pair_keys(pairs, root, "world-A")
 
 
+def test_image_methods_key_each_pair_by_its_two_images_only(tmp_path):
+    """DIS reads only a pair's two images: another world fingerprint (one annotation
+    edited) recomputes nothing, and an image whose content changed (same size) recomputes
+    exactly the pair that reads it; ``gt`` reads the world, and recomputes all (issue 41)."""
+    root, pool = tmp_path / "data", tmp_path / "pool"
+    pairs = make_dataroot(root)
+    kw = {**KW, "dataroot": root, "preset": "fast"}
+    first = fl.compute_flow(pairs, "dis", pool, **kw)
+    edited = fl.compute_flow(pairs, "dis", pool, **{**kw, "world": "w0-one-box-edited"})
+    assert not edited["computed"].any() and list(edited["key"]) == list(first["key"])
+    img = root / pairs.path_1[2]
+    data = bytearray(img.read_bytes())
+    data[-40] ^= 0x01  # one bit of the entropy-coded data: same size, other content
+    img.write_bytes(bytes(data))
+    again = fl.compute_flow(pairs, "dis", pool, **kw)
+    assert list(again.loc[again["computed"], "pair_id"]) == ["p2"]
+    assert (pool / again["file"].iloc[0]).parent.joinpath(".image-digests.json").is_file()
+    keys = fl.stage.pair_keys(pairs, root, "w0", by_images=True)
+    assert keys == list(again["key"]) and fl.stage.pair_keys(pairs, root, "w9", True) == keys
+    assert fl.stage.pair_keys(pairs, root, "w0") != fl.stage.pair_keys(pairs, root, "w9")
+
+
 def test_compute_flow_parallel_matches_direct(tmp_path):
     root = tmp_path / "data"
     pairs = make_dataroot(root, n=3)

@@ -17,7 +17,7 @@ import json
 import os
 import tempfile
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -91,26 +91,35 @@ def file_digest(path: str | os.PathLike[str], cache: str | os.PathLike[str] | No
     """sha256 (hex) of a file's content. ``cache``: a JSON file that remembers digests by
     (resolved path, size, mtime_ns), so a file is read again only when its stat changed (the
     stat only decides whether to re-read: it never enters a digest)."""
-    p = Path(path).resolve()
-    st = p.stat()
-    key = str(p)
+    return file_digests([path], cache)[0]
+
+
+def file_digests(paths: Sequence[str | os.PathLike[str]],
+                 cache: str | os.PathLike[str] | None = None) -> list[str]:
+    """:func:`file_digest` of many files, the cache written once at the end (OSError for a
+    file that cannot be read)."""
     if cache is not None and not _DIGESTS:
         try:
             _DIGESTS.update({k: tuple(v) for k, v in json.loads(Path(cache).read_text()).items()})
         except (OSError, ValueError):
             pass
-    hit = _DIGESTS.get(key)
-    if hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
-        return hit[2]
-    h = hashlib.sha256()
-    with open(p, "rb") as f:
-        for block in iter(lambda: f.read(1 << 22), b""):
-            h.update(block)
-    _DIGESTS[key] = (st.st_size, st.st_mtime_ns, h.hexdigest())
-    if cache is not None:
+    out, new = [], False
+    for path in paths:
+        p = Path(path).resolve()
+        st = p.stat()
+        hit = _DIGESTS.get(str(p))
+        if not (hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns):
+            h = hashlib.sha256()
+            with open(p, "rb") as f:
+                for block in iter(lambda f=f: f.read(1 << 22), b""):
+                    h.update(block)
+            hit = _DIGESTS[str(p)] = (st.st_size, st.st_mtime_ns, h.hexdigest())
+            new = True
+        out.append(hit[2])
+    if cache is not None and new:
         with contextlib.suppress(OSError):
             write_json(cache, _DIGESTS)
-    return h.hexdigest()
+    return out
 
 
 class CheckpointError(ValueError):

@@ -37,7 +37,7 @@ from flowmod import dag, geometry
 from flowmod.artefacts import atomic_path, fingerprint, write_json
 from flowmod.dag import StageParams
 from flowmod.flow import FlowReader, compute_flow, estimator_options, flow_root
-from flowmod.flow.stage import FlowFiles, pair_files, pool_config
+from flowmod.flow.stage import DIGESTS, FlowFiles, pair_files, pool_config
 from flowmod.flow.store import npy_ok, roundtrip
 from flowmod.geometry import GRID, box_samples
 from flowmod.params import Params
@@ -606,7 +606,7 @@ def _crops_from_flow(q: StageParams, method: str, part: str, pairs: pd.DataFrame
     writer, pool = make_writer(q), pool_root(q, method)
     extras = {str(pid): boxes[str(pid)] for pid in pairs["pair_id"]}
     planned = pair_files(pairs, method, q.dataroot_path, world, q.flow_dtype, q.flow_scale,
-                         writer, extras, **estimator_options(q, method))
+                         writer, extras, digests=pool / DIGESTS, **estimator_options(q, method))
     if not q.force:
         restore_pool(pool, planned.values(), writer, sources)
     idx = compute_flow(pairs, method, pool, dataroot=q.dataroot_path, version=q.version,

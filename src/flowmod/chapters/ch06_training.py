@@ -115,3 +115,44 @@ def ablation_words(record: dict[str, Any], params: Params) -> str:
         text += (f" This run's profile trains with **{params.input_scaling}** instead "
                  "(its own choice, not this record's).")
     return text
+
+
+# --- the other steps of the ablation (benchmarks/ablation_steps.json) -------------------------
+
+#: The dated record of the other steps (``benchmarks/bench_ablation.py --steps --record``).
+STEPS_RECORD = "benchmarks/ablation_steps.json"
+
+
+def steps_record() -> dict[str, Any] | None:
+    """The committed record of the ablation's other steps, or None where there is none."""
+    path = repo_root() / STEPS_RECORD
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def steps_table(record: dict[str, Any]) -> pd.DataFrame:
+    """Per step and label set scored against: the recipe's and the variant's mean validation
+    F1 (%), the paired effect (points) with its 95 % t interval over the (method, fold,
+    seed) units, and the seconds a model (training cost)."""
+    df = pd.DataFrame(record["effects"])
+    df["95% interval (points)"] = [f"{lo:+.1f} to {hi:+.1f}" for lo, hi in
+                                   zip(df["low"], df["high"], strict=True)]
+    df["decided"] = np.where((df["low"] > 0) | (df["high"] < 0), "yes", "no")
+    cols = ["step", "variant", "scored against", "units", "recipe (%)", "variant (%)",
+            "effect (points)", "95% interval (points)", "decided", "seconds a model"]
+    return df[cols].round(1)
+
+
+def steps_words(record: dict[str, Any]) -> str:
+    """One sentence per step against the annotated labels (the book's target): its effect,
+    interval and whether it is decided; the record's date and commit."""
+    df = pd.DataFrame(record["effects"])
+    df = df[df["scored against"] == "annotated"]
+    parts = []
+    for r in df.to_dict("records"):
+        sign = "decided" if r["low"] > 0 or r["high"] < 0 else "not decided"
+        parts.append(f"{r['step']} ({r['variant']}): {r['effect (points)']:+.1f} points "
+                     f"({r['low']:+.1f} to {r['high']:+.1f}, {sign})")
+    units = int(df["units"].max()) if len(df) else 0
+    return (f"Against the recipe, on validation rows only ({units} paired (method, fold, "
+            f"seed) units each; run of {record['date']}, commit {record['commit']}): "
+            + "; ".join(parts) + ".")

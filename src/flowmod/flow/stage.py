@@ -4,9 +4,10 @@ Two levels of caching, both keyed so that nothing made from other inputs can eve
 
 * the **pool** of per-pair flow files, ``<run>/flow/<method>/pool/<options>/<pair key>.npy``:
   ``options`` is the fingerprint of the method, its code version, its options with their
-  defaults, the storage dtype and scale; a pair's key is the fingerprint of the world (the
-  data's identity, :func:`flowmod.world.world_fingerprint`), the pair's two sample_data tokens
-  and its image files' names and sizes. Files are written atomically one by one, so a killed
+  defaults, the storage dtype and scale; a pair's key is the fingerprint of what its flow
+  reads (:func:`pair_keys`): for image methods the two image files' names and contents, for
+  ``gt`` the world (the data's identity, :func:`flowmod.world.world_fingerprint`), the pair's
+  two sample_data tokens and its image files' names and sizes. Files are written atomically one by one, so a killed
   run resumes where it stopped; a forced recompute replaces each file only when its new flow
   is written; other options live side by side (switching back costs nothing).
 * the **nodes** ``flow[<method>/<part>]`` (:data:`STAGE`; parts ``keyframe``, ``general``,
@@ -35,7 +36,7 @@ import pandas as pd
 from joblib import Parallel, delayed
 
 from flowmod import dag
-from flowmod.artefacts import atomic_path, file_digest, fingerprint, read_manifest
+from flowmod.artefacts import atomic_path, file_digest, file_digests, fingerprint, read_manifest
 from flowmod.flow.networks import estimator_options
 from flowmod.flow.registry import (
     REGISTRY,
@@ -64,6 +65,8 @@ log = logging.getLogger(__name__)
 
 #: Estimation seconds of each pool file, one JSON line per computed pair (last one wins).
 TIMINGS = "seconds.jsonl"
+#: The stat cache of the images' digests (the image methods' pair keys), in each pool folder.
+DIGESTS = ".image-digests.json"
 
 # --- images --------------------------------------------------------------------------------
 
@@ -155,9 +158,10 @@ def pool_config(method: str, dtype: str, store_scale: float, options: Mapping[st
 
 
 def _keys(pairs: pd.DataFrame, dataroot: str | os.PathLike[str], world: str,
-          extras: Mapping[str, Any] | None) -> list[str]:
+          extras: Mapping[str, Any] | None, by_images: bool = False,
+          cache: Path | None = None) -> list[str]:
     """:func:`pair_keys`, with each pair's ``extras`` entry in its key when given."""
-    keys = pair_keys(pairs, dataroot, world)
+    keys = pair_keys(pairs, dataroot, world, by_images, cache)
     if extras is None:
         return keys
     ids = [str(p) for p in pairs["pair_id"]]
@@ -169,30 +173,38 @@ def _keys(pairs: pd.DataFrame, dataroot: str | os.PathLike[str], world: str,
 
 def pair_files(pairs: pd.DataFrame, method: str, dataroot: str | os.PathLike[str], world: str,
                dtype: str, store_scale: float, writer: FlowFiles | None = None,
-               extras: Mapping[str, Any] | None = None, **options: Any) -> dict[str, str]:
+               extras: Mapping[str, Any] | None = None, digests: Path | None = None,
+               **options: Any) -> dict[str, str]:
     """``{pair_id: file}``: where :func:`compute_flow` with the same arguments keeps each
-    pair (relative to the pool root), computing nothing."""
+    pair (relative to the pool root), computing nothing (``digests``: a stat cache of the
+    images' digests)."""
     writer = writer or FlowFiles(dtype, store_scale)
     opts_fp = fingerprint(pool_config(method, dtype, store_scale, options, writer))
-    keys = _keys(pairs, dataroot, world, extras)
+    keys = _keys(pairs, dataroot, world, extras, REGISTRY[method].inputs == "images", digests)
     return {str(p): f"{opts_fp}/{k}.npy" for p, k in zip(pairs["pair_id"], keys, strict=True)}
 
 
-def pair_keys(pairs: pd.DataFrame, dataroot: str | os.PathLike[str], world: str) -> list[str]:
-    """Per-pair cache keys: fingerprint of (world, sample_data tokens, image names and sizes).
+def pair_keys(pairs: pd.DataFrame, dataroot: str | os.PathLike[str], world: str,
+              by_images: bool = False, cache: Path | None = None) -> list[str]:
+    """Per-pair cache keys, each from what the pair's flow reads. Image methods
+    (``by_images``: DIS, Farneback, the networks): the two image files' names and sha256
+    (``cache``: a stat cache of those digests), so an edited annotation or another pair's
+    image leaves the key alone. Token methods (``gt``, read from the world's records): the
+    world's fingerprint, the two sample_data tokens and the images' names and sizes.
 
     A missing image raises :class:`ImageError` naming it."""
     root = Path(dataroot)
+    rels = [str(rel) for r in pairs.itertuples(index=False) for rel in (r.path_1, r.path_2)]
+    missing = next((rel for rel in rels if not (root / rel).is_file()), None)
+    if missing is not None:
+        raise ImageError(f"image missing: {root / missing}")
+    what = (file_digests([root / rel for rel in rels], cache) if by_images
+            else [(root / rel).stat().st_size for rel in rels])
     keys = []
-    for r in pairs.itertuples(index=False):
-        sizes = []
-        for rel in (r.path_1, r.path_2):
-            try:
-                sizes.append((str(rel), (root / rel).stat().st_size))
-            except OSError:
-                raise ImageError(f"image missing: {root / rel}") from None
-        keys.append(fingerprint({"world": world, "sd": [r.sd_token_1, r.sd_token_2],
-                                 "images": sizes}))
+    for i, r in enumerate(pairs.itertuples(index=False)):
+        images = [(rels[2 * i], what[2 * i]), (rels[2 * i + 1], what[2 * i + 1])]
+        keys.append(fingerprint({"images": images}) if by_images else fingerprint(
+            {"world": world, "sd": [r.sd_token_1, r.sd_token_2], "images": images}))
     return keys
 
 
@@ -340,7 +352,7 @@ def compute_flow(
     pool, opts_fp = _open_pool(Path(pool_root), pool_config(method, dtype, store_scale, options,
                                                             writer))
     root = Path(dataroot)
-    keys = _keys(pairs, root, world, extras)
+    keys = _keys(pairs, root, world, extras, cls.inputs == "images", pool / DIGESTS)
     extra = [None] * len(ids) if extras is None else [extras[i] for i in ids]
     todo = [i for i, k in enumerate(keys) if force or not writer.complete(pool / f"{k}.npy")]
     rows = pairs.iloc[todo]
