@@ -158,3 +158,35 @@ def test_the_landing_page_quotes_decided_comparisons_as_decided():
     assert w["headline_vs_oracle"].endswith("or more)") and "undecided" in w["headline_vs_oracle"]
     assert ch07.landing_words(table.iloc[:1], load_profile("demo"))["headline_vs_oracle"] == (
         "not in this profile")
+
+
+def test_a_figure_that_shows_nothing_is_refused(tmp_path):
+    """viz.show refuses a figure with an axes but no data on it (no artist, all-NaN data,
+    only a reference line, bars of height 0) or a legend entry counting n=0, naming the
+    file: chapter 02's histogram of three empty splits was published with a confident
+    caption (issue 39)."""
+    import matplotlib.pyplot as plt
+
+    from flowmod.report import viz
+
+    def hist(values: dict) -> plt.Figure:
+        return viz.histogram(values, bins=np.arange(30, 72.5, 2.5), xlabel="m", vline=50.0)
+
+    empty = hist({"train": [], "val": [], "test": []})
+    assert "counts nothing" in "; ".join(viz.figure_problems(empty))
+    with pytest.raises(viz.EmptyFigure, match=r"dist.png: .*'train \(n=0\)' counts nothing"):
+        viz.show(empty, tmp_path / "dist.png")
+    assert not (tmp_path / "dist.png").exists()
+    fig, ax = plt.subplots()
+    ax.plot([1, 2], [np.nan, np.nan])
+    ax.axvline(1.5)
+    assert viz.figure_problems(fig) == ["'axes 0' has no data", "no axes has data"]
+    fig, ax = plt.subplots()
+    ax.bar([1, 2], [0, 0])
+    ax.set_title("F1")
+    assert viz.figure_problems(fig)[0] == "'F1' has no data"
+    good = hist({"f0": [31.0, 45.0], "f1": [60.0]})
+    assert viz.figure_problems(good) == []
+    grid = viz.frames_grid([np.zeros((4, 6, 3), np.uint8)] * 3, ["a", "b", "c"], ncols=2)
+    assert viz.figure_problems(grid) == []  # the fourth cell is switched off
+    plt.close("all")

@@ -38,3 +38,22 @@ def step_counts(sel: Selection) -> pd.DataFrame:
         ("generalisation objects", int((obj["set"] == "general").sum())),
     ]
     return pd.DataFrame(rows, columns=["step", "count"])
+
+
+def distance_groups(objects: pd.DataFrame) -> dict[str, pd.Series]:
+    """Keyframe targets' distances (m) by the unit the models are scored on: each split
+    present, as ``split`` (``f0``, ``f1``, ... with cross-validation; train/val/test with
+    one split), in their order of appearance sorted by name."""
+    key = objects[objects["set"] == "keyframe"]
+    return {str(s): key.loc[key["split"] == s, "distance"]
+            for s in sorted(key["split"].unique())}
+
+
+def distance_words(groups: dict[str, pd.Series]) -> str:
+    """What the distance histogram shows, from its data: each group's count, range and
+    median (m)."""
+    parts = [f"{name}: {len(d)} vehicles, {d.min():.1f}-{d.max():.1f} m, median "
+             f"{d.median():.1f} m" for name, d in groups.items() if len(d)]
+    empty = [name for name, d in groups.items() if not len(d)]
+    text = "; ".join(parts) + "."
+    return text + (f" No vehicle in {', '.join(empty)}." if empty else "")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -12,7 +13,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 from IPython.display import Image, display
-from matplotlib.patches import FancyArrowPatch, FancyBboxPatch
+from matplotlib.patches import FancyArrowPatch, FancyBboxPatch, Rectangle
 
 from flowmod.artefacts import atomic_path
 from flowmod.crops import crop_image
@@ -35,12 +36,58 @@ PIPELINE = [
 ]
 
 
+class EmptyFigure(ValueError):
+    """A figure would show nothing (names the file and what is empty)."""
+
+
+def _finite(a: Any) -> bool:
+    a = np.ma.filled(np.asarray(a, dtype=float).ravel(), np.nan) if np.size(a) else np.array([])
+    return bool(np.isfinite(a).any())
+
+
+def _has_data(ax: plt.Axes) -> bool:
+    """True if ``ax`` draws data: a line in data coordinates, a bar or shape of some size,
+    a collection or an image with a finite value (reference lines such as axvline and
+    zero-height bars do not count)."""
+    lines = [ln for ln in ax.lines if ln.get_transform() == ax.transData
+             and _finite(ln.get_xdata()) and _finite(ln.get_ydata())]
+    bars = [pt for pt in ax.patches if not isinstance(pt, Rectangle)
+            or (pt.get_height() != 0 and pt.get_width() != 0
+                and _finite([pt.get_height(), pt.get_width()]))]
+    cols = [c for c in ax.collections if len(c.get_offsets()) and _finite(c.get_offsets())
+            or any(len(pth.vertices) and _finite(pth.vertices) for pth in c.get_paths())]
+    imgs = [im for im in ax.images if _finite(im.get_array())]
+    return bool(lines or bars or cols or imgs)
+
+
+def figure_problems(fig: plt.Figure) -> list[str]:
+    """Why ``fig`` would mislead: an axes that is shown without any data on it, or a legend
+    entry that counts nothing (``n=0``). Empty list: fine."""
+    out = []
+    for i, ax in enumerate(fig.axes):
+        name = ax.get_title() or ax.get_ylabel() or f"axes {i}"
+        if ax.axison and not _has_data(ax):
+            out.append(f"{name!r} has no data")
+        leg = ax.get_legend()
+        for t in leg.get_texts() if leg else []:
+            if re.search(r"\bn\s*=\s*0\b", t.get_text()):
+                out.append(f"{name!r}: legend entry {t.get_text()!r} counts nothing")
+    if not any(_has_data(ax) or (not ax.axison and ax.texts) for ax in fig.axes):
+        out.append("no axes has data")
+    return out
+
+
 def show(fig: plt.Figure, path: str | Path, dpi: int = 110) -> None:
     """Save ``fig`` as a PNG file, close it, and display the file in the notebook.
 
-    Figures enter the book as files (``runs/<profile>/figures/``), shown once.
+    Figures enter the book as files (``runs/<profile>/figures/``), shown once. A figure that
+    would show nothing (:func:`figure_problems`) raises :class:`EmptyFigure` instead.
     """
     path = Path(path)
+    problems = figure_problems(fig)
+    if problems:
+        plt.close(fig)
+        raise EmptyFigure(f"{path.name}: {'; '.join(problems)}")
     path.parent.mkdir(parents=True, exist_ok=True)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
