@@ -122,7 +122,7 @@ def test_table4_rows_format_each_ranges_seed_summary(tmp_path):
             want = round(100 * s[key], 1)
             assert row[name] == want or (np.isnan(want) and np.isnan(row[name])), name
         assert row["seed range (%)"] == ev.span(s["f1_min"], s["f1_max"])
-        assert row["F1 95% CI, scenes and seeds (%)"] == ev.span(*s["ci"])
+        assert row["F1 95% CI, scenes and seeds (%)"] == ev.ci_text(s["ci"], s["n_scenes"])
         assert row["seed SD (points)"] == ev.points(s["seed_sd"])
         assert row["always moving F1 (%)"] == ev.points(ev.always_moving_f1(d[col]))
     assert np.isnan(t.iloc[2]["F1 (%)"]) and t.iloc[2]["F1 95% CI, scenes and seeds (%)"] == "-", \

@@ -302,7 +302,7 @@ def test_comparison_table_interval_in_points():
     r = {"delta_f1": 0.15, "ci": (0.1, 0.2), "per_seed": [0.15], "p_not_better": 0.0,
          "n_scenes": 3, "n": 30}
     t = ev.comparison_table({"A - B": r})
-    assert t.loc[0, "95% CI, scenes and seeds (points)"] == "10.0 to 20.0"
+    assert t.loc[0, "95% CI, scenes and seeds (points)"] == "10.0 to 20.0 (3 scenes: too few)"
     assert list(t.columns) == ev.COMPARISON_COLUMNS
     empty = ev.comparison_table({})
     assert len(empty) == 0 and list(empty.columns) == ev.COMPARISON_COLUMNS, "columns kept"
@@ -575,3 +575,13 @@ def test_chance_reference_and_balanced_accuracy():
     t = ev.table3({"x": s})
     assert t.loc[0, "always moving F1 (%)"] == "40.0" and t.loc[0, "training seeds"] == 2
     assert t.loc[0, "balanced accuracy (%)"] == "91.7" and ev.CI_COLUMN in t
+
+
+def test_an_interval_over_few_scenes_is_flagged():
+    """A bootstrap over fewer than 10 scenes is shown flagged (issue 39: "> 70 m" had an
+    interval 0.0-91.6 from 3 scenes); from 10 scenes on it is shown as it is."""
+    assert ev.ci_text((0.0, 0.916), 3) == "0.0-91.6 (3 scenes: too few)"
+    assert ev.ci_text((0.0, 0.916), ev.MIN_SCENES) == "0.0-91.6"
+    assert ev.ci_text((0.1, 0.2), 9, sep=" to ") == "10.0 to 20.0 (9 scenes: too few)"
+    assert ev.ci_text((float("nan"), 0.2), 3) == "-"  # undefined stays undefined, unflagged
+    assert ev.ci_text(None, 3) == "" and ev.ci_text((0.1, 0.2), "") == "10.0-20.0"

@@ -34,7 +34,7 @@ def test_table3_every_cell():
         "R (%)": [73.5, 100.0, 95.0],
         "balanced accuracy (%)": ["-", "-", "-"],
         "always moving F1 (%)": ["-", "-", "-"],
-        "F1 95% CI, scenes and seeds (%)": ["60.5-91.5", "", ""],
+        "F1 95% CI, scenes and seeds (%)": ["60.5-91.5 (6 scenes: too few)", "", ""],
         "scenes": [6, "", ""],
         "objects": [409, "", ""],
         "vehicles": [47, "", ""],
@@ -52,7 +52,7 @@ def test_comparison_table_every_cell():
                          "n_scenes": 5, "n": 409}}
     want = pd.DataFrame({
         "comparison": ["gt - dis"], "ΔF1 (points)": [3.1],
-        "95% CI, scenes and seeds (points)": ["-1.5 to 8.5"],
+        "95% CI, scenes and seeds (points)": ["-1.5 to 8.5 (5 scenes: too few)"],
         "verdict": ["undecided"], "detectable (points)": [float("nan")],
         "per seed (points)": ["+2.0, -1.1, +5.0"],
         "replicates with A <= B (%)": [12.3], "scenes": [5], "objects": [409],
@@ -114,12 +114,12 @@ def test_chapter07_answer_says_decided_only_when_the_interval_excludes_0():
 
     table = ev.comparison_table({
         "gt - dis": {"delta_f1": 0.03, "ci": (0.01, 0.05), "detectable": 0.02,
-                     "per_seed": [0.03], "p_not_better": 0.0, "n_scenes": 9, "n": 90},
+                     "per_seed": [0.03], "p_not_better": 0.0, "n_scenes": 29, "n": 90},
         "dis - farneback": {"delta_f1": -0.01, "ci": (-0.03, 0.01), "detectable": 0.03,
-                            "per_seed": [-0.01], "p_not_better": 0.8, "n_scenes": 9, "n": 90},
+                            "per_seed": [-0.01], "p_not_better": 0.8, "n_scenes": 29, "n": 90},
         "gt: classifier - oracle rule": {
             "delta_f1": -0.04, "ci": (-0.06, -0.02), "detectable": 0.02, "per_seed": [-0.04],
-            "p_not_better": 1.0, "n_scenes": 9, "n": 90}})
+            "p_not_better": 1.0, "n_scenes": 29, "n": 90}})
     words = ch07.answer(table).split("; gt: classifier")
     assert words[0].startswith("gt - dis: +3.0 F1 points (95 % interval over scenes and "
                                "training seeds 1.0 to 5.0), decided: the first is better")
@@ -149,7 +149,7 @@ def test_the_landing_page_quotes_decided_comparisons_as_decided():
     from flowmod.chapters import ch07_evaluation as ch07
     from flowmod.params import load_profile
 
-    row = {"detectable": 0.02, "per_seed": [0.0], "p_not_better": 0.0, "n_scenes": 9, "n": 90}
+    row = {"detectable": 0.02, "per_seed": [0.0], "p_not_better": 0.0, "n_scenes": 29, "n": 90}
     table = ev.comparison_table({
         "gt - dis": {**row, "delta_f1": 0.022, "ci": (0.002, 0.044)},
         "dis: classifier - oracle rule": {**row, "delta_f1": 0.021, "ci": (-0.009, 0.05)}})

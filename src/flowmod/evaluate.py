@@ -25,6 +25,7 @@ from flowmod.crops import (
 from flowmod.metrics import (
     CI_COLUMN,
     apply_threshold,
+    ci_text,
     fit_threshold,
     metrics,
     paired_comparison,
@@ -318,7 +319,7 @@ def table4(preds: Mapping[str, pd.DataFrame], max_distance: float) -> pd.DataFra
                              "seed SD (points)": points(s["seed_sd"]),
                              "balanced accuracy (%)": points(s["balanced_accuracy"]),
                              "always moving F1 (%)": points(s["always_moving_f1"]),
-                             CI_COLUMN: span(*s["ci"])})
+                             CI_COLUMN: ci_text(s["ci"], s["n_scenes"])})
     return pd.DataFrame(rows)
 
 

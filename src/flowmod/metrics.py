@@ -446,6 +446,24 @@ def span(lo: Any, hi: Any, sep: str = "-") -> str:
     return "-" if "-" in (a, b) else f"{a}{sep}{b}"
 
 
+#: Fewer scenes than this, and a bootstrap interval over scenes is not to be trusted: it is
+#: shown flagged (:func:`ci_text`).
+MIN_SCENES = 10
+
+
+def ci_text(ci: Any, n_scenes: Any, sep: str = "-") -> str:
+    """:func:`span` of an interval over scenes, flagged "(n scenes: too few)" where it
+    resamples fewer than :data:`MIN_SCENES`."""
+    if ci is None:
+        return ""
+    text = span(*ci, sep=sep)
+    try:
+        few = int(n_scenes) < MIN_SCENES
+    except (TypeError, ValueError):
+        few = False
+    return f"{text} ({int(n_scenes)} scenes: too few)" if few and text != "-" else text
+
+
 def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
     """The paper's Table 3 from per-method results (:func:`seed_summary` dicts, or any dict
     with f1, precision, recall and optionally f1_min/f1_max, seeds, training_seeds, seed_sd,
@@ -479,7 +497,7 @@ def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) 
             "R (%)": round(100 * float(r["recall"]), 1),
             "balanced accuracy (%)": points(r.get("balanced_accuracy", float("nan"))),
             "always moving F1 (%)": points(r.get("always_moving_f1", float("nan"))),
-            CI_COLUMN: span(*ci) if ci is not None else "",
+            CI_COLUMN: ci_text(ci, r.get("n_scenes")),
             "scenes": r.get("n_scenes", ""),
             "objects": r.get("n", ""),
             "vehicles": r.get("n_instances", ""),
@@ -512,7 +530,7 @@ def comparison_table(rows: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
         out.append({
             "comparison": name,
             "ΔF1 (points)": round(100 * r["delta_f1"], 1),
-            "95% CI, scenes and seeds (points)": span(*r["ci"], sep=" to "),
+            "95% CI, scenes and seeds (points)": ci_text(r["ci"], r["n_scenes"], sep=" to "),
             "verdict": verdict(r["ci"]),
             "detectable (points)": round(100 * r.get("detectable", float("nan")), 1),
             f"per {unit} (points)": ", ".join(points(d, "+.1f") for d in r["per_seed"]),

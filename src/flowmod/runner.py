@@ -40,6 +40,7 @@ from jupyter_client.manager import AsyncKernelManager
 
 from flowmod import environment, pipeline, progress
 from flowmod.artefacts import atomic_path, fingerprint, write_json
+from flowmod.chapters.ch06_training import ABLATION_RECORD, STEPS_RECORD
 from flowmod.flow.networks import planned_methods
 from flowmod.lock import FolderBusy, folder_lock
 from flowmod.params import Params, ProfileError, load_profile, parse_overrides, profile_path
@@ -147,11 +148,26 @@ def code_digest() -> str:
                         for f in sorted(pkg.rglob("*.py"))])
 
 
+#: Committed records that chapters show (dated benchmark runs): their content enters every
+#: notebook's fingerprint, so a new record re-executes the chapters instead of reusing a copy.
+RECORDS = (ABLATION_RECORD, STEPS_RECORD)
+
+
+def records_digest() -> dict[str, str | None]:
+    """sha256 of each of :data:`RECORDS` (None where absent)."""
+    out = {}
+    for rel in RECORDS:
+        f = repo_root() / rel
+        out[rel] = hashlib.sha256(f.read_bytes()).hexdigest() if f.is_file() else None
+    return out
+
+
 def notebook_fingerprint(nb: Path, values: dict[str, Any], p: Params,
                          device: dict[str, Any]) -> str | None:
     """What an executed chapter depends on: its source cells, the parameters it received,
     the fingerprints of every node of its and earlier chapters (:mod:`flowmod.dag`) and
-    whether each is built, the library's code and the device; None while one of those
+    whether each is built, the library's code, the records chapters show (:data:`RECORDS`)
+    and the device; None while one of those
     nodes cannot be known yet."""
     chapter = nb.stem[:2]
     exp = {n: fp for n, fp in pipeline.expected(p).items() if pipeline.chapter(n) <= chapter}
@@ -165,7 +181,7 @@ def notebook_fingerprint(nb: Path, values: dict[str, Any], p: Params,
     cells = [(c.cell_type, c.source, sorted(c.metadata.get("tags", [])))
              for c in nbformat.read(str(nb), as_version=4).cells]
     return fingerprint({"cells": cells, "parameters": values, "nodes": nodes,
-                        "code": code_digest(), "device": device})
+                        "code": code_digest(), "records": records_digest(), "device": device})
 
 
 def _executed_stamp(target: Path) -> dict[str, Any]:
