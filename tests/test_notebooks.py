@@ -262,7 +262,7 @@ def test_book_builds_offline_with_warnings_as_errors(smoke_run, tmp_path):
     # leaves the published book as it was: it builds into a copy swapped in on success
     import shutil
 
-    from flowmod.lock import FolderBusy, file_lock
+    from flowmod.lock import FolderBusy
 
     broken = tmp_path / "broken"
     shutil.copytree(smoke_run["executed"], broken)
@@ -274,9 +274,26 @@ def test_book_builds_offline_with_warnings_as_errors(smoke_run, tmp_path):
     assert [p.name for p in pages if p.read_bytes() != pages[p]] == []
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".html")) == [
         ".html.lock"]
-    with file_lock(tmp_path / ".html.lock", "another build"), \
-            pytest.raises(FolderBusy, match=r"html is in use by pid \d+ \(another build"):
-        book.build(smoke_run["executed"], out)
+    import os
+    import subprocess
+    import sys
+
+    from flowmod import lock
+
+    holder = subprocess.Popen(  # another process builds the book
+        [sys.executable, "-c", "import sys, time; from flowmod.lock import file_lock\n"
+         f"with file_lock({str(tmp_path / '.html.lock')!r}, 'another build'):\n"
+         "    print('held', flush=True); time.sleep(60)"],
+        stdout=subprocess.PIPE, text=True,
+        env={k: v for k, v in os.environ.items() if k != lock.ENV})
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(FolderBusy, match=r"html is in use by pid \d+ \(another build"):
+            book.build(smoke_run["executed"], out)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert [p.name for p in pages if p.read_bytes() != pages[p]] == []
     # and in a real browser: every page loads, every image resolves, no request leaves
     # localhost (headless Chromium, installed by `make browser`)
     from flowmod.report import browser

@@ -245,10 +245,11 @@ def test_stage_reading_an_undeclared_parameter_fails(finished):
 # --- real reruns ------------------------------------------------------------------------------
 
 def snapshot(run: Path) -> dict[Path, tuple[int, int]]:
-    """Every artefact file with its (mtime, inode); kept variants, building folders and the
-    append-only timing logs of the flow pools are not artefacts of a node."""
+    """Every artefact file with its (mtime, inode); kept variants, building folders, digest
+    caches and the append-only timing logs of the flow pools are not artefacts of a node."""
     return {f: (f.stat().st_mtime_ns, f.stat().st_ino) for f in run.rglob("*")
-            if f.is_file() and f.name not in (".digests.json", "seconds.jsonl", ".flowmod.lock")
+            if f.is_file() and f.name not in (".digests.json", ".image-digests.json",
+                                              "seconds.jsonl", ".flowmod.lock")
             and not any(".variant-" in x or ".building-" in x for x in f.parts)}
 
 

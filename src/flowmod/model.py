@@ -222,7 +222,7 @@ def predict_logits(
     try:
         with torch.inference_mode():
             for sl in _batches(len(x), batch_size):
-                xb = torch.from_numpy(np.ascontiguousarray(x[sl]))  # stored dtype: fewer bytes
+                xb = torch.from_numpy(np.array(x[sl]))  # a copy in the stored dtype: fewer bytes
                 xb = xb.to(dev, non_blocking=True).float()  # to move; converted there
                 xb = xb.contiguous(memory_format=torch.channels_last)
                 with torch.autocast(dev.type, dtype=dtype, enabled=dtype is not None):

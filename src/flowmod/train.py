@@ -196,9 +196,12 @@ class StreamedCrops:
 
 def crop_source(x: Any, y: np.ndarray, dev: torch.device, workers: int = 0,
                 resident_bytes: int = RESIDENT_BYTES) -> ResidentCrops | StreamedCrops:
-    """Where training batches come from: the whole array on the device when it fits
-    (``resident_bytes``; on CUDA also a quarter of the free memory), else streamed."""
-    nbytes = int(np.prod(x.shape)) * np.dtype(getattr(x, "dtype", np.float32)).itemsize
+    """Where training batches come from: the whole array (a numpy array or memmap) on the
+    device when it fits (``resident_bytes``; on CUDA also a quarter of the free memory), else
+    streamed (also any other array-like, such as chapter 10's inputs built per batch)."""
+    if not isinstance(x, np.ndarray):  # an array-like that assembles its crops per batch
+        return StreamedCrops(x, y, dev, workers)
+    nbytes = int(x.nbytes)
     limit = int(resident_bytes)
     if dev.type == "cuda":
         limit = min(limit, torch.cuda.mem_get_info(dev)[0] // 4)
