@@ -273,8 +273,9 @@ def test_chapter10_headline_asks_the_profiles_questions_in_order():
 
 def test_a_new_record_re_executes_the_chapters_that_could_show_it(smoke_built, tmp_path,
                                                                   monkeypatch):
-    """Chapter 06 shows committed ablation records: a notebook's fingerprint holds their
-    content, so a new or changed record re-executes it instead of reusing its copy."""
+    """Chapter 06 shows committed ablation records: its fingerprint holds their content, so
+    a new or changed record re-executes it instead of reusing its copy; a chapter that shows
+    none keeps its copy."""
     from flowmod import environment, runner
 
     nb = next(n for n in runner.notebooks() if n.stem.startswith("06"))
@@ -282,10 +283,15 @@ def test_a_new_record_re_executes_the_chapters_that_could_show_it(smoke_built, t
     device = environment.device_info("cpu")
     before = runner.notebook_fingerprint(nb, values, smoke_built, device)
     rec = tmp_path / "record.json"
-    monkeypatch.setattr(runner, "RECORDS", (*runner.RECORDS, str(rec)))
+    monkeypatch.setattr(runner, "RECORDS", {"06": (*runner.RECORDS["06"], str(rec))})
     absent = runner.notebook_fingerprint(nb, values, smoke_built, device)
     rec.write_text('{"rows": []}')
     changed = runner.notebook_fingerprint(nb, values, smoke_built, device)
     assert len({before, absent, changed}) == 3
     rec.write_text('{"rows": [1]}')
     assert runner.notebook_fingerprint(nb, values, smoke_built, device) not in (absent, changed)
+    other = next(n for n in runner.notebooks() if n.stem.startswith("07"))  # shows no record
+    v7 = runner.notebook_parameters(other, smoke_built)
+    fp7 = runner.notebook_fingerprint(other, v7, smoke_built, device)
+    rec.write_text('{"rows": [2]}')
+    assert runner.notebook_fingerprint(other, v7, smoke_built, device) == fp7

@@ -148,15 +148,15 @@ def code_digest() -> str:
                         for f in sorted(pkg.rglob("*.py"))])
 
 
-#: Committed records that chapters show (dated benchmark runs): their content enters every
-#: notebook's fingerprint, so a new record re-executes the chapters instead of reusing a copy.
-RECORDS = (ABLATION_RECORD, STEPS_RECORD)
+#: Committed records that chapters show (dated benchmark runs), by chapter: their content
+#: enters that chapter's fingerprint, so a new record re-executes it instead of reusing a copy.
+RECORDS = {"06": (ABLATION_RECORD, STEPS_RECORD)}
 
 
-def records_digest() -> dict[str, str | None]:
-    """sha256 of each of :data:`RECORDS` (None where absent)."""
+def records_digest(chapter: str) -> dict[str, str | None]:
+    """sha256 of each of the records ``chapter`` shows (:data:`RECORDS`; None where absent)."""
     out = {}
-    for rel in RECORDS:
+    for rel in RECORDS.get(chapter, ()):
         f = repo_root() / rel
         out[rel] = hashlib.sha256(f.read_bytes()).hexdigest() if f.is_file() else None
     return out
@@ -181,7 +181,8 @@ def notebook_fingerprint(nb: Path, values: dict[str, Any], p: Params,
     cells = [(c.cell_type, c.source, sorted(c.metadata.get("tags", [])))
              for c in nbformat.read(str(nb), as_version=4).cells]
     return fingerprint({"cells": cells, "parameters": values, "nodes": nodes,
-                        "code": code_digest(), "records": records_digest(), "device": device})
+                        "code": code_digest(), "records": records_digest(chapter),
+                        "device": device})
 
 
 def _executed_stamp(target: Path) -> dict[str, Any]:
