@@ -190,3 +190,31 @@ def test_a_figure_that_shows_nothing_is_refused(tmp_path):
     grid = viz.frames_grid([np.zeros((4, 6, 3), np.uint8)] * 3, ["a", "b", "c"], ncols=2)
     assert viz.figure_problems(grid) == []  # the fourth cell is switched off
     plt.close("all")
+
+
+def test_the_committed_ablation_steps_record_is_its_rows():
+    """Chapter 06 shows benchmarks/ablation_steps.json: its effects are the paired
+    differences of its own rows (recomputed here), every row is a validation score, and the
+    chapter's table and words say what the record says."""
+    import sys
+
+    from flowmod.chapters import ch06_training as ch06
+    from flowmod.paths import repo_root
+
+    rec = ch06.steps_record()
+    if rec is None:
+        pytest.skip("no ablation_steps.json committed")
+    sys.path.insert(0, str(repo_root() / "benchmarks"))
+    import bench_ablation
+
+    rows = pd.DataFrame(rec["rows"]).assign(seconds=0.0)
+    again = bench_ablation.step_effects(rows)
+    stored = pd.DataFrame(rec["effects"])
+    for col in ("effect (points)", "low", "high", "recipe (%)", "variant (%)"):
+        np.testing.assert_allclose(again[col], stored[col], atol=0.011)
+    assert rows["val_f1"].between(0, 1).all() and set(rows["step"]) >= {"recipe"}
+    table = ch06.steps_table(rec)
+    assert list(table["step"]) == list(stored["step"])
+    words = ch06.steps_words(rec)
+    for r in stored[stored["scored against"] == "annotated"].to_dict("records"):
+        assert f"{r['step']} ({r['variant']}): {r['effect (points)']:+.1f} points" in words
