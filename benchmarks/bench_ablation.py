@@ -38,7 +38,6 @@ import time
 from pathlib import Path
 
 import pandas as pd
-import yaml
 
 from flowmod import pipeline
 from flowmod.artefacts import write_json
@@ -46,7 +45,7 @@ from flowmod.crops import fold_crops
 from flowmod.dag import Node
 from flowmod.metrics import metrics
 from flowmod.model import INPUT_MODES, load_model, predict
-from flowmod.params import load_profile
+from flowmod.params import ProfileError, load_profile, parse_overrides
 from flowmod.paths import repo_root
 from flowmod.train import TrainSettings, train_model
 
@@ -56,13 +55,12 @@ RULE = ("the input scaling with the highest mean validation F1 over every method
 
 
 def _overrides(pairs: list[str]) -> dict:
-    out = {}
-    for item in pairs:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise SystemExit(f"--set {item!r}: expected key=value, e.g. epochs=12")
-        out[key.strip()] = yaml.safe_load(value)
-    return out
+    """``--set key=value`` items as a dict (:func:`flowmod.params.parse_overrides`); a bad
+    item ends the run with its one-line message."""
+    try:
+        return parse_overrides(pairs)
+    except ProfileError as e:
+        raise SystemExit(f"{e} (e.g. --set epochs=12)") from None
 
 
 def run(methods: list[str], modes: list[str], seeds: int, over: dict) -> pd.DataFrame:

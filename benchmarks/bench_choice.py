@@ -22,26 +22,22 @@ import subprocess
 import sys
 import time
 
-import yaml
-
 from flowmod import pipeline
 from flowmod.artefacts import write_json
 from flowmod.chapters.common import results
 from flowmod.evaluate import paired, scored
 from flowmod.metrics import comparison_table
-from flowmod.params import load_profile
+from flowmod.params import ProfileError, load_profile, parse_overrides
 from flowmod.paths import repo_root
 
 
 def _overrides(pairs: list[str]) -> dict:
-    """``key=value`` strings as a dict, each value read as a YAML scalar."""
-    out = {}
-    for item in pairs:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise SystemExit(f"--set {item!r}: expected key=value, e.g. model_width=64")
-        out[key.strip()] = yaml.safe_load(value)
-    return out
+    """``--set key=value`` items as a dict (:func:`flowmod.params.parse_overrides`); a bad
+    item ends the run with its one-line message."""
+    try:
+        return parse_overrides(pairs)
+    except ProfileError as e:
+        raise SystemExit(f"{e} (e.g. --set model_width=64)") from None
 
 
 def main(argv: list[str] | None = None) -> int:
