@@ -79,9 +79,8 @@ def _estimator(method: str, dev: torch.device, scale: float, batch: int,
         opts = estimator_options(load_profile("demo"), "fastflownet")
         return get_estimator("fastflownet", weights=opts["weights"], device=dev, scale=scale,
                              batch_size=batch)
-    arch = {"raft_large": "raft_large", "raft_small": "raft_small"}[method]
     name = "raft" if method == "raft_large" else "raft_small"
-    return get_estimator(name, model=build_raft(arch), device=dev, scale=scale,
+    return get_estimator(name, model=build_raft(method), device=dev, scale=scale,
                          batch_size=batch,
                          num_flow_updates=updates or (20 if name == "raft" else 12))
 

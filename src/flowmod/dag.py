@@ -569,13 +569,15 @@ class Graph:
             return False
         exp = self.expected(p, [node])
         return (exp[node] is not None and rec.get("fingerprint") == exp[node]
-                and self.damaged(p, node) is None)
+                and self.damaged(p, node, rec) is None)
 
-    def damaged(self, p: Params, node: Node) -> str | None:
-        """What is wrong with ``node``'s published files (:func:`damage`), or None."""
+    def damaged(self, p: Params, node: Node, rec: dict[str, Any] | None = None) -> str | None:
+        """What is wrong with ``node``'s published files (:func:`damage`), or None. ``rec``:
+        its manifest, where the caller has read it already."""
         if self.stage(node).source is not None:
             return None
-        return damage(self.node_dir(p, node), self.recorded(p, node), digest_cache(p))
+        rec = self.recorded(p, node) if rec is None else rec
+        return damage(self.node_dir(p, node), rec, digest_cache(p))
 
     def built(self, p: Params, node: Node) -> bool:  # pragma: no mutate block
         """:meth:`current` for ``node`` and, recursively, for every input of its chapter (a

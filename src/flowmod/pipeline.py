@@ -99,8 +99,8 @@ def current(p: Params, node: dag.Node) -> bool:
     return GRAPH.current(p, node)
 
 
-def damaged(p: Params, node: dag.Node) -> str | None:
-    return GRAPH.damaged(p, node)
+def damaged(p: Params, node: dag.Node, rec: dict[str, Any] | None = None) -> str | None:
+    return GRAPH.damaged(p, node, rec)
 
 
 def built(p: Params, node: dag.Node) -> bool:

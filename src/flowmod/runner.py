@@ -176,8 +176,10 @@ def notebook_fingerprint(nb: Path, values: dict[str, Any], p: Params,
     # and whether each is built and intact: a chapter that shows what is built (chapter 10
     # without extension_build) is stale once someone builds more, and the chapter that
     # builds a damaged node runs again to rebuild it
-    nodes = {str(n): [fp, (pipeline.recorded(p, n) or {}).get("fingerprint") == fp
-                      and pipeline.damaged(p, n) is None] for n, fp in exp.items()}
+    nodes = {}
+    for n, fp in exp.items():
+        rec = pipeline.recorded(p, n) or {}
+        nodes[str(n)] = [fp, rec.get("fingerprint") == fp and pipeline.damaged(p, n, rec) is None]
     cells = [(c.cell_type, c.source, sorted(c.metadata.get("tags", [])))
              for c in nbformat.read(str(nb), as_version=4).cells]
     return fingerprint({"cells": cells, "parameters": values, "nodes": nodes,
