@@ -55,6 +55,46 @@ def test_box_residual_zero_for_static_and_recovers_own_motion():
     assert res_speed == pytest.approx(4.0 * 40.0 / 1266.0 / 0.5, rel=0.02)
 
 
+def test_residual_scores_are_each_objects_box_residual_in_its_pairs_cameras():
+    """Objects of two pairs, interleaved, one without a 3D box (NaN size: the centre's depth):
+    every row is box_residual with its own pair's cameras and time step, in the objects'
+    order and index."""
+    from pyquaternion import Quaternion
+
+    rng = np.random.default_rng(3)
+    T = {"a": (np.eye(4), translation([0.0, 0.0, 1.0]), 0.5),
+         "b": (np.eye(4), translation([0.3, 0.0, 2.0]), 0.25)}
+    pairs = pd.DataFrame([{"pair_id": k, "intrinsic": K.ravel().tolist(),
+                           "cam2global_1": t1.ravel().tolist(), "cam2global_2": t2.ravel().tolist(),
+                           "timestamp_1": 0, "timestamp_2": int(dt * 1e6)}
+                          for k, (t1, t2, dt) in T.items()])
+    q = Quaternion(axis=[0, 1, 0], degrees=30.0).elements
+    rows = []
+    for i, pid in enumerate(["a", "b", "a", "b"]):
+        c = np.array([2.0 * i - 3.0, 0.5, 30.0 + 5 * i])
+        u, v = 816 + 1266 * c[0] / c[2], 491 + 1266 * c[1] / c[2]
+        rows.append({"pair_id": pid, "xmin": u - 30, "ymin": v - 15, "xmax": u + 30,
+                     "ymax": v + 15, "center_x": c[0], "center_y": c[1], "center_z": c[2],
+                     "size_w": np.nan if i == 1 else 1.9, "size_l": 4.5, "size_h": 1.5,
+                     "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3]})
+    objects = pd.DataFrame(rows, index=[10, 11, 12, 13])
+    samples = rng.normal(0.0, 3.0, (4, geometry.GRID ** 2, 2))
+    got = geometry.residual_scores(objects, pairs, samples)
+    assert list(got.index) == [10, 11, 12, 13]
+    for i, o in enumerate(rows):
+        t1, t2, dt = T[o["pair_id"]]
+        box = None if i == 1 else (np.array([1.9, 4.5, 1.5]), q)
+        want = geometry.box_residual(
+            samples[i], np.array([o["xmin"], o["ymin"], o["xmax"], o["ymax"]]),
+            np.array([o["center_x"], o["center_y"], o["center_z"]]), K, t1, t2, dt,
+            *(box or (None, None)))
+        assert got.iloc[i].tolist() == pytest.approx(list(want), rel=1e-12), i
+    centre_only = objects.drop(columns=["size_w", "size_l", "size_h", "qw", "qx", "qy", "qz"])
+    again = geometry.residual_scores(centre_only, pairs, samples)
+    assert again.iloc[1].tolist() == pytest.approx(got.iloc[1].tolist(), rel=1e-12)
+    assert again.iloc[0, 0] != pytest.approx(got.iloc[0, 0], rel=1e-6)  # the box's depths count
+
+
 def test_depth_where_the_ray_meets_the_3d_box_removes_the_parallax_of_a_near_oblique_car():
     """A still car 12 m ahead, seen obliquely (its 4.5 m length at 60 degrees to the view):
     its pixels' depths differ by metres, so one depth (the centre's) leaves a residual that a

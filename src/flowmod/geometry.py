@@ -160,6 +160,12 @@ def box_residual(
     return res_px, res_px * float(np.median(depth)) / float(K[0, 0]) / dt_s
 
 
+#: The object columns :func:`residual_scores` reads (size and rotation only where present).
+_RESIDUAL_COLUMNS = {"box": ("xmin", "ymin", "xmax", "ymax"),
+                     "center": ("center_x", "center_y", "center_z"),
+                     "size": ("size_w", "size_l", "size_h"), "q": ("qw", "qx", "qy", "qz")}
+
+
 def residual_scores(objects: pd.DataFrame, pairs: pd.DataFrame, samples: np.ndarray
                     ) -> pd.DataFrame:
     """Residuals for every object: columns residual_px and residual_speed (m/s).
@@ -170,20 +176,19 @@ def residual_scores(objects: pd.DataFrame, pairs: pd.DataFrame, samples: np.ndar
     if len(samples) != len(objects):
         raise ValueError(f"{len(samples)} flow samples for {len(objects)} objects")
     p = pairs.set_index("pair_id")
+    col = {c: objects[list(cs)].to_numpy(float) for c, cs in _RESIDUAL_COLUMNS.items()
+           if set(cs) <= set(objects.columns)}
+    with_box = (np.isfinite(col["size"][:, 0]) if "size" in col and "q" in col
+                else np.zeros(len(objects), bool))
     out = np.zeros((len(objects), 2))
     for pair_id, idx in objects.groupby("pair_id", sort=False).indices.items():
         row = p.loc[pair_id]
         K, T1, T2 = pair_cameras(row)
         dt = (row["timestamp_2"] - row["timestamp_1"]) / 1e6
         for i in idx:
-            o = objects.iloc[i]
-            has_box = "size_w" in o.index and np.isfinite(o.get("size_w", np.nan))
-            out[i] = box_residual(
-                samples[i], o[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float),
-                o[["center_x", "center_y", "center_z"]].to_numpy(float), K, T1, T2, dt,
-                o[["size_w", "size_l", "size_h"]].to_numpy(float) if has_box else None,
-                o[["qw", "qx", "qy", "qz"]].to_numpy(float) if has_box else None,
-            )
+            box = with_box[i]
+            out[i] = box_residual(samples[i], col["box"][i], col["center"][i], K, T1, T2, dt,
+                                  col["size"][i] if box else None, col["q"][i] if box else None)
     return pd.DataFrame(out, columns=["residual_px", "residual_speed"], index=objects.index)
 
 
