@@ -50,6 +50,7 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "general_min_distance": (1.0, {"general", "wide"}, ()),
     "general_max_distance": (90.0, {"general", "wide"}, ()),
     "general_max_scenes": (2, {"general"}, ()),
+    "general_stride": (2, {"general"}, ()),
     "flow_scale": (0.25, {"flow", "crops", "selfflow"}, ()),
     "dis_preset": ("fast", {"flow", "crops"}, ("dis",)),
     "flow_dtype": ("float32", {"flow", "crops"}, ()),

@@ -196,6 +196,22 @@ def test_generalisation_manifest(selection, smoke_params):
                                    smoke_params.general_beyond_distance).all()
 
 
+def test_general_stride_keeps_every_other_starting_frame(smoke_nusc, smoke_params):
+    """general_stride 2: the pairs of stride 1 whose first frame is an even camera frame of
+    its scene, and no others (scenes and labels unchanged)."""
+    scenes = select.select(smoke_params, progress=False).scenes
+    one = select.select_general(smoke_params, scenes, smoke_nusc, progress=False)[0]
+    two = select.select_general(smoke_params.model_copy(update={"general_stride": 2}), scenes,
+                                smoke_nusc, progress=False)[0]
+    index = {}
+    for tok in scenes.loc[scenes["scene"].isin(one["scene"]), "scene_token"]:
+        for i, sd in enumerate(select.camera_frames(smoke_nusc, tok, keyframes_only=False)):
+            index[sd["token"]] = i
+    even = one[one["sd_token_1"].map(index) % 2 == 0]
+    assert 0 < len(two) < len(one)
+    assert sorted(two["pair_id"]) == sorted(even["pair_id"])
+
+
 def test_artefacts_are_skipped_when_up_to_date(smoke_params, selection):
     paths = sorted(smoke_params.run_path.glob("*/*.parquet"))
     assert {p.parent.name for p in paths} == {"select", "general"}

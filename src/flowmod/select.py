@@ -633,7 +633,7 @@ def select_general(p: Params, scenes: pd.DataFrame, nusc=None, progress: bool = 
     if chosen.empty:
         return pd.DataFrame(), pd.DataFrame(), pd.DataFrame()
     nusc = nusc or open_nuscenes(p.dataroot_path, p.version)
-    pairs, objects, boxes = general_set(nusc, chosen, p, progress)
+    pairs, objects, boxes = general_set(nusc, chosen, p, progress, stride=p.general_stride)
     pairs, objects = _finish(p, pairs, objects)
     pairs, objects = with_folds(pairs, scenes), with_folds(objects, scenes)
     return pairs, objects, boxes[boxes["pair_id"].isin(pairs["pair_id"])].reset_index(drop=True)
