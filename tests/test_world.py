@@ -410,6 +410,24 @@ def test_world_description_is_plain_json_and_complete(smoke_world):
     assert not any(p.name.startswith(".") for p in root.iterdir())  # no partial folders left
 
 
+def test_rects_overlap_separating_axes_one_by_one_and_stacked():
+    """Two 4 x 2 m rectangles over three time steps: apart, overlapping, and a corner that
+    only the rotated rectangle's own axes separate; stacked against several rectangles the
+    test gives each one's row."""
+    t = np.zeros(3)
+    a = (np.array([0.0, 0.0, 0.0]), t.copy(), t.copy(), 2.0, 1.0)
+    b = (np.array([5.0, 3.5, 3.0]), np.array([0.0, 0.0, 3.0]), np.full(3, math.pi / 4), 2.0, 1.0)
+    # b turned 45 degrees reaches 2.12 m along x and y. t0: 5 m apart along x (> 2 + 2.12);
+    # t1: 3.5 m (overlap); t2: at (3, 3), overlapping along x (3 < 4.12) and y (3 < 3.12) but
+    # apart along b's own length axis (4.24 > 2.12 + 2)
+    assert ws.rects_overlap(a, b).tolist() == [False, True, False]
+    c = (np.array([0.5, 9.0, -3.9]), t.copy(), t.copy(), 2.0, 1.0)
+    got = ws.rects_overlap(a, ws.stack_rects([b, c, a]))
+    assert got.shape == (3, 3)
+    assert got.tolist() == [ws.rects_overlap(a, r).tolist() for r in (b, c, a)]
+    assert got[1].tolist() == [True, False, True] and got[2].all()
+
+
 def test_best_f1_and_scene_filter():
     f1, t = wrep.best_f1(np.array([0.1, 0.2, 0.8, 0.9]), np.array([0, 0, 1, 1]))
     assert f1 == 1.0 and 0.2 < t < 0.8

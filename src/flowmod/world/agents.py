@@ -24,6 +24,7 @@ from flowmod.world.scene import (
     profile_const,
     profile_ramp,
     rects_overlap,
+    stack_rects,
     road_frames,
     road_point,
     speed_at,
@@ -608,7 +609,7 @@ def _score_candidate(rng: np.random.Generator, placed: _Placement, cand: Candida
     category, size, role, traj = cand
     margin_l = rng.uniform(2.5, 7.0) if role == "parked" else None
     fp = footprints(traj, size, placed.times, 0.5, margin_l)
-    if any(rects_overlap(fp, other).any() for other in placed.fp):
+    if rects_overlap(fp, stack_rects(placed.fp)).any():
         return None
     iv = _view_intervals(traj, size, placed.kf_times, placed.cam_xy, placed.cam_h)
     good = _in_band(iv)
@@ -670,7 +671,7 @@ def _add_pedestrians(rng: np.random.Generator, placed: _Placement, agents: list[
             rng, placed.roads, placed.ego, placed.duration
         )
         fp = footprints(traj, size, placed.times, 0.3)
-        if any(rects_overlap(fp, other).any() for other in placed.fp):
+        if rects_overlap(fp, stack_rects(placed.fp)).any():
             continue
         placed.fp.append(fp)
         agents.append(_agent_record(rng, "pedestrian", category, size, role, traj))

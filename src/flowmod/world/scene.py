@@ -208,11 +208,12 @@ def footprints(
 
 
 def rects_overlap(a, b) -> np.ndarray:
-    """Separating-axis test of two oriented rectangles per time step: (T,) bool."""
+    """Separating-axis test of two oriented rectangles per time step: (T,) bool; ``b`` may
+    hold N rectangles (:func:`stack_rects`): (N, T)."""
     ax, ay, ah, al, aw = a
     bx, by, bh, bl, bw = b
     dx, dy = bx - ax, by - ay
-    overlap = np.ones(np.shape(ax), dtype=bool)
+    overlap = np.ones(np.broadcast_shapes(np.shape(ax), np.shape(bx)), dtype=bool)
     for h in (ah, ah + math.pi / 2, bh, bh + math.pi / 2):
         ux, uy = np.cos(h), np.sin(h)
         ra = al * np.abs(np.cos(ah) * ux + np.sin(ah) * uy) + aw * np.abs(
@@ -223,6 +224,14 @@ def rects_overlap(a, b) -> np.ndarray:
         )
         overlap &= np.abs(dx * ux + dy * uy) <= ra + rb
     return overlap
+
+
+def stack_rects(rects: list) -> tuple:
+    """N rectangles over the same T times (:func:`footprints`) as one: x, y, heading (N, T),
+    half length and half width (N, 1); :func:`rects_overlap` tests against all at once."""
+    x, y, h = (np.array([r[i] for r in rects], dtype=np.float64) for i in range(3))
+    hl, hw = (np.array([[r[i]] for r in rects], dtype=np.float64) for i in (3, 4))
+    return x, y, h, hl, hw
 
 
 # --------------------------------------------------------------------------------------------
