@@ -206,6 +206,8 @@ def test_chapter10_scores_are_those_of_its_predictions(smoke_built):
                     (None, "images")]
     table = ch10.table(p, rows)
     assert len(table) == len(rows) == 5
+    assert table["input"].tolist() == ["flow", "residual [oracle: annotated-box depth]", "flow",
+                                       "residual [oracle: annotated-box depth]", "images"]
     for (m, v), r in zip(rows, table.to_dict("records"), strict=True):
         d = ch10.predictions(p, m, v, "test")
         f1 = np.mean([metrics.seed_summary(d["label"].to_numpy(), pr[None],
@@ -248,6 +250,17 @@ def test_a_chapter_that_shows_what_is_built_reruns_when_more_is_built(smoke_buil
     assert runner.notebook_fingerprint(nb, values, p, device) == built
 
 
+def test_chapter10_tags_every_input_whose_static_world_reads_annotated_boxes():
+    """Where an input's static-world flow takes its depth from the annotated 3D boxes the
+    table row says oracle; the deployed one says what a car has; inputs without it no tag."""
+    assert ch10.input_label("residual") == "residual [oracle: annotated-box depth]"
+    assert ch10.input_label("flow+static") == "flow+static [oracle: annotated-box depth]"
+    assert ch10.input_label("residual-deployed") == ("residual-deployed [as a car could "
+                                                     "compute it]")
+    assert [ch10.input_label(v) for v in ("flow", "images", "images+flow")] == [
+        "flow", "images", "images+flow"]
+
+
 def test_chapter10_headline_asks_the_profiles_questions_in_order():
     """The headline reports each input of ``extension_inputs`` in the profile's order (fixed
     in advance, not the best by test F1) against the raw flow of the main method, with its
@@ -256,7 +269,8 @@ def test_chapter10_headline_asks_the_profiles_questions_in_order():
 
     p = load_profile("smoke")  # extension_inputs [residual, images], methods [gt, dis]
     paired = pd.DataFrame({
-        "comparison": ["gt: residual - gt: flow", "dis: residual - dis: flow",
+        "comparison": ["gt: residual [oracle: annotated-box depth] - gt: flow",
+                       "dis: residual [oracle: annotated-box depth] - dis: flow",
                        "images - gt: flow"],
         "ΔF1 (points)": [9.0, -1.0, 5.0],
         "95% CI, scenes and seeds (points)": ["2.0 to 15.0", "-3.0 to 1.0", "1.0 to 9.0"]})

@@ -58,7 +58,8 @@ def table(params: Params, rows_of: list[tuple[str | None, str]] | None = None,
         d = scored(predictions(params, m, v, split), split, params.general_max_distance)
         s = seed_summary(d["label"].to_numpy(), seed_probs(d), d["scene"].to_numpy(),
                          seed=params.seed, folds=fold_of(d))
-        out.append({"flow method": m or "-", "input": v, "channels": VARIANTS[v].channels,
+        out.append({"flow method": m or "-", "input": input_label(v),
+                    "channels": VARIANTS[v].channels,
                      "F1 (%)": round(100 * s["f1"], 1),
                      f"{s['unit']}s (%)": span(s["f1_min"], s["f1_max"]),
                      "seed SD (points)": points(s["seed_sd"]),
@@ -92,9 +93,10 @@ def reference(params: Params, method: str | None) -> str:
 
 
 def comparison_name(params: Params, method: str | None, variant: str) -> str:
-    """The row name of a chain in :func:`comparisons`: ``dis: residual - dis: flow``,
-    ``images - gt: flow``."""
-    return f"{method + ': ' if method else ''}{variant} - {reference(params, method)}: flow"
+    """The row name of a chain in :func:`comparisons`: ``dis: residual [oracle: ...] - dis:
+    flow``, ``images - gt: flow`` (the input by :func:`input_label`)."""
+    return (f"{method + ': ' if method else ''}{input_label(variant)} - "
+            f"{reference(params, method)}: flow")
 
 
 def inputs_table() -> pd.DataFrame:
@@ -167,6 +169,16 @@ ORACLE_NOTE = " (static world with annotated-box depth, an oracle a car does not
 #: How a headline names the input whose static-world flow a car could compute.
 DEPLOYED_NOTE = (" (static world from the flat ground and the target's 2D box, as a car "
                  "could compute it)")
+
+
+#: The tag a table row gives an input by its static-world depth (:func:`depth_note`).
+TAGS = {ORACLE_NOTE: " [oracle: annotated-box depth]", DEPLOYED_NOTE: " [as a car could compute it]"}
+
+
+def input_label(variant: str) -> str:
+    """An input's name in tables, tagged where its static-world flow reads annotated boxes
+    (an oracle) or what a car has: ``residual [oracle: annotated-box depth]``."""
+    return variant + TAGS.get(depth_note(variant), "")
 
 
 def depth_note(variant: str) -> str:
