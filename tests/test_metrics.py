@@ -585,3 +585,18 @@ def test_an_interval_over_few_scenes_is_flagged():
     assert ev.ci_text((0.1, 0.2), 9, sep=" to ") == "10.0 to 20.0 (9 scenes: too few)"
     assert ev.ci_text((float("nan"), 0.2), 3) == "-"  # undefined stays undefined, unflagged
     assert ev.ci_text(None, 3) == "" and ev.ci_text((0.1, 0.2), "") == "10.0-20.0"
+    # an interval in its own unit (an end-point error in px, chapter 03), flagged the same way
+    assert ev.ci_text((0.812, 1.333), 12, fmt=".2f") == "0.81-1.33"
+    assert ev.ci_text((0.812, 1.333), 4, fmt=".2f") == "0.81-1.33 (4 scenes: too few)"
+    assert ev.ci_text((float("nan"), 1.0), 12, fmt=".2f") == "-"
+
+
+def test_chapter03_epe_interval_resamples_scenes():
+    """The interval of a mean box EPE over pairs resamples whole scenes: two scenes whose
+    pairs agree give a point interval; the flag counts scenes, not pairs."""
+    from flowmod.chapters import ch03_flow as ch03
+
+    assert ch03._epe_ci([1.0, 1.0, 3.0, 3.0], ["a", "a", "b", "b"], 0).startswith("1.00-3.00")
+    assert ch03._epe_ci([2.0] * 12, [f"s{i}" for i in range(12)], 0) == "2.00-2.00"
+    assert ch03._epe_ci([2.0] * 12, ["s"] * 12, 0) == "2.00-2.00 (1 scenes: too few)"
+    assert ch03._epe_ci([], [], 0) == "-"

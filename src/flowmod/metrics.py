@@ -451,12 +451,17 @@ def span(lo: Any, hi: Any, sep: str = "-") -> str:
 MIN_SCENES = 10
 
 
-def ci_text(ci: Any, n_scenes: Any, sep: str = "-") -> str:
-    """:func:`span` of an interval over scenes, flagged "(n scenes: too few)" where it
-    resamples fewer than :data:`MIN_SCENES`."""
+def ci_text(ci: Any, n_scenes: Any, sep: str = "-", fmt: str | None = None) -> str:
+    """:func:`span` of an interval over scenes (or, with ``fmt``, its values as they are,
+    e.g. ``.2f`` for px), flagged "(n scenes: too few)" where it resamples fewer than
+    :data:`MIN_SCENES`."""
     if ci is None:
         return ""
-    text = span(*ci, sep=sep)
+    if fmt is None:
+        text = span(*ci, sep=sep)
+    else:
+        text = ("-" if any(not np.isfinite(v) for v in ci)
+                else f"{ci[0]:{fmt}}{sep}{ci[1]:{fmt}}")
     try:
         few = int(n_scenes) < MIN_SCENES
     except (TypeError, ValueError):
@@ -537,8 +542,12 @@ def comparison_table(rows: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
             "replicates with A <= B (%)": round(100 * r["p_not_better"], 1),
             "scenes": r["n_scenes"], "objects": r["n"],
         })
-    return pd.DataFrame(out, columns=[c.replace("per seed", f"per {unit}")
-                                      for c in COMPARISON_COLUMNS])
+    table = pd.DataFrame(out, columns=[c.replace("per seed", f"per {unit}")
+                                       for c in COMPARISON_COLUMNS])
+    # the interval as numbers (points), row by row, for plots (the column holds its text)
+    table.attrs["ci_points"] = [(100 * r["ci"][0], 100 * r["ci"][1]) if r.get("ci") is not None
+                                else (float("nan"), float("nan")) for r in rows.values()]
+    return table
 
 
 # --- the original code's protocol, for comparison --------------------------------------------
