@@ -60,3 +60,56 @@ def test_blind_spots_and_slow_fast_recall():
     radial = t[t["by"] == blind_spots.RADIAL_SPEED].set_index("bin")
     assert radial.loc["[2, 3)", "n_moving"] == 10 and radial.loc["[2, 3)", "recall"] == 1.0
     assert radial.loc["[0, 2)", "n"] == 20
+
+
+def _movers_grid():
+    """12 scenes; in each, 3 slow radial movers (2.5 m/s, 10 deg) of which the classifier's
+    two seeds find 1 and 2 and the rule all 3, one fast crossing mover (6 m/s, 75 deg) both
+    find, and one still vehicle."""
+    rows, p0, p1, rule = [], [], [], []
+    for s in range(12):
+        for j in range(3):
+            rows.append({"label": 1, "speed": 2.5, "motion_angle": 10.0, "scene": f"s{s}",
+                         "ann_token": f"a{s}{j}"})
+            p0.append(0.9 if j == 0 else 0.1)
+            p1.append(0.9 if j < 2 else 0.1)
+            rule.append(1.0)
+        rows.append({"label": 1, "speed": 6.0, "motion_angle": 75.0, "scene": f"s{s}",
+                     "ann_token": f"c{s}"})
+        rows.append({"label": 0, "speed": 0.0, "motion_angle": 0.0, "scene": f"s{s}",
+                     "ann_token": f"z{s}"})
+        p0 += [0.9, 0.1]
+        p1 += [0.9, 0.1]
+        rule += [1.0, 0.0]
+    return pd.DataFrame(rows), np.array([p0, p1]), np.array(rule)
+
+
+def test_speed_by_angle_sets_the_classifier_beside_the_oracle_rule():
+    df, probs, rule = _movers_grid()
+    t = blind_spots.speed_angle_table(df, probs, rule)
+    assert t[["angle to the line of sight (deg)", "speed (m/s)", "movers", "scenes"]
+             ].values.tolist() == [["0-30", "2-3", 36, 12], ["60-90", "5-40", 12, 12]]
+    assert t["classifier recall (%)"].tolist() == [50.0, 100.0]  # seeds: 1/3 and 2/3
+    assert t["oracle rule recall (%)"].tolist() == [100.0, 100.0]
+    e = blind_spots.cell_effect(df, probs, rule, (0, 30), (2, 3))
+    assert (e["movers"], e["scenes"], e["classifier"], e["rule"]) == (36, 12, 50.0, 100.0)
+    assert e["rule_minus_classifier"] == pytest.approx(50.0)
+    assert e["ci"] == pytest.approx((50.0, 50.0))  # every scene the same
+    words = blind_spots.slow_radial_words(e, "dis")
+    assert words.startswith("Of the 36 movers at 2-3 m/s within 30 degrees")
+    assert "the classifier loses it" in words and "too few" not in words
+    k = df["scene"].isin(["s0", "s1", "s2"]).to_numpy()
+    few = blind_spots.cell_effect(df[k], probs[:, k], rule[k], (0, 30), (2, 3))
+    assert "3 scenes: too few)" in blind_spots.slow_radial_words(few, "dis")
+    blind_rule = blind_spots.cell_effect(df, probs, np.zeros(len(df)), (0, 30), (2, 3))
+    assert blind_spots.slow_radial_words(blind_rule, "dis").endswith(
+        "the classifier finds more of them than the rule.")
+    assert "Only 12 of the movers cross" in blind_spots.crossing_words(t)
+    assert blind_spots.crossing_words(t.assign(movers=100)).startswith("100 movers cross")
+
+
+def test_rule_calls_follow_the_annotation_not_the_row_order():
+    df = pd.DataFrame({"ann_token": ["a", "b", "c"]})
+    base = pd.DataFrame({"ann_token": ["c", "a"], "prob": [1.0, 0.0]})
+    got = blind_spots.rule_calls(df, base)
+    assert got[0] == 0.0 and np.isnan(got[1]) and got[2] == 1.0
