@@ -186,6 +186,10 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
     slow, _fast = blind_spots.recall_slow_and_fast(blind)
     assert (g9["recall_slow_dis"] == "nan") if np.isnan(slow) else (
         g9["recall_slow_dis"] == round(100 * slow, 1))
+    rule = blind_spots.rule_calls(df, common.results(p, "dis", "baseline")[0])
+    assert not np.isnan(rule).any(), "the rule scored every object of Table 3"
+    e = blind_spots.cell_effect(df, evaluate.seed_probs(df), rule, (0, 30), (2, 3), seed=p.seed)
+    assert g9["slow_radial_words"] == blind_spots.slow_radial_words(e, "dis")
     media = smoke_run["base"] / "runs" / "figures" / "media"
     assert any(media.glob("*.mp4")) and any(media.glob("*-strip.png"))
     # chapter 10: every chain built (smoke: extension_build), its F1 that of its predictions
@@ -230,6 +234,16 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
     assert g12["selfflow_headline"] == ch12.shipped_headline(m, ch12.world_table(p, data), {})
     for name in ("selfflow_training.png", "pretrain_curves.png", "shipped_example.png"):
         assert (smoke_run["base"] / "runs" / "figures" / name).stat().st_size > 5000
+    # chapter 13: every paired effect of chapters 07, 10 and 11 once, and their forest plot
+    from flowmod.chapters import ch07_evaluation as ch07
+    from flowmod.chapters import ch13_answers as ch13
+
+    g13 = glue_of(smoke_run, "13_answers")
+    eff = ch13.effects(p)
+    assert g13["n_effects"] == len(eff) == (len(ch07.comparisons(p)) + len(
+        ch10.comparisons(p, "test", ch10.rows(p))) + len(ch11.comparisons(p, ["dis"], "general")))
+    assert g13["n_decided"] == int((eff["verdict"] != "undecided").sum())
+    assert (smoke_run["base"] / "runs" / "figures" / "answers_forest.png").stat().st_size > 5000
 
 
 def test_book_builds_offline_with_warnings_as_errors(smoke_run, tmp_path):
@@ -241,6 +255,10 @@ def test_book_builds_offline_with_warnings_as_errors(smoke_run, tmp_path):
         assert f"{nb.stem}.html" in pages
     assert "reproduce.html" in pages
     assert "<video" in (out / "08_generalisation.html").read_text(), "the scene video is shown"
+    # the landing page opens with chapter 13's table and forest plot, pasted from it
+    landing = (out / "index.html").read_text()
+    assert "answer (ΔF1 points, 95 % interval over scenes and seeds)" in landing
+    assert re.search(r'<img[^>]+src="[^"]+\.png"', landing), "the forest plot is on the page"
     reproduce = (out / "reproduce.html").read_text()
     assert smoke_run["record"]["commit"] in reproduce
     assert "torch" in reproduce and "2.14.1" in reproduce

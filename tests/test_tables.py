@@ -57,7 +57,9 @@ def test_comparison_table_every_cell():
         "per seed (points)": ["+2.0, -1.1, +5.0"],
         "replicates with A <= B (%)": [12.3], "scenes": [5], "objects": [409],
     })
-    pd.testing.assert_frame_equal(ev.comparison_table(rows), want)
+    got = ev.comparison_table(rows)
+    pd.testing.assert_frame_equal(got, want)
+    assert got.attrs["ci_points"] == [pytest.approx((-1.49, 8.51))]  # the interval as numbers
 
 
 def test_protocol_comparison_every_cell():
@@ -158,6 +160,45 @@ def test_the_landing_page_quotes_decided_comparisons_as_decided():
     assert w["headline_vs_oracle"].endswith("or more)") and "undecided" in w["headline_vs_oracle"]
     assert ch07.landing_words(table.iloc[:1], load_profile("demo"))["headline_vs_oracle"] == (
         "not in this profile")
+
+
+def test_the_answers_page_gathers_each_chapters_rows_and_draws_them_all(monkeypatch, tmp_path):
+    """Chapter 13 (the landing page's table and forest plot): every row of chapters 07, 10
+    and 11's comparison tables once, with its interval as numbers; one answer per question,
+    counting only the decided rows as decided; a chapter not built contributes nothing."""
+    from flowmod.chapters import ch13_answers as ch13
+    from flowmod.params import load_profile
+    from flowmod.report import viz
+
+    row = {"detectable": 0.02, "per_seed": [0.0], "p_not_better": 0.0, "n_scenes": 29, "n": 90}
+    t07 = ev.comparison_table({
+        "gt - dis": {**row, "delta_f1": 0.022, "ci": (0.002, 0.044)},
+        "dis: classifier - oracle rule": {**row, "delta_f1": 0.021, "ci": (-0.009, 0.05)}})
+    t11 = ev.comparison_table({
+        "dis: all distances - 30-70 m": {**row, "delta_f1": -0.05, "ci": (-0.08, -0.01)}})
+    monkeypatch.setattr(ch13.ch07, "comparisons", lambda p: t07)
+    monkeypatch.setattr(ch13.ch10, "built", lambda p: [])
+    monkeypatch.setattr(ch13.ch11, "built", lambda p: ["dis"])
+    monkeypatch.setattr(ch13.ch11, "comparisons", lambda p, done, split: t11)
+    eff = ch13.effects(load_profile("demo"))
+    assert eff["comparison"].tolist() == ["gt - dis", "dis: classifier - oracle rule",
+                                          "dis: all distances - 30-70 m"]
+    assert eff["chapter"].tolist() == ["07", "07", "11"]
+    assert eff[["low", "high"]].to_numpy().round(1).tolist() == [[0.2, 4.4], [-0.9, 5.0],
+                                                                   [-8.0, -1.0]]
+    table = ch13.answers(eff)
+    assert table["decided"].tolist() == ["1 of 2", "1 of 1"]
+    assert table["chapter"].tolist() == ["07", "11"]
+    assert table.iloc[0, 1] == ("gt - dis: +2.2 (0.2 to 4.4), decided; dis: classifier - oracle "
+                                "rule: +2.1 (-0.9 to 5.0)")
+    fig = viz.forest(eff)
+    ax = fig.axes[0]
+    assert [t.get_text() for t in ax.get_yticklabels()] == [
+        "07: gt - dis", "07: dis: classifier - oracle rule", "11: dis: all distances - 30-70 m"]
+    filled = [ln.get_markerfacecolor() for ln in ax.get_lines() if ln.get_marker() == "o"]
+    assert [f == "white" for f in filled] == [False, True, False]  # hollow: undecided
+    assert viz.figure_problems(fig) == []
+    viz.plt.close(fig)
 
 
 def test_a_figure_that_shows_nothing_is_refused(tmp_path):

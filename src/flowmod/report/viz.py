@@ -468,6 +468,37 @@ def f1_by(tables: dict[str, pd.DataFrame], key: str, xlabel: str, min_n: int = 1
     return fig
 
 
+def forest(effects: pd.DataFrame) -> plt.Figure:
+    """Every paired effect of the book (rows of :func:`flowmod.chapters.ch13_answers.effects`:
+    chapter, comparison, ``ΔF1 (points)``, ``low``, ``high``, verdict) as a point with its
+    95 % interval over scenes and training seeds; filled where the interval excludes 0
+    (decided), hollow where it does not; one colour per chapter."""
+    n = len(effects)
+    fig, ax = plt.subplots(figsize=(7.5, 0.3 * n + 1.2))
+    chapters = sorted(effects["chapter"].unique())
+    y = np.arange(n)[::-1]
+    cols = effects[["ΔF1 (points)", "low", "high"]].to_numpy(float)
+    for yi, (d, lo, hi), ch, verdict in zip(y, cols, effects["chapter"], effects["verdict"],
+                                           strict=True):
+        c = f"C{chapters.index(ch)}"
+        err = [[d - lo], [hi - d]] if np.isfinite([lo, hi]).all() else None
+        ax.errorbar([d], [yi], xerr=err, fmt="o", ms=5, capsize=2, color=c,
+                    mfc=c if verdict != "undecided" else "white")
+    ax.axvline(0.0, color="0.4", lw=0.8, ls="--")
+    ax.set_yticks(y, [f"{ch}: {name}" for ch, name in zip(effects["chapter"],
+                                                          effects["comparison"], strict=True)],
+                  fontsize=7)
+    ax.set_xlabel("ΔF1, A - B (points); bar: 95 % interval over scenes and training seeds; "
+                  "filled: decided", fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def image(path: str | Path) -> Image:
+    """A PNG file (a figure :func:`show` wrote) as a displayable object, e.g. for ``glue``."""
+    return Image(filename=str(path))
+
+
 def table(df: pd.DataFrame, precision: int = 1) -> Any:
     """A table as the book shows it: no index column, numbers right-aligned and rounded to
     ``precision`` decimals (units belong in the column names), "-" for an undefined (NaN)
