@@ -179,7 +179,7 @@ class Params(BaseModel):
                     "reported apart from Table 4 (0 = none)")
     general_max_scenes: int = _field(15, ge=0, read_by=("general",),
                                      description="held-out scenes used (0 = none)")
-    general_stride: int = _field(1, ge=1, le=12, read_by=("general",),
+    general_stride: int = _field(2, ge=1, le=12, read_by=("general",),
                                  description="every n-th camera frame of a held-out scene "
                                              "starts a pair (1: every frame, as the paper)")
 
