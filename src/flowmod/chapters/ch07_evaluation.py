@@ -8,12 +8,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from flowmod import pipeline
+from flowmod import evaluate, pipeline
 from flowmod.chapters.common import difference_words, headline_method, read_json, results
 from flowmod.crops import crop_windows
 from flowmod.dag import Node
 from flowmod.evaluate import paired, scored_crops, seed_probs
-from flowmod.metrics import comparison_table, group_mean_bootstrap, interval
+from flowmod.metrics import comparison_table, group_mean_bootstrap, interval, protocol_comparison
 from flowmod.metrics import table3 as metrics_table3
 from flowmod.params import Params
 
@@ -79,6 +79,29 @@ def protocols(params: Params) -> pd.DataFrame:
                      "original protocol F1 (%)": round(100 * r["original"], 1),
                      "original - clean (points)": round(100 * r["original_minus_clean"], 1)})
     return pd.DataFrame(rows)
+
+
+#: Chapter 07's distance bins (m): Table 1's band in 10 m steps.
+DISTANCE_BINS = [30, 40, 50, 60, 70.01]
+
+
+def by_distance(preds: dict[str, pd.DataFrame]) -> dict[str, pd.DataFrame]:
+    """Per method, F1 per distance bin (:data:`DISTANCE_BINS`) with its interval over scenes
+    and seeds and the objects in each bin (:func:`flowmod.evaluate.breakdown`)."""
+    return {m: evaluate.breakdown(df, "distance", DISTANCE_BINS) for m, df in preds.items()}
+
+
+def by_category(preds: dict[str, pd.DataFrame]) -> pd.DataFrame:
+    """F1 per vehicle category, one block of rows per method."""
+    return pd.concat({m: evaluate.breakdown(df, "category") for m, df in preds.items()},
+                     names=["method"]).reset_index(0)
+
+
+def protocol_scores(preds: dict[str, pd.DataFrame]) -> pd.DataFrame:
+    """The same predictions scored four ways per method (whole set, per batch of the
+    original's 128, stills thinned 1 of 2, both: :func:`flowmod.metrics.protocol_comparison`)."""
+    return pd.concat({m: protocol_comparison(df["label"], df["prob"], evaluate.ORIGINAL_BATCH)
+                      for m, df in preds.items()}, names=["method"]).reset_index(0)
 
 
 def numbers(params: Params) -> dict[str, Any]:
