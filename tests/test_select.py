@@ -200,7 +200,8 @@ def test_general_stride_keeps_every_other_starting_frame(smoke_nusc, smoke_param
     """general_stride 2: the pairs of stride 1 whose first frame is an even camera frame of
     its scene, and no others (scenes and labels unchanged)."""
     scenes = select.select(smoke_params, progress=False).scenes
-    one = select.select_general(smoke_params, scenes, smoke_nusc, progress=False)[0]
+    one = select.select_general(smoke_params.model_copy(update={"general_stride": 1}), scenes,
+                                smoke_nusc, progress=False)[0]
     two = select.select_general(smoke_params.model_copy(update={"general_stride": 2}), scenes,
                                 smoke_nusc, progress=False)[0]
     index = {}
