@@ -190,7 +190,6 @@ def _venv_state() -> dict[str, tuple[bytes, int]]:
     return {str(f): (f.read_bytes(), f.stat().st_mtime_ns) for f in files if f.is_file()}
 
 
-@pytest.mark.slow  # runs make and JupyterLab: not a quick test (mutmut's copy has no Makefile)
 def test_make_lab_serves_the_notebooks_with_the_venvs_kernel(tmp_path):
     """``make lab`` starts JupyterLab on notebooks/ whose python3 kernel is this venv's. The
     test leaves the environment as it found it: the kernelspec goes to a scratch folder
