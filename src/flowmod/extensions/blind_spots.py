@@ -16,6 +16,7 @@ At 50 m and 2 m/s that is 25 px against 1 px: slow radial movers are where flow 
 from __future__ import annotations
 
 from itertools import pairwise
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -118,61 +119,78 @@ def _bin_names(edges: list[float]) -> list[str]:
     return [f"{a:g}-{90.0 if b == 90.01 else b:g}" for a, b in pairwise(edges)]
 
 
+def _in_cell(df: pd.DataFrame, angle: tuple[float, float], speed: tuple[float, float]
+             ) -> np.ndarray:
+    """(N,) the movers whose motion angle (deg) and speed (m/s) each lie in ``[lo, hi)``."""
+    a, s = df["motion_angle"].to_numpy(), df["speed"].to_numpy()
+    return ((df["label"].to_numpy() == 1) & (a >= angle[0]) & (a < angle[1])
+            & (s >= speed[0]) & (s < speed[1]))
+
+
+def _hits(probs: np.ndarray, rule: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per mover of ``k``: the share of training seeds whose classifier found it (``probs``
+    (S, N)) and the oracle rule's hit (``rule`` (N,)), both 0-1."""
+    probs = np.atleast_2d(np.asarray(probs, float))
+    return (probs[:, k] > 0.5).mean(axis=0), (np.asarray(rule, float)[k] > 0.5).astype(float)
+
+
 def speed_angle_table(df: pd.DataFrame, probs: np.ndarray, rule: np.ndarray) -> pd.DataFrame:
-    """Recall of the moving vehicles by the angle of their motion to the line of sight and
-    by speed, for the classifier (``probs`` (S, N): the mean over training seeds of each
-    seed's recall) beside the oracle rule on the same flow (``rule`` (N,): its 0/1 call;
-    the rule reads the annotated 3D boxes). ``df``: :func:`motion_geometry` rows with
-    ``label``, ``speed`` (m/s) and ``scene``. One row per cell with movers: the movers, their
-    scenes, both recalls (%)."""
-    probs, rule = np.atleast_2d(np.asarray(probs, float)), np.asarray(rule, float)
-    moving = df["label"].to_numpy() == 1
-    angle = pd.cut(df["motion_angle"], ANGLE_BINS, right=False, labels=_bin_names(ANGLE_BINS))
-    speed = pd.cut(df["speed"], MOVER_SPEED_BINS, right=False,
-                   labels=_bin_names(MOVER_SPEED_BINS))
+    """Recall of the moving vehicles by the angle of their motion to the line of sight
+    (:data:`ANGLE_BINS`) and by speed (:data:`MOVER_SPEED_BINS`), for the classifier
+    (``probs`` (S, N): the mean over training seeds) beside the oracle rule on the same flow
+    (``rule`` (N,): its 0/1 call; the rule reads the annotated 3D boxes). ``df``:
+    :func:`motion_geometry` rows with ``label``, ``speed`` (m/s) and ``scene``. One row per
+    cell with movers: the movers, their scenes, both recalls (%)."""
     rows = []
-    for a in angle.cat.categories:
-        for s in speed.cat.categories:
-            k = moving & (angle == a).to_numpy() & (speed == s).to_numpy()
+    for a_name, angle in zip(_bin_names(ANGLE_BINS), pairwise(ANGLE_BINS), strict=True):
+        for s_name, speed in zip(_bin_names(MOVER_SPEED_BINS), pairwise(MOVER_SPEED_BINS),
+                                 strict=True):
+            k = _in_cell(df, angle, speed)
             if not k.any():
                 continue
-            rows.append({"angle to the line of sight (deg)": a, "speed (m/s)": s,
+            clf, hit = _hits(probs, rule, k)
+            rows.append({"angle to the line of sight (deg)": a_name, "speed (m/s)": s_name,
                          "movers": int(k.sum()), "scenes": int(df["scene"][k].nunique()),
-                         "classifier recall (%)": round(100 * float(
-                             (probs[:, k] > 0.5).mean(axis=1).mean()), 1),
-                         "oracle rule recall (%)": round(100 * float((rule[k] > 0.5).mean()), 1)})
+                         "classifier recall (%)": round(100 * float(clf.mean()), 1),
+                         "oracle rule recall (%)": round(100 * float(hit.mean()), 1)})
     return pd.DataFrame(rows, columns=["angle to the line of sight (deg)", "speed (m/s)",
                                        "movers", "scenes", "classifier recall (%)",
                                        "oracle rule recall (%)"])
 
 
 def cell_effect(df: pd.DataFrame, probs: np.ndarray, rule: np.ndarray, angle: tuple[float, float],
-                speed: tuple[float, float], seed: int = 0) -> dict[str, float]:
-    """The movers of one angle x speed cell (deg, m/s; lower bounds included): their number
-    and scenes, the classifier's recall (mean over seeds), the oracle rule's, and the rule
-    minus the classifier (points) with its 95 % interval over scenes (per mover: the rule's
-    hit minus the share of seeds that found it; :func:`flowmod.metrics.group_mean_bootstrap`)."""
-    probs, rule = np.atleast_2d(np.asarray(probs, float)), np.asarray(rule, float)
-    a, s = df["motion_angle"].to_numpy(), df["speed"].to_numpy()
-    k = ((df["label"].to_numpy() == 1) & (a >= angle[0]) & (a < angle[1])
-         & (s >= speed[0]) & (s < speed[1]))
-    clf, hit = (probs[:, k] > 0.5).mean(axis=0), (rule[k] > 0.5).astype(float)
+                speed: tuple[float, float], seed: int = 0) -> dict[str, Any]:
+    """The movers of one angle x speed cell (deg, m/s; lower bounds included): the cell,
+    their number and scenes, the classifier's recall (mean over seeds), the oracle rule's,
+    and the rule minus the classifier (points) with its 95 % interval over scenes (per
+    mover: the rule's hit minus the share of seeds that found it;
+    :func:`flowmod.metrics.group_mean_bootstrap`)."""
+    k = _in_cell(df, angle, speed)
+    clf, hit = _hits(probs, rule, k)
     lo, hi = interval(group_mean_bootstrap(hit - clf, df["scene"].to_numpy()[k], seed=seed))
-    return {"movers": int(k.sum()), "scenes": int(df["scene"][k].nunique()),
+    return {"angle": tuple(angle), "speed": tuple(speed),
+            "movers": int(k.sum()), "scenes": int(df["scene"][k].nunique()),
             "classifier": 100 * float(clf.mean()) if k.any() else float("nan"),
             "rule": 100 * float(hit.mean()) if k.any() else float("nan"),
             "rule_minus_classifier": 100 * float((hit - clf).mean()) if k.any() else float("nan"),
             "ci": (100 * lo, 100 * hi)}
 
 
-def slow_radial_words(e: dict[str, float], method: str) -> str:
+def _cell_words(e: dict[str, Any]) -> str:
+    """``at 2-3 m/s within 30 degrees of the line of sight``, from a :func:`cell_effect`."""
+    (a0, a1), (s0, s1) = e["angle"], e["speed"]
+    where = f"within {a1:g} degrees of" if a0 == 0 else f"at {a0:g}-{a1:g} degrees to"
+    return f"at {s0:g}-{s1:g} m/s {where} the line of sight"
+
+
+def slow_radial_words(e: dict[str, Any], method: str) -> str:
     """:func:`cell_effect` of the slow movers along the line of sight in words: where the
     rule, reading the same flow, finds movers the classifier misses, the motion is in the
     flow and the classifier loses it; said only when the interval excludes 0."""
     if not e["movers"]:
-        return "This run has no mover at 2-3 m/s within 30 degrees of the line of sight."
+        return f"This run has no mover {_cell_words(e)}."
     lo, hi = e["ci"]
-    head = (f"Of the {e['movers']} movers at 2-3 m/s within 30 degrees of the line of sight "
+    head = (f"Of the {e['movers']} movers {_cell_words(e)} "
             f"({e['scenes']} scenes), the classifier on {method} flow recalls "
             f"{e['classifier']:.1f} % and the oracle rule on the same flow "
             f"{e['rule']:.1f} % (rule minus classifier {e['rule_minus_classifier']:+.1f} "
@@ -189,12 +207,13 @@ def slow_radial_words(e: dict[str, float], method: str) -> str:
 def crossing_words(table: pd.DataFrame) -> str:
     """Whether this run's movers cross the line of sight often enough to compare directions
     (:data:`MIN_MOVERS` at 60-90 degrees), in words, from a :func:`speed_angle_table`."""
-    cross = table[table["angle to the line of sight (deg)"] == "60-90"]
+    last = _bin_names(ANGLE_BINS)[-1]
+    cross = table[table["angle to the line of sight (deg)"] == last]
     n = int(cross["movers"].sum())
     if n >= MIN_MOVERS:
-        return (f"{n} movers cross the line of sight at 60-90 degrees: the table compares "
+        return (f"{n} movers cross the line of sight at {last} degrees: the table compares "
                 "directions at equal speed.")
-    return (f"Only {n} of the movers cross the line of sight at 60-90 degrees (fewer than "
+    return (f"Only {n} of the movers cross the line of sight at {last} degrees (fewer than "
             f"{MIN_MOVERS}): too few to say how direction itself matters; the table compares "
             "speeds within the movers along the line of sight.")
 
