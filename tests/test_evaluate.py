@@ -4,6 +4,8 @@ Hand-made tables; seconds."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -174,21 +176,56 @@ def test_published_protocol_replays_the_original_batch_not_the_training_one(smok
 
     from flowmod import dag, pipeline
     from flowmod.chapters import common
-    from flowmod.train import EPOCH_PROBS, seed_parts
+    from flowmod.train import EPOCH_PROBS, records_test, seed_parts
 
     p = smoke_built
     assert p.batch_size != evaluate.ORIGINAL_BATCH == 128
     folder = pipeline.published(p, dag.Node("evaluate", "dis"))
     got = json.loads((folder / "original.json").read_text())
     preds = common.results(p, "dis", "test")[0]
-    parts = seed_parts(p)
-    assert parts == ["f0s0", "f0s1", "f1s0", "f1s1"]  # the smoke's two seeds a fold
+    parts = [part for part in seed_parts(p) if records_test(part)]
+    assert parts == ["f0s0", "f1s0"]  # seed 0 of each of the smoke's two folds
+    assert not (common.model_path(p, "dis", "f0s1").parent / EPOCH_PROBS).exists()
     epochs = [np.load(common.model_path(p, "dis", part).parent / EPOCH_PROBS) for part in parts]
     want = evaluate.original_protocol(preds, epochs, 128, parts=parts)
     assert got["per_seed_original"] == pytest.approx(want["per_seed_original"])
     assert got["original"] == pytest.approx(want["original"])
     assert got["original"] != pytest.approx(
         evaluate.original_protocol(preds, epochs, p.batch_size, parts=parts)["original"])
+
+
+@pytest.mark.slow
+def test_table3_sets_the_raw_input_models_beside_the_recipe_paired(smoke_built):
+    """The smoke's raw_input_methods=[dis]: its raw-input models train on the paper's raw
+    input (the network's pre-hook off), seeded as the recipe's seed 0, are scored on the
+    same objects, and Table 3 and the paired comparisons carry them."""
+    import torch
+
+    from flowmod import dag, pipeline
+    from flowmod.chapters import ch07_evaluation as ch07
+    from flowmod.chapters import common
+    from flowmod.model import INPUT_MODES
+
+    p = smoke_built
+    assert p.raw_input_methods == ["dis"] and p.input_scaling == "log"
+    test, raw = (common.results(p, "dis", name)[0] for name in ("test", "raw"))
+    assert raw["ann_token"].tolist() == test["ann_token"].tolist()
+    assert not np.allclose(raw["prob"], test["prob_s0"])
+    for part, mode, seed in (("raw/f1", "raw", p.seed + 1), ("f1s0", "log", p.seed + 1)):
+        man = pipeline.published(p, dag.Node("train", "dis", part)) / "manifest.json"
+        rec = __import__("json").loads(man.read_text())
+        assert (rec["input_scaling"], rec["seed"]) == (mode, seed)
+    raw_sd, log_sd = (torch.load(common.model_path(p, "dis", part), weights_only=True)
+                      for part in ("raw/f1", "f1s0"))
+    assert "input_mode" not in raw_sd  # the raw network scales nothing
+    assert int(log_sd["input_mode"]) == INPUT_MODES.index("log")
+    table = ch07.table3(p)
+    row = table[table["Method"] == f"ResNet18 on dis flow, {ch07.RAW_LABEL}"]
+    assert len(row) == 1 and not any("gt flow, the paper" in m for m in table["Method"])
+    pairs = ch07.comparisons(p).set_index("comparison")
+    want = evaluate.paired(test, raw, "x", seed=p.seed)
+    got = pairs.loc["dis: log input - raw input"]
+    assert got["ΔF1 (points)"] == round(100 * want["delta_f1"], 1)
 
 
 # --- which model scores which rows, and what each model and rule is fitted on ----------------
@@ -241,9 +278,16 @@ def test_the_geometric_rule_is_fitted_on_each_fold_s_training_rows(monkeypatch):
     assert test["prob"].tolist() == [1.0] * 8  # 4.0 and 6.0 m/s both above 1.0
 
 
-def test_the_training_stage_chooses_on_validation_rows_and_only_records_test(monkeypatch):
+@pytest.mark.parametrize("part, record, input_mode", [
+    ("f1s0", "test x of fold 1", None),   # seed 0 records the test rows for the replay
+    ("f1s2", None, None),                 # other seeds of a fold do not
+    ("raw/f1", None, "raw"),              # the raw-input model: the paper's input, no record
+])
+def test_the_training_stage_chooses_on_validation_rows_and_only_records_test(
+        monkeypatch, part, record, input_mode):
     """train.build hands the trainer fold k's training rows to fit, its validation rows to
-    choose the epoch on, and its test rows only to record (never scored in training)."""
+    choose the epoch on, and (seed 0 only) its test rows to record, never scored in
+    training; a ``raw/`` part trains on the raw input."""
     from types import SimpleNamespace
 
     from flowmod import dag, train
@@ -253,16 +297,43 @@ def test_the_training_stage_chooses_on_validation_rows_and_only_records_test(mon
                         lambda folder, folds, k, role: (f"{role} x of fold {k}", role))
     monkeypatch.setattr(train, "recipe", lambda b, m: {})
 
-    def fake_train_seed(b, tr, va, progress, what, record=None, **kw):
-        seen.update(train=tr, val=va, record=record)
+    def fake_train_seed(b, tr, va, progress, what, record=None, input_mode=None, **kw):
+        seen.update(train=tr, val=va, record=record, input_mode=input_mode)
         return {}
 
     monkeypatch.setattr(train, "train_seed", fake_train_seed)
-    b = SimpleNamespace(node=dag.Node("train", "dis", "f1s2"), params=SimpleNamespace(folds=3),
+    b = SimpleNamespace(node=dag.Node("train", "dis", part), params=SimpleNamespace(folds=3),
                         input_dir=lambda node: node)
     train.build(b, progress=False)
     assert seen == {"train": ("train x of fold 1", "train"), "val": ("val x of fold 1", "val"),
-                    "record": "test x of fold 1"}
+                    "record": record, "input_mode": input_mode}
+
+
+def test_models_of_keeps_a_key_s_own_models_apart_from_longer_keys():
+    """evaluate[dis] reads train[dis/f<k>s<j>] and train[dis/raw/f<k>]: the recipe's seeds
+    and the raw-input models are told apart by their key, never mixed into one seed."""
+    from types import SimpleNamespace
+
+    from flowmod import dag
+
+    inputs = {"train[dis/f0s0]": {"amp": "off"}, "train[dis/f0s1]": {"amp": "bf16"},
+              "train[dis/raw/f0]": {}, "train[disx/f0s0]": {}, "crops[dis/keyframe]": {}}
+    b = SimpleNamespace(inputs=inputs, input_dir=lambda n: Path("/r") / n.stage / str(n.part))
+    got = evaluate.models_of(b, "train", "dis")
+    assert got == [("f0s0", Path("/r/train/f0s0/best.pt"), None),
+                   ("f0s1", Path("/r/train/f0s1/best.pt"), "bf16")]
+    assert evaluate.models_of(b, "train", "dis/raw") == [
+        ("f0", Path("/r/train/f0/best.pt"), None)]
+    assert {str(n) for n in evaluate.EVALUATE.inputs(dag.Node("evaluate", "dis"), _demo())
+            if n.stage == "train"} >= {"train[dis/raw/f0]", "train[dis/f2s2]"}
+    assert not [n for n in evaluate.EVALUATE.inputs(dag.Node("evaluate", "farneback"), _demo())
+                if "raw" in str(n)]
+
+
+def _demo():
+    from flowmod import params
+
+    return params.load_profile("demo")
 
 
 def test_box_masks_cover_the_box_inside_its_window():

@@ -52,6 +52,9 @@ def test_defaults_are_the_demo_profile():
         ({"categories": []}, "categories is empty"),
         ({"dataroot": ""}, "dataroot is required"),
         ({"world_sweep_scenes": 199}, "world_sweep_scenes=199 must be <= world_scenes=100"),
+        ({"raw_input_methods": ["raft"]}, "['raft'] not in flow_methods"),
+        ({"input_scaling": "raw", "raw_input_methods": ["dis"]},
+         "input_scaling, which is raw already"),
     ],
 )
 def test_bad_values_name_the_key(override, needle):
@@ -215,3 +218,14 @@ def test_runner_faults_are_one_line(tmp_path, monkeypatch, capsys):
                                                  "/runs/demo/crops/x.npy")
     ro = OSError(errno.EROFS, "Read-only file system", "/mnt/ro/runs")
     assert "cannot write /mnt/ro/runs" in runner.os_error_line(ro)
+
+
+@pytest.mark.parametrize(("values", "want"), [
+    ({}, ["gt", "dis"]),                                      # the exact flow and DIS
+    ({"flow_methods": ["farneback", "gt", "dis"]}, ["gt", "farneback"]),
+    ({"flow_methods": ["dis"]}, ["dis"]),
+    ({"input_scaling": "raw"}, []),                           # the recipe is raw already
+    ({"raw_input_methods": []}, []),
+])
+def test_raw_input_methods_default_to_the_exact_flow_and_the_first_estimate(values, want):
+    assert validate(values).raw_input_methods == want

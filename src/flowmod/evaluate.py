@@ -38,7 +38,15 @@ from flowmod.metrics import (
 from flowmod.metrics import breakdown as metrics_breakdown
 from flowmod.model import load_model, predict, resolve_device
 from flowmod.params import Params
-from flowmod.train import EPOCH_PROBS, part_index, part_seed, seed_parts
+from flowmod.train import (
+    EPOCH_PROBS,
+    RAW,
+    part_index,
+    part_seed,
+    raw_parts,
+    records_test,
+    seed_parts,
+)
 
 #: The original code's batch size (Table 2), over which its per-batch F1 was averaged: the
 #: original protocol is replayed with it whatever batch this study's models trained with.
@@ -49,11 +57,14 @@ ORIGINAL_BATCH = 128
 
 def models_of(b: dag.Build, stage: str, method: str) -> list[tuple[str, Path, str | None]]:
     """(part, best.pt, amp) of every training seed among a node's inputs of ``stage``
-    (``train``, ``xtrain`` or ``wtrain``) for ``method`` (``method/input`` for ``xtrain``)."""
+    (``train``, ``xtrain`` or ``wtrain``) for ``method`` (``method/input`` for ``xtrain``,
+    ``method/raw`` for the raw-input models of ``train``)."""
     out = []
     for name, rec in b.inputs.items():
         if name.startswith(f"{stage}[{method}/"):
             part = name[len(f"{stage}[{method}/"):-1]
+            if "/" in part:  # a model of a longer key (train[dis/raw/f0] for "dis")
+                continue
             amp = rec.get("amp", "off")
             out.append((part, b.input_dir(dag.Node(stage, method, part)) / "best.pt",
                         None if amp in (None, "off") else amp))
@@ -245,22 +256,29 @@ def predict_splits(b: dag.Build, stage: str, key: str,
 def build_evaluate(b: dag.Build, progress: bool) -> dict[str, Any]:  # pragma: no mutate block
     """Build one ``evaluate[<method>]`` node: every model (chosen on validation) scored once
     on its test rows (``test.parquet`` + ``scores.json``: the test split, or every scene by
-    its fold's model), the geometric baseline on the same flow (``baseline.parquet`` +
-    ``.json``), and the original protocol from the probabilities saved during training
-    (``original.json``)."""
+    its fold's model), the raw-input models on the same rows when the method has them
+    (``raw.parquet`` + ``.json``), the geometric baseline on the same flow
+    (``baseline.parquet`` + ``.json``), and the original protocol from the probabilities
+    seed 0's models saved during training (``original.json``)."""
     q, m = b.params, b.node.method
     crops_dir = b.input_dir(dag.Node("crops", m, "keyframe"))
-    preds = predict_splits(b, "train", m, {"test": scored_crops(crops_dir, q.folds)})["test"]
-    base, base_s = geometric_baseline(
+    x, rows = scored_crops(crops_dir, q.folds)
+    preds = predict_splits(b, "train", m, {"test": (x, rows)})["test"]
+    frames, scores = {}, {"scores": {"split": "test", **score(preds, seed=q.seed)}}
+    raw = models_of(b, "train", f"{m}/{RAW}")
+    if raw:
+        frames["raw"] = predict_models(raw, x, rows, q.device, 2, q.folds)
+        scores["raw"] = {"split": "test", "input_scaling": "raw",
+                         **score(frames["raw"], seed=q.seed)}
+    frames["baseline"], scores["baseline"] = geometric_baseline(
         pd.read_parquet(b.input_dir(dag.Node("select")) / "pairs.parquet"), crops_dir,
         seed=q.seed, folds=q.folds)
-    models = models_of(b, "train", m)
-    epochs = [np.load(path.parent / EPOCH_PROBS) for _, path, _ in models]
-    write_frames(b.dir, {"baseline": base},
-                 {"scores": {"split": "test", **score(preds, seed=q.seed)},
-                  "baseline": base_s,
-                  "original": original_protocol(preds, epochs, parts=[p for p, _, _ in models])})
-    return {"n": len(preds), "seeds": len(models)}
+    replayed = [(p, path) for p, path, _ in models_of(b, "train", m) if records_test(p)]
+    scores["original"] = original_protocol(
+        preds, [np.load(path.parent / EPOCH_PROBS) for _, path in replayed],
+        parts=[p for p, _ in replayed])
+    write_frames(b.dir, frames, scores)
+    return {"n": len(preds), "seeds": len(models_of(b, "train", m)), "raw_models": len(raw)}
 
 
 def build_generalise(b: dag.Build, progress: bool) -> dict[str, Any]:  # pragma: no mutate block
@@ -278,12 +296,18 @@ def _models(p: Params, method: str) -> tuple[dag.Node, ...]:
     return tuple(dag.Node("train", method, k) for k in seed_parts(p))
 
 
+def _evaluated_models(p: Params, method: str) -> tuple[dag.Node, ...]:
+    """The models ``evaluate[<method>]`` scores: the recipe's, then the raw-input ones."""
+    raw = raw_parts(p) if method in (p.raw_input_methods or []) else []
+    return _models(p, method) + tuple(dag.Node("train", method, k) for k in raw)
+
+
 #: Chapter 07: the classifiers on the test split.
 EVALUATE = dag.Stage(
-    "evaluate", 5, "07", "metrics/{method}/test", "test predictions, baseline, scores",
+    "evaluate", 6, "07", "metrics/{method}/test", "test predictions, baseline, scores",
     nodes=lambda p: [dag.Node("evaluate", m) for m in p.flow_methods],
-    inputs=lambda n, p: (*_models(p, n.method), dag.Node("crops", n.method, "keyframe"),
-                         dag.Node("select")),
+    inputs=lambda n, p: (*_evaluated_models(p, n.method),
+                         dag.Node("crops", n.method, "keyframe"), dag.Node("select")),
     build=build_evaluate)
 #: Chapter 08: the classifiers on the generalisation set.
 GENERALISE = dag.Stage(

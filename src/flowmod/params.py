@@ -265,6 +265,12 @@ class Params(BaseModel):
         description="training seeds per fold of the chains beyond the paper (chapters 10 "
                     "and 11); their intervals resample the Table 3 chains' seeds and "
                     "these")
+    raw_input_methods: list[str] | None = _field(
+        None, role="plan",
+        description="Table 3 beside the chosen recipe: flow methods whose classifier is also "
+                    "trained on the paper's raw input (px; one seed a fold, seed 0's), "
+                    "scored on the same objects and compared paired; default: the exact "
+                    "flow and the first estimate, none when input_scaling is raw")
     folds: int = _field(
         3, ge=1, le=10, read_by=_FOLDS,
         description="cross-validation over scenes: each fold's models train on the other "
@@ -389,6 +395,7 @@ class Params(BaseModel):
                 f"{self.flow_methods}: name one of them, or leave clip_method unset (the first "
                 "method that is not gt)"
             )
+        self._check_raw_input_methods()
         if len(set(self.extension_inputs)) != len(self.extension_inputs):
             raise ValueError(f"extension_inputs={self.extension_inputs} lists an input twice")
         if self.extension_methods is None:
@@ -416,6 +423,23 @@ class Params(BaseModel):
                 f"world_scenes={self.world_scenes}"
             )
         return self
+
+    def _check_raw_input_methods(self) -> None:
+        """Resolve ``raw_input_methods``'s default and refuse what would train nothing new."""
+        if self.raw_input_methods is None:
+            first = [m for m in self.flow_methods if m != "gt"][:1]
+            self.raw_input_methods = ([] if self.input_scaling == "raw" else
+                                      [m for m in self.flow_methods if m == "gt"] + first)
+        stray = [m for m in self.raw_input_methods if m not in self.flow_methods]
+        if stray:
+            raise ValueError(
+                f"raw_input_methods={self.raw_input_methods}: {stray} not in flow_methods="
+                f"{self.flow_methods}; name some of them or [] for none")
+        if self.raw_input_methods and self.input_scaling == "raw":
+            raise ValueError(
+                f"raw_input_methods={self.raw_input_methods} trains the paper's raw input "
+                "beside input_scaling, which is raw already (the same models twice): set "
+                "raw_input_methods=[]")
 
     # --- paths ---------------------------------------------------------------------------
     def path(self, value: str) -> Path:

@@ -574,6 +574,23 @@ def seed_parts(p: Params | StageParams, seeds: int | None = None) -> list[str]:
     return [f"s{k}" for k in range(n)]
 
 
+#: The prefix of a training part trained on the paper's raw input beside the profile's
+#: recipe (``train[dis/raw/f0]``: ``raw_input_methods``).
+RAW = "raw"
+
+
+def raw_parts(p: Params | StageParams) -> list[str]:
+    """The parts of a method's raw-input models (``raw/f<k>``, or ``raw/s0`` with one
+    split): one seed a fold, seeded as seed 0 of the recipe's models, so that the pair
+    differs in the input alone."""
+    return [f"{RAW}/{k}" for k in seed_parts(p, 1)]
+
+
+def is_raw(part: Any) -> bool:
+    """Whether a training part is a raw-input model (:func:`raw_parts`)."""
+    return str(part).startswith(f"{RAW}/")
+
+
 def extension_parts(p: Params | StageParams) -> list[str]:
     """The training parts of the chains beyond the paper (chapters 10 and 11)."""
     return seed_parts(p, p.extension_seeds)
@@ -616,25 +633,28 @@ def seed_index(node: dag.Node) -> int:
 
 def train_seed(b: dag.Build, train: tuple[Any, pd.DataFrame], val: tuple[Any, pd.DataFrame],
                progress: bool, what: str, record: Any | None = None, in_channels: int = 2,
-               flip_negate: Sequence[int] = (0,), flow_channels: Sequence[int] = (0, 1)
-               ) -> dict[str, Any]:
+               flip_negate: Sequence[int] = (0,), flow_channels: Sequence[int] = (0, 1),
+               input_mode: str | None = None) -> dict[str, Any]:
     """Train the model of a training node (``b``: ``train``, ``xtrain`` or ``wtrain``) in its
     building folder, seed ``seed +`` :func:`part_seed_offset`, with the profile's Table 2
     settings (resumable); then
     keep what a published model needs: ``best.pt`` in float16 (no test decision changes, see
     the differences page), no ``last.pt`` (the resumable checkpoint, twice best.pt, is only
-    needed while building). Returns the manifest's training fields."""
+    needed while building). ``input_mode``: the flow scaling instead of the profile's
+    ``input_scaling``. Returns the manifest's training fields."""
     q = b.params
     seed = q.seed + part_seed_offset(str(b.node.part))
+    s = TrainSettings.of(q)
+    s = s if input_mode is None else replace(s, input_mode=input_mode)
     work = b.start(fresh=q.force)
-    h = train_model(*train, *val, work, TrainSettings.of(q), seed=seed, record=record,
+    h = train_model(*train, *val, work, s, seed=seed, record=record,
                     resume=True, progress=progress, desc=f"train {what} seed {seed}",
                     in_channels=in_channels, flip_negate=flip_negate,
                     flow_channels=flow_channels)
     half_weights(work / "best.pt")
     (work / "last.pt").unlink(missing_ok=True)
     return {"best_epoch": int(h.attrs["best_epoch"]), "best_f1": float(h.attrs["best_f1"]),
-            "seed": seed, "amp": q.amp, "input_scaling": q.input_scaling}
+            "seed": seed, "amp": q.amp, "input_scaling": s.input_mode}
 
 
 def recipe(b: dag.Build, method: str, part: str = "keyframe") -> dict[str, Any]:
@@ -656,19 +676,36 @@ def recipe_from(method: str, flow_rec: dict[str, Any], crops_rec: dict[str, Any]
             "crop_scale": crops_rec.get("params", {}).get("crop_scale")}
 
 
+def records_test(part: Any) -> bool:
+    """Whether a training part records its test rows' probabilities after every epoch (for
+    chapter 07's replay of the original protocol): every seed of one split (``s<j>``), seed
+    0 of each fold (``f<k>``, ``f<k>s0``: the replay costs ~10 % of a demo model, and the
+    protocol's gap is a mean over models); never a raw-input model."""
+    name = _part_name(str(part))
+    return not is_raw(part) and (name[0] == "s" or part_seed(name) == 0)
+
+
 def build(b: dag.Build, progress: bool) -> dict[str, Any]:
-    """Build one ``train[<method>/s<k>]`` (``f<k>``) node: a classifier on the method's
-    keyframe train/val crops of its split or fold (the test crops' probabilities recorded
-    every epoch, never scored)."""
-    m, folds, k = b.node.method, b.params.folds, seed_index(b.node)
+    """Build one ``train[<method>/<part>]`` node: a classifier on the method's keyframe
+    train/val crops of its split or fold; seed 0's records the test crops' probabilities
+    every epoch (never scored); a ``raw/...`` part trains on the paper's raw input."""
+    m, folds, k, part = b.node.method, b.params.folds, seed_index(b.node), b.node.part
     folder = b.input_dir(dag.Node("crops", m, "keyframe"))
     train, val, test = (fold_crops(folder, folds, k, role) for role in ("train", "val", "test"))
-    info = train_seed(b, train, val, progress, m, record=test[0])
+    info = train_seed(b, train, val, progress, f"{m}{' raw input' * is_raw(part)}",
+                      record=test[0] if records_test(part) else None,
+                      input_mode="raw" if is_raw(part) else None)
     return {**info, "recipe": recipe(b, m)}
+
+
+def train_nodes(p: Params) -> list[dag.Node]:
+    """The training stage's nodes: every method's seeds of each fold, then the raw-input
+    models of ``raw_input_methods``."""
+    return ([dag.Node("train", m, k) for m in p.flow_methods for k in seed_parts(p)]
+            + [dag.Node("train", m, k) for m in p.raw_input_methods or [] for k in raw_parts(p)])
 
 
 #: The training stage (chapter 06): the classifier of one training seed.
 STAGE = dag.Stage("train", 4, "06", "models/{method}/{part}", "the classifier of one training seed",
-                  nodes=lambda p: [dag.Node("train", m, k) for m in p.flow_methods
-                                   for k in seed_parts(p)],
+                  nodes=train_nodes,
                   inputs=lambda n, p: (dag.Node("crops", n.method, "keyframe"),), build=build)
