@@ -142,8 +142,8 @@ def test_table4_rows_and_comparisons_come_from_the_predictions(smoke_built):
     done = ch11.built(p)
     assert done == ["dis"]
     t = ch11.table4(p, done)
-    assert list(t["method"].unique()) == [ch11.label("dis", False), ch11.label("dis", True)]
-    row = t[(t["method"] == ch11.label("dis", True)) & t["vehicles"].str.endswith("(Table 4)")
+    assert list(t["method"].unique()) == [ch11.label(p, "dis", False), ch11.label(p, "dis", True)]
+    row = t[(t["method"] == ch11.label(p, "dis", True)) & t["vehicles"].str.endswith("(Table 4)")
             & (t["scored against"] == "paper rule (previous keyframe)")].iloc[0]
     d = ch11.predictions(p, "dis", "general", True)
     d = d[d["distance"] <= p.general_max_distance]
@@ -156,8 +156,8 @@ def test_table4_rows_and_comparisons_come_from_the_predictions(smoke_built):
         assert a["ann_token"].equals(b["ann_token"])
         assert len(ch11.comparisons(p, done, split)) == 1
     by = ch11.by_distance(p, done)
-    assert list(by) == [ch11.label("dis", False), ch11.label("dis", True)]
-    assert sum(by[ch11.label("dis", True)]["n"]) == len(ch11.predictions(
+    assert list(by) == [ch11.label(p, "dis", False), ch11.label(p, "dis", True)]
+    assert sum(by[ch11.label(p, "dis", True)]["n"]) == len(ch11.predictions(
         p, "dis", "general", True).query(f"distance < {ch11.EDGES[-1]}"))
     nf = ch11.near_far(p, done)
     assert (nf.filter(regex="^n ").sum(axis=1) == len(d)).all()

@@ -31,7 +31,7 @@ def built(params: Params) -> list[str]:
 def training_summary(params: Params) -> pd.DataFrame:
     """One row per training set and split: pairs, objects, moving share, distance range."""
     rows = []
-    for name, node in (("paper: 30-70 m keyframes", "select"), ("all distances", "wide")):
+    for name, node in ((f"paper: {band(params)} keyframes", "select"), ("all distances", "wide")):
         d = pipeline.published(params, Node(node))
         pairs, obj = (pd.read_parquet(d / f"{k}.parquet") for k in ("pairs", "objects"))
         for split in part_splits("wide", params.folds):
@@ -71,9 +71,15 @@ def predictions(params: Params, method: str, split: str, wide: bool) -> pd.DataF
     return pd.read_parquet(folder / f"{split}.parquet")
 
 
-def label(method: str, wide: bool) -> str:
-    """A row's name: ``dis (30-70 m)`` (the paper's training) or ``dis (all distances)``."""
-    return f"{method} ({'all distances' if wide else '30-70 m'})"
+def band(params: Params) -> str:
+    """The paper's training band of this run: ``30-70 m`` (min_distance, max_distance)."""
+    return f"{params.min_distance:g}-{params.max_distance:g} m"
+
+
+def label(params: Params, method: str, wide: bool) -> str:
+    """A row's name: ``dis (30-70 m)`` (the paper's training: :func:`band`) or ``dis (all
+    distances)``."""
+    return f"{method} ({'all distances' if wide else band(params)})"
 
 
 def table4(params: Params, done: list[str]) -> pd.DataFrame:
@@ -81,7 +87,7 @@ def table4(params: Params, done: list[str]) -> pd.DataFrame:
     trained on all distances beside the paper's (:func:`flowmod.evaluate.table4`: the
     paper's range scored against the paper's label and the true one, and the vehicles beyond
     it apart)."""
-    preds = {label(m, w): predictions(params, m, "general", w)
+    preds = {label(params, m, w): predictions(params, m, "general", w)
              for m in params.wide_methods for w in (False, True) if not w or m in done}
     return evaluate_table4(preds, params.general_max_distance)
 
@@ -95,7 +101,7 @@ def comparisons(params: Params, methods: list[str], split: str = "general") -> p
     for m in methods:
         a, b = (scored(predictions(params, m, split, w), split, params.general_max_distance)
                 for w in (True, False))
-        rows[f"{m}: all distances - 30-70 m"] = paired(
+        rows[f"{m}: all distances - {band(params)}"] = paired(
             a, b, f"{m}: the two classifiers", params.seed)
     return comparison_table(rows)
 
@@ -103,7 +109,7 @@ def comparisons(params: Params, methods: list[str], split: str = "general") -> p
 def by_distance(params: Params, methods: list[str]) -> dict[str, pd.DataFrame]:
     """F1 per distance bin (:data:`EDGES`) on the generalisation set of both classifiers of
     every method (:func:`flowmod.evaluate.breakdown`), for one plot."""
-    return {label(m, w): breakdown(predictions(params, m, "general", w), "distance", list(EDGES))
+    return {label(params, m, w): breakdown(predictions(params, m, "general", w), "distance", list(EDGES))
             for m in methods for w in (False, True)}
 
 
@@ -117,7 +123,7 @@ def near_far(params: Params, methods: list[str], near: float = 30.0) -> pd.DataF
             d = scored(predictions(params, m, "general", w), "general",
                        params.general_max_distance)
             y = d["label"].to_numpy()
-            row: dict[str, Any] = {"classifier": label(m, w)}
+            row: dict[str, Any] = {"classifier": label(params, m, w)}
             for name, k in ((f"< {near:g} m", d["distance"] < near),
                             (f"{near:g}-{params.general_max_distance:g} m",
                              d["distance"] >= near)):
@@ -159,9 +165,9 @@ def headline(params: Params, table: pd.DataFrame, done: list[str],
     t = table[table["vehicles"].str.endswith("(Table 4)")
               & (table["scored against"] == "paper rule (previous keyframe)")].set_index(
         "method")
-    wide, paper = t.loc[label(main, True)], t.loc[label(main, False)]
+    wide, paper = t.loc[label(params, main, True)], t.loc[label(params, main, False)]
     return (f"trained on every distance up to {params.general_max_distance:g} m instead of "
-            f"30-70 m keyframes only, the {main} classifier reaches Table 4 F1 "
+            f"{band(params)} keyframes only, the {main} classifier reaches Table 4 F1 "
             f"{wide['F1 (%)']:.1f} % (interval over scenes and seeds {wide[CI_COLUMN]} %) "
             f"against {paper['F1 (%)']:.1f} %" + (
                 f": {common.difference_words(paired.iloc[done.index(main)])}"

@@ -217,7 +217,7 @@ def recipe_table(m: dict[str, Any]) -> pd.DataFrame:
                               f"seed {w['seed']}, sweeps in every scene; every "
                               f"{r['val_every']}th scene for validation; no scene of this "
                               "book's worlds"),
-        "pairs": (f"1 to {r['max_gap']} camera frames apart (12 Hz), from every "
+        "pairs": (f"{r.get('min_gap', 1)} to {r['max_gap']} camera frames apart (12 Hz), from every "
                   f"{r['start_stride']}th frame of the training scenes, at scale {r['scale']}"),
         "batch": (f"{r['batch']} random {r['crop'][0]} x {r['crop'][1]} windows, a "
                   f"horizontal flip with p {r['flip_p']}"),
