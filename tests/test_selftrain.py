@@ -254,6 +254,34 @@ def test_seconds_per_pair_time_the_estimator_not_the_scoring(monkeypatch):
     assert out["seconds_per_pair"] < 0.05, "the scoring's time is not the estimator's"
 
 
+def test_the_shipped_stage_scores_the_weights_once_on_held_out_pairs(smoke_built):
+    """Chapter 12's numbers on this book's world come from the ``shipped`` node, not from
+    the chapter: its table and per-pair errors are the network's and DIS's on the pairs
+    drawn with the seed (equal to scoring them directly), and its example holds the first
+    pair's flows at full size."""
+    p = smoke_built
+    table, errors = ch12.held_out_check(p)
+    assert table["method"].tolist() == ["zero flow", "farneback", "dis (medium)", ch12.SHIPPED]
+    sel = pipeline.published(p, dag.Node("select"))
+    pairs = pd.read_parquet(sel / "pairs.parquet")
+    pick = selftrain.sample_pairs(pairs[pairs["set"] == "keyframe"], p.selfflow_eval_pairs,
+                                  (p.seed, 12))
+    assert errors["pair_id"].tolist() == pick["pair_id"].tolist()
+    data = selftrain.held_out(pick, pd.read_parquet(sel / "objects.parquet"), p.dataroot_path,
+                              p.version, synthetic=True)
+    net = FastFlowNetFlow(p.path(p.shipped_weights), device="cpu", scale=p.flow_scale)
+    rows, _ = selftrain.pair_metrics(net.estimate, data)
+    assert errors[ch12.SHIPPED].tolist() == pytest.approx([r["epe_boxes"] for r in rows])
+    want = selftrain.mean_metrics(rows)
+    row = table.set_index("method").loc[ch12.SHIPPED]
+    assert (row["EPE (px)"], row["EPE in boxes (px)"]) == (round(want["epe"], 2),
+                                                         round(want["epe_boxes"], 2))
+    img, flows, valid = ch12.shipped_example(p)
+    assert set(flows) == {"exact", "dis (medium)", ch12.SHIPPED}
+    assert flows["exact"].shape == (*img.shape[:2], 2) == (*valid.shape, 2)
+    assert np.abs(flows["exact"] - data.gt[0]).max() < 0.05 * np.abs(data.gt[0]).max() + 0.01
+
+
 def test_the_papers_observation_is_answered_with_paired_numbers(smoke_built):
     """Chapter 12 compares the shipped network's chain with DIS's; the smoke profile has no
     fastflownet chain, so the exact flow's stands in for it."""

@@ -189,8 +189,8 @@ def test_the_answers_page_gathers_each_chapters_rows_and_draws_them_all(monkeypa
     table = ch13.answers(eff)
     assert table["decided"].tolist() == ["1 of 2", "1 of 1"]
     assert table["chapter"].tolist() == ["07", "11"]
-    assert table.iloc[0, 1] == ("gt - dis: +2.2 (0.2 to 4.4), decided; dis: classifier - oracle "
-                                "rule: +2.1 (-0.9 to 5.0)")
+    assert table.iloc[0, 1] == ("gt - dis: +2.2 (0.2 to 4.4), decided<br>dis: classifier - "
+                                "oracle rule: +2.1 (-0.9 to 5.0)")  # one line per effect
     fig = viz.forest(eff)
     ax = fig.axes[0]
     assert [t.get_text() for t in ax.get_yticklabels()] == [

@@ -102,7 +102,7 @@ class Params(BaseModel):
     profile: str = _field("demo", role="run",
                           description="profile name; artefacts go to runs/<profile>/")
     seed: int = _field(0, ge=0, read_by=("world", "select", "flow", "train", "evaluate", "xtrain",
-                                "wtrain", "selfflow"),
+                                "wtrain", "selfflow", "shipped"),
                        description="master seed for every random choice")
     run_dir: str = _field("runs/demo", role="run",
                           description="stage artefacts (relative to the repo root)")
@@ -191,7 +191,7 @@ class Params(BaseModel):
     flow_networks: list[Literal["raft", "raft_small", "fastflownet"]] = _field(
         list, role="plan",
         description="networks the runner adds to flow_methods when their weights are present")
-    flow_scale: float = _field(0.75, gt=0.0, le=1.0, read_by=(*_FLOW, "selfflow"),
+    flow_scale: float = _field(0.75, gt=0.0, le=1.0, read_by=(*_FLOW, "selfflow", "shipped"),
                                description="image scale at which flow is computed and stored")
     dis_preset: Literal["ultrafast", "fast", "medium"] = _field(
         "medium", read_by=_FLOW, methods=("dis",), description="OpenCV DIS preset")
@@ -349,7 +349,11 @@ class Params(BaseModel):
     selfflow_pairs: int = _field(256, ge=1, le=10_000_000, read_by=("selfflow",),
                                  description="chapter 12: training pairs (keyframe pairs of "
                                              "the train and val scenes, drawn with the seed)")
-    selfflow_eval_pairs: int = _field(16, ge=1, le=10_000, read_by=("selfflow",),
+    shipped_weights: str = _field(
+        "weights/fastflownet_synth/weights.pt", read_by=("shipped",), file=True,
+        description="chapter 12: the FastFlowNet weights it scores on held-out pairs of this "
+                    "book's world (default: the shipped ones)")
+    selfflow_eval_pairs: int = _field(16, ge=1, le=10_000, read_by=("selfflow", "shipped"),
                                       description="chapter 12: held-out pairs (test scenes) "
                                                   "of the end-point error")
     selfflow_eval_every: int = _field(100, ge=0, le=10_000_000, read_by=("selfflow",),

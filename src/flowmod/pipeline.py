@@ -48,6 +48,7 @@ STAGES: tuple[dag.Stage, ...] = (
     wide.WIDE_STAGE,         # 11 the training set at every distance
     wide.WTRAIN,             # 11 a classifier trained on it
     wide.WGENERALISE,        # 11 its predictions
+    selfflow.SHIPPED_STAGE,  # 12 the shipped FastFlowNet weights, held out
     selfflow.STAGE,          # 12 FastFlowNet trained here
 )
 #: The make target that turns each gate on.

@@ -21,22 +21,16 @@ from flowmod.evaluate import paired, scored
 from flowmod.flow.estimators import DISFlow
 from flowmod.flow.networks import FastFlowNetFlow
 from flowmod.flow.pretrain import WEIGHTS_DIR
+from flowmod.flow.registry import read_image
 from flowmod.flow.selftrain import (
     DIS_PRESET,
-    HeldOut,
-    baselines,
+    SHIPPED,
     held_out,
     heldout_pairs,
-    pair_metrics,
-    sample_pairs,
-    score,
 )
 from flowmod.metrics import comparison_table, group_mean_bootstrap, interval, verdict
 from flowmod.params import Params
 from flowmod.paths import repo_root
-
-#: The shipped weights' row name in this chapter's tables.
-SHIPPED = "fastflownet (shipped)"
 
 
 def built(params: Params) -> list[str]:
@@ -272,57 +266,47 @@ def curves(m: dict[str, Any]) -> tuple[pd.DataFrame, pd.DataFrame]:
     return pd.DataFrame(m["training_curve"]), pd.DataFrame(m["validation"]["curve"])
 
 
-def world_pairs(params: Params, n: int) -> HeldOut | None:
-    """``n`` keyframe pairs of this book's world drawn with the seed (any scene: the shipped
-    weights never saw this world), read with their exact flow; None on a data set without
-    exact flow (real nuScenes), where there is nothing to measure against."""
-    if not world.is_synthetic(params.dataroot_path, params.version):
-        return None
-    sel = pipeline.published(params, Node("select"))
-    pairs = pd.read_parquet(sel / "pairs.parquet")
-    pick = sample_pairs(pairs[pairs["set"] == "keyframe"], n, (params.seed, 12))
-    return held_out(pick, pd.read_parquet(sel / "objects.parquet"), params.dataroot_path,
-                    params.version, synthetic=True)
+def held_out_check(params: Params) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
+    """The published ``shipped`` node (:func:`flowmod.extensions.selfflow.build_shipped`):
+    (its table: the shipped weights beside the zero flow, Farneback and DIS on held-out
+    pairs of this book's world, with the seconds per pair of each estimator where the node
+    was built; its per-pair EPE in the boxes); (None, None) on data without exact flow."""
+    folder = pipeline.published(params, Node("shipped"))
+    raw, boxes = (pd.read_parquet(folder / f"{k}.parquet") for k in ("world", "pairs"))
+    if raw.empty:
+        return None, None
+    table = pd.DataFrame([{**_metric_row(r["method"], r), "s / pair":
+                           round(r["seconds_per_pair"], 2)} for _, r in raw.iterrows()])
+    return table, boxes
 
 
-def world_table(params: Params, data: HeldOut) -> pd.DataFrame:
-    """The shipped weights beside the zero flow, Farneback and DIS on ``data`` (this book's
-    world), with the seconds per pair of each estimator on this machine."""
-    ffn = FastFlowNetFlow(repo_root() / WEIGHTS_DIR / "weights.pt", device="cpu",
-                          scale=params.flow_scale)
-    scored = {**baselines(data, params.flow_scale), SHIPPED: score(ffn.estimate, data)}
-    return pd.DataFrame([{**_metric_row(k, v), "s / pair": round(v["seconds_per_pair"], 2)}
-                         for k, v in scored.items()])
+def shipped_example(params: Params) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
+    """The first held-out pair of the ``shipped`` node: (its frame 1, the exact, DIS and
+    shipped flows at full size, the exact flow's valid mask), for
+    :func:`flowmod.report.viz.flow_figure`."""
+    folder = pipeline.published(params, Node("shipped"))
+    with np.load(folder / "example.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    path = pd.read_parquet(folder / "pairs.parquet")["path_1"].iloc[0]
+    flows = {"exact": arrays["exact"], f"dis ({DIS_PRESET})": arrays["dis"],
+             SHIPPED: arrays[SHIPPED]}
+    return (read_image(params.dataroot_path / path),
+            {k: v.astype(np.float32) for k, v in flows.items()}, arrays["valid"])
 
 
-def box_errors(params: Params, data: HeldOut | None) -> pd.DataFrame | None:
-    """Per pair of ``data`` (this book's world): its scene and the end-point error (px)
-    inside the target boxes of the shipped weights' flow and of DIS's; None without exact
-    flow."""
-    if data is None or data.gt is None:
-        return None
-    ffn = FastFlowNetFlow(repo_root() / WEIGHTS_DIR / "weights.pt", device="cpu",
-                          scale=params.flow_scale)
-    dis = DISFlow(DIS_PRESET, scale=params.flow_scale)
-    return pd.DataFrame({"scene": data.scenes,
-                         **{k: [r["epe_boxes"] for r in pair_metrics(est.estimate, data)[0]]
-                            for k, est in ((SHIPPED, ffn), ("dis", dis))}})
-
-
-def observation(params: Params, data: HeldOut | pd.DataFrame | None,
+def observation(params: Params, errors: pd.DataFrame | None,
                 methods: tuple[str, str] = ("fastflownet", "dis")) -> dict[str, Any]:
     """The paper's observation (the less accurate flow classified better) on this study's
     numbers: the shipped network minus DIS in end-point error inside the target boxes (px,
-    paired per pair of ``data`` with a scene-level interval; ``data``: the pairs, or their
-    :func:`box_errors` already), and in Table 3's F1 (paired, same test objects, scene-level
-    interval), and Table 4's likewise. Empty where Table 3 has no ``fastflownet`` and
-    ``dis`` rows or they are not built. ``methods``: the two chains compared (the first's
-    flow is the shipped weights')."""
+    paired per held-out pair with a scene-level interval; ``errors``: the per-pair table of
+    :func:`held_out_check`, None without exact flow), and in Table 3's F1 (paired, same
+    test objects, scene-level interval), and Table 4's likewise. Empty where Table 3 has no
+    ``fastflownet`` and ``dis`` rows or they are not built. ``methods``: the two chains
+    compared (the first's flow is the shipped weights')."""
     if not all(m in params.flow_methods and pipeline.built(params, Node("generalise", m))
                for m in methods):
         return {}
     out: dict[str, Any] = {"epe_boxes_minus_dis": None}
-    errors = box_errors(params, data) if isinstance(data, HeldOut) else data
     if errors is not None:
         diff = (errors[SHIPPED] - errors["dis"]).to_numpy(float)
         ci = interval(group_mean_bootstrap(diff, errors["scene"], seed=params.seed))
@@ -359,7 +343,7 @@ def world_words(table: pd.DataFrame | None, n: int) -> str:
             f"vehicles' boxes, {rel(f['EPE in boxes (px)'], d['EPE in boxes (px)'])} DIS's "
             f"{d['EPE in boxes (px)']:.1f} px (Fl-all in the boxes {f['Fl-all in boxes (%)']:.1f} "
             f"against {d['Fl-all in boxes (%)']:.1f} %); it takes {f['s / pair']:.2f} s a pair "
-            f"on this machine against DIS's {d['s / pair']:.2f} s.")
+            f"where they were computed against DIS's {d['s / pair']:.2f} s.")
 
 
 def observation_words(obs: dict[str, Any]) -> str:
@@ -427,15 +411,3 @@ def shipped_note(params: Params, m: dict[str, Any] | None) -> str:
                  f"computes flow at {params.flow_scale:g} (`flow_scale`), where they were "
                  "not validated.")
     return text
-
-
-def shipped_example(params: Params, data: HeldOut, k: int = 0) -> dict[str, np.ndarray]:
-    """Pair ``k`` of ``data``: the exact flow (where there is one), DIS and the shipped
-    network at full size, for :func:`flowmod.report.viz.flow_figure`."""
-    flows = {"exact": data.gt[k]} if data.gt else {}
-    flows[f"dis ({DIS_PRESET})"] = DISFlow(DIS_PRESET, scale=params.flow_scale).estimate(
-        data.img1[k], data.img2[k])
-    ffn = FastFlowNetFlow(repo_root() / WEIGHTS_DIR / "weights.pt", device="cpu",
-                          scale=params.flow_scale)
-    flows[SHIPPED] = ffn.estimate(data.img1[k], data.img2[k])
-    return flows

@@ -54,8 +54,9 @@ def effects(params: Params) -> pd.DataFrame:
 
 
 def answers(eff: pd.DataFrame) -> pd.DataFrame:
-    """The landing page's table: one row per question, its effects in words
-    (``name: +1.2 (-0.5 to 2.9), decided``), the share decided, the chapter."""
+    """The landing page's table: one row per question, its effects in words, one line each
+    (``name: +1.2 (-0.5 to 2.9), decided``, joined by HTML line breaks), the share decided,
+    the chapter."""
     out = []
     for chapter, g in eff.groupby("chapter", sort=True):
         parts = [f"{r['comparison']}: {r['ΔF1 (points)']:+.1f} "
@@ -63,7 +64,7 @@ def answers(eff: pd.DataFrame) -> pd.DataFrame:
                  + ("" if r["verdict"] == "undecided" else ", decided")
                  for _, r in g.iterrows()]
         out.append({"question": g["question"].iloc[0],
-                    "answer (ΔF1 points, 95 % interval over scenes and seeds)": "; ".join(parts),
+                    "answer (ΔF1 points, 95 % interval over scenes and seeds)": "<br>".join(parts),
                     "decided": f"{int((g['verdict'] != 'undecided').sum())} of {len(g)}",
                     "chapter": chapter})
     return pd.DataFrame(out)

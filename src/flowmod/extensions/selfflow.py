@@ -12,11 +12,16 @@ import functools
 import shutil
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from flowmod import dag, world
 from flowmod.artefacts import atomic_path, write_json
+from flowmod.flow.estimators import DISFlow
+from flowmod.flow.networks import FastFlowNetFlow
 from flowmod.flow.selftrain import (
+    DIS_PRESET,
+    SHIPPED,
     FramePairs,
     SelfFlowError,
     baselines,
@@ -24,6 +29,8 @@ from flowmod.flow.selftrain import (
     fold0_pairs,
     held_out,
     heldout_pairs,
+    mean_metrics,
+    pair_metrics,
     sample_pairs,
     save_state,
     score_model,
@@ -101,6 +108,70 @@ def init_weights(q: Any) -> Any:
     return path
 
 
+def build_shipped(b: dag.Build, progress: bool) -> dict[str, Any]:
+    """Build the ``shipped`` node: the FastFlowNet weights ``shipped_weights`` names, the
+    zero flow, Farneback and DIS (:func:`flowmod.flow.selftrain.baselines`) on
+    ``selfflow_eval_pairs`` keyframe pairs of this book's world drawn with the seed (scenes
+    the weights never saw and no recipe of theirs was chosen on: their held-out test set).
+    Writes ``world.parquet`` (per method: EPE and Fl-all over the frame and in the far
+    vehicles' boxes, s/pair), ``pairs.parquet`` (per pair: its id, scene and EPE in the
+    boxes of the network and of DIS, px) and ``example.npz`` (the first pair's exact, DIS
+    and network flow, float16, and its valid mask); empty tables on data without exact
+    flow (real nuScenes: nothing to measure against)."""
+    q = b.params
+    weights = q.path(q.shipped_weights)
+    if not weights.is_file():
+        raise SelfFlowError(f"shipped_weights={q.shipped_weights}: no such file ({weights}); "
+                            "`make flownet` makes the shipped weights")
+    work = b.start(fresh=True)
+    if not world.is_synthetic(q.dataroot_path, q.version):
+        _write_shipped(work, pd.DataFrame(), pd.DataFrame(), {})
+        return {"pairs": 0, "exact_flow": False}
+    sel = b.input_dir(dag.Node("select"))
+    pairs = pd.read_parquet(sel / "pairs.parquet")
+    pick = sample_pairs(pairs[pairs["set"] == "keyframe"], q.selfflow_eval_pairs, (q.seed, 12))
+    data = held_out(pick, pd.read_parquet(sel / "objects.parquet"), q.dataroot_path,
+                    q.version, synthetic=True)
+    flows: dict[str, np.ndarray] = {}
+    nets = {SHIPPED: FastFlowNetFlow(weights, device=q.device, scale=q.flow_scale),
+            "dis": DISFlow(DIS_PRESET, scale=q.flow_scale)}
+    per_pair, scores = {}, {}
+    for name, est in nets.items():
+        def first(a: np.ndarray, c: np.ndarray, est: Any = est, name: str = name) -> np.ndarray:
+            f = est.estimate(a, c)
+            flows.setdefault(name, f)
+            return f
+        rows, seconds = pair_metrics(first, data)
+        per_pair[name] = [r["epe_boxes"] for r in rows]
+        scores[name] = {**mean_metrics(rows), "seconds_per_pair": seconds / len(rows)}
+    refs = baselines(data, q.flow_scale, methods=("zero flow", "farneback"))
+    table = pd.DataFrame([{"method": k, **v} for k, v in
+                          {**refs, f"dis ({DIS_PRESET})": scores["dis"],
+                           SHIPPED: scores[SHIPPED]}.items()])
+    boxes = pd.DataFrame({"pair_id": pick["pair_id"].to_numpy(), "scene": data.scenes,
+                          "path_1": pick["path_1"].to_numpy(), **per_pair})
+    _write_shipped(work, table, boxes, {"exact": data.gt[0], "valid": data.valid[0],
+                                        **flows})
+    return {"pairs": len(pick), "exact_flow": True}
+
+
+def _write_shipped(folder: Any, table: pd.DataFrame, boxes: pd.DataFrame,
+                   arrays: dict[str, np.ndarray]) -> None:
+    """The ``shipped`` node's files, each written atomically."""
+    for name, df in (("world", table), ("pairs", boxes)):
+        with atomic_path(folder / f"{name}.parquet") as tmp:
+            df.to_parquet(tmp, index=False)
+    with atomic_path(folder / "example.npz") as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **{k: (v if v.dtype == bool else v.astype(np.float16))
+                        for k, v in arrays.items()})
+
+
+#: Chapter 12: the shipped weights on held-out pairs of this book's world (always built).
+SHIPPED_STAGE = dag.Stage(
+    "shipped", 1, "12", "selfflow/shipped",
+    "the shipped FastFlowNet weights and the reference methods on held-out pairs",
+    nodes=lambda p: [dag.Node("shipped")],
+    inputs=lambda n, p: (dag.Node("world"), dag.Node("select")), build=build_shipped)
 #: Chapter 12: FastFlowNet trained from scratch (with ``selfflow_build``).
 STAGE = dag.Stage("selfflow", 2, "12", "selfflow/{part}",
                   "FastFlowNet trained from scratch, validation and test end-point error",

@@ -65,6 +65,8 @@ CHECKPOINT_EVERY = 25
 PHOTOMETRIC_SCALES = (1.0, 0.5, 0.25, 0.125)
 #: The DIS preset of the baseline (the CPU default of chapter 03).
 DIS_PRESET = "medium"
+#: The shipped weights' row name in chapter 12's tables.
+SHIPPED = "fastflownet (shipped)"
 
 
 class SelfFlowError(ValueError):
@@ -315,26 +317,35 @@ def pair_metrics(estimate: Callable[[np.ndarray, np.ndarray], np.ndarray], data:
     return rows, seconds
 
 
+def mean_metrics(rows: list[dict[str, float]]) -> dict[str, float]:
+    """The mean over pairs of :func:`pair_metrics`' rows: EPE (px) and Fl-all (%), overall
+    and inside the target vehicles' boxes; NaN without rows (no exact flow)."""
+    keys = ("epe", "epe_boxes", "fl_all", "fl_all_boxes")
+    return {k: float(np.nanmean([r[k] for r in rows])) if rows else float("nan")
+            for k in keys}
+
+
 def score(estimate: Callable[[np.ndarray, np.ndarray], np.ndarray], data: HeldOut
           ) -> dict[str, float]:
-    """Mean over the held-out pairs of EPE (px) and Fl-all (%), overall and inside the target
-    vehicles' boxes, of ``estimate(img1, img2) -> (H, W, 2)`` px, and its seconds per pair
-    (the estimator's calls only); NaN metrics without exact flow."""
+    """:func:`mean_metrics` of ``estimate(img1, img2) -> (H, W, 2)`` px on the held-out
+    pairs, and its seconds per pair (the estimator's calls only); NaN metrics without exact
+    flow."""
     rows, seconds = pair_metrics(estimate, data)
-    out = {"seconds_per_pair": seconds / max(len(data.img1), 1)}
-    keys = ("epe", "epe_boxes", "fl_all", "fl_all_boxes")
-    out.update({k: float(np.nanmean([r[k] for r in rows])) if rows else float("nan")
-                for k in keys})
-    return out
+    return {"seconds_per_pair": seconds / max(len(data.img1), 1), **mean_metrics(rows)}
 
 
-def baselines(data: HeldOut, scale: float) -> dict[str, dict[str, float]]:
-    """The reference methods on the held-out pairs: the zero flow, Farneback and DIS (medium)
-    at ``scale``."""
-    dis, farneback = DISFlow(DIS_PRESET, scale=scale), FarnebackFlow(scale=scale)
-    return {"zero flow": score(lambda a, b: np.zeros((*a.shape[:2], 2), np.float32), data),
-            "farneback": score(farneback.estimate, data),
-            f"dis ({DIS_PRESET})": score(dis.estimate, data)}
+#: The reference methods of a flow network's held-out scores.
+BASELINES = ("zero flow", "farneback", f"dis ({DIS_PRESET})")
+
+
+def baselines(data: HeldOut, scale: float, methods: Sequence[str] = BASELINES
+              ) -> dict[str, dict[str, float]]:
+    """The reference methods (``methods`` of :data:`BASELINES`: the zero flow, Farneback and
+    DIS (medium) at ``scale``) scored on the held-out pairs."""
+    est = {"zero flow": lambda a, b: np.zeros((*a.shape[:2], 2), np.float32),
+           "farneback": FarnebackFlow(scale=scale).estimate,
+           f"dis ({DIS_PRESET})": DISFlow(DIS_PRESET, scale=scale).estimate}
+    return {m: score(est[m], data) for m in methods}
 
 
 def score_model(model: FastFlowNet, data: HeldOut, scale: float) -> dict[str, float]:
