@@ -31,7 +31,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 #: The modules whose numbers reach the book, as mutmut names their mutants.
 MODULES = ("flowmod.metrics", "flowmod.labels", "flowmod.crops", "flowmod.dag",
-           "flowmod.evaluate", "flowmod.geometry")
+           "flowmod.evaluate", "flowmod.geometry", "flowmod.select", "flowmod.train",
+           "flowmod.flow.estimators", "flowmod.flow.metrics")
 VERDICTS = ROOT / "benchmarks" / "mutation_verdicts.json"
 
 
