@@ -22,6 +22,7 @@ from __future__ import annotations
 import ast
 import difflib
 import json
+import os
 import subprocess
 import sys
 import time
@@ -95,9 +96,21 @@ def module_of(name: str) -> str:
     return next((m for m in MODULES if name.startswith(m + ".")), name.split(".x_")[0])
 
 
+def commit() -> str:
+    """The checkout's commit (short), ``+ changes`` when its tracked files differ from it."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True,
+                              text=True).stdout.strip()
+    dirty = git("status", "--porcelain", "--untracked-files=no")
+    return (git("rev-parse", "--short", "HEAD") or "unknown") + (" + changes" if dirty else "")
+
+
 def report(rows: dict[str, str], verdicts: dict[str, dict[str, str]], seconds: float) -> str:
-    """The markdown report: the score per module, then every survivor and its verdict."""
+    """The markdown report: when and at which commit, the score per module, then every
+    survivor and its verdict."""
+    when = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     lines = ["# Mutation testing", "",
+             f"Run at {commit()}, {when}, on {os.cpu_count()} CPUs.", "",
              f"`make mutation` ({seconds / 60:.0f} min of this call): mutmut on the quick tests. "
              "Killed = a test failed (or timed out); equivalent = no test can tell it from "
              "the code (the verdict says why).", "",

@@ -94,3 +94,28 @@ def test_the_loader_benchmark_times_every_input_path(tmp_path):
                                          "resident, cpu (float32, flipped)",
                                          "host float32 (before issue 40)"]
     assert all(r["crops"] == 256 and r["crops_per_s"] > 0 for r in rows)
+
+
+def test_the_mutation_report_names_its_commit_and_scores_each_module(monkeypatch):
+    """benchmarks/mutation.py's report: its commit and date in the header; per module the
+    killed share of the mutants that are not equivalent (an equivalence verdict given for
+    the survivor's current change); an open survivor listed."""
+    sys.path.insert(0, str(repo_root() / "benchmarks"))
+    try:
+        mutation = importlib.import_module("mutation")
+    finally:
+        sys.path.pop(0)
+    monkeypatch.setattr(mutation, "commit", lambda: "abc1234")
+    monkeypatch.setattr(mutation, "mutant_sources", lambda: {})
+    monkeypatch.setattr(mutation, "change", lambda name, sources: f"change of {name}")
+    rows = {"flowmod.labels.x_f__mutmut_1": "killed", "flowmod.labels.x_f__mutmut_2": "timeout",
+            "flowmod.labels.x_f__mutmut_3": "survived", "flowmod.labels.x_f__mutmut_4": "survived",
+            "flowmod.flow.metrics.x_g__mutmut_1": "survived"}
+    verdicts = {"flowmod.labels.x_f__mutmut_3": {
+        "change": "change of flowmod.labels.x_f__mutmut_3", "verdict": "equivalent: why"}}
+    text = mutation.report(rows, verdicts, 120.0)
+    assert text.splitlines()[2].startswith("Run at abc1234, 20")
+    lines = {ln.split(" | ")[0]: ln for ln in text.splitlines() if ln.startswith("| flowmod")}
+    assert lines["| flowmod.labels"] == "| flowmod.labels | 4 | 2 | 2 | 1 | 66.7 % |"
+    assert lines["| flowmod.flow.metrics"] == "| flowmod.flow.metrics | 1 | 0 | 1 | 0 | 0.0 % |"
+    assert "| `labels.x_f__mutmut_4` | `change of flowmod.labels.x_f__mutmut_4` | open |" in text
