@@ -231,7 +231,9 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
     m = ch12.shipped_manifest()
     assert g12["shipped_steps"] == m["steps"]
     table, errors = ch12.held_out_check(p)  # the shipped stage's node, read
-    assert g12["selfflow_headline"] == ch12.shipped_headline(m, table, {})
+    assert g12["selfflow_headline"] == ch12.shipped_headline(
+        m, table, {}, ch12.box_difference(errors, p.seed))
+    assert "95 % interval over scenes" in g12["selfflow_headline"]
     assert len(errors) == p.selfflow_eval_pairs
     for name in ("selfflow_training.png", "pretrain_curves.png", "shipped_example.png"):
         assert (smoke_run["base"] / "runs" / "figures" / name).stat().st_size > 5000

@@ -379,3 +379,24 @@ def test_world_words_compare_the_errors_at_the_precision_they_show():
     words = ch12.world_words(table, 16)
     assert "10.3 px over the frame, lower than DIS's 13.2 px" in words
     assert "1.5 px inside the far vehicles' boxes, equal to DIS's 1.5 px" in words
+
+
+def test_the_landing_sentence_gives_the_held_out_difference_with_its_interval():
+    """The landing page quoted the shipped weights' box error beside DIS's without an
+    interval (issue 39): the paired difference and its interval over scenes come with it,
+    flagged when too few scenes are resampled."""
+    errors = pd.DataFrame({"scene": [f"s{i // 2}" for i in range(24)],
+                           ch12.SHIPPED: [1.0 + 0.1 * (i % 3) for i in range(24)],
+                           "dis": [1.5] * 24})
+    d = ch12.box_difference(errors, seed=0)
+    assert d["scenes"] == 12 and d["diff"] == pytest.approx(-0.4)
+    assert d["ci"][1] < 0 and d["verdict"] == "B better"
+    table = pd.DataFrame({"method": [ch12.SHIPPED, "dis (medium)"],
+                          "EPE in boxes (px)": [1.1, 1.5]})
+    m = {"steps": 10, "train_seconds": 3600.0}
+    text = ch12.shipped_headline(m, table, {}, d)
+    assert f"(paired per pair {d['diff']:+.2f} px, 95 % interval over scenes " \
+           f"{d['ci'][0]:+.2f} to {d['ci'][1]:+.2f}, decided)" in text
+    few = ch12.box_difference(errors.iloc[:4], seed=0)
+    assert "(2 scenes: too few)" in ch12.shipped_headline(m, table, {}, few)
+    assert ch12.box_difference(None) is None

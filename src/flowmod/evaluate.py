@@ -390,7 +390,7 @@ def failure_shares(tagged: pd.DataFrame) -> pd.DataFrame:  # pragma: no mutate b
         "reason": [names[c] for c in cols],
         "all objects (%)": [100 * float(tagged[c].mean()) for c in cols],
         "wrong predictions (%)": [100 * float(tagged.loc[tagged["wrong"], c].mean())
-                                  if tagged["wrong"].any() else 0.0 for c in cols],
+                                  if tagged["wrong"].any() else float("nan") for c in cols],
     })
     return out.round(1)
 

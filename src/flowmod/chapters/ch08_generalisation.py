@@ -7,7 +7,7 @@ from typing import Any
 import pandas as pd
 
 from flowmod.chapters.common import headline_method, results
-from flowmod.evaluate import table4
+from flowmod.evaluate import failure_reasons, failure_shares, table4
 from flowmod.params import Params
 
 
@@ -38,3 +38,32 @@ def numbers(params: Params, table: pd.DataFrame) -> dict[str, Any]:
     for r in beyond.to_dict("records"):
         out[f"beyond_f1_{r['method']}"] = r["F1 (%)"]
     return out
+
+
+def failures(params: Params, preds: pd.DataFrame, boxes: pd.DataFrame
+             ) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The paper's two failure reasons on ``preds`` (:func:`flowmod.evaluate.failure_reasons`
+    with the profile's threshold and crop scale): (each reason's share among all objects
+    and among the wrong predictions, the tagged rows)."""
+    tagged = failure_reasons(preds, boxes, speed_threshold=params.speed_threshold,
+                             scale=params.crop_scale)
+    return failure_shares(tagged), tagged
+
+
+def failure_words(shares: pd.DataFrame) -> str:
+    """Whether each failure reason explains the wrong predictions: one that is no commoner
+    among them than among all objects (share ratio under 1.05) does not; an undefined share
+    (no wrong prediction) is said so."""
+    out = []
+    for _, r in shares.iterrows():
+        a, w = r["all objects (%)"], r["wrong predictions (%)"]
+        if pd.isna(w) or not a:
+            out.append(f"*{r['reason']}*: undefined (no wrong prediction or no such object)")
+        elif w / a < 1.05:
+            out.append(f"*{r['reason']}* holds for {w:.1f} % of the wrong predictions and "
+                       f"{a:.1f} % of all objects: no commoner among the errors, so it does "
+                       "not explain them")
+        else:
+            out.append(f"*{r['reason']}* holds for {w:.1f} % of the wrong predictions against "
+                       f"{a:.1f} % of all objects ({w / a:.1f} times as common)")
+    return "; ".join(out) + "."
