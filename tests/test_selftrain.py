@@ -262,6 +262,7 @@ def test_the_shipped_stage_scores_the_weights_once_on_held_out_pairs(smoke_built
     p = smoke_built
     table, errors = ch12.held_out_check(p)
     assert table["method"].tolist() == ["zero flow", "farneback", "dis (medium)", ch12.SHIPPED]
+    assert table["EPE in boxes 95% CI over scenes"].str.endswith("scenes: too few)").all()
     sel = pipeline.published(p, dag.Node("select"))
     pairs = pd.read_parquet(sel / "pairs.parquet")
     pick = selftrain.sample_pairs(pairs[pairs["set"] == "keyframe"], p.selfflow_eval_pairs,
@@ -290,7 +291,7 @@ def test_the_papers_observation_is_answered_with_paired_numbers(smoke_built):
 
     p = smoke_built
     errors = pd.DataFrame({"scene": ["a", "a", "b", "c"], ch12.SHIPPED: [3.0, 2.0, 4.0, np.nan],
-                           "dis": [1.0, 0.0, 2.0, 1.0]})
+                           "dis (medium)": [1.0, 0.0, 2.0, 1.0]})
     assert ch12.observation(p, errors) == {}, "no fastflownet chain in the smoke profile"
     obs = ch12.observation(p, errors, methods=("gt", "dis"))
     assert obs["epe_boxes_minus_dis"] == {"diff": 2.0, "ci": (2.0, 2.0), "verdict": "A better",
@@ -303,7 +304,8 @@ def test_the_papers_observation_is_answered_with_paired_numbers(smoke_built):
     words = ch12.observation_words(obs)
     assert "less accurate than DIS's (+2.00 px" in words and "on Table 4" in words
     assert "over 2 scenes +2.00 to +2.00" in words
-    mixed = ch12.observation(p, errors.assign(dis=[6.0, 0.0, 2.0, 1.0]), methods=("gt", "dis"))
+    mixed = ch12.observation(p, errors.assign(**{"dis (medium)": [6.0, 0.0, 2.0, 1.0]}),
+                             methods=("gt", "dis"))
     lo, hi = mixed["epe_boxes_minus_dis"]["ci"]
     assert lo < 0 < hi and mixed["epe_boxes_minus_dis"]["verdict"] == "undecided"
     # the verdict in words: the paper's observation repeats only where both differences are
@@ -387,7 +389,7 @@ def test_the_landing_sentence_gives_the_held_out_difference_with_its_interval():
     flagged when too few scenes are resampled."""
     errors = pd.DataFrame({"scene": [f"s{i // 2}" for i in range(24)],
                            ch12.SHIPPED: [1.0 + 0.1 * (i % 3) for i in range(24)],
-                           "dis": [1.5] * 24})
+                           "dis (medium)": [1.5] * 24})
     d = ch12.box_difference(errors, seed=0)
     assert d["scenes"] == 12 and d["diff"] == pytest.approx(-0.4)
     assert d["ci"][1] < 0 and d["verdict"] == "B better"

@@ -334,18 +334,18 @@ def score(estimate: Callable[[np.ndarray, np.ndarray], np.ndarray], data: HeldOu
     return {"seconds_per_pair": seconds / max(len(data.img1), 1), **mean_metrics(rows)}
 
 
-#: The reference methods of a flow network's held-out scores.
-BASELINES = ("zero flow", "farneback", f"dis ({DIS_PRESET})")
+def reference_estimators(scale: float) -> dict[str, Callable[[np.ndarray, np.ndarray],
+                                                            np.ndarray]]:
+    """The reference methods of a flow network's held-out scores: the
+    zero flow, Farneback and DIS (medium) at ``scale``, each ``(img1, img2) -> (H, W, 2)``."""
+    return {"zero flow": lambda a, b: np.zeros((*a.shape[:2], 2), np.float32),
+            "farneback": FarnebackFlow(scale=scale).estimate,
+            f"dis ({DIS_PRESET})": DISFlow(DIS_PRESET, scale=scale).estimate}
 
 
-def baselines(data: HeldOut, scale: float, methods: Sequence[str] = BASELINES
-              ) -> dict[str, dict[str, float]]:
-    """The reference methods (``methods`` of :data:`BASELINES`: the zero flow, Farneback and
-    DIS (medium) at ``scale``) scored on the held-out pairs."""
-    est = {"zero flow": lambda a, b: np.zeros((*a.shape[:2], 2), np.float32),
-           "farneback": FarnebackFlow(scale=scale).estimate,
-           f"dis ({DIS_PRESET})": DISFlow(DIS_PRESET, scale=scale).estimate}
-    return {m: score(est[m], data) for m in methods}
+def baselines(data: HeldOut, scale: float) -> dict[str, dict[str, float]]:
+    """:func:`reference_estimators` scored on the held-out pairs."""
+    return {m: score(est, data) for m, est in reference_estimators(scale).items()}
 
 
 def score_model(model: FastFlowNet, data: HeldOut, scale: float) -> dict[str, float]:
