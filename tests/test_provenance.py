@@ -29,7 +29,7 @@ pytestmark = pytest.mark.slow
 SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "profile": ("other", set(), ()),
     "seed": (1, {"world", "select", "flow", "train", "evaluate", "xtrain", "wtrain",
-                  "selfflow"}, ()),
+                  "selfflow", "shipped"}, ()),
     "device": ("cpu", set(), ()),
     "force": (True, set(), ()),
     "world_scenes": (5, {"world"}, ()),
@@ -51,7 +51,7 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "general_max_distance": (90.0, {"general", "wide"}, ()),
     "general_max_scenes": (2, {"general"}, ()),
     "general_stride": (2, {"general"}, ()),
-    "flow_scale": (0.25, {"flow", "crops", "selfflow"}, ()),
+    "flow_scale": (0.25, {"flow", "crops", "selfflow", "shipped"}, ()),
     "dis_preset": ("fast", {"flow", "crops"}, ("dis",)),
     "flow_dtype": ("float32", {"flow", "crops"}, ()),
     "raft_weights": ("weights/raft.pth", {"flow", "crops"}, ("raft",)),  # see also below
@@ -89,7 +89,8 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "selfflow_crop": ([128, 128], {"selfflow"}, ()),
     "selfflow_smooth": (0.2, {"selfflow"}, ()),
     "selfflow_pairs": (3, {"selfflow"}, ()),
-    "selfflow_eval_pairs": (2, {"selfflow"}, ()),
+    "selfflow_eval_pairs": (2, {"selfflow", "shipped"}, ()),
+    "shipped_weights": ("weights/other.pt", {"shipped"}, ()),
     "selfflow_eval_every": (3, {"selfflow"}, ()),
     "selfflow_init": ("weights/other.pt", {"selfflow"}, ("finetune",)),
     "selfflow_window": ("crop", {"selfflow"}, ()),
@@ -99,7 +100,7 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
 SPECIAL = {"run_dir", "dataroot", "synthetic", "version", "flow_methods", "seeds", "folds",
            "extension_seeds",
            "extension_inputs",
-           "extension_methods", "wide_methods", "selfflow_modes"}
+           "extension_methods", "wide_methods", "selfflow_modes", "raw_input_methods"}
 
 
 def downstream(p: Params, start: set[dag.Node]) -> set[dag.Node]:
@@ -223,10 +224,10 @@ def test_status_explains_in_one_line(finished):
     assert "stale" in line and "dis_preset: 'medium' -> 'fast'" in line
     assert "input flow[dis/keyframe] is stale" in next(
         ln for ln in text.splitlines() if "crops[dis/keyframe]" in ln)
-    # the dis chain of chapters 03-08 (10 nodes: two folds x two seeds), chapter 10's dis
-    # residual (3 nodes) and chapter 11's dis chain (flow, crops, two models, predictions);
-    # chapter 12's three networks do not read the dis flow
-    assert text.splitlines()[-1] == ("26 of 44 up to date; 18 to build (make run, or python "
+    # the dis chain of chapters 03-08 (12 nodes: two folds x two seeds and the two raw-input
+    # models), chapter 10's dis residual (3 nodes) and chapter 11's dis chain (flow, crops,
+    # two models, predictions); chapter 12's nodes do not read the dis flow
+    assert text.splitlines()[-1] == ("27 of 47 up to date; 20 to build (make run, or python "
                                      "-m flowmod.runner)")
     quiet = pipeline.format_status(p.model_copy(update={"extension_build": False}))
     assert quiet.splitlines()[-1].endswith(

@@ -217,7 +217,7 @@ def test_published_weights_are_a_fastflownet_checkpoint_with_the_recorded_error(
 def test_selfflow_nodes_parameters_and_gate(smoke_built, tmp_path):
     demo = load_profile("demo")
     assert [str(n) for n in pipeline.nodes(demo, ["12"])] == [
-        "selfflow[photometric]", "selfflow[supervised]", "selfflow[finetune]"]
+        "shipped", "selfflow[photometric]", "selfflow[supervised]", "selfflow[finetune]"]
     assert not demo.selfflow_build, "the default book shows the shipped weights; make selfflow"
     assert pipeline.gate(dag.Node("selfflow", None, "photometric")) == "selfflow_build"
     assert load_profile("paper", dataroot="/x").selfflow_modes == ["photometric"]

@@ -312,7 +312,7 @@ def shipped_example(params: Params) -> tuple[np.ndarray, dict[str, np.ndarray], 
     with np.load(folder / "example.npz") as z:
         arrays = {k: z[k] for k in z.files}
     path = pd.read_parquet(folder / "pairs.parquet")["path_1"].iloc[0]
-    flows = {"exact": arrays["exact"], f"dis ({DIS_PRESET})": arrays["dis"],
+    flows = {"exact": arrays["exact"], f"dis ({DIS_PRESET})": arrays[f"dis ({DIS_PRESET})"],
              SHIPPED: arrays[SHIPPED]}
     return (read_image(params.dataroot_path / path),
             {k: v.astype(np.float32) for k, v in flows.items()}, arrays["valid"])
