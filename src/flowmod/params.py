@@ -412,12 +412,7 @@ class Params(BaseModel):
                 f"flow_methods={self.flow_methods} (chapter 10 builds on their crops)")
         if self.wide_methods is None:
             self.wide_methods = list(self.extension_methods)
-        stray = [m for m in self.wide_methods if m not in self.flow_methods]
-        if stray:
-            raise ValueError(
-                f"wide_methods={self.wide_methods}: {stray} not in flow_methods="
-                f"{self.flow_methods} (chapter 11 trains on their flow); name some of them "
-                "or [] for none")
+        self._check_subset("wide_methods", "chapter 11 trains on their flow")
         if any(c <= 0 or c % 64 for c in self.selfflow_crop):
             raise ValueError(f"selfflow_crop={self.selfflow_crop}: both sides must be positive "
                              "multiples of 64 (FastFlowNet's pyramid)")
@@ -428,17 +423,21 @@ class Params(BaseModel):
             )
         return self
 
+    def _check_subset(self, name: str, why: str) -> None:
+        """Refuse a list of flow methods (``name``) that names one not in flow_methods."""
+        values = getattr(self, name)
+        stray = [m for m in values if m not in self.flow_methods]
+        if stray:
+            raise ValueError(f"{name}={values}: {stray} not in flow_methods={self.flow_methods} "
+                             f"({why}); name some of them or [] for none")
+
     def _check_raw_input_methods(self) -> None:
         """Resolve ``raw_input_methods``'s default and refuse what would train nothing new."""
         if self.raw_input_methods is None:
             first = [m for m in self.flow_methods if m != "gt"][:1]
             self.raw_input_methods = ([] if self.input_scaling == "raw" else
                                       [m for m in self.flow_methods if m == "gt"] + first)
-        stray = [m for m in self.raw_input_methods if m not in self.flow_methods]
-        if stray:
-            raise ValueError(
-                f"raw_input_methods={self.raw_input_methods}: {stray} not in flow_methods="
-                f"{self.flow_methods}; name some of them or [] for none")
+        self._check_subset("raw_input_methods", "Table 3 trains on their flow")
         if self.raw_input_methods and self.input_scaling == "raw":
             raise ValueError(
                 f"raw_input_methods={self.raw_input_methods} trains the paper's raw input "
