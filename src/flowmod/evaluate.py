@@ -43,7 +43,7 @@ from flowmod.train import (
     RAW,
     part_index,
     part_seed,
-    raw_parts,
+    raw_nodes,
     records_test,
     seed_parts,
 )
@@ -273,12 +273,13 @@ def build_evaluate(b: dag.Build, progress: bool) -> dict[str, Any]:  # pragma: n
     frames["baseline"], scores["baseline"] = geometric_baseline(
         pd.read_parquet(b.input_dir(dag.Node("select")) / "pairs.parquet"), crops_dir,
         seed=q.seed, folds=q.folds)
-    replayed = [(p, path) for p, path, _ in models_of(b, "train", m) if records_test(p)]
+    models = models_of(b, "train", m)
+    replayed = [(p, path) for p, path, _ in models if records_test(p)]
     scores["original"] = original_protocol(
         preds, [np.load(path.parent / EPOCH_PROBS) for _, path in replayed],
         parts=[p for p, _ in replayed])
     write_frames(b.dir, frames, scores)
-    return {"n": len(preds), "seeds": len(models_of(b, "train", m)), "raw_models": len(raw)}
+    return {"n": len(preds), "seeds": len(models), "raw_models": len(raw)}
 
 
 def build_generalise(b: dag.Build, progress: bool) -> dict[str, Any]:  # pragma: no mutate block
@@ -298,8 +299,7 @@ def _models(p: Params, method: str) -> tuple[dag.Node, ...]:
 
 def _evaluated_models(p: Params, method: str) -> tuple[dag.Node, ...]:
     """The models ``evaluate[<method>]`` scores: the recipe's, then the raw-input ones."""
-    raw = raw_parts(p) if method in (p.raw_input_methods or []) else []
-    return _models(p, method) + tuple(dag.Node("train", method, k) for k in raw)
+    return _models(p, method) + tuple(raw_nodes(p, method))
 
 
 #: Chapter 07: the classifiers on the test split.

@@ -698,11 +698,18 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
     return {**info, "recipe": recipe(b, m)}
 
 
+def raw_nodes(p: Params, method: str) -> list[dag.Node]:
+    """``method``'s raw-input models (:func:`raw_parts`) if ``raw_input_methods`` names it."""
+    if method not in (p.raw_input_methods or []):
+        return []
+    return [dag.Node("train", method, k) for k in raw_parts(p)]
+
+
 def train_nodes(p: Params) -> list[dag.Node]:
     """The training stage's nodes: every method's seeds of each fold, then the raw-input
     models of ``raw_input_methods``."""
     return ([dag.Node("train", m, k) for m in p.flow_methods for k in seed_parts(p)]
-            + [dag.Node("train", m, k) for m in p.raw_input_methods or [] for k in raw_parts(p)])
+            + [n for m in p.flow_methods for n in raw_nodes(p, m)])
 
 
 #: The training stage (chapter 06): the classifier of one training seed.
