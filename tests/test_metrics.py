@@ -594,9 +594,9 @@ def test_an_interval_over_few_scenes_is_flagged():
 def test_chapter03_epe_interval_resamples_scenes():
     """The interval of a mean box EPE over pairs resamples whole scenes: two scenes whose
     pairs agree give a point interval; the flag counts scenes, not pairs."""
-    from flowmod.chapters import ch03_flow as ch03
+    from flowmod.chapters import common
 
-    assert ch03._epe_ci([1.0, 1.0, 3.0, 3.0], ["a", "a", "b", "b"], 0).startswith("1.00-3.00")
-    assert ch03._epe_ci([2.0] * 12, [f"s{i}" for i in range(12)], 0) == "2.00-2.00"
-    assert ch03._epe_ci([2.0] * 12, ["s"] * 12, 0) == "2.00-2.00 (1 scenes: too few)"
-    assert ch03._epe_ci([], [], 0) == "-"
+    assert common.epe_ci([1.0, 1.0, 3.0, 3.0], ["a", "a", "b", "b"], 0).startswith("1.00-3.00")
+    assert common.epe_ci([2.0] * 12, [f"s{i}" for i in range(12)], 0) == "2.00-2.00"
+    assert common.epe_ci([2.0] * 12, ["s"] * 12, 0) == "2.00-2.00 (1 scenes: too few)"
+    assert common.epe_ci([], [], 0) == "-"

@@ -9,8 +9,8 @@ import numpy as np
 import pandas as pd
 
 from flowmod import world
+from flowmod.chapters import common
 from flowmod.flow import FlowReader, boxes_mask, epe, fl_all
-from flowmod.metrics import ci_text, group_mean_bootstrap, interval
 from flowmod.params import Params
 
 
@@ -61,21 +61,12 @@ def accuracy_table(params: Params, pairs: pd.DataFrame, objects: pd.DataFrame,
                 "set": kind, "vehicles": f"{dmin:g}-{dmax:g} m", "method": method,
                 "EPE all (px)": np.mean(acc["epe"]), "Fl-all (%)": np.mean(acc["fl"]),
                 "EPE boxes (px)": np.mean(acc["epe_box"]) if acc["epe_box"] else np.nan,
-                "EPE boxes 95% CI, scenes (px)": _epe_ci(acc["epe_box"], acc["scene"], seed),
+                "EPE boxes 95% CI, scenes (px)": common.epe_ci(acc["epe_box"], acc["scene"], seed),
                 "Fl-all boxes (%)": np.mean(acc["fl_box"]) if acc["fl_box"] else np.nan,
                 "s / pair": float(np.nanmedian(secs)) if secs.notna().any() else np.nan,
                 "pairs": len(gts),
             })
     return pd.DataFrame(rows)
-
-
-def _epe_ci(values: list[float], scenes: list[str], seed: int) -> str:
-    """The 95 % interval of a mean end-point error (px) over pairs, whole scenes resampled
-    (:func:`flowmod.metrics.group_mean_bootstrap`), flagged when the scenes are too few."""
-    if not values:
-        return "-"
-    ci = interval(group_mean_bootstrap(values, scenes, seed=seed))
-    return ci_text(ci, len(set(scenes)), fmt=".2f")
 
 
 def box_flow_magnitude(objects: pd.DataFrame, load: Any, inner: float = 0.6) -> np.ndarray:

@@ -272,6 +272,10 @@ def curves(m: dict[str, Any]) -> tuple[pd.DataFrame, pd.DataFrame]:
     return pd.DataFrame(m["training_curve"]), pd.DataFrame(m["validation"]["curve"])
 
 
+#: The table's EPE columns and the per-pair values of the ``shipped`` node behind them.
+_PER_PAIR = {"EPE (px)": "epe", "EPE in boxes (px)": "epe_boxes"}
+
+
 def held_out_check(params: Params) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
     """The published ``shipped`` node (:func:`flowmod.extensions.selfflow.build_shipped`):
     (its table: the shipped weights beside the zero flow, Farneback and DIS on held-out
@@ -285,18 +289,13 @@ def held_out_check(params: Params) -> tuple[pd.DataFrame | None, pd.DataFrame | 
     rows = []
     for _, r in raw.iterrows():
         mine = long[long["method"] == r["method"]]
-        cis = {f"{col} 95% CI over scenes": ci_text(
-            interval(group_mean_bootstrap(mine[key], mine["scene"], seed=params.seed)),
-            mine["scene"].nunique(), fmt=".2f")
-            for key, col in (("epe", "EPE"), ("epe_boxes", "EPE in boxes"))}
-        row = _metric_row(r["method"], r)
-        rows.append({"method": row["method"], "EPE (px)": row["EPE (px)"],
-                     "EPE 95% CI over scenes": cis["EPE 95% CI over scenes"],
-                     "EPE in boxes (px)": row["EPE in boxes (px)"],
-                     "EPE in boxes 95% CI over scenes": cis["EPE in boxes 95% CI over scenes"],
-                     "Fl-all (%)": row["Fl-all (%)"],
-                     "Fl-all in boxes (%)": row["Fl-all in boxes (%)"],
-                     "s / pair": round(r["seconds_per_pair"], 2)})
+        row: dict[str, Any] = {}
+        for col, v in _metric_row(r["method"], r).items():
+            row[col] = v
+            if col in _PER_PAIR:  # each EPE followed by its interval over scenes
+                row[f"{col.removesuffix(' (px)')} 95% CI over scenes"] = common.epe_ci(
+                    mine[_PER_PAIR[col]], mine["scene"], params.seed)
+        rows.append({**row, "s / pair": round(r["seconds_per_pair"], 2)})
     wide = long.pivot(index=["pair_id", "scene"], columns="method", values="epe_boxes")
     order = long.drop_duplicates("pair_id")["pair_id"].tolist()
     errors = wide.reset_index().set_index("pair_id").loc[order].reset_index()

@@ -13,6 +13,7 @@ from flowmod import pipeline
 from flowmod.crops import fold_crops, part_of, read_crops
 from flowmod.dag import Node
 from flowmod.flow import FlowReader, flow_root
+from flowmod.metrics import ci_text, group_mean_bootstrap, interval
 from flowmod.params import Params
 from flowmod.select import PARTS, SPLITS, Selection, read_selection
 
@@ -131,3 +132,14 @@ def split_sizes(sel: Selection, kind: str = "keyframe") -> pd.DataFrame:
         val = pairs[pairs["val_scene"].astype(bool)].groupby("split")["scene"].nunique()
         out["val scenes"] = val.reindex(out.index).fillna(0).astype(int)
     return out
+
+
+def epe_ci(values: Any, scenes: Any, seed: int) -> str:
+    """The 95 % interval of a mean end-point error (px) over pairs, whole scenes resampled
+    (:func:`flowmod.metrics.group_mean_bootstrap`), flagged when the scenes are too few;
+    "-" without values."""
+    values, scenes = list(values), list(scenes)
+    if not values:
+        return "-"
+    ci = interval(group_mean_bootstrap(values, scenes, seed=seed))
+    return ci_text(ci, len(set(scenes)), fmt=".2f")
