@@ -98,8 +98,9 @@ def test_the_loader_benchmark_times_every_input_path(tmp_path):
 
 def test_the_mutation_report_names_its_commit_and_scores_each_module(monkeypatch):
     """benchmarks/mutation.py's report: its commit and date in the header; per module the
-    killed share of the mutants that are not equivalent (an equivalence verdict given for
-    the survivor's current change); an open survivor listed."""
+    killed share of the mutants that are neither equivalent nor CUDA-only (a verdict given
+    for the survivor's current change), a mutant no test runs counted as not killed, and
+    the module's last timed run; an open survivor listed."""
     sys.path.insert(0, str(repo_root() / "benchmarks"))
     try:
         mutation = importlib.import_module("mutation")
@@ -110,12 +111,22 @@ def test_the_mutation_report_names_its_commit_and_scores_each_module(monkeypatch
     monkeypatch.setattr(mutation, "change", lambda name, sources: f"change of {name}")
     rows = {"flowmod.labels.x_f__mutmut_1": "killed", "flowmod.labels.x_f__mutmut_2": "timeout",
             "flowmod.labels.x_f__mutmut_3": "survived", "flowmod.labels.x_f__mutmut_4": "survived",
+            "flowmod.labels.x_f__mutmut_5": "survived", "flowmod.labels.x_f__mutmut_6": "no tests",
+            "flowmod.labels.x_f__mutmut_7": "not checked",
             "flowmod.flow.metrics.x_g__mutmut_1": "survived"}
     verdicts = {"flowmod.labels.x_f__mutmut_3": {
-        "change": "change of flowmod.labels.x_f__mutmut_3", "verdict": "equivalent: why"}}
-    text = mutation.report(rows, verdicts, 120.0)
+        "change": "change of flowmod.labels.x_f__mutmut_3", "verdict": "equivalent: why"},
+        "flowmod.labels.x_f__mutmut_5": {
+        "change": "change of flowmod.labels.x_f__mutmut_5", "verdict": "cuda-only: what"},
+        "flowmod.flow.metrics.x_g__mutmut_1": {
+        "change": "an older change", "verdict": "equivalent: no longer"}}
+    times = {"flowmod.labels": {"seconds": 90.0, "commit": "def5678", "date": "2026-12-05"}}
+    text = mutation.report(rows, verdicts, times)
     assert text.splitlines()[2].startswith("Run at abc1234, 20")
     lines = {ln.split(" | ")[0]: ln for ln in text.splitlines() if ln.startswith("| flowmod")}
-    assert lines["| flowmod.labels"] == "| flowmod.labels | 4 | 2 | 2 | 1 | 66.7 % |"
-    assert lines["| flowmod.flow.metrics"] == "| flowmod.flow.metrics | 1 | 0 | 1 | 0 | 0.0 % |"
+    assert lines["| flowmod.labels"] == ("| flowmod.labels | 7 | 2 | 3 | 1 | 1 | 1 | 50.0 % "
+                                         "| 1.5 (def5678) |")
+    assert lines["| flowmod.flow.metrics"] == ("| flowmod.flow.metrics | 1 | 0 | 1 | 0 | 0 | 0 "
+                                               "| 0.0 % | - |")
     assert "| `labels.x_f__mutmut_4` | `change of flowmod.labels.x_f__mutmut_4` | open |" in text
+    assert "open (the verdict was given for another change: recheck)" in text

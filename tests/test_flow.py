@@ -703,6 +703,86 @@ def test_epe_and_fl_all_on_hand_made_arrays():
     assert m["epe"] == m["epe_boxes"] and m["fl_all_boxes"] == 0.0
 
 
+# --- mutation-testing kills: thresholds, keys, dtypes and empty selections ---------------
+
+
+def test_fl_all_thresholds_are_strict_and_use_the_true_magnitude():
+    """KITTI's outlier: error > 3 px and > 5 % of |gt|; both strict, |gt| the Euclidean
+    norm (a negative component counts as its square)."""
+    gt = np.zeros((1, 6, 2), np.float32)
+    gt[0, :, 0] = (0, 0, -100, -100, -100, 0)
+    flow = gt.copy()
+    flow[0, 0] = (3.0, 0.0)  # error exactly 3 on a still pixel: not an outlier
+    flow[0, 1] = (3.5, 0.0)  # error 3.5 on a still pixel: an outlier
+    flow[0, 2] = (-105.0, 0.0)  # error exactly 5 % of 100 (and > 3): not an outlier
+    flow[0, 3] = (-106.0, 0.0)  # error 6 > 5 % of 100: an outlier
+    flow[0, 4] = (-104.0, 0.0)  # error 4: > 3 px but < 5 %: not an outlier
+    assert fl.fl_all(flow, gt) == pytest.approx(100 * 2 / 6)
+    err = fl.endpoint_error(flow, gt)
+    assert err.dtype == np.float32 and err.shape == (1, 6)
+    np.testing.assert_allclose(err[0], [3, 3.5, 5, 6, 4, 0])
+
+
+def test_flow_metrics_keys_masks_and_empty_selections():
+    """``flow_metrics`` reports each metric under its name, the valid mask in every metric
+    and the boxes in the box metrics; an empty selection is NaN without a warning."""
+    import warnings
+
+    gt = np.zeros((4, 4, 2), np.float32)
+    flow = gt.copy()
+    flow[0, 0] = (10.0, 0.0)  # an outlier outside the box, kept valid
+    flow[3, 3] = (0.0, 8.0)  # an outlier outside the box, marked invalid
+    flow[2, 1] = (0.0, 4.0)  # an outlier inside the box
+    valid = np.ones((4, 4), bool)
+    valid[3, 3] = False
+    boxes = np.array([[1, 1, 2, 2], [3.2, 0.2, 3.4, 0.4]])  # 2x2 pixels; one with no pixel
+    m = fl.flow_metrics(flow, gt, valid, boxes=boxes)
+    assert set(m) == {"epe", "fl_all", "epe_boxes", "fl_all_boxes"}
+    assert m["epe"] == pytest.approx(14 / 15) and m["fl_all"] == pytest.approx(200 / 15)
+    assert m["epe_boxes"] == pytest.approx(1.0) and m["fl_all_boxes"] == pytest.approx(25.0)
+    assert set(fl.flow_metrics(flow, gt)) == {"epe", "fl_all"}
+    none = np.zeros((4, 4), bool)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isnan(fl.epe(flow, gt, none)) and np.isnan(fl.fl_all(flow, gt, none))
+    with pytest.raises(ValueError, match="^gt must be"):
+        fl.epe(flow, gt[..., 0])
+
+
+def test_boxes_mask_edges_one_pixel_boxes_and_boxes_outside():
+    """A box one pixel wide marks that pixel; a box left of or above the image marks
+    nothing; several boxes are all marked; the mask is boolean."""
+    shape = (5, 6, 2)
+    one = fl.boxes_mask([[1, 2, 1, 2]], shape)
+    assert one.dtype == bool and one.sum() == 1 and one[2, 1]
+    assert fl.boxes_mask([[-10, 1, -3, 3]], shape).sum() == 0
+    assert fl.boxes_mask([[1, -10, 3, -3]], shape).sum() == 0
+    two = fl.boxes_mask(np.array([[0, 0, 1, 0], [4, 3, 5, 4]]), shape)
+    assert two.sum() == 2 + 4 and two[0, :2].all() and two[3:5, 4:6].all()
+
+
+def test_flow_to_color_fixed_scale_clips_and_keeps_shorter_vectors():
+    """With ``max_flow``: a vector longer than it gets the colour of one of exactly that
+    length; a shorter one the colour it has beside a vector of that length; ``max_flow``
+    must be > 0 and may be below 1 px."""
+    flow = np.zeros((1, 3, 2), np.float32)
+    flow[0, 0] = (16.0, 0.0)
+    flow[0, 1] = (4.0, 0.0)
+    ref = flow.copy()
+    ref[0, 0] = (8.0, 0.0)
+    a, b = fl.flow_to_color(flow, max_flow=8.0), fl.flow_to_color(ref)
+    np.testing.assert_array_equal(a, b)
+    small = np.zeros((1, 2, 2), np.float32)
+    small[0, 0] = (0.8, 0.0)
+    small_ref = small.copy()
+    small_ref[0, 0] = (0.5, 0.0)
+    small_ref[0, 1] = (0.0, 0.0)
+    np.testing.assert_array_equal(fl.flow_to_color(small, max_flow=0.5)[0, 0],
+                                  fl.flow_to_color(small_ref)[0, 0])
+    with pytest.raises(ValueError, match="max_flow=0"):
+        fl.flow_to_color(flow, max_flow=0)
+
+
 def test_flo_round_trip_and_bad_magic(tmp_path):
     flow = np.random.default_rng(0).normal(size=(7, 5, 2)).astype(np.float32)
     fl.write_flo(tmp_path / "a.flo", flow)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -118,7 +120,9 @@ def test_a_centred_network_ignores_each_crop_s_common_flow(tmp_path) -> None:
 # --- training ---------------------------------------------------------------------------------
 
 N, S = 64, 32
-KW = dict(epochs=2, batch_size=16, progress=False, seed=3, device="cpu")
+#: width 16: the training mechanics are width-blind, and a quarter of the paper's width
+#: trains about 15x faster (the mutation run repeats these tests for every mutant)
+KW = dict(epochs=2, batch_size=16, progress=False, seed=3, device="cpu", width=16)
 
 
 @pytest.fixture(scope="module")
@@ -161,7 +165,7 @@ def test_training_lowers_the_loss_and_writes_artefacts(data, run_a) -> None:
     tx, tdf, vx, vdf = data
     out, hist = run_a
     torch.manual_seed(KW["seed"])  # the initial model of the run
-    z0 = predict_logits(motion_resnet18(), vx, device="cpu")
+    z0 = predict_logits(motion_resnet18(width=KW["width"]), vx, device="cpu")
     y = vdf["label"].to_numpy()
     loss0 = float(np.mean(np.maximum(z0, 0) - z0 * y + np.log1p(np.exp(-np.abs(z0)))))
     assert list(hist.columns) == HISTORY_COLUMNS and list(hist["epoch"]) == [1, 2]
@@ -228,6 +232,86 @@ def test_bad_training_inputs_give_clear_errors(data, tmp_path) -> None:
     with pytest.raises(TrainingError, match="empty"):
         train_model(tx, tdf, vx[:0], vdf.iloc[:0], tmp_path, **KW)
     assert not (tmp_path / "last.pt").exists()
+
+
+def test_check_split_names_the_crops_file_and_returns_float32_labels(tmp_path) -> None:
+    """An input without a shape is one clear error; a row mismatch names the crops' file;
+    the labels come back as float32 0/1."""
+    from flowmod.train import check_split
+
+    np.save(tmp_path / "x.npy", np.zeros((3, 2, 4, 4), np.float16))
+    x = np.load(tmp_path / "x.npy", mmap_mode="r")
+    df = pd.DataFrame({"label": [1, 0, 1]})
+    y = check_split(x, df, "train")
+    assert y.dtype == np.float32 and y.tolist() == [1.0, 0.0, 1.0]
+    with pytest.raises(TrainingError, match=r"train crops: expected \(N, 2, S, S\), got "
+                                            r"shape \(\)"):
+        check_split([[1.0]], df, "train")
+    with pytest.raises(TrainingError, match=r"val split: index has 2 rows but val crops "
+                                            r"\(.*x\.npy\) has 3"):
+        check_split(x, df.iloc[:2], "val")
+
+
+def test_a_dataset_of_an_in_memory_array_pickles_whole() -> None:
+    """Only a memmap travels to DataLoader workers as its file name; an array in memory
+    is pickled with the dataset and comes back equal."""
+    import pickle
+
+    from flowmod.train import CropDataset
+
+    x = np.arange(2 * 2 * 4 * 4, dtype=np.float16).reshape(2, 2, 4, 4)
+    back = pickle.loads(pickle.dumps(CropDataset(x, np.array([0, 1]))))
+    xb, yb = back[[1, 0]]
+    np.testing.assert_array_equal(xb.numpy(), x[[1, 0]])
+    assert yb.tolist() == [1.0, 0.0]
+    assert isinstance(back.x, np.ndarray) and not isinstance(back.x, np.memmap)
+
+
+def test_epoch_plan_drops_only_a_trailing_batch_of_one() -> None:
+    """Whole batches are all kept; a lone single object is kept (no other batch); a batch
+    of one after others is dropped with its flip."""
+    b, f = epoch_plan(32, 8, 0.5, seed=0, epoch=1)
+    assert [len(x) for x in b] == [8, 8, 8, 8] and len(f) == 32
+    b, f = epoch_plan(1, 8, 0.5, seed=0, epoch=1)
+    assert [len(x) for x in b] == [1] and len(f) == 1
+    b, f = epoch_plan(9, 8, 0.5, seed=0, epoch=1)
+    assert [len(x) for x in b] == [8] and len(f) == 8
+
+
+def test_recorded_probabilities_of_a_resumed_run_replace_later_rows(tmp_path) -> None:
+    """Epoch e's probabilities are row e - 1; rows of later epochs (left by a run resumed
+    from an earlier checkpoint) are dropped; stored as float32."""
+    from flowmod.train import _append_probs
+
+    path = tmp_path / "probs.npy"
+    for e in (1, 2, 3):
+        _append_probs(path, e, np.full(4, e / 10))
+    _append_probs(path, 2, np.full(4, 0.9))
+    arr = np.load(path)
+    assert arr.dtype == np.float32 and arr.shape == (2, 4)
+    np.testing.assert_allclose(arr[:, 0], [0.1, 0.9], rtol=1e-6)
+
+
+def test_training_on_the_cpu_runs_in_float32_and_shows_its_progress(data, tmp_path, capsys,
+                                                                    monkeypatch) -> None:
+    """Without mixed precision the forward pass is float32 (autocast off on the CPU); with
+    ``progress`` the epoch bar shows the loss, the validation F1 and the best epoch."""
+    import flowmod.train as tr
+
+    seen: list[torch.dtype] = []
+    build = tr.motion_resnet18
+
+    def hooked(*a, **k):
+        model = build(*a, **k)
+        model.conv1.register_forward_hook(lambda m, i, o: seen.append(o.dtype))
+        return model
+
+    monkeypatch.setattr(tr, "motion_resnet18", hooked)
+    tx, tdf, vx, vdf = data
+    train_model(tx, tdf, vx, vdf, tmp_path, **{**KW, "epochs": 1, "progress": True})
+    assert seen and set(seen) == {torch.float32}
+    err = capsys.readouterr().err
+    assert re.search(r"best=1, loss=\d\.\d{4}, val_f1=\d\.\d{3}\]", err), err[-300:]
 
 
 # --- evaluation -------------------------------------------------------------------------------

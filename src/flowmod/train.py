@@ -166,7 +166,7 @@ class ResidentCrops:
             if self.x is None:
                 xb = torch.from_numpy(self.host[np.asarray(idx)])
             else:
-                xb = self.x.index_select(0, i)
+                xb = self.x.index_select(0, i)  # pragma: no mutate (runs on CUDA only)
             yield xb.float(), self.y.index_select(0, i)
 
 
@@ -204,7 +204,7 @@ def crop_source(x: Any, y: np.ndarray, dev: torch.device, workers: int = 0,
     nbytes = int(x.nbytes)
     limit = int(resident_bytes)
     if dev.type == "cuda":
-        limit = min(limit, torch.cuda.mem_get_info(dev)[0] // 4)
+        limit = min(limit, torch.cuda.mem_get_info(dev)[0] // 4)  # pragma: no mutate (CUDA)
     if nbytes <= limit:
         return ResidentCrops(x, y, dev)
     return StreamedCrops(x, y, dev, workers)
@@ -386,7 +386,7 @@ def _resume(run: _Run, last_path: Path, config: dict[str, Any], dev: torch.devic
     run.epoch = int(ck["epoch"])
     torch.set_rng_state(ck["rng"]["torch"])
     if dev.type == "cuda" and ck["rng"].get("cuda"):
-        torch.cuda.set_rng_state_all(ck["rng"]["cuda"])
+        torch.cuda.set_rng_state_all(ck["rng"]["cuda"])  # pragma: no mutate (CUDA only)
 
 
 def _checkpoint(run: _Run, path: Path, config: dict[str, Any], dev: torch.device) -> None:
