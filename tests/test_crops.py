@@ -444,6 +444,18 @@ def test_pair_boxes_in_object_order_and_mixed_splits_named_five_at_most() -> Non
                           "xmin": 1.0, "ymin": 1.0, "xmax": 5.0, "ymax": 5.0})
     with pytest.raises(CropsError, match=r"several splits: \['a', 'b', 'c', 'd', 'e'\]$"):
         crops.pair_boxes(mixed)
+    ints = objects.astype({c: int for c in ("xmin", "ymin", "xmax", "ymax")})
+    assert all(type(v) is float for b in crops.pair_boxes(ints).values() for r in b for v in r)
+
+
+def test_a_flow_of_another_size_names_its_pair_or_a_question_mark() -> None:
+    """A flow that is no rescaled copy of the image is refused naming the pair given, or
+    '?' when none is."""
+    flow, boxes = np.zeros((90, 100, 2), np.float32), np.array([[10.0, 10.0, 20.0, 20.0]])
+    with pytest.raises(CropsError, match=r"^flow of pair \? is 100x90"):
+        crops.pair_crops(flow, boxes, 8, 3.0, image_size=(160, 90))
+    with pytest.raises(CropsError, match=r"^flow of pair p7 is"):
+        crops.pair_crops(flow, boxes, 8, 3.0, image_size=(160, 90), pair_id="p7")
 
 
 # --- mutation-testing kills: windows at the frame's edges, checks and dtypes ---------------

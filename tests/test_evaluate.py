@@ -366,3 +366,41 @@ def test_crop_errors_compare_each_object_s_crops(smoke_built):
     assert t.loc[0, "gt"] == 0.0 and t.loc[0, "dis"] == round(dis["epe_box"].median(), 2)
     share = (dis["epe_box"] > 0) + 0.5 * (dis["epe_box"] == 0)
     assert t.loc[0, "objects where dis errs more (%)"] == round(100 * share.mean(), 1)
+
+
+def test_a_training_part_is_named_by_its_last_path_component():
+    """``.../f<k>``, ``.../s<j>``, ``.../f<k>s<j>``: one letter alone, or another letter,
+    is no training part."""
+    from flowmod.train import part_index
+
+    assert [part_index(x) for x in ("gt/raw/f1", "a/b/f2s1")] == [1, 2]
+    for bad in ("f", "s", "x1", "X1", "ab", "dis/raw"):
+        with pytest.raises(ValueError, match="not a training part"):
+            part_index(bad)
+
+
+def test_raw_input_models_are_one_a_fold_for_the_named_methods_only():
+    from flowmod import dag
+    from flowmod.params import load_profile
+    from flowmod.train import raw_nodes, train_nodes
+
+    p = load_profile("demo").model_copy(update={"raw_input_methods": ["dis"], "folds": 3})
+    want = [dag.Node("train", "dis", f"raw/f{k}") for k in range(3)]
+    assert raw_nodes(p, "dis") == want and raw_nodes(p, "gt") == []
+    assert train_nodes(p)[-3:] == want
+    assert raw_nodes(p.model_copy(update={"raw_input_methods": []}), "dis") == []
+
+
+def test_scored_rows_read_one_split_as_stored_and_pool_every_fold():
+    """One split: the test split's arrays and index exactly as read (a memmap stays one);
+    two or more folds: every fold's rows, each once."""
+    x_test, df_test = np.arange(4)[:, None], pd.DataFrame({"scene": list("abcd")})
+    arrays, df = evaluate.scored_rows(
+        lambda s: ([x_test], df_test) if s == "test" else pytest.fail(s), 1)
+    assert arrays[0] is x_test and df is df_test
+    stored = {"f0": pd.DataFrame({"scene": ["a", "b"], "fold": 0}),
+              "f1": pd.DataFrame({"scene": ["c"], "fold": 1})}
+    (x,), df = evaluate.scored_rows(
+        lambda s: ([np.arange(len(stored[s]))[:, None]], stored[s]), 2)
+    assert df["scene"].tolist() == ["a", "b", "c"] and len(x) == 3
+

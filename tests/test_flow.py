@@ -644,6 +644,52 @@ def test_null_weights_stand_for_the_cached_checkpoint_they_load(tmp_path, monkey
         "sha256": fl.stage.file_digest(preferred)}
 
 
+def test_gt_estimator_passes_its_world_and_returns_float32_and_bool(tmp_path, monkeypatch):
+    """GTFlow asks the world of its own dataroot and version, at scale 1, and returns the
+    flow as float32 and the mask as bool whatever the world hands back."""
+    seen = []
+    world = types.ModuleType("flowmod.world")
+    world.is_synthetic = lambda dataroot, version: seen.append(("is", dataroot, version)) or True
+
+    def gt_flow(dataroot, version, t1, t2):
+        seen.append(("gt", dataroot, version, t1, t2))
+        return np.full((2, 3, 2), 1.5, np.float64).tolist(), np.array([[1, 0, 2]] * 2)
+
+    world.gt_flow = gt_flow
+    monkeypatch.setitem(sys.modules, "flowmod.world", world)
+    est = fl.get_estimator("gt", dataroot=tmp_path / "w", version="v1.0-x")
+    assert est.scale == 1.0 and est.options() == {"dataroot": str(tmp_path / "w"),
+                                                  "version": "v1.0-x"}
+    flow, valid = est.estimate_tokens("a", "b")
+    assert flow.dtype == np.float32 and flow.shape == (2, 3, 2) and (flow == 1.5).all()
+    assert valid.dtype == bool and valid.tolist() == [[True, False, True]] * 2
+    assert seen == [("is", str(tmp_path / "w"), "v1.0-x"),
+                    ("gt", str(tmp_path / "w"), "v1.0-x", "a", "b")]
+    with pytest.raises(TypeError, match="^gt works from sample_data tokens"):
+        est.estimate(SHIFT[0], SHIFT[1])
+
+
+def test_classical_estimators_defaults_and_presets():
+    """DIS and Farneback at their documented defaults (scale 1; Farneback 5 levels, a 15 px
+    window, no Gaussian unless asked); DIS computes with the preset it names."""
+    dis = fl.get_estimator("dis")
+    assert dis.options() == {"preset": "medium", "scale": 1.0}
+    far = fl.get_estimator("farneback")
+    assert far.options() == {"scale": 1.0, "pyr_scale": 0.5, "levels": 5, "winsize": 15,
+                             "iterations": 3, "poly_n": 5, "poly_sigma": 1.2, "flags": 0}
+    assert fl.get_estimator("farneback", gaussian=True).options()["flags"] == \
+        cv2.OPTFLOW_FARNEBACK_GAUSSIAN
+    with pytest.raises(ValueError, match="allowed: ultrafast, fast, medium$"):
+        fl.get_estimator("dis", preset="slow")
+    img1, img2, _ = SHIFT
+    g1, g2 = (cv2.cvtColor(i, cv2.COLOR_BGR2GRAY) for i in (img1, img2))
+    for name, preset in (("ultrafast", cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST),
+                         ("medium", cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)):
+        want = cv2.DISOpticalFlow_create(preset).calc(g1, g2, None)
+        got = fl.get_estimator("dis", preset=name).estimate(img1, img2)
+        np.testing.assert_array_equal(got, want)
+
+
 def test_gt_method_works_from_tokens(tmp_path, monkeypatch):
     calls = []
 

@@ -148,22 +148,7 @@ def test_the_training_parts_of_seeds_and_folds():
     assert offsets[:4] == [0, 100, 200, 1] and len(set(offsets)) == len(offsets)
     with pytest.raises(ValueError, match="not a training part"):
         part_index("keyframe")
-    # the part's last path component names it; one letter, or another letter, is no part
-    assert [part_index(x) for x in ("gt/raw/f1", "a/b/f2s1")] == [1, 2]
-    for bad in ("f", "s", "x1", "X1", "ab", "dis/raw"):
-        with pytest.raises(ValueError, match="not a training part"):
-            part_index(bad)
 
-
-def test_raw_input_models_are_one_a_fold_for_the_named_methods_only():
-    from flowmod import dag
-    from flowmod.train import raw_nodes, train_nodes
-
-    p = load_profile("demo").model_copy(update={"raw_input_methods": ["dis"], "folds": 3})
-    want = [dag.Node("train", "dis", f"raw/f{k}") for k in range(3)]
-    assert raw_nodes(p, "dis") == want and raw_nodes(p, "gt") == []
-    assert train_nodes(p)[-3:] == want
-    assert raw_nodes(p.model_copy(update={"raw_input_methods": []}), "dis") == []
 
 
 def test_folds_and_seeds_combine():

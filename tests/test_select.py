@@ -323,3 +323,78 @@ def test_object_rows_label_by_equation_1_at_the_threshold_itself():
     row = select._object_row(Devkit(np.full(3, np.nan)), "p", sc, "keyframe", "i", c, ann,
                              np.array([3.0, 0, 0]), p)
     assert (row["label"], row["box_label"]) == (1, -1)
+
+
+def test_an_object_row_carries_every_field_from_its_own_source():
+    """Each column of an object row comes from its source: the pair and scene, the
+    candidate's box, centre, size and rotation, the annotation, the velocity (speed its
+    norm), the first attribute's name (none: ''), the devkit's box velocity."""
+    import numpy as np
+
+    from flowmod import select
+    from flowmod.params import load_profile
+
+    class Devkit:
+        def box_velocity(self, token):
+            assert token == "ann7"
+            return np.array([0.0, 1.5, 0.0])
+
+        def get(self, table, token):
+            assert table == "attribute"
+            return {"name": {"m": "vehicle.moving", "p": "vehicle.parked"}[token]}
+
+    p = load_profile("smoke")
+    sc = select.pd.Series({"scene": "scene-9", "split": "val"})
+    c = select.Candidate("ann7", "vehicle.bus.rigid", 41.5, (1.0, 2.0, 3.0, 4.0),
+                         (5.0, 6.0, 7.0), (8.0, 9.0, 10.0), (0.1, 0.2, 0.3, 0.4))
+    ann = {"token": "ann7", "visibility_token": "3", "attribute_tokens": ["p", "m"]}
+    row = select._object_row(Devkit(), "pair3", sc, "general", "inst5", c, ann,
+                             np.array([3.0, 4.0, 12.0]), p)
+    assert row == {
+        "pair_id": "pair3", "scene": "scene-9", "split": "val", "set": "general",
+        "instance_token": "inst5", "ann_token": "ann7", "category": "vehicle.bus.rigid",
+        "distance": 41.5, "visibility": "3", "center_x": 5.0, "center_y": 6.0,
+        "center_z": 7.0, "xmin": 1.0, "ymin": 2.0, "xmax": 3.0, "ymax": 4.0,
+        "size_w": 8.0, "size_l": 9.0, "size_h": 10.0, "qw": 0.1, "qx": 0.2, "qy": 0.3,
+        "qz": 0.4, "vx": 3.0, "vy": 4.0, "vz": 12.0, "speed": 13.0, "label": 1,
+        "attribute": "vehicle.parked", "box_speed": 1.5, "box_label": 0}
+    assert all(type(row[k]) is float for k in ("vx", "vy", "vz", "speed", "box_speed"))
+    assert type(row["label"]) is int and type(row["box_label"]) is int
+    row = select._object_row(Devkit(), "pair3", sc, "general", "inst5", c,
+                             {**ann, "attribute_tokens": []}, np.array([0.0, 0, 0]), p)
+    assert row["attribute"] == "" and row["label"] == 0
+
+
+def test_scene_groups_keep_their_scenes_sorted():
+    """Without groups each scene is its own group; with groups the members of each group
+    in scene order, and the groups sorted."""
+    from flowmod import select
+
+    scenes, members, names = select._group_members(["s3", "s1", "s2"], None)
+    assert scenes == ["s1", "s2", "s3"] and names == ["s1", "s2", "s3"]
+    assert members == {"s1": ["s1"], "s2": ["s2"], "s3": ["s3"]}
+    scenes, members, names = select._group_members(["s3", "s1", "s2"],
+                                                   {"s3": "logB", "s1": "logB", "s2": "logA"})
+    assert members == {"logB": ["s1", "s3"], "logA": ["s2"]} and names == ["logA", "logB"]
+
+
+def test_split_sizes_groups_and_the_smallest_worlds():
+    """Val takes its own fraction; a group never straddles two splits; with exactly three
+    groups each split gets one, whatever the fractions, and train is never left empty."""
+    from collections import Counter
+
+    from flowmod import select
+
+    scenes = [f"s{i:02d}" for i in range(10)]
+    sizes = Counter(select.split_scenes(scenes, [0.6, 0.3, 0.1], seed=4).values())
+    assert sizes == {"train": 6, "val": 3, "test": 1}
+    groups = {s: f"log{i // 3}" for i, s in enumerate(scenes[:9])}
+    for seed in range(5):
+        out = select.split_scenes(scenes[:9], [0.34, 0.33, 0.33], seed=seed, groups=groups)
+        by_group = {g: {out[s] for s in scenes[:9] if groups[s] == g} for g in set(groups.values())}
+        assert all(len(v) == 1 for v in by_group.values()), by_group
+        assert sorted(out.values()) == ["test"] * 3 + ["train"] * 3 + ["val"] * 3
+    for fractions in ([0.8, 0.1, 0.1], [0.1, 0.8, 0.1]):
+        for seed in range(3):
+            out = select.split_scenes(scenes[:3], fractions, seed=seed)
+            assert sorted(out.values()) == ["test", "train", "val"], (fractions, out)

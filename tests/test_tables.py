@@ -280,3 +280,17 @@ def test_a_failure_reason_that_holds_for_every_object_is_said_not_to_explain():
     none = evaluate.failure_shares(tagged.assign(wrong=False))
     assert none["wrong predictions (%)"].isna().all()
     assert ch08.failure_words(none).count("undefined") == 2
+
+
+def test_near_threshold_picks_the_nearest_within_half_a_metre_per_second():
+    """Chapter 04's examples: by default at most 6 objects within 0.5 m/s of the threshold,
+    nearest first, a sample seeded by 0 when more than 24 qualify."""
+    speeds = np.r_[np.linspace(1.55, 2.45, 41), [1.45, 2.6, 9.0]]
+    df = pd.DataFrame({"speed": speeds, "token": [f"t{i}" for i in range(len(speeds))]})
+    near = labels.near_threshold(df, 2.0)
+    assert len(near) == 6 and (near["gap"] < 0.5).all()
+    assert near["gap"].is_monotonic_increasing
+    pd.testing.assert_frame_equal(near, labels.near_threshold(df, 2.0, width=0.5, n=6, seed=0))
+    assert not near.equals(labels.near_threshold(df, 2.0, seed=1))
+    few = labels.near_threshold(df.iloc[-3:], 2.0)
+    assert few.empty, "1.45, 2.6 and 9.0 m/s are all 0.5 m/s or more away"
