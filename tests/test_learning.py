@@ -232,6 +232,11 @@ def test_bad_training_inputs_give_clear_errors(data, tmp_path) -> None:
     with pytest.raises(TrainingError, match="empty"):
         train_model(tx, tdf, vx[:0], vdf.iloc[:0], tmp_path, **KW)
     assert not (tmp_path / "last.pt").exists()
+    bad = tx.copy()
+    bad[:, 0, 0, 0] = np.inf
+    with pytest.raises(TrainingError, match=r"epoch 1, batch 0: loss is nan \(non-finite "
+                                            r"crops\? lr too high\?\)"):
+        train_model(bad, tdf, vx, vdf, tmp_path / "inf", **{**KW, "epochs": 1})
 
 
 def test_check_split_names_the_crops_file_and_returns_float32_labels(tmp_path) -> None:

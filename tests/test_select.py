@@ -363,6 +363,10 @@ def test_an_object_row_carries_every_field_from_its_own_source():
     row = select._object_row(Devkit(), "pair3", sc, "general", "inst5", c,
                              {**ann, "attribute_tokens": []}, np.array([0.0, 0, 0]), p)
     assert row["attribute"] == "" and row["label"] == 0
+    low = p.model_copy(update={"speed_threshold": 1.0})  # both labels at the profile's
+    row = select._object_row(Devkit(), "pair3", sc, "general", "inst5", c, ann,
+                             np.array([1.2, 0, 0]), low)
+    assert (row["label"], row["box_label"]) == (1, 1)
 
 
 def test_scene_groups_keep_their_scenes_sorted():
@@ -388,6 +392,8 @@ def test_split_sizes_groups_and_the_smallest_worlds():
     scenes = [f"s{i:02d}" for i in range(10)]
     sizes = Counter(select.split_scenes(scenes, [0.6, 0.3, 0.1], seed=4).values())
     assert sizes == {"train": 6, "val": 3, "test": 1}
+    sizes = Counter(select.split_scenes(scenes[:4], [0.8, 0.1, 0.1], seed=4).values())
+    assert sizes == {"train": 2, "val": 1, "test": 1}
     groups = {s: f"log{i // 3}" for i, s in enumerate(scenes[:9])}
     for seed in range(5):
         out = select.split_scenes(scenes[:9], [0.34, 0.33, 0.33], seed=seed, groups=groups)
