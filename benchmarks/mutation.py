@@ -159,8 +159,8 @@ def run_module(module: str) -> tuple[int, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``make mutation``: run mutmut module by module (``--modules M ...``: those only),
-    then write the report. ``--report-only``: write the report of the last (possibly
+    """``make mutation``: run mutmut module by module (module names as arguments: those
+    only), then write the report. ``--report-only``: write the report of the last (possibly
     interrupted) runs; their unchecked mutants are counted."""
     args = sys.argv[1:] if argv is None else argv
     partial = "--report-only" in args
