@@ -151,6 +151,13 @@ def report(rows: dict[str, str], verdicts: dict[str, dict[str, str]],
     return "\n".join(lines) + "\n"
 
 
+def finished(module: str, rows: dict[str, str]) -> bool:
+    """Whether a run tested every mutant of ``module``: it has mutants and none is left
+    ``not checked`` (an interrupted run leaves some), so only a whole run's time counts."""
+    mine = [v for k, v in rows.items() if module_of(k) == module]
+    return bool(mine) and "not checked" not in mine
+
+
 def run_module(module: str) -> tuple[int, float]:
     """``mutmut run "<module>.*"``: re-test every mutant of one module; (exit code, s)."""
     t0 = time.time()
@@ -175,6 +182,10 @@ def main(argv: list[str] | None = None) -> int:
         code, seconds = run_module(m)
         if code not in (0, 1):
             return code
+        if not finished(m, results()):
+            print(f"mutation: the run of {m} stopped before every mutant was tested; its "
+                  "time is not recorded (run it again)", file=sys.stderr)
+            return 1
         times[m] = {"seconds": round(seconds, 1), "commit": commit(),
                     "date": time.strftime("%Y-%m-%d", time.gmtime())}
         TIMES.parent.mkdir(parents=True, exist_ok=True)

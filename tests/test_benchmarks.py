@@ -130,3 +130,18 @@ def test_the_mutation_report_names_its_commit_and_scores_each_module(monkeypatch
                                                "| 0.0 % | - |")
     assert "| `labels.x_f__mutmut_4` | `change of flowmod.labels.x_f__mutmut_4` | open |" in text
     assert "open (the verdict was given for another change: recheck)" in text
+
+
+def test_the_mutation_run_records_a_time_only_for_a_whole_run():
+    """An interrupted mutmut run (mutants left ``not checked``) or a module with no mutants
+    is not a whole run: its seconds must not reach the report."""
+    sys.path.insert(0, str(repo_root() / "benchmarks"))
+    try:
+        mutation = importlib.import_module("mutation")
+    finally:
+        sys.path.pop(0)
+    rows = {"flowmod.labels.x_f__mutmut_1": "killed", "flowmod.labels.x_f__mutmut_2": "no tests",
+            "flowmod.crops.x_g__mutmut_1": "killed", "flowmod.crops.x_g__mutmut_2": "not checked"}
+    assert mutation.finished("flowmod.labels", rows)
+    assert not mutation.finished("flowmod.crops", rows)
+    assert not mutation.finished("flowmod.geometry", rows)
