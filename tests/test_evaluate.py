@@ -278,35 +278,49 @@ def test_the_geometric_rule_is_fitted_on_each_fold_s_training_rows(monkeypatch):
     assert test["prob"].tolist() == [1.0] * 8  # 4.0 and 6.0 m/s both above 1.0
 
 
-@pytest.mark.parametrize("part, record, input_mode", [
-    ("f1s0", "test x of fold 1", None),   # seed 0 records the test rows for the replay
-    ("f1s2", None, None),                 # other seeds of a fold do not
-    ("raw/f1", None, "raw"),              # the raw-input model: the paper's input, no record
+@pytest.mark.parametrize("part, record, input_mode, what", [
+    ("f1s0", "test x of fold 1", None, "dis"),  # seed 0 records the test rows for the replay
+    ("f1s2", None, None, "dis"),                # other seeds of a fold do not
+    ("raw/f1", None, "raw", "dis raw input"),   # the raw-input model: the paper's input
 ])
 def test_the_training_stage_chooses_on_validation_rows_and_only_records_test(
-        monkeypatch, part, record, input_mode):
-    """train.build hands the trainer fold k's training rows to fit, its validation rows to
-    choose the epoch on, and (seed 0 only) its test rows to record, never scored in
-    training; a ``raw/`` part trains on the raw input."""
+        monkeypatch, part, record, input_mode, what):
+    """train.build hands the trainer fold k's training rows (of its method's keyframe
+    crops) to fit, its validation rows to choose the epoch on, and (seed 0 only) its test
+    rows to record, never scored in training; a ``raw/`` part trains on the raw input; the
+    model's recipe joins the trainer's manifest fields."""
     from types import SimpleNamespace
 
     from flowmod import dag, train
 
     seen = {}
-    monkeypatch.setattr(train, "fold_crops",
-                        lambda folder, folds, k, role: (f"{role} x of fold {k}", role))
-    monkeypatch.setattr(train, "recipe", lambda b, m: {})
 
-    def fake_train_seed(b, tr, va, progress, what, record=None, input_mode=None, **kw):
-        seen.update(train=tr, val=va, record=record, input_mode=input_mode)
-        return {}
+    def fold_crops(folder, folds, k, role):
+        assert folder == ("published", dag.Node("crops", "dis", "keyframe")) and folds == 3
+        return (f"{role} x of fold {k}", role)
+
+    monkeypatch.setattr(train, "fold_crops", fold_crops)
+    monkeypatch.setattr(train, "recipe", lambda b_, m: {"of": (b_ is b, m)})
+
+    def fake_train_seed(b_, tr, va, progress, what, record=None, input_mode=None, **kw):
+        seen.update(b=b_ is b, train=tr, val=va, record=record, input_mode=input_mode,
+                    progress=progress, what=what)
+        return {"seed": 5}
 
     monkeypatch.setattr(train, "train_seed", fake_train_seed)
     b = SimpleNamespace(node=dag.Node("train", "dis", part), params=SimpleNamespace(folds=3),
-                        input_dir=lambda node: node)
-    train.build(b, progress=False)
-    assert seen == {"train": ("train x of fold 1", "train"), "val": ("val x of fold 1", "val"),
-                    "record": record, "input_mode": input_mode}
+                        input_dir=lambda node: ("published", node))
+    assert train.build(b, progress="shown") == {"seed": 5, "recipe": {"of": (True, "dis")}}
+    assert seen == {"b": True, "train": ("train x of fold 1", "train"),
+                    "val": ("val x of fold 1", "val"), "record": record,
+                    "input_mode": input_mode, "progress": "shown", "what": what}
+
+
+def test_which_training_parts_record_their_test_rows():
+    from flowmod.train import records_test
+
+    assert [records_test(x) for x in ("s0", "s1", "f2", "f2s0", "f2s1", "raw/f0", "raw/s0")] \
+        == [True, True, True, True, False, False, False]
 
 
 def test_models_of_keeps_a_key_s_own_models_apart_from_longer_keys():
@@ -388,6 +402,12 @@ def test_raw_input_models_are_one_a_fold_for_the_named_methods_only():
     want = [dag.Node("train", "dis", f"raw/f{k}") for k in range(3)]
     assert raw_nodes(p, "dis") == want and raw_nodes(p, "gt") == []
     assert train_nodes(p)[-3:] == want
+    two = p.model_copy(update={"flow_methods": ["gt", "dis"], "seeds": 2, "folds": 2})
+    assert [str(n) for n in train_nodes(two)] == [
+        "train[gt/f0s0]", "train[gt/f0s1]", "train[gt/f1s0]", "train[gt/f1s1]",
+        "train[dis/f0s0]", "train[dis/f0s1]", "train[dis/f1s0]", "train[dis/f1s1]",
+        "train[dis/raw/f0]", "train[dis/raw/f1]"]
+    assert all(n.stage == "train" for n in train_nodes(two))
     assert raw_nodes(p.model_copy(update={"raw_input_methods": []}), "dis") == []
 
 

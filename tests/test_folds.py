@@ -146,6 +146,7 @@ def test_the_training_parts_of_seeds_and_folds():
     assert [part_seed(x) for x in ("f2s1", "f1", "s3", "residual/f0s2")] == [1, 0, 3, 2]
     offsets = [part_seed_offset(x) for x in seed_parts(p.model_copy(update={"seeds": 3}))]
     assert offsets[:4] == [0, 100, 200, 1] and len(set(offsets)) == len(offsets)
+    assert [part_seed_offset(x) for x in ("s3", "f2", "f2s1", "raw/s1")] == [3, 2, 102, 1]
     with pytest.raises(ValueError, match="not a training part"):
         part_index("keyframe")
 

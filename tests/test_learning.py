@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -203,7 +204,7 @@ def test_resume_gives_the_uninterrupted_result(data, run_a, tmp_path) -> None:
     pd.testing.assert_frame_equal(hist_a[cols], resumed[cols], check_exact=True)
     _assert_same_weights(_state(out_a / "last.pt"), _state(tmp_path / "last.pt"))
     _assert_same_weights(_state(out_a / "best.pt"), _state(tmp_path / "best.pt"))
-    with pytest.raises(TrainingError, match="other settings"):
+    with pytest.raises(TrainingError, match=r"other settings.*'lr': \(0.01, 0.1\)"):
         train_model(tx, tdf, vx, vdf, tmp_path, **{**KW, "lr": 0.1})
 
 
@@ -509,16 +510,18 @@ def test_dataset_reopens_memmaps_in_workers(tmp_path) -> None:
     from flowmod.train import CropDataset
 
     arr = np.lib.format.open_memmap(tmp_path / "x.npy", mode="w+", dtype=np.float16,
-                                    shape=(5, 2, 4, 4))
+                                    shape=(5, 2, 16, 16))
     arr[:] = np.arange(5, dtype=np.float16)[:, None, None, None]
     arr.flush()
     x = np.load(tmp_path / "x.npy", mmap_mode="r")
     ds = CropDataset(x, np.array([0, 1, 0, 1, 1]))
     blob = pickle.dumps(ds)
-    assert len(blob) < 1000  # the array is not pickled, only its file name
-    xb, yb = pickle.loads(blob)[[4, 1]]
+    assert len(blob) < 1000 < x.nbytes  # the array is not pickled, only its file name
+    back = pickle.loads(blob)
+    assert isinstance(back.x, np.memmap) and not back.x.flags.writeable  # reopened read-only
+    xb, yb = back[[4, 1]]
     assert xb.dtype == torch.float16 and xb[:, 0, 0, 0].tolist() == [4.0, 1.0]  # as stored
-    assert yb.tolist() == [1.0, 1.0]
+    assert yb.dtype == torch.float32 and yb.tolist() == [1.0, 1.0]  # int labels as float32
 
 
 def test_training_batches_from_the_device_or_streamed_are_the_same(tmp_path) -> None:
@@ -644,3 +647,143 @@ def test_an_empty_checkpoint_is_one_clear_error(tmp_path) -> None:
     path.write_bytes(b"")
     with pytest.raises(CheckpointError, match=r"best.pt: not a readable checkpoint .*retrain"):
         load_model(path)
+
+
+def test_the_stage_trainer_seeds_by_part_keeps_a_float16_best_and_no_last(data, tmp_path) -> None:
+    """train_seed: part f1s2 trains with seed ``seed + 1 + 100*2`` and the profile's
+    settings, in the folder ``b.start`` gives (fresh only with ``force``); then best.pt is
+    float16, last.pt is gone, and the manifest fields say what was trained."""
+    from types import SimpleNamespace
+
+    from flowmod import dag, train
+    from flowmod.params import load_profile
+
+    tx, tdf, vx, vdf = data
+    q = load_profile("demo").model_copy(update=dict(
+        epochs=2, batch_size=16, model_width=16, device="cpu", amp="off", seed=7, force=False,
+        num_workers=0, input_scaling="log"))
+    fresh = []
+
+    def start(fresh_: bool = False, **kw) -> Path:
+        fresh.append(kw.get("fresh", fresh_))
+        return tmp_path
+
+    b = SimpleNamespace(params=q, node=dag.Node("train", "dis", "f1s2"), start=start)
+    info = train.train_seed(b, (tx, tdf), (vx, vdf), False, "dis")
+    hist = pd.read_csv(tmp_path / "history.csv")
+    assert fresh == [False]
+    assert info == {"best_epoch": int(hist["val_f1"].to_numpy().argmax()) + 1,
+                    "best_f1": pytest.approx(hist["val_f1"].max()), "seed": 208,
+                    "amp": "off", "input_scaling": "log"}
+    assert isinstance(info["best_epoch"], int) and isinstance(info["best_f1"], float)
+    assert not (tmp_path / "last.pt").exists()
+    state = _state(tmp_path / "best.pt")
+    assert {v.dtype for v in state.values() if v.is_floating_point()} == {torch.float16}
+    # the same seed trained directly gives the same validation history
+    direct = train_model(tx, tdf, vx, vdf, tmp_path / "direct", train.TrainSettings.of(q),
+                         seed=208, progress=False)
+    np.testing.assert_allclose(hist["val_loss"], direct["val_loss"], rtol=1e-6)
+    b.params = q.model_copy(update={"force": True})
+    info = train.train_seed(b, (tx, tdf), (vx, vdf), False, "dis", input_mode="raw")
+    assert fresh == [False, True] and info["input_scaling"] == "raw"
+
+
+def test_a_model_s_recipe_comes_from_its_flow_and_crops_manifests(tmp_path) -> None:
+    """recipe: the flow node's method parameters, dtype and store scale and the crops
+    node's size and scale; absent manifests give Nones, not an error."""
+    import json
+    from types import SimpleNamespace
+
+    from flowmod import train
+
+    def write(node, rec):
+        (tmp_path / node).mkdir(parents=True)
+        (tmp_path / node / "manifest.json").write_text(json.dumps(
+            {"fingerprint": "x", **rec}))
+
+    b = SimpleNamespace(other=lambda n: tmp_path / n.stage / n.method / n.part)
+    write("flow/dis/keyframe", {"params": {"preset": 2}, "dtype": "float16",
+                                 "store_scale": 0.5})
+    write("crops/dis/keyframe", {"params": {"crop_size": 224, "crop_scale": 1.5}})
+    assert train.recipe(b, "dis") == {"method": "dis", "flow_params": {"preset": 2},
+                                      "flow_dtype": "float16", "store_scale": 0.5,
+                                      "crop_size": 224, "crop_scale": 1.5}
+    assert train.recipe(b, "dis", part="other") == {
+        "method": "dis", "flow_params": {"preset": 2}, "flow_dtype": "float16",
+        "store_scale": 0.5, "crop_size": None, "crop_scale": None}
+    assert train.recipe_from("gt", {}, {}) == {
+        "method": "gt", "flow_params": {}, "flow_dtype": None, "store_scale": None,
+        "crop_size": None, "crop_scale": None}
+
+
+def test_extension_parts_follow_the_extension_seeds() -> None:
+    from flowmod.params import load_profile
+    from flowmod.train import extension_parts
+
+    p = load_profile("demo")
+    assert extension_parts(p.model_copy(update={"folds": 3, "extension_seeds": 2})) == [
+        "f0s0", "f0s1", "f1s0", "f1s1", "f2s0", "f2s1"]
+    assert extension_parts(p.model_copy(update={"folds": 1, "extension_seeds": 2,
+                                                "seeds": 5})) == ["s0", "s1"]
+
+
+class _PidCrops:
+    """An array-like of crops that records which process assembled each batch."""
+
+    shape = (8, 2, 4, 4)
+
+    def __len__(self) -> int:
+        return 8
+
+    def __getitem__(self, idx):
+        import os
+
+        return np.full((len(idx), 2, 4, 4), os.getpid(), np.float32)
+
+
+def test_the_batch_sources_keep_labels_float32_host_crops_on_the_cpu_and_use_workers() -> None:
+    """ResidentCrops on the CPU gathers from host memory (no device copy) with float32
+    labels; StreamedCrops reads through ``workers`` processes (none by default)."""
+    import os
+
+    from flowmod.train import ResidentCrops, StreamedCrops
+
+    cpu = torch.device("cpu")
+    x = np.arange(4 * 2 * 2 * 2, dtype=np.float16).reshape(4, 2, 2, 2)
+    resident = ResidentCrops(x, np.array([0, 1, 1, 0]), cpu)
+    assert resident.x is None and resident.y.dtype == torch.float32
+    streamed = StreamedCrops(_PidCrops(), np.zeros(8), cpu)
+    assert streamed.workers == 0
+    plan = [np.array([0, 1]), np.array([2, 3])]
+    assert {int(xb[0, 0, 0, 0]) for xb, _ in streamed.batches(plan)} == {os.getpid()}
+    pids = {int(xb[0, 0, 0, 0]) for xb, _ in StreamedCrops(_PidCrops(), np.zeros(8), cpu,
+                                                             workers=1).batches(plan)}
+    assert len(pids) == 1 and os.getpid() not in pids
+
+
+class _Unpickled:
+    """An object whose unpickling leaves a mark (what a hostile checkpoint could run)."""
+
+    def __reduce__(self):
+        return (_UNPICKLED.append, ("ran",))
+
+
+_UNPICKLED: list[str] = []
+
+
+def test_checkpoints_are_read_without_unpickling_code(data, run_a, tmp_path) -> None:
+    """A last.pt or best.pt that holds a pickled object is refused before it can run any
+    code (``weights_only=True``); a checkpoint of another format is named as such."""
+    from flowmod.train import half_weights
+
+    tx, tdf, vx, vdf = data
+    for name in ("last.pt", "best.pt"):
+        torch.save({"format": 1, "x": _Unpickled()}, tmp_path / name)
+    with pytest.raises(Exception, match="(?i)weights.only"):
+        train_model(tx, tdf, vx, vdf, tmp_path, **KW)
+    with pytest.raises(Exception, match="(?i)weights.only"):
+        half_weights(tmp_path / "best.pt")
+    assert _UNPICKLED == []
+    torch.save({"format": "other"}, tmp_path / "last.pt")
+    with pytest.raises(TrainingError, match=r"last.pt: not a flowmod training checkpoint"):
+        train_model(tx, tdf, vx, vdf, tmp_path, **KW)
