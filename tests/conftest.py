@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -78,6 +79,53 @@ def smoke_built(smoke_world, tmp_path_factory):
     runs = made_once(tmp_path_factory, "smoke_built",
                      lambda out: pipeline.build(_smoke(data, run_dir=str(out / "runs"))))
     return _smoke(data, run_dir=str(runs / "runs"))
+
+
+#: The selection's quick world: five scenes of three keyframes (one swept, one at night).
+TINY_WORLD = dict(world_scenes=5, world_keyframes=3, world_sweep_scenes=1, world_vehicles=24)
+
+
+def _world_code_digest() -> str:
+    """sha256 (16 hex) of the world generator's source files: a kept world is one that this
+    very code made."""
+    import hashlib
+
+    import flowmod.world
+
+    h = hashlib.sha256(repr(sorted(TINY_WORLD.items())).encode())
+    for f in sorted(Path(flowmod.world.__file__).parent.glob("*.py")):
+        h.update(f.name.encode() + f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+@pytest.fixture(scope="session")
+def tiny_world(tmp_path_factory) -> tuple[Path, str]:
+    """(root, version) of a five-scene world (:data:`TINY_WORLD`, about 5 s to make), for
+    the selection's quick tests. It is deterministic, so it is made once per version of the
+    generator's code and kept in pytest's temporary root (``pytest-of-<user>/``) for later
+    sessions: mutation testing (``make mutation``) starts a session per mutant. Made in a
+    temporary folder and renamed into place, so a session never sees half a world."""
+    from flowmod.world import ensure_world
+
+    keep = tmp_path_factory.getbasetemp().parent / f"flowmod-tiny-world-{_world_code_digest()}"
+    if not (keep / ".made").is_file():
+        work = Path(tempfile.mkdtemp(prefix=".tiny-world-", dir=keep.parent))
+        ensure_world(_smoke(work, **TINY_WORLD), progress=False)
+        (work / ".made").touch()
+        try:
+            work.rename(keep)
+        except OSError:  # another session kept one meanwhile
+            shutil.rmtree(work)
+    return _smoke(keep, **TINY_WORLD).dataroot_path, SMOKE_VERSION
+
+
+@pytest.fixture(scope="session")
+def tiny_nusc(tiny_world):
+    """The tiny world loaded by the official devkit."""
+    from nuscenes.nuscenes import NuScenes
+
+    root, version = tiny_world
+    return NuScenes(version=version, dataroot=str(root), verbose=False)
 
 
 @pytest.fixture

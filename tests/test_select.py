@@ -1,4 +1,5 @@
-"""Selection (Table 1), 2D boxes, labels and the generalisation manifest on the smoke world."""
+"""Selection (Table 1), 2D boxes, labels and the generalisation manifest on the tiny world
+(tests/conftest.py: five scenes, made once and kept, so that these are quick tests)."""
 
 import json
 import shutil
@@ -74,17 +75,17 @@ def test_speeds_and_labels_are_computed_in_float64_whatever_the_input_precision(
 # --- on the smoke world ------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def smoke_params(smoke_world, tmp_path_factory):
-    dataroot, version = smoke_world
+def tiny_params(tiny_world, tmp_path_factory):
+    dataroot, version = tiny_world
     run_dir = tmp_path_factory.mktemp("select_run")
     return validate({"profile": "smoke", "dataroot": str(dataroot), "version": version,
                      "run_dir": str(run_dir), "synthetic": False, "general_max_scenes": 1})
 
 
 @pytest.fixture(scope="module")
-def selection(smoke_params):
-    pipeline.build(smoke_params, ["02"])
-    return common.selection(smoke_params)
+def selection(tiny_params):
+    pipeline.build(tiny_params, ["02"])
+    return common.selection(tiny_params)
 
 
 def _tables(dataroot, version):
@@ -111,11 +112,11 @@ def _project(ann, sd, T):
     return uv[:2] / uv[2], p[2], np.linalg.norm(np.asarray(ann["translation"]) - pose["translation"])
 
 
-def test_keyframe_objects_match_an_independent_reimplementation(smoke_world, smoke_params,
+def test_keyframe_objects_match_an_independent_reimplementation(tiny_world, tiny_params,
                                                                  selection):
-    dataroot, version = smoke_world
+    dataroot, version = tiny_world
     T = _tables(dataroot, version)
-    cats = set(smoke_params.categories)
+    cats = set(tiny_params.categories)
     cat_of = {tok: T["category"][r["category_token"]]["name"] for tok, r in T["instance"].items()}
     key_pairs = selection.pairs[selection.pairs["set"] == "keyframe"]
     expected = set()
@@ -151,15 +152,15 @@ def test_keyframe_objects_match_an_independent_reimplementation(smoke_world, smo
     assert got == expected
 
 
-def test_boxes_equal_the_devkit_2d_export_for_fully_visible_boxes(smoke_nusc, selection):
+def test_boxes_equal_the_devkit_2d_export_for_fully_visible_boxes(tiny_nusc, selection):
     from nuscenes.scripts.export_2d_annotations_as_json import post_process_coords
     from nuscenes.utils.geometry_utils import view_points
 
     key = selection.objects[selection.objects["set"] == "keyframe"].head(25)
     pairs = selection.pairs.set_index("pair_id")
     for o in key.itertuples():
-        sd = smoke_nusc.get("sample_data", pairs.loc[o.pair_id, "sd_token_1"])
-        _, boxes, K = smoke_nusc.get_sample_data(sd["token"], selected_anntokens=[o.ann_token])
+        sd = tiny_nusc.get("sample_data", pairs.loc[o.pair_id, "sd_token_1"])
+        _, boxes, K = tiny_nusc.get_sample_data(sd["token"], selected_anntokens=[o.ann_token])
         corners = view_points(boxes[0].corners(), K, True)[:2].T
         ref = post_process_coords(corners.tolist())
         np.testing.assert_allclose([o.xmin, o.ymin, o.xmax, o.ymax], ref, atol=1e-6)
@@ -181,7 +182,7 @@ def test_no_scene_in_two_splits_and_night_scenes_excluded(selection):
     assert not set(excluded["scene"]) & set(selection.pairs["scene"])
 
 
-def test_generalisation_manifest(selection, smoke_params):
+def test_generalisation_manifest(selection, tiny_params):
     gen_pairs = selection.pairs[selection.pairs["set"] == "general"]
     gen = selection.objects[selection.objects["set"] == "general"]
     assert len(gen_pairs) > 0 and len(gen) > 0
@@ -192,43 +193,43 @@ def test_generalisation_manifest(selection, smoke_params):
     assert gap.between(0.2, 0.6).all(), "4 camera frames at ~12 Hz is ~0.33 s"
     # the generalisation range, not Table 1's 30-70 m (the smoke world's swept scene has no
     # near traffic, world_near_movers 0; tests/test_world.py checks the demo's)
-    assert gen["distance"].between(smoke_params.general_min_distance,
-                                   smoke_params.general_beyond_distance).all()
+    assert gen["distance"].between(tiny_params.general_min_distance,
+                                   tiny_params.general_beyond_distance).all()
 
 
-def test_general_stride_keeps_every_other_starting_frame(smoke_nusc, smoke_params):
+def test_general_stride_keeps_every_other_starting_frame(tiny_nusc, tiny_params):
     """general_stride 2: the pairs of stride 1 whose first frame is an even camera frame of
     its scene, and no others (scenes and labels unchanged)."""
-    scenes = select.select(smoke_params, progress=False).scenes
-    one = select.select_general(smoke_params.model_copy(update={"general_stride": 1}), scenes,
-                                smoke_nusc, progress=False)[0]
-    two = select.select_general(smoke_params.model_copy(update={"general_stride": 2}), scenes,
-                                smoke_nusc, progress=False)[0]
+    scenes = select.select(tiny_params, progress=False).scenes
+    one = select.select_general(tiny_params.model_copy(update={"general_stride": 1}), scenes,
+                                tiny_nusc, progress=False)[0]
+    two = select.select_general(tiny_params.model_copy(update={"general_stride": 2}), scenes,
+                                tiny_nusc, progress=False)[0]
     index = {}
     for tok in scenes.loc[scenes["scene"].isin(one["scene"]), "scene_token"]:
-        for i, sd in enumerate(select.camera_frames(smoke_nusc, tok, keyframes_only=False)):
+        for i, sd in enumerate(select.camera_frames(tiny_nusc, tok, keyframes_only=False)):
             index[sd["token"]] = i
     even = one[one["sd_token_1"].map(index) % 2 == 0]
     assert 0 < len(two) < len(one)
     assert sorted(two["pair_id"]) == sorted(even["pair_id"])
 
 
-def test_artefacts_are_skipped_when_up_to_date(smoke_params, selection):
-    paths = sorted(smoke_params.run_path.glob("*/*.parquet"))
+def test_artefacts_are_skipped_when_up_to_date(tiny_params, selection):
+    paths = sorted(tiny_params.run_path.glob("*/*.parquet"))
     assert {p.parent.name for p in paths} == {"select", "general"}
     before = {p: (p.stat().st_mtime_ns, p.stat().st_ino) for p in paths}
-    pipeline.build(smoke_params, ["02"])
-    again = common.selection(smoke_params)
+    pipeline.build(tiny_params, ["02"])
+    again = common.selection(tiny_params)
     assert {p: (p.stat().st_mtime_ns, p.stat().st_ino) for p in paths} == before
     pd.testing.assert_frame_equal(again.objects, selection.objects)
-    loaded, made_with = common.selection(smoke_params), common.made_with(smoke_params)
+    loaded, made_with = common.selection(tiny_params), common.made_with(tiny_params)
     assert made_with["speed_threshold"] == 2.0 and len(loaded.pairs) == len(selection.pairs)
 
 
 # --- bad inputs --------------------------------------------------------------------------
 
-def test_missing_dataroot_version_and_table(tmp_path, smoke_world):
-    dataroot, version = smoke_world
+def test_missing_dataroot_version_and_table(tmp_path, tiny_world):
+    dataroot, version = tiny_world
     with pytest.raises(select.SelectionError, match="does not exist"):
         select.check_dataroot(tmp_path / "nope", version)
     with pytest.raises(select.SelectionError, match=r"v1.0-mini.*not found.*v1.0-synth"):
@@ -240,20 +241,20 @@ def test_missing_dataroot_version_and_table(tmp_path, smoke_world):
         select.check_dataroot(broken, version)
 
 
-def test_empty_selection_names_the_filter(smoke_params):
-    p = smoke_params.model_copy(update={"min_distance": 500.0, "max_distance": 600.0})
+def test_empty_selection_names_the_filter(tiny_params):
+    p = tiny_params.model_copy(update={"min_distance": 500.0, "max_distance": 600.0})
     with pytest.raises(select.SelectionError, match=r"no vehicle passed Table 1.*\[500.0, 600.0\]"):
         select.select(p, progress=False)
 
 
-def test_missing_images_error_or_skip(tmp_path, smoke_world, smoke_params):
-    dataroot, version = smoke_world
+def test_missing_images_error_or_skip(tmp_path, tiny_world, tiny_params):
+    dataroot, version = tiny_world
     copy = tmp_path / "copy"
     shutil.copytree(dataroot, copy)
-    sel = select.select(smoke_params.model_copy(update={"dataroot": str(copy)}), progress=False)
+    sel = select.select(tiny_params.model_copy(update={"dataroot": str(copy)}), progress=False)
     victim = sel.pairs["path_1"].iloc[0]
     (copy / victim).unlink()
-    p = smoke_params.model_copy(update={"dataroot": str(copy)})
+    p = tiny_params.model_copy(update={"dataroot": str(copy)})
     with pytest.raises(select.SelectionError, match=r"1 image files are missing.*missing_images"):
         select.select(p, progress=False)
     skipped = select.select(p.model_copy(update={"missing_images": "skip"}), progress=False)
@@ -261,12 +262,12 @@ def test_missing_images_error_or_skip(tmp_path, smoke_world, smoke_params):
     assert len(skipped.pairs) < len(sel.pairs)
 
 
-def test_generalisation_boxes_and_labels_against_the_devkit(smoke_nusc, selection):
+def test_generalisation_boxes_and_labels_against_the_devkit(tiny_nusc, selection):
     """Frame-1 boxes are the devkit's interpolated 3D boxes projected (min/max of the 8
     corners); labels are equation 1 between the previous keyframe and the next one."""
     from nuscenes.utils.geometry_utils import BoxVisibility, view_points
 
-    nusc = smoke_nusc
+    nusc = tiny_nusc
     gen = selection.objects[selection.objects["set"] == "general"]
     pairs = selection.pairs.set_index("pair_id")
     assert len(gen) > 0
