@@ -405,3 +405,77 @@ def test_split_sizes_groups_and_the_smallest_worlds():
         for seed in range(3):
             out = select.split_scenes(scenes[:3], fractions, seed=seed)
             assert sorted(out.values()) == ["test", "train", "val"], (fractions, out)
+
+
+def test_the_all_distances_training_set_of_chapter_11(tiny_nusc, tiny_params, selection):
+    """select_wide: in the training scenes (every kept scene with folds), the keyframe pairs
+    with vehicles in the generalisation range (here 40-60 m: exactly Table 1's objects in
+    that range, same labels), and pairs whose first frame is a sweep, every
+    wide_sweep_stride-th camera frame; no scene without a split."""
+    p = tiny_params.model_copy(update={"wide_sweep_stride": 2, "general_min_distance": 40.0,
+                                       "general_max_distance": 60.0})
+    pairs, objects = select.select_wide(p, selection.scenes, tiny_nusc, progress=False)
+    kept = selection.scenes[selection.scenes["fold"] >= 0]
+    assert set(pairs["scene"]) <= set(kept["scene"]) and set(objects["set"]) == {
+        "keyframe", "sweep"}
+    assert objects["distance"].between(40.0, 60.0).all()
+    # keyframe objects: those qualifying at 40-60 m in both frames, so Table 1's objects
+    # (30-70 m) in part, with their labels
+    want = select.keyframe_set(tiny_nusc, kept, p, progress=False, distances=(40.0, 60.0))[1]
+    wide_key = objects[objects["set"] == "keyframe"]
+    cols = ["pair_id", "instance_token", "label", "speed"]
+    pd.testing.assert_frame_equal(
+        wide_key[cols].sort_values(cols[:2]).reset_index(drop=True),
+        want[cols].sort_values(cols[:2]).reset_index(drop=True), check_dtype=False)
+    both = selection.objects.set_index(["pair_id", "instance_token"])["label"]
+    inner = wide_key.set_index(["pair_id", "instance_token"])["label"]
+    assert 0 < len(inner) < (selection.objects["set"] == "keyframe").sum()
+    assert (both.loc[inner.index] == inner).all()
+    assert (wide_key["fold"] == wide_key["split"].str[1:].astype(int)).all()
+    sweeps = pairs[pairs["set"] == "sweep"]
+    index = {}
+    for tok in kept.loc[kept["has_sweeps"], "scene_token"]:
+        for i, sd in enumerate(select.camera_frames(tiny_nusc, tok, keyframes_only=False)):
+            index[sd["token"]] = (i, sd["is_key_frame"])
+    firsts = sweeps["sd_token_1"].map(index)
+    assert len(sweeps) > 0 and all(i % 2 == 0 and not kf for i, kf in firsts)
+    assert (sweeps["fold"] == sweeps["split"].str[1:].astype(int)).all()
+    none = p.model_copy(update={"wide_sweep_stride": 0})
+    assert set(select.select_wide(none, selection.scenes, tiny_nusc, progress=False)[1][
+        "set"]) == {"keyframe"}
+    only_test = selection.scenes.assign(fold=-1, split="test")
+    with pytest.raises(select.SelectionError, match="no train or val scene"):
+        select.select_wide(p.model_copy(update={"folds": 1}), only_test, tiny_nusc)
+
+
+def test_3d_boxes_of_a_keyframe_are_its_annotations(tiny_nusc):
+    """frame_boxes_3d of a keyframe: every annotation of its sample, as annotated (centre,
+    size, rotation)."""
+    sample = tiny_nusc.sample[0]
+    sd = sample["data"]["CAM_FRONT"]
+    got = sorted((tuple(c), tuple(s), tuple(q)) for c, s, q in select.frame_boxes_3d(tiny_nusc,
+                                                                                       sd))
+    want = sorted((tuple(a["translation"]), tuple(a["size"]), tuple(a["rotation"]))
+                  for a in (tiny_nusc.get("sample_annotation", t) for t in sample["anns"]))
+    assert len(want) > 0
+    np.testing.assert_allclose(np.array([sum(x, ()) for x in got]),
+                               np.array([sum(x, ()) for x in want]), atol=1e-9)
+
+
+def test_a_loaded_devkit_is_used_as_it_is_and_a_dataroot_is_opened(tiny_nusc, tiny_world):
+    from pathlib import Path
+
+    root, version = tiny_world
+    assert select.as_nuscenes(tiny_nusc, version) is tiny_nusc
+    for where in (str(root), Path(root)):
+        opened = select.as_nuscenes(where, version)
+        assert type(opened).__name__ == "NuScenes" and len(opened.scene) == len(tiny_nusc.scene)
+        assert Path(opened.dataroot) == Path(root).resolve()
+
+
+def test_each_part_reads_its_pairs_from_its_own_selection_node():
+    from flowmod import dag
+
+    assert [select.objects_node(x) for x in (None, "keyframe", "wide", "general", "other")] \
+        == [dag.Node("select"), dag.Node("select"), dag.Node("wide"), dag.Node("general"),
+            dag.Node("general")]
