@@ -479,3 +479,35 @@ def test_each_part_reads_its_pairs_from_its_own_selection_node():
     assert [select.objects_node(x) for x in (None, "keyframe", "wide", "general", "other")] \
         == [dag.Node("select"), dag.Node("select"), dag.Node("wide"), dag.Node("general"),
             dag.Node("general")]
+
+
+def test_labels_against_the_devkit_attribute_box_velocity_and_true_speed():
+    """Chapter 04's agreement tables: counts of eq.-1 labels by the attribute's motion word,
+    by the devkit's box_velocity label (n/a where it has none), and by the true label; the
+    box agreement among the objects the devkit labels."""
+    assert [labels.attribute_motion(a) for a in (
+        "vehicle.moving", "vehicle.stopped", "vehicle.parked", "cycle.with_rider", "",
+        "vehicle.moving.not")] == ["moving", "stopped", "parked", "other", "other", "other"]
+    objects = pd.DataFrame({
+        "label": [1, 1, 0, 0, 0, 1],
+        "attribute": ["vehicle.moving", "vehicle.stopped", "vehicle.parked", "vehicle.parked",
+                      "", "vehicle.moving"],
+        "box_speed": [3.0, 1.0, 0.0, np.nan, 0.5, 2.5],
+        "box_label": [1, 0, 0, -1, 0, 1],
+        "true_label": [1, 0, 0, 0, 1, 1]})
+    t = labels.agreement_table(objects)
+    assert list(t.columns) == ["moving", "stopped", "parked", "other", "box: moving",
+                               "box: still", "box: n/a"]
+    assert t.loc["moving"].tolist() == [2, 1, 0, 0, 2, 1, 0]
+    assert t.loc["still"].tolist() == [0, 0, 2, 1, 0, 2, 1]
+    assert t.dtypes.map(lambda d: d.kind).eq("i").all()
+    # columns absent from the data are left out, the rest keep their order
+    assert list(labels.agreement_table(objects.iloc[[0, 2]]).columns) == [
+        "moving", "parked", "box: moving", "box: still"]
+    assert labels.box_agreement(objects) == pytest.approx(100 * 4 / 5)
+    true = labels.true_agreement(objects)
+    assert true.loc["moving", "moving"] == 2 and true.loc["moving", "still"] == 1
+    assert true.loc["still", "moving"] == 1 and true.loc["still", "still"] == 2
+    assert true.index.name == "eq. 1 label" and true.columns.name == "true label"
+    with pytest.raises(KeyError, match="no true_label column"):
+        labels.true_agreement(objects.drop(columns="true_label"))
