@@ -545,3 +545,112 @@ def test_pair_crops_rescale_boxes_fix_non_finite_and_keep_dtypes():
     crops.pair_crops(np.zeros((901, 1600, 2), np.float32), boxes, 8, 2.0)  # 1 px off
     with pytest.raises(CropsError, match=r"is 1600x902 \(WxH\), not the 1600x900 image"):
         crops.pair_crops(np.zeros((902, 1600, 2), np.float32), boxes, 8, 2.0)
+
+
+# --- the static-world crops (chapter 10) and the stage's routing ------------------------------
+
+@pytest.fixture(scope="module")
+def tiny_pairs(tiny_world, tmp_path_factory):
+    """(objects, pairs, frame boxes) of two keyframe pairs of the tiny world's selection."""
+    from flowmod import select
+    from flowmod.params import validate
+
+    root, version = tiny_world
+    p = validate({"profile": "smoke", "dataroot": str(root), "version": version,
+                  "run_dir": str(tmp_path_factory.mktemp("tiny_run")), "synthetic": False})
+    nusc = select.open_nuscenes(root, version)
+    sel = select.select_keyframes(p, nusc, progress=False)
+    pids = sorted(sel.pairs["pair_id"])[:2]
+    objects = sel.objects[sel.objects["pair_id"].isin(pids)].reset_index(drop=True)
+    pairs = sel.pairs[sel.pairs["pair_id"].isin(pids)].reset_index(drop=True)
+    boxes = {pid: select.frame_boxes_3d(nusc, sd) for pid, sd in
+             zip(pairs["pair_id"], pairs["sd_token_1"], strict=True)}
+    return objects, pairs, boxes
+
+
+def _static_reference(o, pair, boxes3d, size, scale, depth):
+    """One object's static-world crop from geometry's functions, step by step."""
+    from flowmod import geometry
+
+    K, T1, T2 = geometry.pair_cameras(pair)
+    box = np.array([o.xmin, o.ymin, o.xmax, o.ymax])
+    win = crop_windows(box[None], scale)[0]
+    if depth == "ground":
+        return geometry.static_flow_crop(win, size, K, T1, T2, [], 0.0,
+                                         image_size=(1600, 900), box2d=box)
+    if boxes3d is None:
+        boxes3d = [((o.center_x, o.center_y, o.center_z), (o.size_w, o.size_l, o.size_h),
+                    (o.qw, o.qx, o.qy, o.qz))]
+    cam = []
+    for c, wlh, q in boxes3d:
+        c_cam, rot = geometry.box_in_camera(T1, np.asarray(c, float), np.asarray(q, float))
+        if c_cam[2] > 0:
+            cam.append((c_cam, np.asarray(wlh, float), rot))
+    return geometry.static_flow_crop(win, size, K, T1, T2, cam, 0.0, image_size=(1600, 900))
+
+
+def test_static_crops_are_the_geometry_of_each_object_s_window(tiny_pairs):
+    """static_crops: per depth, each object's crop is geometry.static_flow_crop of its
+    window (scale x its box) with its pair's cameras: ``boxes`` with the pair's frame boxes
+    (those in front of the camera) or the object's own box, ``ground`` from its 2D box."""
+    objects, pairs, frame_boxes = tiny_pairs
+    by_pair = pairs.set_index("pair_id")
+    got = crops.static_crops(objects, pairs, 12, 2.5, frame_boxes=frame_boxes,
+                             depths=("boxes", "ground"))
+    own = crops.static_crops(objects, pairs, 12, 2.5)
+    assert set(got) == {"boxes", "ground"} and set(own) == {"boxes"}
+    assert got["boxes"].shape == (len(objects), 2, 12, 12) and got["boxes"].dtype == np.float32
+    for i, o in enumerate(objects.itertuples(index=False)):
+        pair = by_pair.loc[o.pair_id]
+        for depth, boxes3d, out in (("boxes", frame_boxes[o.pair_id], got["boxes"]),
+                                    ("ground", None, got["ground"]), ("boxes", None, own["boxes"])):
+            np.testing.assert_allclose(out[i], _static_reference(o, pair, boxes3d, 12, 2.5, depth),
+                                       rtol=1e-5, atol=1e-4)
+    assert not np.allclose(got["boxes"], got["ground"])  # the depths differ
+    with pytest.raises(ValueError, match=r"unknown static-world depth \['sky'\]"):
+        crops.static_crops(objects, pairs, 12, 2.5, depths=("sky",))
+
+
+def test_each_crops_part_is_stored_by_split_or_fold_and_read_from_its_node(tmp_path):
+    from flowmod import dag
+    from flowmod.params import load_profile
+
+    assert crops.part_splits("general", 3) == ("general",)
+    assert crops.part_splits("keyframe", 3) == ("f0", "f1", "f2")
+    assert crops.part_splits("wide", 2) == ("f0", "f1")
+    assert crops.part_splits("keyframe", 1) == ("train", "val", "test")
+    assert crops.part_splits("wide", 1) == ("train", "val")
+    assert [crops.part_of(s) for s in ("general", "train", "f1")] == [
+        "general", "keyframe", "keyframe"]
+    pd.DataFrame({"pair_id": ["a"], "split": ["f1"], "xmin": [1.0], "ymin": [2.0],
+                  "xmax": [3.0], "ymax": [4.0]}).to_parquet(tmp_path / "objects.parquet")
+    assert crops.part_objects(tmp_path, "general")["split"].tolist() == ["general"]
+    assert crops.part_objects(tmp_path, "keyframe")["split"].tolist() == ["f1"]
+    pd.DataFrame({"pair_id": []}).to_parquet(tmp_path / "objects.parquet")
+    assert list(crops.part_objects(tmp_path, "general").columns) == [
+        "pair_id", "split", "xmin", "ymin", "xmax", "ymax"]
+    p = load_profile("demo").model_copy(update={"flow_methods": ["gt", "dis"],
+                                                "wide_methods": ["dis"], "flow_store": "pairs"})
+    assert [str(n) for n in crops.STAGE.nodes(p)] == [
+        "crops[gt/keyframe]", "crops[gt/general]", "crops[dis/keyframe]", "crops[dis/general]",
+        "crops[dis/wide]"]
+    node = dag.Node("crops", "dis", "general")
+    assert crops.STAGE.inputs(node, p) == (dag.Node("flow", "dis", "general"),
+                                           dag.Node("general"))
+    assert crops.STAGE.inputs(node, p.model_copy(update={"flow_store": "crops"})) == (
+        dag.Node("world"), dag.Node("general"))
+
+
+def test_fold_crops_reads_the_rows_of_a_role_from_a_crops_folder(tmp_path):
+    """fold_crops: the crops of a node's folder that play a role for a fold's model (the
+    test rows: the fold's own array, read as stored)."""
+    x = np.arange(3 * 2 * 4 * 4, dtype=np.float16).reshape(3, 2, 4, 4)
+    for k in range(2):
+        np.save(tmp_path / f"f{k}.npy", x + k)
+        pd.DataFrame({"pair_id": ["a", "b", "c"], "fold": k, "val_scene": [False, True, False],
+                      "scene": ["s1", "s2", "s3"]}).to_parquet(tmp_path / f"f{k}.parquet")
+    xt, dft = crops.fold_crops(tmp_path, 2, 1, "test")
+    np.testing.assert_array_equal(xt, x + 1)
+    assert dft["fold"].tolist() == [1, 1, 1]
+    xg, dfg = crops.fold_crops(tmp_path, 2, 1, "train")
+    assert len(dfg) == len(xg) and set(dfg["fold"]) == {0}
