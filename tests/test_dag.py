@@ -343,3 +343,46 @@ def test_expected_of_chosen_nodes_reads_their_inputs_manifests(toy):
     assert g.expected(p, [s0]) == {s0: None}, "an input never built: no fingerprint"
     g.build(p)
     assert g.expected(p, [s0]) == {s0: g.recorded(p, s0)["fingerprint"]}
+
+
+def test_a_node_s_results_are_its_published_folder_then_its_variants_newest_first(tmp_path):
+    """dag.results: the published folder and the kept variants that hold a manifest, newest
+    manifest first (what a rebuild may restore from)."""
+    import os
+
+    final = tmp_path / "crops"
+    dirs = {name: tmp_path / name for name in
+            ("crops", ".crops.variant-a", ".crops.variant-b", ".crops.variant-c")}
+    for i, (name, d) in enumerate(dirs.items()):
+        d.mkdir()
+        if name != ".crops.variant-c":  # no manifest: not a result
+            (d / "manifest.json").write_text(json.dumps({"fingerprint": name}))
+            os.utime(d / "manifest.json", (1000 + i, 1000 + i))
+    assert dag.results(final) == [final, dirs[".crops.variant-b"], dirs[".crops.variant-a"]]
+    (final / "manifest.json").unlink()
+    assert dag.results(final) == [dirs[".crops.variant-b"], dirs[".crops.variant-a"]]
+
+
+def test_a_building_folder_goes_only_when_its_block_raises(tmp_path):
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    with dag.removed_on_error(kept) as d:
+        assert d == kept
+    assert kept.is_dir()
+    with pytest.raises(KeyboardInterrupt), dag.removed_on_error(kept):
+        raise KeyboardInterrupt
+    assert not kept.exists()
+
+
+def test_a_node_s_parameters_are_read_only_and_other_nodes_are_found_by_the_graph():
+    from types import SimpleNamespace
+
+    p = validate({"profile": "smoke"})
+    q = dag.StageParams(p, dag.Node("train", "dis", "f0"))
+    with pytest.raises(AttributeError, match="parameters are read-only"):
+        q.epochs = 3
+    assert q.epochs == p.epochs
+    graph = SimpleNamespace(node_dir=lambda params, node: ("dir", params is p, str(node)))
+    b = dag.Build(graph=graph, node=dag.Node("train", "dis", "f0"), params=q, inputs={},
+                  payload={}, fingerprint="f", final=Path("/r/x"), up_to_date=False)
+    assert b.other(dag.Node("crops", "dis", "wide")) == ("dir", True, "crops[dis/wide]")
