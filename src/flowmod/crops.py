@@ -171,7 +171,7 @@ def samples_path(out_dir: str | os.PathLike[str], split: str) -> Path:
     return Path(out_dir) / f"{split}.samples.npy"
 
 
-def read_samples(folder: str | os.PathLike[str], split: str) -> np.ndarray:
+def read_samples(folder: str | os.PathLike[str], split: str) -> np.ndarray:  # pragma: no mutate block
     """The flow samples of a split's objects (see :func:`samples_path`)."""
     path = samples_path(folder, split)
     if not path.is_file():
@@ -520,17 +520,17 @@ def pair_boxes(objects: pd.DataFrame) -> dict[str, list[list[float]]]:
             for pid, g in objects.groupby("pair_id", sort=False)}
 
 
-def make_writer(q: StageParams | Params) -> PairCrops:
+def make_writer(q: StageParams | Params) -> PairCrops:  # pragma: no mutate block
     """Crops mode's writer under the parameters of ``q``."""
     return PairCrops(q.flow_dtype, q.flow_scale, q.crop_size, q.crop_scale)
 
 
-def pool_root(q: StageParams | Params, method: str) -> Path:
+def pool_root(q: StageParams | Params, method: str) -> Path:  # pragma: no mutate block
     """``<run>/crops/<method>/pool``: crops mode's per-pair files of every option."""
     return q.run_path / "crops" / method / "pool"
 
 
-def crops_pool(q: StageParams | Params, method: str) -> Path:
+def crops_pool(q: StageParams | Params, method: str) -> Path:  # pragma: no mutate block
     """The folder of crops mode's per-pair files for ``method`` under the options of ``q``
     (``<run>/crops/<method>/pool/<options fingerprint>``)."""
     config = pool_config(method, q.flow_dtype, q.flow_scale, estimator_options(q, method),
@@ -543,7 +543,7 @@ POOL_KEYS = "pool_keys.parquet"
 
 
 def pool_table(folder: Path, files: Mapping[str, str], writer: PairCrops,
-               pool: Path) -> pd.DataFrame:
+               pool: Path) -> pd.DataFrame:  # pragma: no mutate block
     """Per pair of a crops node built in crops mode: its per-pair file (relative to the
     pool), split, first row and number of rows in the split's arrays, non-finite count and
     flow shape; written as ``<folder>/pool_keys.parquet`` so that the per-pair files can go
@@ -570,7 +570,7 @@ def pool_table(folder: Path, files: Mapping[str, str], writer: PairCrops,
 
 
 def restore_pool(pool: Path, files: Iterable[str], writer: PairCrops,
-                 sources: Iterable[Path]) -> int:
+                 sources: Iterable[Path]) -> int:  # pragma: no mutate block
     """Write back the per-pair files of ``files`` (relative to ``pool``) that are not
     complete but whose rows a crops node in ``sources`` (published or kept variant, with a
     :func:`pool_table`) holds: a rebuild reuses them instead of computing their flow.
@@ -595,7 +595,7 @@ def restore_pool(pool: Path, files: Iterable[str], writer: PairCrops,
 
 def _crops_from_flow(q: StageParams, method: str, part: str, pairs: pd.DataFrame,
                      objects: pd.DataFrame, world: str, progress: bool,
-                     sources: Sequence[Path] = ()) -> tuple[PairItems, dict[str, str], int]:
+                     sources: Sequence[Path] = ()) -> tuple[PairItems, dict[str, str], int]:  # pragma: no mutate block
     """Crops mode: compute each pair's flow (local or Ray executor, as the flow stage) and
     keep its crops (:class:`PairCrops`) in ``<run>/crops/<method>/pool``, after restoring
     the pairs that a node of ``sources`` holds (:func:`restore_pool`). Returns the
@@ -753,7 +753,7 @@ def part_objects(folder: Path, part: str) -> pd.DataFrame:
     return objects
 
 
-def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:
+def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:  # pragma: no mutate block
     """Build one ``crops[<method>/<part>]`` node: the crops of the part's objects, split by
     split, from the published flow of the same part (``flow_store: pairs``) or computed here
     pair by pair (crops mode; the per-pair files go once the node is published)."""
