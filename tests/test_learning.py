@@ -318,6 +318,9 @@ def test_training_on_the_cpu_runs_in_float32_and_shows_its_progress(data, tmp_pa
     assert seen and set(seen) == {torch.float32}
     err = capsys.readouterr().err
     assert re.search(r"best=1, loss=\d\.\d{4}, val_f1=\d\.\d{3}\]", err), err[-300:]
+    # and the epoch's own bar: its batches, counted against their number, with the loss
+    assert re.search(r"train, epoch 1: +\d+%\|[^|]*\| \d/4 \[[^]]*batch/s, loss=\d\.\d{4}\]",
+                     err), err[-600:]
 
 
 # --- evaluation -------------------------------------------------------------------------------
@@ -464,12 +467,18 @@ def test_flips_are_used_in_training_only(data, run_a, tmp_path) -> None:
                                rtol=1e-5, atol=1e-6)
 
 
-def test_training_batches_are_flipped_with_u_negated(data, tmp_path, monkeypatch) -> None:
+@pytest.mark.parametrize("channels, negate", [(2, (0,)), (3, (0, 2))])
+def test_training_batches_are_flipped_with_u_negated(data, tmp_path, monkeypatch, channels,
+                                                     negate) -> None:
     """Inside the training loop: each batch the model sees is the plan's crops, and exactly
-    the planned ones mirrored with u negated (the original flipped without negating u)."""
+    the planned ones mirrored with u negated (the original flipped without negating u); an
+    input of other channels negates the channels it names (chapter 10)."""
     import flowmod.train as tr
 
     tx, tdf, vx, vdf = data
+    if channels == 3:
+        tx = np.concatenate([tx, tx[:, :1] * 0.5], axis=1)
+        vx = np.concatenate([vx, vx[:, :1] * 0.5], axis=1)
     seen: list[torch.Tensor] = []
 
     def recording_model(in_channels=2, width=64, *scaling):
@@ -479,7 +488,8 @@ def test_training_batches_are_flipped_with_u_negated(data, tmp_path, monkeypatch
         return model
 
     monkeypatch.setattr(tr, "motion_resnet18", recording_model)
-    train_model(tx, tdf, vx, vdf, tmp_path, **{**KW, "epochs": 1, "hflip_p": 0.5})
+    train_model(tx, tdf, vx, vdf, tmp_path, **{**KW, "epochs": 1, "hflip_p": 0.5},
+                in_channels=channels, flip_negate=negate)
     batches, flips = epoch_plan(len(tx), KW["batch_size"], 0.5, KW["seed"], 1)
     assert len(seen) == len(batches) and flips.any() and not flips.all()
     pos = 0
@@ -488,7 +498,8 @@ def test_training_batches_are_flipped_with_u_negated(data, tmp_path, monkeypatch
         fl = torch.from_numpy(flips[pos : pos + len(idx)])
         pos += len(idx)
         want[fl] = torch.flip(want[fl], dims=(-1,))
-        want[fl, 0] = -want[fl, 0]
+        for c in negate:
+            want[fl, c] = -want[fl, c]
         torch.testing.assert_close(got, want, rtol=0, atol=0)
 
 
@@ -787,3 +798,83 @@ def test_checkpoints_are_read_without_unpickling_code(data, run_a, tmp_path) -> 
     torch.save({"format": "other"}, tmp_path / "last.pt")
     with pytest.raises(TrainingError, match=r"last.pt: not a flowmod training checkpoint"):
         train_model(tx, tdf, vx, vdf, tmp_path, **KW)
+
+
+def test_a_checkpoint_records_the_settings_and_data_it_was_made_with() -> None:
+    """_config: what a resume must match, by name (the refusal names them); the paper's
+    input, network and scaling keep the short config older checkpoints have."""
+    from dataclasses import replace
+
+    from flowmod.train import TrainSettings, _config
+
+    s = TrainSettings(batch_size=8, lr=0.02, momentum=0.8, weight_decay=0.001, step_size=4,
+                      gamma=0.3, hflip_p=0.25)
+    x = np.zeros((5, 2, 12, 12), np.float16)
+    y_tr, y_va = np.array([0, 1, 1, 0, 1.0]), np.array([1, 0, 0.0])
+    base = {"batch_size": 8, "lr": 0.02, "momentum": 0.8, "weight_decay": 0.001,
+            "step_size": 4, "gamma": 0.3, "hflip_p": 0.25, "seed": 7, "amp": "None",
+            "crop_size": 12, "n_train": 5, "n_train_moving": 3, "n_val": 3, "n_val_moving": 1}
+    assert _config(s, 7, None, x, y_tr, y_va, 2, (0,)) == base
+    assert _config(s, 7, "bf16", x, y_tr, y_va, 2, (0,))["amp"] == "bf16"
+    assert _config(s, 7, None, x, y_tr, y_va, 3, (0,)) == {**base, "channels": 3,
+                                                           "flip_negate": [0]}
+    assert _config(s, 7, None, x, y_tr, y_va, 2, (0, 1)) == {**base, "channels": 2,
+                                                             "flip_negate": [0, 1]}
+    wide = replace(s, width=16, input_mode="log")
+    assert _config(wide, 7, None, x, y_tr, y_va, 2, (0,), flow_channels=(1,)) == {
+        **base, "width": 16, "input_mode": "log", "flow_channels": [1]}
+
+
+def test_a_new_run_has_the_settings_optimiser_and_schedule(monkeypatch) -> None:
+    """_new_run: SGD with Table 2's lr, momentum and weight decay, StepLR with its step and
+    gamma, the model built for the run's channels, width, scaling and flow channels, seeded;
+    no loss scaling without fp16."""
+    import flowmod.train as tr
+
+    built = []
+    monkeypatch.setattr(tr, "motion_resnet18",
+                        lambda *a: built.append(a) or motion_resnet18(*a))
+    s = tr.TrainSettings(lr=0.02, momentum=0.8, weight_decay=0.003, step_size=4, gamma=0.3,
+                         width=8, input_mode="log")
+    run = tr._new_run(s, 3, 11, torch.device("cpu"), None, (0, 2))
+    assert built == [(3, 8, "log", (0, 2))]
+    group = run.opt.param_groups[0]
+    assert isinstance(run.opt, torch.optim.SGD)
+    assert (group["lr"], group["momentum"], group["weight_decay"]) == (0.02, 0.8, 0.003)
+    assert (run.sched.step_size, run.sched.gamma) == (4, 0.3)
+    assert not run.scaler.is_enabled()
+    again = tr._new_run(s, 3, 11, torch.device("cpu"), None, (0, 2))
+    _assert_same_weights(run.model.state_dict(), again.model.state_dict())
+
+
+def test_automatic_mixed_precision_is_resolved_per_device() -> None:
+    from flowmod.train import _resolve_amp
+
+    cpu = torch.device("cpu")
+    assert [_resolve_amp(a, cpu) for a in ("auto", None, "none", "bf16", "fp16")] == [
+        None, None, None, "bf16", "fp16"]
+    with pytest.raises(ValueError, match=r"amp='fp32': use 'auto', None, 'bf16' or 'fp16'"):
+        _resolve_amp("fp32", cpu)
+
+
+def test_an_epoch_s_training_loss_is_the_mean_over_its_crops(data, tmp_path) -> None:
+    """With lr 0 the weights stay as initialised, so the first epoch's training loss is the
+    crop-weighted mean of each planned batch's loss in training mode (BatchNorm on the
+    batch), computed here batch by batch."""
+    from torch import nn
+
+    tx, tdf, vx, vdf = data
+    kw = {**KW, "epochs": 1, "lr": 0.0, "momentum": 0.0, "weight_decay": 0.0, "hflip_p": 0.0,
+          "batch_size": 24}  # 64 crops: batches of 24, 24 and 16
+    hist = train_model(tx, tdf, vx, vdf, tmp_path, **kw)
+    torch.manual_seed(KW["seed"])
+    model = motion_resnet18(width=KW["width"]).train()
+    batches, _ = epoch_plan(len(tx), 24, 0.0, KW["seed"], 1)
+    y = tdf["label"].to_numpy(np.float32)
+    with torch.no_grad():
+        losses = [nn.functional.binary_cross_entropy_with_logits(
+            model(torch.from_numpy(tx[idx].astype(np.float32))).reshape(-1),
+            torch.from_numpy(y[idx])).item() * len(idx) for idx in batches]
+    assert [len(b) for b in batches] == [24, 24, 16]
+    assert hist["train_loss"].iloc[0] == pytest.approx(sum(losses) / len(tx), rel=1e-5)
+    assert 0 < hist["seconds"].iloc[0] < 600  # the epoch's own wall time
