@@ -857,16 +857,17 @@ def test_automatic_mixed_precision_is_resolved_per_device() -> None:
         _resolve_amp("fp32", cpu)
 
 
-def test_an_epoch_s_training_loss_is_the_mean_over_its_crops(data, tmp_path) -> None:
+def test_an_epoch_s_training_loss_is_the_mean_over_its_crops(data, tmp_path, capsys) -> None:
     """With lr 0 the weights stay as initialised, so the first epoch's training loss is the
     crop-weighted mean of each planned batch's loss in training mode (BatchNorm on the
-    batch), computed here batch by batch."""
+    batch), computed here batch by batch. Without ``progress`` nothing is printed."""
     from torch import nn
 
     tx, tdf, vx, vdf = data
     kw = {**KW, "epochs": 1, "lr": 0.0, "momentum": 0.0, "weight_decay": 0.0, "hflip_p": 0.0,
           "batch_size": 24}  # 64 crops: batches of 24, 24 and 16
     hist = train_model(tx, tdf, vx, vdf, tmp_path, **kw)
+    assert capsys.readouterr().err == ""
     torch.manual_seed(KW["seed"])
     model = motion_resnet18(width=KW["width"]).train()
     batches, _ = epoch_plan(len(tx), 24, 0.0, KW["seed"], 1)
