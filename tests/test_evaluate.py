@@ -424,3 +424,65 @@ def test_scored_rows_read_one_split_as_stored_and_pool_every_fold():
         lambda s: ([np.arange(len(stored[s]))[:, None]], stored[s]), 2)
     assert df["scene"].tolist() == ["a", "b", "c"] and len(x) == 3
 
+
+
+def _crops_folder(folder: Path, folds: int = 2) -> None:
+    """A crops node's folder of ``folds`` folds: 4 rows a fold (crops, index, samples)."""
+    for k in range(folds):
+        x = np.full((4, 2, 4, 4), k, np.float16) + np.arange(4, dtype=np.float16)[:, None,
+                                                                                 None, None]
+        np.save(folder / f"f{k}.npy", x)
+        np.save(folder / f"f{k}.samples.npy",
+                np.arange(4 * 81 * 2, dtype=np.float32).reshape(4, 81, 2) + 1000 * k)
+        pd.DataFrame({"pair_id": [f"p{k}{i}" for i in range(4)], "scene": f"s{k}",
+                      "fold": k, "val_scene": False, "label": [0, 1, 0, 1],
+                      "ann_token": [f"a{k}{i}" for i in range(4)]}).to_parquet(
+            folder / f"f{k}.parquet")
+
+
+def test_scored_crops_are_each_fold_s_own_rows_read_from_the_folder(tmp_path):
+    _crops_folder(tmp_path)
+    x, df = evaluate.scored_crops(tmp_path, 2)
+    assert df["fold"].tolist() == [0] * 4 + [1] * 4
+    assert x[:, 0, 0, 0].tolist() == [0, 1, 2, 3, 1, 2, 3, 4]
+
+
+def test_the_geometric_baseline_reads_each_row_s_flow_samples(tmp_path, monkeypatch):
+    """geometric_baseline on a crops folder: each row's stored flow samples reach the
+    residual, aligned with its index row (the fold's train rows fit, its test rows score)."""
+    from flowmod import geometry
+
+    _crops_folder(tmp_path)
+    seen = []
+
+    def residual(sub, pairs, smp):
+        seen.append((sub["pair_id"].tolist(), smp[:, 0, 0].tolist()))
+        return pd.DataFrame({"residual_speed": sub["label"].to_numpy() * 5.0})
+
+    monkeypatch.setattr(geometry, "residual_scores", residual)
+    test, s = evaluate.geometric_baseline(pd.DataFrame(), tmp_path, folds=2)
+    # fold 0: trains on fold 1's rows, tests on its own; then fold 1
+    assert seen[1] == (["p00", "p01", "p02", "p03"], [0.0, 162.0, 324.0, 486.0])
+    assert seen[0] == (["p10", "p11", "p12", "p13"], [1000.0, 1162.0, 1324.0, 1486.0])
+    assert test["prob"].tolist() == [0.0, 1.0] * 4 and len(s["thresholds_m_s"]) == 2
+
+
+def test_a_predictions_breakdown_scores_every_seed_by_scene(monkeypatch):
+    """evaluate.breakdown: metrics.breakdown of the table's labels and every seed's
+    probabilities, scenes as the resampled unit, folds when the rows span several."""
+    df = pd.DataFrame({"label": [0, 1, 1, 0, 1, 0], "scene": list("aabbcc"),
+                       "category": ["car", "bus"] * 3, "fold": [0, 0, 1, 1, 0, 1],
+                       "prob_s0": [0.1, 0.9, 0.8, 0.3, 0.2, 0.6],
+                       "prob_s1": [0.2, 0.7, 0.6, 0.1, 0.9, 0.4]})
+    got = evaluate.breakdown(df, "category")
+    want = ev.breakdown(df, df["label"], df[["prob_s0", "prob_s1"]].to_numpy().T,
+                        by="category", groups=df["scene"].to_numpy(), folds=df["fold"].to_numpy())
+    pd.testing.assert_frame_equal(got, want)
+    seen = {}
+    monkeypatch.setattr(evaluate, "metrics_breakdown",
+                        lambda *a, **k: seen.update(args=a, kw=k) or "table")
+    assert evaluate.breakdown(df, "distance", bins=[0, 50]) == "table"
+    assert seen["kw"]["by"] == "distance" and seen["kw"]["bins"] == [0, 50]
+    assert seen["kw"]["groups"].tolist() == list("aabbcc")
+    assert seen["kw"]["folds"].tolist() == [0, 0, 1, 1, 0, 1]
+    assert seen["args"][0] is df and seen["args"][1].tolist() == [0, 1, 1, 0, 1, 0]
