@@ -511,3 +511,62 @@ def test_labels_against_the_devkit_attribute_box_velocity_and_true_speed():
     assert true.index.name == "eq. 1 label" and true.columns.name == "true label"
     with pytest.raises(KeyError, match="no true_label column"):
         labels.true_agreement(objects.drop(columns="true_label"))
+
+
+def _cam2global(T, sd):
+    """sd's camera-to-global transform from the tables (ego pose after sensor pose)."""
+    def rigid(rec):
+        m = np.eye(4)
+        m[:3, :3] = Quaternion(rec["rotation"]).rotation_matrix
+        m[:3, 3] = rec["translation"]
+        return m
+    return rigid(T["ego_pose"][sd["ego_pose_token"]]) @ rigid(
+        T["calibrated_sensor"][sd["calibrated_sensor_token"]])
+
+
+def test_keyframe_pairs_and_objects_carry_their_tables_fields(tiny_world, tiny_params,
+                                                             selection):
+    """Each keyframe pair row: consecutive CAM_FRONT keyframes of its scene (pair id
+    ``<scene>-k<i>``), their files, times, samples, image size, intrinsics and camera poses
+    as the tables give them; each keyframe object: its annotation's centre, size, rotation
+    and visibility (a keyframe box is the annotation), its distance from the ego pose and
+    the devkit's box velocity."""
+    dataroot, version = tiny_world
+    T = _tables(dataroot, version)
+    key = selection.pairs[selection.pairs["set"] == "keyframe"]
+    scenes = selection.scenes.set_index("scene")
+    assert len(key) > 0
+    for r in key.itertuples():
+        sd1, sd2 = T["sample_data"][r.sd_token_1], T["sample_data"][r.sd_token_2]
+        frames, tok = [], T["scene"][scenes.loc[r.scene, "scene_token"]]["first_sample_token"]
+        while tok:
+            frames.append(next(s for s in T["sample_data"].values() if s["sample_token"] == tok
+                               and s["is_key_frame"] and "CAM_FRONT" in s["filename"]))
+            tok = T["sample"][tok]["next"]
+        i = int(r.pair_id.rsplit("-k", 1)[1])
+        assert r.pair_id == f"{r.scene}-k{i:03d}" and frames[i] is sd1 and frames[i + 1] is sd2
+        assert (r.split, r.set) == (scenes.loc[r.scene, "split"], "keyframe")
+        assert (r.path_1, r.path_2) == (sd1["filename"], sd2["filename"])
+        assert (r.timestamp_1, r.timestamp_2) == (sd1["timestamp"], sd2["timestamp"])
+        assert (r.sample_token_1, r.sample_token_2) == (sd1["sample_token"], sd2["sample_token"])
+        assert (r.width, r.height) == (sd1["width"], sd1["height"]) == (1600, 900)
+        cs = T["calibrated_sensor"][sd1["calibrated_sensor_token"]]
+        np.testing.assert_allclose(r.intrinsic, np.ravel(cs["camera_intrinsic"]))
+        np.testing.assert_allclose(r.cam2global_1, _cam2global(T, sd1).ravel(), atol=1e-9)
+        np.testing.assert_allclose(r.cam2global_2, _cam2global(T, sd2).ravel(), atol=1e-9)
+    objs = selection.objects[selection.objects["set"] == "keyframe"]
+    pairs = key.set_index("pair_id")
+    for o in objs.itertuples():
+        a = T["sample_annotation"][o.ann_token]
+        sd1 = T["sample_data"][pairs.loc[o.pair_id, "sd_token_1"]]
+        assert a["sample_token"] == sd1["sample_token"] and a["instance_token"] == o.instance_token
+        np.testing.assert_allclose([o.center_x, o.center_y, o.center_z], a["translation"],
+                                   atol=1e-6)
+        np.testing.assert_allclose([o.size_w, o.size_l, o.size_h], a["size"], atol=1e-9)
+        q = Quaternion([o.qw, o.qx, o.qy, o.qz])
+        assert Quaternion.absolute_distance(q, Quaternion(a["rotation"])) < 1e-6
+        ego = T["ego_pose"][sd1["ego_pose_token"]]["translation"]
+        assert o.distance == pytest.approx(np.linalg.norm(np.subtract(a["translation"], ego)))
+        assert o.visibility == a["visibility_token"] == "4"
+        cat = T["category"][T["instance"][o.instance_token]["category_token"]]["name"]
+        assert o.category == cat and cat in tiny_params.categories
