@@ -570,3 +570,29 @@ def test_keyframe_pairs_and_objects_carry_their_tables_fields(tiny_world, tiny_p
         assert o.visibility == a["visibility_token"] == "4"
         cat = T["category"][T["instance"][o.instance_token]["category_token"]]["name"]
         assert o.category == cat and cat in tiny_params.categories
+
+
+def test_the_failure_analysis_boxes_are_every_object_in_front_clipped(tiny_nusc, selection):
+    """frame_boxes of a generalisation pair's frame 1: every annotated object (any category
+    or visibility) with a corner in front of the camera, its box over those corners clipped
+    to the image, in the devkit's order."""
+    from nuscenes.utils.geometry_utils import BoxVisibility, view_points
+
+    pairs = selection.pairs[selection.pairs["set"] == "general"].head(4)
+    assert len(pairs) > 0
+    for pid, sd_token in zip(pairs["pair_id"], pairs["sd_token_1"], strict=True):
+        _, boxes, K = tiny_nusc.get_sample_data(sd_token, box_vis_level=BoxVisibility.ANY)
+        want = []
+        for b in boxes:
+            c = b.corners()
+            c = c[:, c[2] > 0.1]
+            if c.shape[1]:
+                uv = view_points(c, K, normalize=True)
+                want.append([tiny_nusc.get("sample_annotation", b.token)["instance_token"],
+                             b.name, max(uv[0].min(), 0), max(uv[1].min(), 0),
+                             min(uv[0].max(), 1599), min(uv[1].max(), 899)])
+        got = selection.boxes[selection.boxes["pair_id"] == pid]
+        cols = ["instance_token", "category", "xmin", "ymin", "xmax", "ymax"]
+        assert got[cols[:2]].to_numpy().tolist() == [w[:2] for w in want] and want
+        np.testing.assert_allclose(got[cols[2:]].to_numpy(float), [w[2:] for w in want],
+                                   atol=1e-6)
