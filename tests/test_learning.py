@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import time
 from pathlib import Path
 
 import numpy as np
@@ -230,6 +231,37 @@ def test_bad_training_inputs_give_clear_errors(data, tmp_path) -> None:
         train_model(tx, tdf.iloc[:-1], vx, vdf, tmp_path, **KW)
     with pytest.raises(TrainingError, match=r"\(N, 2, S, S\)"):
         train_model(tx[:, :1], tdf, vx, vdf, tmp_path, **KW)
+    with pytest.raises(TrainingError, match=r"^val split is empty"):
+        train_model(tx, tdf, vx[:0], vdf.iloc[:0], tmp_path, **KW)
+    with pytest.raises(TrainingError, match=r"^train split has a single class \(all 64 objects "
+                                            r"moving\); a classifier cannot be trained on it: "
+                                            r"check the labels or the speed threshold$"):
+        train_model(tx, tdf.assign(label=1), vx, vdf, tmp_path, **KW)
+    with pytest.raises(TrainingError, match=r"^train split has a single class \(all 64 objects "
+                                            r"still\)"):
+        train_model(tx, tdf.assign(label=0), vx, vdf, tmp_path, **KW)
+    with pytest.raises(TrainingError, match=r"^val index has no 'label' column \(has "
+                                            r"\['moving', 'category'\]\)$"):
+        train_model(tx, tdf, vx, vdf.rename(columns={"label": "moving"}), tmp_path, **KW)
+    with pytest.raises(TrainingError, match=r"^train labels must be 0 \(still\) / 1 \(moving\), "
+                                            r"got \[0 1 2\]$"):
+        train_model(tx, tdf.assign(label=np.arange(64) % 3), vx, vdf, tmp_path, **KW)
+    with pytest.raises(TrainingError, match=r"^crop sizes differ: train S=32, val S=16$"):
+        train_model(tx, tdf, vx[:, :, :16, :16], vdf, tmp_path, **KW)
+    with pytest.raises(TrainingError, match=r"^val crops: expected \(N, 2, S, S\), got shape "
+                                            r"\(32, 2, 32, 16\)$"):
+        train_model(tx, tdf, vx[:, :, :, :16], vdf, tmp_path, **KW)
+    for bad_settings, got in (({"epochs": 0}, "0, 16"), ({"batch_size": 1}, "2, 1")):
+        with pytest.raises(TrainingError, match=rf"^need epochs >= 1 and batch_size >= 2, got "
+                                                rf"{got}$"):
+            train_model(tx, tdf, vx, vdf, tmp_path, **{**KW, **bad_settings})
+    # another label column, and the smallest batch
+    renamed = [d.rename(columns={"label": "moving"}) for d in (tdf, vdf)]
+    assert len(train_model(tx, renamed[0], vx, renamed[1], tmp_path / "col", label_col="moving",
+                           **{**KW, "epochs": 1})) == 1
+    assert tdf["label"].iloc[:8].nunique() == 2
+    assert len(train_model(tx[:8], tdf.iloc[:8], vx, vdf, tmp_path / "b2",
+                           **{**KW, "epochs": 1, "batch_size": 2})) == 1
     with pytest.raises(TrainingError, match="empty"):
         train_model(tx, tdf, vx[:0], vdf.iloc[:0], tmp_path, **KW)
     assert not (tmp_path / "last.pt").exists()
@@ -254,8 +286,14 @@ def test_check_split_names_the_crops_file_and_returns_float32_labels(tmp_path) -
                                             r"shape \(\)"):
         check_split([[1.0]], df, "train")
     with pytest.raises(TrainingError, match=r"val split: index has 2 rows but val crops "
-                                            r"\(.*x\.npy\) has 3"):
+                                            r"\(.*x\.npy\) has 3 \(the crop index and memmap "
+                                            r"disagree; rebuild the crops\)$"):
         check_split(x, df.iloc[:2], "val")
+    assert check_split(x, df.assign(label=1), "val").tolist() == [1.0] * 3  # one class: fine
+    np.save(tmp_path / "odd.npy", np.zeros((3, 2, 4, 5), np.float16))
+    with pytest.raises(TrainingError, match=r"^train crops \(.*odd\.npy\): expected \(N, 2, "
+                                            r"S, S\), got shape \(3, 2, 4, 5\)$"):
+        check_split(np.load(tmp_path / "odd.npy", mmap_mode="r"), df, "train")
 
 
 def test_a_dataset_of_an_in_memory_array_pickles_whole() -> None:
@@ -314,10 +352,13 @@ def test_training_on_the_cpu_runs_in_float32_and_shows_its_progress(data, tmp_pa
 
     monkeypatch.setattr(tr, "motion_resnet18", hooked)
     tx, tdf, vx, vdf = data
-    train_model(tx, tdf, vx, vdf, tmp_path, **{**KW, "epochs": 1, "progress": True})
+    kw = {**KW, "epochs": 1}
+    del kw["progress"]  # shown by default
+    train_model(tx, tdf, vx, vdf, tmp_path, **kw)
     assert seen and set(seen) == {torch.float32}
     err = capsys.readouterr().err
     assert re.search(r"best=1, loss=\d\.\d{4}, val_f1=\d\.\d{3}\]", err), err[-300:]
+    assert re.search(r"train: 100%\|[^|]*\| 1/1 \[[^]]*epoch/s, best=1", err), err[-600:]
     # and the epoch's own bar: its batches, counted against their number, with the loss
     assert re.search(r"train, epoch 1: +\d+%\|[^|]*\| \d/4 \[[^]]*batch/s, loss=\d\.\d{4}\]",
                      err), err[-600:]
@@ -549,6 +590,12 @@ def test_training_batches_from_the_device_or_streamed_are_the_same(tmp_path) -> 
     resident = crop_source(xm, y, cpu, resident_bytes=x.nbytes)
     streamed = crop_source(xm, y, cpu, resident_bytes=x.nbytes - 1)
     assert isinstance(resident, ResidentCrops) and isinstance(streamed, StreamedCrops)
+    assert streamed.workers == 0 and crop_source(xm, y, cpu, 3, resident_bytes=0).workers == 3
+    other = _PidCrops()  # not an array: streamed, whatever its size
+    built = crop_source(other, np.arange(8) % 2, cpu, 2)
+    assert isinstance(built, StreamedCrops) and built.ds.x is other and built.workers == 2
+    assert built.dev == cpu and built.ds.y.tolist() == [0, 1] * 4
+    assert crop_source(other, np.zeros(8), cpu).workers == 0
     plan = [np.array([0, 3, 8]), np.array([1, 2, 4, 5]), np.array([6, 7])]
     for (xa, ya), (xb, yb), idx in zip(resident.batches(plan), streamed.batches(plan), plan,
                                        strict=True):
@@ -865,12 +912,17 @@ def test_an_epoch_s_training_loss_is_the_mean_over_its_crops(data, tmp_path, cap
 
     tx, tdf, vx, vdf = data
     kw = {**KW, "epochs": 1, "lr": 0.0, "momentum": 0.0, "weight_decay": 0.0, "hflip_p": 0.0,
-          "batch_size": 24}  # 64 crops: batches of 24, 24 and 16
-    hist = train_model(tx, tdf, vx, vdf, tmp_path, **kw)
+          "batch_size": 24, "input_mode": "log"}  # 64 crops: batches of 24, 24 and 16
+    del kw["seed"]  # the default, 0
+    out = tmp_path / "deep" / "run"  # made with its parents
+    hist = train_model(tx, tdf, vx, vdf, out, flow_channels=(0,), **kw)
     assert capsys.readouterr().err == ""
-    torch.manual_seed(KW["seed"])
-    model = motion_resnet18(width=KW["width"]).train()
-    batches, _ = epoch_plan(len(tx), 24, 0.0, KW["seed"], 1)
+    config = torch.load(out / "last.pt", weights_only=True)["config"]
+    assert (config["seed"], config["input_mode"], config["flow_channels"]) == (0, "log", [0])
+    assert "channels" not in config and config["width"] == KW["width"]
+    torch.manual_seed(0)
+    model = motion_resnet18(2, KW["width"], "log", (0,)).train()
+    batches, _ = epoch_plan(len(tx), 24, 0.0, 0, 1)
     y = tdf["label"].to_numpy(np.float32)
     with torch.no_grad():
         losses = [nn.functional.binary_cross_entropy_with_logits(
@@ -879,3 +931,46 @@ def test_an_epoch_s_training_loss_is_the_mean_over_its_crops(data, tmp_path, cap
     assert [len(b) for b in batches] == [24, 24, 16]
     assert hist["train_loss"].iloc[0] == pytest.approx(sum(losses) / len(tx), rel=1e-5)
     assert 0 < hist["seconds"].iloc[0] < 600  # the epoch's own wall time
+
+
+def test_the_epoch_plan_is_the_one_the_published_models_were_trained_with() -> None:
+    """The order and flips of (seed, epoch) are fixed: a published model retrains bit for
+    bit only with the same plan."""
+    batches, flips = epoch_plan(10, 4, 0.5, 3, 2)
+    assert [b.tolist() for b in batches] == [[0, 4, 6, 9], [1, 2, 5, 8], [3, 7]]
+    assert flips.astype(int).tolist() == [1, 1, 0, 0, 0, 0, 1, 0, 0, 0]
+    batches, flips = epoch_plan(10, 4, 0.5, 0, 1)
+    assert [b.tolist() for b in batches] == [[1, 2, 5, 6], [0, 3, 8, 9], [4, 7]]
+    assert flips.astype(int).tolist() == [1, 0, 0, 0, 1, 1, 1, 0, 1, 0]
+
+
+def test_an_epoch_that_ties_the_best_validation_f1_keeps_the_earlier_weights(tmp_path) -> None:
+    """_end_epoch: the best epoch changes only on a strictly higher validation F1."""
+    from types import SimpleNamespace
+
+    from torch import nn
+
+    from flowmod.train import TrainSettings, _end_epoch
+
+    class Fixed(nn.Module):  # the same logits every epoch: +1 on u > 0, else -1
+        def __init__(self) -> None:
+            super().__init__()
+            self.w = nn.Parameter(torch.ones(1))
+
+        def forward(self, x):
+            return torch.where(x[:, 0, 0, 0] > 0, self.w, -self.w)[:, None]
+
+    vx = np.zeros((4, 2, 4, 4), np.float32)
+    vx[:2, 0] = 1.0
+    y = np.array([1.0, 0.0, 1.0, 0.0])  # F1 0.5 every epoch
+    run = SimpleNamespace(model=Fixed(), sched=SimpleNamespace(step=lambda: None), rows=[],
+                          best_f1=-1.0, best_epoch=0, epoch=0)
+    for epoch in (1, 2):
+        _end_epoch(run, epoch, 0.5, 0.01, time.perf_counter(), vx, y, None, tmp_path,
+                   TrainSettings(), torch.device("cpu"), None)
+        if epoch == 1:
+            first = (tmp_path / "best.pt").stat().st_mtime_ns
+            run.model.w.data.fill_(2.0)
+    assert (run.best_epoch, run.best_f1, run.epoch) == (1, 0.5, 2)
+    assert (tmp_path / "best.pt").stat().st_mtime_ns == first
+    assert torch.load(tmp_path / "best.pt", weights_only=True)["w"].item() == 1.0
