@@ -942,6 +942,9 @@ def test_the_epoch_plan_is_the_one_the_published_models_were_trained_with() -> N
     batches, flips = epoch_plan(10, 4, 0.5, 0, 1)
     assert [b.tolist() for b in batches] == [[1, 2, 5, 6], [0, 3, 8, 9], [4, 7]]
     assert flips.astype(int).tolist() == [1, 0, 0, 0, 1, 1, 1, 0, 1, 0]
+    # a crop is flipped when its draw is below hflip_p: seed 27's draw 26564 is 0.5 itself
+    _, flips = epoch_plan(1 << 16, 64, 0.5, 27, 1)
+    assert not flips[26564] and 0.45 < flips.mean() < 0.55
 
 
 def test_an_epoch_that_ties_the_best_validation_f1_keeps_the_earlier_weights(tmp_path) -> None:
