@@ -904,7 +904,8 @@ def test_automatic_mixed_precision_is_resolved_per_device() -> None:
         _resolve_amp("fp32", cpu)
 
 
-def test_an_epoch_s_training_loss_is_the_mean_over_its_crops(data, tmp_path, capsys) -> None:
+def test_an_epoch_s_training_loss_is_the_mean_over_its_crops(data, tmp_path, capsys,
+                                                            monkeypatch) -> None:
     """With lr 0 the weights stay as initialised, so the first epoch's training loss is the
     crop-weighted mean of each planned batch's loss in training mode (BatchNorm on the
     batch), computed here batch by batch. Without ``progress`` nothing is printed."""
@@ -915,7 +916,14 @@ def test_an_epoch_s_training_loss_is_the_mean_over_its_crops(data, tmp_path, cap
           "batch_size": 24, "input_mode": "log"}  # 64 crops: batches of 24, 24 and 16
     del kw["seed"]  # the default, 0
     out = tmp_path / "deep" / "run"  # made with its parents
-    hist = train_model(tx, tdf, vx, vdf, out, flow_channels=(0,), **kw)
+    import flowmod.train as tr
+
+    sources = []
+    source = tr.crop_source
+    monkeypatch.setattr(tr, "crop_source", lambda *a: sources.append(a[3:]) or source(*a))
+    hist = train_model(tx, tdf, vx, vdf, out, flow_channels=(0,), num_workers=0,
+                       resident_bytes=10**9, **kw)
+    assert sources == [(0, 10**9)]  # the settings' workers and resident limit
     assert capsys.readouterr().err == ""
     config = torch.load(out / "last.pt", weights_only=True)["config"]
     assert (config["seed"], config["input_mode"], config["flow_channels"]) == (0, "log", [0])
