@@ -486,3 +486,120 @@ def test_a_predictions_breakdown_scores_every_seed_by_scene(monkeypatch):
     assert seen["kw"]["groups"].tolist() == list("aabbcc")
     assert seen["kw"]["folds"].tolist() == [0, 0, 1, 1, 0, 1]
     assert seen["args"][0] is df and seen["args"][1].tolist() == [0, 1, 1, 0, 1, 0]
+
+
+def test_predict_models_scores_every_seed_with_real_checkpoints(tmp_path):
+    """One split: ``prob_<part>`` of each saved model (loaded for two channels, on the
+    default device) on every row and ``prob`` = the first listed; cross-validation: each
+    row by its fold's model, a fold without a model left NaN (float); a checkpoint of other
+    channels is refused unless the caller takes the checkpoint's (``in_channels=None``)."""
+    import torch
+
+    from flowmod.model import CheckpointError, load_model, motion_resnet18, predict
+
+    paths = {}
+    for i, part in enumerate(("s0", "s1", "f0", "f1")):
+        torch.manual_seed(i)
+        paths[part] = tmp_path / f"{part}.pt"
+        torch.save(motion_resnet18(width=4).state_dict(), paths[part])
+    x = np.random.default_rng(0).normal(0, 3, (5, 2, 32, 32)).astype(np.float32)
+    df = pd.DataFrame({"fold": [1, 0, 1, 0, 2], "label": [1, 0, 1, 0, 1]})
+    want = {p: predict(load_model(paths[p]), x, device="cpu") for p in paths}
+    out = evaluate.predict_models([("s1", paths["s1"], None), ("s0", paths["s0"], None)], x, df)
+    assert list(out.columns) == ["fold", "label", "prob_s1", "prob_s0", "prob"]
+    np.testing.assert_allclose(out["prob_s0"], want["s0"], rtol=1e-6)
+    np.testing.assert_allclose(out["prob_s1"], want["s1"], rtol=1e-6)
+    np.testing.assert_allclose(out["prob"], want["s1"], rtol=1e-6)
+    assert not np.allclose(want["s0"], want["s1"])
+    cv = evaluate.predict_models([("f0", paths["f0"], None), ("f1", paths["f1"], None)], x, df,
+                                 folds=3)
+    assert cv["prob"].dtype == np.float64 and np.isnan(cv["prob"].iloc[4])
+    np.testing.assert_allclose(cv["prob"].iloc[[1, 3]], want["f0"][[1, 3]], rtol=1e-6)
+    np.testing.assert_allclose(cv["prob"].iloc[[0, 2]], want["f1"][[0, 2]], rtol=1e-6)
+    torch.save(motion_resnet18(3, width=4).state_dict(), tmp_path / "three.pt")
+    x3 = np.zeros((5, 3, 32, 32), np.float32)
+    for folds, part in ((1, "s0"), (3, "f0")):
+        with pytest.raises(CheckpointError):
+            evaluate.predict_models([(part, tmp_path / "three.pt", None)], x3, df, folds=folds)
+        got = evaluate.predict_models([(part, tmp_path / "three.pt", None)], x3, df,
+                                      in_channels=None, folds=folds)
+        assert got["prob"].notna().sum() == (5 if folds == 1 else 2)
+
+
+def test_the_geometric_baseline_of_one_split_and_its_record(tmp_path, monkeypatch):
+    """One split (the default): fitted on the train split, scored on the test split; the
+    record is the test rows' score (seed 0 by default) with the threshold; the test rows
+    come back with a fresh index and no extra column; the pairs reach the residual."""
+    from flowmod import geometry
+
+    for split, labels_ in (("train", [0, 1, 0, 1]), ("val", [1, 0]), ("test", [1, 0, 0, 1])):
+        n = len(labels_)
+        np.save(tmp_path / f"{split}.npy", np.zeros((n, 2, 4, 4), np.float16))
+        np.save(tmp_path / f"{split}.samples.npy", np.zeros((n, 81, 2), np.float32))
+        pd.DataFrame({"pair_id": [f"{split}{i}" for i in range(n)], "label": labels_,
+                      "scene": [f"{split}-s{i}" for i in range(n)]},
+                     index=np.arange(n) + 10).to_parquet(tmp_path / f"{split}.parquet")
+    pairs = pd.DataFrame({"pair_id": ["x"]})
+    monkeypatch.setattr(geometry, "residual_scores", lambda sub, p, smp: pd.DataFrame(
+        {"residual_speed": (sub["label"].to_numpy() * 4.0 + 0.5) if p is pairs else None}))
+    test, s = evaluate.geometric_baseline(pairs, tmp_path)
+    assert test["pair_id"].tolist() == ["test0", "test1", "test2", "test3"]
+    assert list(test.columns) == ["pair_id", "label", "scene", "residual_speed", "prob"]
+    assert test.index.tolist() == [0, 1, 2, 3] and test["prob"].tolist() == [1.0, 0, 0, 1.0]
+    t = s["thresholds_m_s"][0]
+    want = {**evaluate.score(test, seed=0), "threshold_m_s": t, "thresholds_m_s": [t]}
+    assert 0.5 <= t < 4.5 and repr(s) == repr(want)  # repr: NaN equals NaN
+
+
+def test_models_of_reads_past_longer_keys_whatever_their_order():
+    from types import SimpleNamespace
+
+    inputs = {"train[dis/raw/f0]": {}, "train[dis/f1]": {"amp": "bf16"}, "train[dis/f0]": {}}
+    b = SimpleNamespace(inputs=inputs,
+                        input_dir=lambda n: Path("/r") / n.stage / n.method / str(n.part))
+    assert evaluate.models_of(b, "train", "dis") == [
+        ("f0", Path("/r/train/dis/f0/best.pt"), None), ("f1", Path("/r/train/dis/f1/best.pt"),
+                                                        "bf16")]
+
+
+def test_seed_columns_are_the_numbered_ones_in_number_order():
+    df = pd.DataFrame(columns=["prob", "prob_s10", "prob_s2", "prob_sx", "prob_s0", "xxxxxx12"])
+    assert evaluate.seed_columns(df) == ["prob_s0", "prob_s2", "prob_s10"]
+
+
+def test_scored_rows_keep_a_fresh_index_and_the_original_protocol_names_its_models():
+    stored = {"f0": pd.DataFrame({"scene": ["a", "b"], "fold": 0}, index=[5, 6]),
+              "f1": pd.DataFrame({"scene": ["c"], "fold": 1}, index=[7])}
+    _, df = evaluate.scored_rows(lambda s: ([np.arange(len(stored[s]))], stored[s]), 2)
+    assert df.index.tolist() == [0, 1, 2]
+    one = table()
+    y = one["label"].to_numpy()
+    r = evaluate.original_protocol(one, [np.stack([np.where(y == 1, 0.9, 0.1)])] * 2)
+    assert r["models"] == "seeds"
+    folds = one.assign(fold=np.arange(len(one)) % 2)
+    eps = [np.stack([np.full((folds["fold"] == k).sum(), 0.7)]) for k in (0, 1)]
+    assert evaluate.original_protocol(folds, eps)["models"] == "folds"
+    with pytest.raises(ValueError):
+        evaluate.original_protocol(folds, eps, parts=["f0"])
+
+
+def test_paired_and_table4_resample_by_fold_when_rows_span_several():
+    """With cross-validation the intervals are drawn within each fold's scenes."""
+    a, b = table(n_scenes=12, per=6, seed=1), table(n_scenes=12, per=6, seed=2)
+    fold = a["scene"].map({s: i % 3 for i, s in enumerate(sorted(a["scene"].unique()))})
+    a, b = a.assign(fold=fold), b.assign(fold=fold)
+    got = evaluate.paired(a, b, "x")
+    assert got == ev.paired_comparison(a["label"].to_numpy(), evaluate.seed_probs(a),
+                                       evaluate.seed_probs(b), a["scene"].to_numpy(),
+                                       folds=fold.to_numpy())
+    assert got != ev.paired_comparison(a["label"].to_numpy(), evaluate.seed_probs(a),
+                                       evaluate.seed_probs(b), a["scene"].to_numpy())
+    t = evaluate.table4({"dis": a.assign(distance=10.0)}, 50.0).iloc[0]
+    s = ev.seed_summary(a["label"], evaluate.seed_probs(a), a["scene"], folds=fold.to_numpy())
+    assert t["F1 95% CI, scenes and seeds (%)"] == ev.ci_text(s["ci"], s["n_scenes"])
+    one = evaluate.table4({"dis": a.iloc[:1].assign(distance=10.0)}, 50.0)
+    assert one["objects"].tolist() == [1, 1]  # a range of one object is scored
+    recall = evaluate.table4({"dis": a.assign(distance=10.0)}, 50.0)["R (%)"].iloc[0]
+    assert recall == round(recall, 1)
+    no_true = evaluate.table4({"dis": a.drop(columns="true_label").assign(distance=10.0)}, 50.0)
+    assert list(no_true["scored against"]) == ["paper rule (previous keyframe)"]
