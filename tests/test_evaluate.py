@@ -445,6 +445,13 @@ def test_scored_crops_are_each_fold_s_own_rows_read_from_the_folder(tmp_path):
     x, df = evaluate.scored_crops(tmp_path, 2)
     assert df["fold"].tolist() == [0] * 4 + [1] * 4
     assert x[:, 0, 0, 0].tolist() == [0, 1, 2, 3, 1, 2, 3, 4]
+    # the generalisation part: one array set, each fold's scenes in turn
+    np.save(tmp_path / "general.npy", np.arange(3, dtype=np.float16)[:, None, None, None]
+            * np.ones((3, 2, 4, 4), np.float16))
+    pd.DataFrame({"fold": [1, 0, 1], "scene": ["a", "b", "c"]}).to_parquet(
+        tmp_path / "general.parquet")
+    x, df = evaluate.scored_crops(tmp_path, 2, "general")
+    assert df["fold"].tolist() == [0, 1, 1] and x[:, 0, 0, 0].tolist() == [1, 0, 2]
 
 
 def test_the_geometric_baseline_reads_each_row_s_flow_samples(tmp_path, monkeypatch):
