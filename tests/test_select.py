@@ -596,3 +596,31 @@ def test_the_failure_analysis_boxes_are_every_object_in_front_clipped(tiny_nusc,
         assert got[cols[:2]].to_numpy().tolist() == [w[:2] for w in want] and want
         np.testing.assert_allclose(got[cols[2:]].to_numpy(float), [w[2:] for w in want],
                                    atol=1e-6)
+
+
+def test_the_all_distances_training_set_of_one_split(tiny_params, selection, capsys):
+    """With one split (folds 1) the training set comes from the train and val scenes only,
+    opened from the dataroot when no devkit is given, with progress bars by default; it is
+    refused, naming the range, when the train or val split has no vehicle in it."""
+    p = tiny_params.model_copy(update={"folds": 1, "wide_sweep_stride": 2,
+                                       "general_min_distance": 40.0,
+                                       "general_max_distance": 60.0})
+    by_fold = {0: "train", 1: "val"}
+    scenes = selection.scenes.assign(split=selection.scenes["fold"].map(by_fold).fillna(
+        "excluded"))
+    test_scene = scenes.loc[scenes["split"] == "train", "scene"].iloc[0]
+    scenes.loc[scenes["scene"] == test_scene, "split"] = "test"
+    pairs, objects = select.select_wide(p, scenes)
+    assert "keyframe pairs" in capsys.readouterr().err
+    assert set(objects["split"]) == {"train", "val"} and test_scene not in set(pairs["scene"])
+    assert objects.index.tolist() == list(range(len(objects)))
+    assert set(objects["set"]) == {"keyframe", "sweep"} or not scenes["has_sweeps"].any()
+    only_train = scenes.assign(split=scenes["split"].replace({"val": "train"}))
+    with pytest.raises(select.SelectionError,
+                       match=r"^the all-distances training set has no vehicle in the train or "
+                             r"val split \(distance 40-60 m\): check general_min_distance / "
+                             r"general_max_distance$"):
+        select.select_wide(p, only_train, progress=False)
+    with pytest.raises(select.SelectionError,
+                       match=r"^no train or val scene in the scene table: run chapter 02$"):
+        select.select_wide(p, scenes.assign(split="test"), progress=False)
