@@ -224,6 +224,14 @@ def test_artefacts_are_skipped_when_up_to_date(tiny_params, selection):
     pd.testing.assert_frame_equal(again.objects, selection.objects)
     loaded, made_with = common.selection(tiny_params), common.made_with(tiny_params)
     assert made_with["speed_threshold"] == 2.0 and len(loaded.pairs) == len(selection.pairs)
+    # each node's manifest counts its rows and pairs
+    from flowmod import dag
+    from flowmod.artefacts import read_manifest
+
+    for node, kind in ((dag.Node("select"), "keyframe"), (dag.Node("general"), "general")):
+        rec = read_manifest(pipeline.published(tiny_params, node) / "manifest.json")
+        assert (rec["rows"], rec["pairs"]) == ((selection.objects["set"] == kind).sum(),
+                                               (selection.pairs["set"] == kind).sum())
 
 
 # --- bad inputs --------------------------------------------------------------------------
@@ -624,3 +632,49 @@ def test_the_all_distances_training_set_of_one_split(tiny_params, selection, cap
     with pytest.raises(select.SelectionError,
                        match=r"^no train or val scene in the scene table: run chapter 02$"):
         select.select_wide(p, scenes.assign(split="test"), progress=False)
+
+
+def test_a_selection_made_here_passes_every_check_of_this_file(tiny_world, tiny_nusc,
+                                                               tiny_params, tmp_path, capsys):
+    """Every check above on a selection built in this test (the stages into a run folder of
+    its own), not the module's. Mutation testing (``make mutation``) runs, for a mutant, only
+    the tests that called the mutated function; the module's selection is made once, in the
+    setup of the first test that asks for it, so without this test the checks of the others
+    would never meet a mutant of the selection."""
+    p = tiny_params.model_copy(update={"run_dir": str(tmp_path / "runs")})
+    pipeline.build(p, ["02"])
+    sel = common.selection(p)
+    test_keyframe_objects_match_an_independent_reimplementation(tiny_world, p, sel)
+    test_boxes_equal_the_devkit_2d_export_for_fully_visible_boxes(tiny_nusc, sel)
+    test_labels_agree_with_the_worlds_true_speed(sel)
+    test_no_scene_in_two_splits_and_night_scenes_excluded(sel)
+    test_generalisation_manifest(sel, p)
+    test_artefacts_are_skipped_when_up_to_date(p, sel)
+    test_generalisation_boxes_and_labels_against_the_devkit(tiny_nusc, sel)
+    test_the_all_distances_training_set_of_chapter_11(tiny_nusc, p, sel)
+    test_keyframe_pairs_and_objects_carry_their_tables_fields(tiny_world, p, sel)
+    test_the_failure_analysis_boxes_are_every_object_in_front_clipped(tiny_nusc, sel)
+    test_the_all_distances_training_set_of_one_split(p, sel, capsys)
+
+
+def test_select_gives_both_sets_with_fresh_indexes_and_shows_progress(tiny_params, capsys,
+                                                                      tmp_path):
+    """select.select (uncached, both sets, bars shown by default) and read_selection (the
+    published tables, boxes empty when the general node has none) index rows afresh."""
+    sel = select.select(tiny_params)
+    err = capsys.readouterr().err
+    assert "keyframe pairs" in err and "general pairs" in err
+    assert set(sel.pairs["set"]) == {"keyframe", "general"} == set(sel.objects["set"])
+    for df in (sel.pairs, sel.objects):
+        assert df.index.tolist() == list(range(len(df)))
+    key, gen = tmp_path / "select", tmp_path / "general"
+    for d, s in ((key, "keyframe"), (gen, "general")):
+        d.mkdir()
+        select.write_tables(d, {"pairs": sel.pairs[sel.pairs["set"] == s],
+                                "objects": sel.objects[sel.objects["set"] == s]})
+    select.write_tables(key, {"scenes": sel.scenes})
+    back = select.read_selection(key, gen)
+    pd.testing.assert_frame_equal(back.pairs, sel.pairs)
+    pd.testing.assert_frame_equal(back.objects, sel.objects)
+    assert isinstance(back.boxes, pd.DataFrame) and back.boxes.empty
+    assert list(pd.read_parquet(key / "pairs.parquet").columns) == list(sel.pairs.columns)
