@@ -4,6 +4,7 @@ driver, kept variants, gates. Seconds; the real stages are checked in test_prove
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -147,7 +148,8 @@ def test_switching_back_restores_a_kept_variant_without_building(toy):
     out = json.loads((g.node_dir(p, dag.Node("select")) / "out.json").read_text())
     assert out["min_distance"] == 25.0
     CALLS.clear()
-    assert any("will be restored" in s.why for s in g.status(p))
+    assert whys(g, p)["select"] == ("min_distance: 25.0 -> 30.0; a kept copy matches and "
+                                    "will be restored, nothing recomputed")
     g.build(p)
     assert CALLS == [], "restored, not recomputed"
     out = json.loads((g.node_dir(p, dag.Node("select")) / "out.json").read_text())
@@ -386,3 +388,76 @@ def test_a_node_s_parameters_are_read_only_and_other_nodes_are_found_by_the_grap
     b = dag.Build(graph=graph, node=dag.Node("train", "dis", "f0"), params=q, inputs={},
                   payload={}, fingerprint="f", final=Path("/r/x"), up_to_date=False)
     assert b.other(dag.Node("crops", "dis", "wide")) == ("dir", True, "crops[dis/wide]")
+
+
+def test_status_lines_carry_the_node_s_folder_and_both_fingerprints(toy):
+    g, p = toy
+    assert not g.current(p, dag.Node("select")), "never built"
+    g.build(p)
+    for st in g.status(p):
+        if st.node.stage not in ("select", "train"):  # the data; the gated node
+            continue
+        rec = g.recorded(p, st.node)
+        assert (st.state, st.why, st.path) == ("up to date", "", g.node_dir(p, st.node))
+        assert st.fingerprint == g.expected(p)[st.node] == st.recorded == rec["fingerprint"]
+
+
+def test_old_or_odd_manifests_are_stale_with_a_reason(toy):
+    """A manifest of an older version without params and inputs, or one whose fingerprint
+    alone differs, makes its node stale with a reason, not a crash."""
+    g, p = toy
+    g.build(p)
+    path = g.node_dir(p, dag.Node("select")) / "manifest.json"
+    rec = json.loads(path.read_text())
+    path.write_text(json.dumps({**rec, "fingerprint": "other"}))
+    assert whys(g, p)["select"] == "fingerprint differs"
+    old = {k: v for k, v in rec.items() if k not in ("params", "inputs")}
+    path.write_text(json.dumps({**old, "fingerprint": "other", "version": 0}))
+    why = whys(g, p)["select"]
+    assert why.startswith("code version 0 -> 1; categories: '-' -> ['vehicle.car', ")
+    assert re.search(r"; \(\+\d+ more\); input world changed$", why), why
+
+
+def test_damage_checks_the_files_a_manifest_records_through_the_run_s_digest_cache(toy):
+    """damaged() reads the manifest itself when not given; status, current and damaged
+    keep the run's digest cache (a file is read again only when its stat changed); a
+    manifest that records no files has no damage; the published files are every file but
+    the manifest and hidden ones."""
+    from flowmod import artefacts
+
+    g, p = toy
+    g.build(p)
+    node = dag.Node("select")
+    folder = g.node_dir(p, node)
+    assert dag.damage(folder, {"fingerprint": "x"}) is None
+    for call in (lambda: g.status(p), lambda: g.current(p, node), lambda: g.damaged(p, node)):
+        dag.digest_cache(p).unlink(missing_ok=True)
+        artefacts._DIGESTS.clear()
+        call()
+        assert str((folder / "out.json").resolve()) in json.loads(
+            dag.digest_cache(p).read_text())
+    (folder / "out.json").write_text("cut")
+    assert "out.json has 3 bytes" in g.damaged(p, node)
+    (folder / ".hidden").write_text("x")
+    (folder / "sub").mkdir()
+    (folder / "sub" / "b.txt").write_text("b")
+    (folder / "sub" / ".c").write_text("c")
+    assert sorted(dag.output_files(folder)) == ["out.json", "sub/b.txt"]
+
+
+def test_parameter_values_are_shortened_past_forty_characters():
+    assert dag._short("x" * 38) == repr("x" * 38)  # 40 characters: as they are
+    assert dag._short("x" * 39) == repr("x" * 39)[:37] + "..."
+
+
+def test_reading_a_node_that_is_not_an_input_names_the_fix(toy):
+    from types import SimpleNamespace
+
+    g, p = toy
+    b = dag.Build(graph=g, node=dag.Node("train", None, "s0"), params=SimpleNamespace(all=p),
+                  inputs={"select": {}}, payload={}, fingerprint="f", final=Path("/r/x"),
+                  up_to_date=False)
+    assert b.input_dir(dag.Node("select")) == g.node_dir(p, dag.Node("select"))
+    with pytest.raises(KeyError, match=r"train\[s0\] does not read world: add it to its "
+                                       r"stage's inputs"):
+        b.input_dir(dag.Node("world"))
