@@ -251,7 +251,9 @@ def dataclass_replace(stage: dag.Stage, **kw: Any) -> dag.Stage:
 def test_a_stage_reading_an_undeclared_parameter_fails(toy, tmp_path):
     g, p = toy
     bad = graph(tmp_path, select_build=build_reads_too_much)
-    with pytest.raises(dag.UndeclaredParameter, match="read_by of Params.lr"):
+    with pytest.raises(dag.UndeclaredParameter, match=r"^stage select read parameter 'lr', "
+                       r"which it does not declare: add 'select' to read_by of Params\.lr "
+                       r"\(flowmod/params\.py\), so that its fingerprint follows the value$"):
         bad.build(p)
 
 
@@ -461,3 +463,37 @@ def test_reading_a_node_that_is_not_an_input_names_the_fix(toy):
     with pytest.raises(KeyError, match=r"train\[s0\] does not read world: add it to its "
                                        r"stage's inputs"):
         b.input_dir(dag.Node("world"))
+
+
+def test_a_file_parameter_enters_a_fingerprint_by_its_content(tmp_path):
+    """values(): a file parameter contributes its file's sha256 (through the run's digest
+    cache), a path that does not exist says so, and an unset one without a default file is
+    None."""
+    import hashlib
+
+    from flowmod import artefacts
+
+    weights = tmp_path / "w.pth"
+    weights.write_bytes(b"weights")
+    p = validate({"run_dir": str(tmp_path / "runs"), "dataroot": str(tmp_path / "data"),
+                  "synthetic": False, "raft_weights": str(weights)})
+    node = dag.Node("flow", "raft", "keyframe")
+    artefacts._DIGESTS.clear()
+    (tmp_path / "runs").mkdir()
+    assert dag.values(p, node)["raft_weights"] == {"sha256": hashlib.sha256(b"weights").hexdigest()}
+    assert str(weights.resolve()) in json.loads(dag.digest_cache(p).read_text())
+    assert dag.digest_cache(p) == tmp_path / "runs" / ".digests.json"
+    gone = str(tmp_path / "gone.pth")
+    assert dag.values(p.model_copy(update={"raft_weights": gone}), node)["raft_weights"] == {
+        "missing": gone}
+    assert dag.values(p.model_copy(update={"raft_weights": None}), node)["raft_weights"] is None
+
+
+def test_the_study_s_graph_gives_each_node_its_own_inputs(tmp_path):
+    from flowmod import pipeline
+
+    p = validate({"run_dir": str(tmp_path / "runs"), "flow_store": "pairs"})
+    assert pipeline.GRAPH.inputs(dag.Node("crops", "dis", "general"), p) == (
+        dag.Node("flow", "dis", "general"), dag.Node("general"))
+    assert pipeline.GRAPH.inputs(dag.Node("crops", "gt", "keyframe"), p) == (
+        dag.Node("flow", "gt", "keyframe"), dag.Node("select"))
