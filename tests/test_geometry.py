@@ -79,8 +79,11 @@ def test_residual_scores_are_each_objects_box_residual_in_its_pairs_cameras():
                      "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3]})
     objects = pd.DataFrame(rows, index=[10, 11, 12, 13])
     samples = rng.normal(0.0, 3.0, (4, geometry.GRID ** 2, 2))
+    pairs["timestamp_1"] += 7_000_000  # times are differences: the frame gap counts
+    pairs["timestamp_2"] += 7_000_000
     got = geometry.residual_scores(objects, pairs, samples)
     assert list(got.index) == [10, 11, 12, 13]
+    assert list(got.columns) == ["residual_px", "residual_speed"]
     for i, o in enumerate(rows):
         t1, t2, dt = T[o["pair_id"]]
         box = None if i == 1 else (np.array([1.9, 4.5, 1.5]), q)
@@ -385,3 +388,49 @@ def test_deployed_depth_puts_the_target_at_its_2d_boxs_ground_contact():
     assert np.abs(ground[:, inside] - oracle[:, inside]).max() > 1.0
     np.testing.assert_allclose(deployed[:, ~inside & (xy[:, 1] > 600).reshape(30, 30)],
                                ground[:, ~inside & (xy[:, 1] > 600).reshape(30, 30)])
+
+
+def test_residual_scores_refuse_misaligned_samples_and_need_a_whole_3d_box():
+    """A row count that differs is one clear error; sizes without rotations are no 3D box
+    (the centre's depth)."""
+    pairs = pd.DataFrame([{"pair_id": "a", "intrinsic": K.ravel().tolist(),
+                           "cam2global_1": np.eye(4).ravel().tolist(),
+                           "cam2global_2": translation([0.0, 0.0, 1.0]).ravel().tolist(),
+                           "timestamp_1": 0, "timestamp_2": 500_000}])
+    obj = pd.DataFrame([{"pair_id": "a", "xmin": 780.0, "ymin": 470.0, "xmax": 850.0,
+                         "ymax": 510.0, "center_x": 0.5, "center_y": 0.2, "center_z": 30.0,
+                         "size_w": 1.9, "size_l": 4.5, "size_h": 1.5}])
+    samples = np.ones((1, geometry.GRID ** 2, 2))
+    with pytest.raises(ValueError, match=r"^3 flow samples for 1 objects$"):
+        geometry.residual_scores(obj, pairs, np.ones((3, geometry.GRID ** 2, 2)))
+    got = geometry.residual_scores(obj, pairs, samples)
+    centre = geometry.residual_scores(obj.drop(columns=["size_w", "size_l", "size_h"]), pairs,
+                                      samples)
+    pd.testing.assert_frame_equal(got, centre)
+
+
+def test_the_deployable_depth_on_a_rolled_camera_and_at_the_box_edges():
+    """contact_depth is the ground depth under the middle of the box's bottom edge (on a
+    camera rolled about its axis, that depends on the column too); deployed_depth puts the
+    box's edges themselves at that depth and the sky at ``far``."""
+    roll = np.eye(4)
+    a = np.radians(8.0)
+    roll[:3, :3] = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    cam = FORWARD @ roll
+    box = np.array([1000.0, 560.0, 1200.0, 640.0])
+    want = geometry.plane_depth(np.array([[1100.0, 640.0]]), K, cam, 0.0)[0]
+    assert np.isfinite(want) and geometry.contact_depth(box, K, cam, 0.0) == pytest.approx(want)
+    assert geometry.contact_depth(box, K, cam, 0.0) != pytest.approx(
+        geometry.plane_depth(np.array([[900.0, 640.0]]), K, cam, 0.0)[0])
+    edges = np.array([[1000.0, 600.0], [1200.0, 600.0], [1100.0, 560.0], [1100.0, 640.0],
+                      [999.0, 600.0], [1100.0, 100.0]])
+    d = geometry.deployed_depth(edges, box, K, cam, 0.0, far=500.0)
+    assert d[:4] == pytest.approx([want] * 4) and d[4] != pytest.approx(want)
+    assert d[5] == 500.0  # above the horizon: the far plane given
+    win = np.array([1000.0, 0.0, 200.0])
+    crop = geometry.static_flow_crop(win, 8, K, cam, translation([0, 0, 1.0]) @ cam, [], 0.0,
+                                     far=500.0, box2d=box)
+    xy = geometry.window_lattice(win, 8)
+    flow = geometry.static_flow(xy, geometry.deployed_depth(xy, box, K, cam, 0.0, far=500.0),
+                                K, cam, translation([0, 0, 1.0]) @ cam)
+    np.testing.assert_allclose(crop, flow.reshape(8, 8, 2).transpose(2, 0, 1), atol=1e-4)
