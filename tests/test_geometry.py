@@ -434,3 +434,24 @@ def test_the_deployable_depth_on_a_rolled_camera_and_at_the_box_edges():
     flow = geometry.static_flow(xy, geometry.deployed_depth(xy, box, K, cam, 0.0, far=500.0),
                                 K, cam, translation([0, 0, 1.0]) @ cam)
     np.testing.assert_allclose(crop, flow.reshape(8, 8, 2).transpose(2, 0, 1), atol=1e-4)
+
+
+def test_box_samples_take_the_nearest_pixel_clipped_to_the_image_as_float32():
+    """A box that leaves the frame on every side samples the edge pixels (columns 0 and
+    w - 1, rows 0 and h - 1); samples are float32 at any grid; box_residual reads its grid
+    from the number of samples."""
+    h, w = 6, 8
+    ys, xs = np.mgrid[0:h, 0:w]
+    flow = np.stack([xs, ys], axis=-1).astype(np.float64)  # each pixel holds its (x, y)
+    got = geometry.box_samples(flow, np.array([[-3.0, -2.0, 10.0, 9.0]]), grid=3)
+    assert got.dtype == np.float32 and got.shape == (1, 9, 2)
+    assert got[0].tolist() == [[0, 0], [4, 0], [7, 0], [0, 4], [4, 4], [7, 4], [0, 5], [4, 5],
+                               [7, 5]]  # the middle: 3.5 rounds to 4
+    inside = geometry.box_samples(flow, [1.0, 1.0, 5.0, 3.0], grid=5)
+    assert inside.shape == (1, 25, 2) and inside[0, -1].tolist() == [5.0, 3.0]
+    center = np.array([0.0, 0.0, 40.0])
+    box = np.array([800.0, 480.0, 832.0, 502.0])
+    for grid in (3, 5):
+        res_px, _ = geometry.box_residual(np.full((grid * grid, 2), 2.0), box, center, K,
+                                          np.eye(4), np.eye(4), dt_s=0.5)
+        assert res_px == pytest.approx(np.hypot(2.0, 2.0))
