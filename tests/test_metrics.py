@@ -600,3 +600,56 @@ def test_chapter03_epe_interval_resamples_scenes():
     assert common.epe_ci([2.0] * 12, [f"s{i}" for i in range(12)], 0) == "2.00-2.00"
     assert common.epe_ci([2.0] * 12, ["s"] * 12, 0) == "2.00-2.00 (1 scenes: too few)"
     assert common.epe_ci([], [], 0) == "-"
+
+
+def test_group_mean_bootstrap_resamples_whole_groups_of_the_defined_values():
+    """Each replicate: the mean of the items of the drawn groups (a group drawn twice counts
+    twice), NaN values left out; n replicates (2000 by default, seed 0); all NaN: n NaNs."""
+    from flowmod import metrics as ev
+
+    v = np.array([[1.0], [3.0], [np.nan], [10.0], [20.0]])  # any shape: read flat
+    g = np.array(["a", "a", "a", "b", "c"])
+    w = ev.scene_draws(3, 50, 4)  # groups a, b, c in sorted order
+    want = (w @ np.array([4.0, 10.0, 20.0])) / (w @ np.array([2.0, 1.0, 1.0]))
+    np.testing.assert_allclose(ev.group_mean_bootstrap(v, g[:, None], n=50, seed=4), want)
+    default = ev.group_mean_bootstrap(v, g)
+    w0 = ev.scene_draws(3, 2000, 0)
+    np.testing.assert_allclose(default, (w0 @ [4.0, 10.0, 20.0]) / (w0 @ [2.0, 1.0, 1.0]))
+    none = ev.group_mean_bootstrap([np.nan, np.nan], ["a", "b"], n=7)
+    assert none.shape == (7,) and none.dtype == np.float64 and np.isnan(none).all()
+    with pytest.raises(ValueError, match=r"^groups has 2 values but values has 3$"):
+        ev.group_mean_bootstrap([1.0, 2.0, 3.0], ["a", "b"])
+
+
+def test_breakdown_intervals_resample_within_folds_and_errors_name_the_problem():
+    from flowmod import metrics as ev
+
+    rng = np.random.default_rng(5)
+    n = 120
+    df = pd.DataFrame({"category": np.where(np.arange(n) % 2, "car", "bus"),
+                       "distance": rng.uniform(30, 70, n)})
+    y = rng.integers(0, 2, n)
+    p = np.clip(y * 0.6 + rng.normal(0.2, 0.3, (2, n)), 0, 1)
+    scenes = np.arange(n) // 6
+    folds = scenes % 3
+    got = ev.breakdown(df, y, p, groups=scenes, folds=folds, n_boot=200)
+    for row in got.itertuples():
+        i = np.flatnonzero(df["category"].to_numpy() == row.category)
+        lo, hi = ev.bootstrap_f1_ci(y[i], p[:, i], scenes[i], 200, 0, 0.5, folds=folds[i])
+        assert (row.ci_lo, row.ci_hi) == (lo, hi)
+    unfolded = ev.breakdown(df, y, p, groups=scenes, n_boot=200)
+    assert not np.allclose(got[["ci_lo", "ci_hi"]], unfolded[["ci_lo", "ci_hi"]])
+    with pytest.raises(ValueError, match=r"^df has 120 rows but y_true has 3 values$"):
+        ev.breakdown(df, y[:3], p[:, :3])
+    with pytest.raises(KeyError, match=r"breakdown by 'speed': no such column \(have "
+                                       r"\['category', 'distance'\]\)"):
+        ev.breakdown(df, y, p, by="speed")
+
+
+def test_table3_shows_the_seed_sd_in_points():
+    from flowmod import metrics as ev
+
+    row = {"method": "dis", "f1": 0.8, "precision": 0.7, "recall": 0.9, "seed_sd": 0.0123}
+    assert ev.table3([row])["seed SD (points)"].tolist() == ["1.2"]
+    assert ev.table3([{k: v for k, v in row.items() if k != "seed_sd"}])[
+        "seed SD (points)"].tolist() == ["-"]
