@@ -653,3 +653,78 @@ def test_table3_shows_the_seed_sd_in_points():
     assert ev.table3([row])["seed SD (points)"].tolist() == ["1.2"]
     assert ev.table3([{k: v for k, v in row.items() if k != "seed_sd"}])[
         "seed SD (points)"].tolist() == ["-"]
+
+
+def test_metric_errors_name_what_disagrees():
+    y = np.array([1, 0, 1, 0])
+    with pytest.raises(ValueError, match=r"^y_true has 4 values but y_prob has shape \(1, 3\)$"):
+        ev.seed_summary(y, [0.1, 0.2, 0.3], ["a"] * 4)
+    with pytest.raises(ValueError, match=r"^groups has 3 values but y_true has 4$"):
+        ev.scene_bootstrap(y, [0.9, 0.1, 0.8, 0.2], ["a", "b", "c"])
+    with pytest.raises(ValueError, match=r"^folds has 3 values but groups has 4$"):
+        ev.scene_bootstrap(y, [0.9, 0.1, 0.8, 0.2], list("abcd"), folds=[0, 1, 1])
+    with pytest.raises(ValueError, match=r"^scores contain NaN/inf$"):
+        ev.fit_threshold([1.0, np.nan, 2.0, 3.0], y)
+
+
+def test_scores_read_column_shaped_inputs_flat_and_pass_the_threshold_on():
+    """Probabilities, replicates and folds of shape (N, 1) read as (N,); a threshold other
+    than 0.5 reaches every score; balanced accuracy is the mean of the two recalls."""
+    rng = np.random.default_rng(2)
+    y = np.array([1, 0, 1, 1, 0, 0, 1, 0] * 3)
+    p = np.clip(y * 0.3 + rng.uniform(0, 0.7, (2, len(y))), 0, 1)
+    scenes = np.arange(len(y)) // 4
+    folds = scenes % 2
+    assert ev.metrics(y, p[0][:, None]) == ev.metrics(y, p[0])
+    r = rng.normal(0, 1, 50)
+    assert ev.interval(r[:, None]) == ev.interval(r)
+    assert ev.detectable(r[:, None]) == pytest.approx(ev.detectable(r))
+    assert ev.scene_bootstrap(y, p, scenes, n=30, folds=folds[:, None]).tolist() == \
+        ev.scene_bootstrap(y, p, scenes, n=30, folds=folds).tolist()
+    m = ev.metrics(y, p[0], 0.3)
+    assert ev.balanced_accuracy(y, p[0], 0.3) == pytest.approx(
+        (m["tp"] / m["n_moving"] + m["tn"] / m["n_still"]) / 2)
+    assert ev.balanced_accuracy(y, p[0], 0.3) != ev.balanced_accuracy(y, p[0])
+    s = ev.seed_summary(y, p, scenes, n=50, threshold=0.3, folds=folds)
+    per = [np.mean([ev.metrics(y[folds == k], q[folds == k], 0.3)["f1"] for q in p])
+           for k in (0, 1)]
+    assert [x["f1"] for x in s["per_seed"]] == pytest.approx(per)
+    assert s["balanced_accuracy"] == pytest.approx(np.mean([ev.balanced_accuracy(y, q, 0.3)
+                                                           for q in p]))
+    assert s["ci"] == ev.bootstrap_f1_ci(y, p, scenes, 50, 0, 0.3, 0.95, folds)
+    assert s["ci"] != ev.bootstrap_f1_ci(y, p, scenes, 50, 0, 0.3, 0.95)
+
+
+def test_a_difference_is_detectable_from_two_replicates_on_and_a_paired_result_says_its_unit():
+    assert np.isnan(ev.detectable([0.1])) and np.isfinite(ev.detectable([0.1, 0.3]))
+    r = np.random.default_rng(0).normal(0, 0.02, 400)
+    assert ev.detectable(r) == pytest.approx(ev.detectable(r, level=0.95, power=0.8))
+    assert ev.detectable(r, level=0.9) < ev.detectable(r)
+    y = np.array([1, 0] * 20)
+    a, b = np.where(y == 1, 0.9, 0.1), np.where(y == 1, 0.6, 0.4)
+    scenes = np.arange(40) // 4
+    d = ev.paired_comparison(y, a, b, scenes, n=200, level=0.9)
+    assert d["unit"] == "seed"
+    reps = ev.scene_bootstrap(y, a, scenes, 200) - ev.scene_bootstrap(y, b, scenes, 200)
+    assert d["detectable"] == pytest.approx(ev.detectable(reps, 0.9))
+    none = ev.paired_comparison(np.zeros(40, int), a, b, scenes, n=20)  # no mover: undefined
+    assert np.isnan(none["p_not_better"])
+
+
+def test_seed_draws_are_fixed_by_the_seed():
+    """The training-seed draws of the bootstrap are a fixed function of its seed (the
+    book's intervals are reproducible)."""
+    assert ev.seed_draws(3, 2, 2, 0).tolist() == [[[1, 2, 2], [1, 0, 2]], [[0, 2, 2], [0, 0, 0]]]
+    assert ev.seed_draws(1, 2, 3, 0).shape == (3, 2, 1)
+
+
+def test_the_comparison_table_keeps_each_interval_as_numbers():
+    rows = {"A - B": {"delta_f1": 0.05, "ci": (0.01, 0.09), "n_scenes": 12, "per_seed": [0.04],
+                      "p_not_better": 0.01, "n": 100, "detectable": 0.0312, "unit": "seed"},
+            "C - D": {"delta_f1": 0.0, "ci": None, "n_scenes": 12, "per_seed": [0.0],
+                      "p_not_better": 0.5, "n": 100, "unit": "seed"}}
+    rows["C - D"]["ci"] = (float("nan"), float("nan"))
+    t = ev.comparison_table(rows)
+    assert t.attrs["ci_points"][0] == pytest.approx((1.0, 9.0))
+    assert t["detectable (points)"].tolist()[0] == 3.1
+    assert np.isnan(t["detectable (points)"].tolist()[1])
