@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import cv2
@@ -654,3 +655,47 @@ def test_fold_crops_reads_the_rows_of_a_role_from_a_crops_folder(tmp_path):
     assert dft["fold"].tolist() == [1, 1, 1]
     xg, dfg = crops.fold_crops(tmp_path, 2, 1, "train")
     assert len(dfg) == len(xg) and set(dfg["fold"]) == {0}
+    assert dfg.index.tolist() == [0, 1]  # the train rows of fold 0, indexed afresh
+    np.save(tmp_path / "general.npy", x)
+    pd.DataFrame({"pair_id": ["a", "b", "c"], "fold": [1, 0, 1]}, index=[7, 8, 9]).to_parquet(
+        tmp_path / "general.parquet")
+    xs, dfs = crops.fold_crops(tmp_path, 2, 1, "test", part="general")
+    assert dfs["pair_id"].tolist() == ["a", "c"] and dfs.index.tolist() == [0, 1]
+    np.testing.assert_array_equal(xs, x[[0, 2]])
+
+
+def test_static_crops_of_a_window_leaving_the_frame_take_the_edge_s_geometry(capsys):
+    """A box at the frame's left edge: the window leaves the frame, where the static flow is
+    that of the nearest frame pixel (as the flow crop's edge padding); every depth is filled
+    whatever the order of ``depths``; no bar unless asked, a counted one when asked."""
+    from flowmod import geometry
+
+    cam1 = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 1.5],
+                     [0.0, 0.0, 0.0, 1.0]])
+    cam2 = cam1.copy()
+    cam2[0, 3] += 1.0
+    K = np.array([[1266.0, 0.0, 816.0], [0.0, 1266.0, 491.0], [0.0, 0.0, 1.0]])
+    pairs = pd.DataFrame([{"pair_id": "p", "intrinsic": K.ravel().tolist(),
+                           "cam2global_1": cam1.ravel().tolist(),
+                           "cam2global_2": cam2.ravel().tolist()}])
+    objects = pd.DataFrame([{"pair_id": "p", "xmin": 2.0, "ymin": 480.0, "xmax": 60.0,
+                             "ymax": 530.0, "center_x": 25.0, "center_y": 12.0,
+                             "center_z": 0.75, "size_w": 1.8, "size_l": 4.5, "size_h": 1.5,
+                             "qw": 1.0, "qx": 0.0, "qy": 0.0, "qz": 0.0}])
+    got = crops.static_crops(objects, pairs, 10, 3.0, depths=("ground", "boxes"))
+    assert capsys.readouterr().err == ""
+    win = crop_windows(objects[["xmin", "ymin", "xmax", "ymax"]].to_numpy(), 3.0)[0]
+    assert win[0] < 0  # the window leaves the frame
+    box = objects[["xmin", "ymin", "xmax", "ymax"]].to_numpy()[0]
+    ground = geometry.static_flow_crop(win, 10, K, cam1, cam2, [], 0.0,
+                                       image_size=(1600, 900), box2d=box)
+    np.testing.assert_allclose(got["ground"], ground[None], atol=1e-4)
+    unclipped = geometry.static_flow_crop(win, 10, K, cam1, cam2, [], 0.0, box2d=box)
+    assert not np.allclose(ground, unclipped, atol=1e-3)
+    c, rot = geometry.box_in_camera(cam1, np.array([25.0, 12.0, 0.75]), np.array([1.0, 0, 0, 0]))
+    boxes = geometry.static_flow_crop(win, 10, K, cam1, cam2, [(c, np.array([1.8, 4.5, 1.5]),
+                                                               rot)], 0.0, image_size=(1600, 900))
+    np.testing.assert_allclose(got["boxes"], boxes[None], atol=1e-4)
+    crops.static_crops(objects, pairs, 10, 3.0, progress=True)
+    err = capsys.readouterr().err
+    assert re.search(r"static-world crops: 100%\|[^|]*\| 1/1 \[[^]]*object/s\]", err), err
