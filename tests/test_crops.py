@@ -272,8 +272,11 @@ def test_empty_split_gets_an_empty_array(tmp_path) -> None:
 
 def test_padded_flow_grid_is_refused(tmp_path) -> None:
     objects, flow_dir = make_world(tmp_path, flow_shape=(H + 4, W))  # like RAFT's 904 rows
-    with pytest.raises(CropsError, match="padded"):
+    with pytest.raises(CropsError, match=r"padded flow not unpadded\? \(RAFT pads 900 rows "
+                                         r"to 904\)$"):
         build_crops(objects, CountingLoader(flow_dir), tmp_path / "c", size=8, **QUIET)
+    with pytest.raises(CropsError, match=r"^size must be >= 1, got 0$"):
+        crops.crop_image(np.zeros((4, 4, 2)), np.array([[0.0, 0.0, 2.0, 2.0]]), 0)
 
 
 def test_nonfinite_flow_is_zeroed_and_recorded(tmp_path) -> None:
