@@ -504,6 +504,7 @@ def test_labels_against_the_devkit_attribute_box_velocity_and_true_speed():
         "box_label": [1, 0, 0, -1, 0, 1],
         "true_label": [1, 0, 0, 0, 1, 1]})
     t = labels.agreement_table(objects)
+    assert t.index.name == "label"
     assert list(t.columns) == ["moving", "stopped", "parked", "other", "box: moving",
                                "box: still", "box: n/a"]
     assert t.loc["moving"].tolist() == [2, 1, 0, 0, 2, 1, 0]

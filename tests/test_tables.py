@@ -294,3 +294,7 @@ def test_near_threshold_picks_the_nearest_within_half_a_metre_per_second():
     assert not near.equals(labels.near_threshold(df, 2.0, seed=1))
     few = labels.near_threshold(df.iloc[-3:], 2.0)
     assert few.empty, "1.45, 2.6 and 9.0 m/s are all 0.5 m/s or more away"
+    assert labels.near_threshold(pd.DataFrame({"speed": [2.5, 1.5]}), 2.0).empty, "0.5 away"
+    inside = df[(df["speed"] - 2.0).abs() < 0.5]
+    drawn = inside.sample(24, random_state=0)  # 4 n of the 41 candidates, then the nearest
+    assert near.index.tolist() == (drawn["speed"] - 2.0).abs().nsmallest(6).index.tolist()
