@@ -518,7 +518,8 @@ def test_labels_against_the_devkit_attribute_box_velocity_and_true_speed():
     assert true.loc["moving", "moving"] == 2 and true.loc["moving", "still"] == 1
     assert true.loc["still", "moving"] == 1 and true.loc["still", "still"] == 2
     assert true.index.name == "eq. 1 label" and true.columns.name == "true label"
-    with pytest.raises(KeyError, match="no true_label column"):
+    with pytest.raises(KeyError, match=r"^'objects have no true_label column \(only a synthetic "
+                                       r"world knows it\)'$"):
         labels.true_agreement(objects.drop(columns="true_label"))
 
 
