@@ -665,8 +665,18 @@ def test_gt_estimator_passes_its_world_and_returns_float32_and_bool(tmp_path, mo
     assert valid.dtype == bool and valid.tolist() == [[True, False, True]] * 2
     assert seen == [("is", str(tmp_path / "w"), "v1.0-x"),
                     ("gt", str(tmp_path / "w"), "v1.0-x", "a", "b")]
-    with pytest.raises(TypeError, match="^gt works from sample_data tokens"):
+    with pytest.raises(TypeError, match=r"^gt works from sample_data tokens, not images: use "
+                                        r"estimate_tokens\(sd_token_1, sd_token_2\) or "
+                                        r"compute_flow\(\)$"):
         est.estimate(SHIFT[0], SHIFT[1])
+    world.gt_flow = lambda *a: (np.full((2, 3, 2), np.nan), np.ones((2, 3), bool))
+    with pytest.raises(ValueError, match=r"^gt flow a -> b has non-finite values$"):
+        est.estimate_tokens("a", "b")
+    world.is_synthetic = lambda dataroot, version: False
+    with pytest.raises(fl.NotSyntheticError, match=r"is not one \(flowmod.world.is_synthetic is "
+                                                   r"False\): drop 'gt' from flow_methods for "
+                                                   r"real nuScenes data$"):
+        fl.get_estimator("gt", dataroot=tmp_path / "w", version="v1.0-x")
 
 
 def test_classical_estimators_defaults_and_presets():
@@ -931,3 +941,13 @@ def test_roundtrip_equals_storing_and_loading(tmp_path, scale, dtype):
     if scale != 1.0:
         assert not np.array_equal(fl.store.roundtrip(flow, dtype, scale, valid),
                                   fl.store.roundtrip(flow, dtype, scale))
+
+
+def test_flow_metric_errors_name_both_shapes():
+    from flowmod.flow import metrics as fm
+
+    a, b = np.zeros((4, 5, 2), np.float32), np.zeros((4, 6, 2), np.float32)
+    with pytest.raises(ValueError, match=r"^flow \(4, 5, 2\) and gt \(4, 6, 2\) differ in shape$"):
+        fm.endpoint_error(a, b)
+    with pytest.raises(ValueError, match=r"^mask shape \(4, 4\) != flow shape \(4, 5\)$"):
+        fl.flow_metrics(a, a, np.ones((4, 4), bool))
