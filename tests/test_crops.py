@@ -702,3 +702,8 @@ def test_static_crops_of_a_window_leaving_the_frame_take_the_edge_s_geometry(cap
     crops.static_crops(objects, pairs, 10, 3.0, progress=True)
     err = capsys.readouterr().err
     assert re.search(r"static-world crops: 100%\|[^|]*\| 1/1 \[[^]]*object/s\]", err), err
+
+
+def test_a_crop_size_below_one_is_refused():
+    with pytest.raises(CropsError, match=r"^size must be >= 1, got 0$"):
+        crops.crop_image(np.zeros((4, 4, 2)), np.array([[0.0, 0.0, 2.0, 2.0]]), 0)

@@ -497,3 +497,21 @@ def test_the_study_s_graph_gives_each_node_its_own_inputs(tmp_path):
         dag.Node("flow", "dis", "general"), dag.Node("general"))
     assert pipeline.GRAPH.inputs(dag.Node("crops", "gt", "keyframe"), p) == (
         dag.Node("flow", "gt", "keyframe"), dag.Node("select"))
+
+
+def test_published_digests_can_go_through_a_cache_and_a_file_without_default_stays_none(
+        tmp_path, monkeypatch):
+    from flowmod import artefacts
+
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "a.txt").write_text("a")
+    artefacts._DIGESTS.clear()
+    files = dag.output_files(tmp_path / "out", tmp_path / "cache.json")
+    assert list(files) == ["a.txt"]
+    assert str((tmp_path / "out" / "a.txt").resolve()) in json.loads(
+        (tmp_path / "cache.json").read_text())
+    # an unset file parameter whose default file nobody registered (the flow networks
+    # register theirs when imported)
+    monkeypatch.delitem(dag.FILE_DEFAULTS, "raft_weights", raising=False)
+    p = validate({"run_dir": str(tmp_path / "runs"), "raft_weights": None})
+    assert dag.values(p, dag.Node("flow", "raft", "keyframe"))["raft_weights"] is None

@@ -610,3 +610,37 @@ def test_paired_and_table4_resample_by_fold_when_rows_span_several():
     assert recall == round(recall, 1)
     no_true = evaluate.table4({"dis": a.drop(columns="true_label").assign(distance=10.0)}, 50.0)
     assert list(no_true["scored against"]) == ["paper rule (previous keyframe)"]
+
+
+def test_the_baseline_seeds_its_interval_and_indexes_pooled_folds_afresh(tmp_path,
+                                                                         monkeypatch):
+    """geometric_baseline: the record's interval is drawn with the seed given (0 by
+    default), and the pooled test rows of several folds get one fresh index."""
+    from flowmod import geometry
+
+    rng = np.random.default_rng(4)
+    for k in range(2):
+        n = 12
+        np.save(tmp_path / f"f{k}.npy", np.zeros((n, 2, 4, 4), np.float16))
+        np.save(tmp_path / f"f{k}.samples.npy", np.zeros((n, 81, 2), np.float32))
+        pd.DataFrame({"pair_id": [f"p{k}{i}" for i in range(n)], "fold": k,
+                      "val_scene": [i % 4 == 0 for i in range(n)],
+                      "label": rng.integers(0, 2, n), "scene": [f"s{k}{i}" for i in range(n)],
+                      }).to_parquet(tmp_path / f"f{k}.parquet")
+    monkeypatch.setattr(geometry, "residual_scores", lambda sub, p, smp: pd.DataFrame(
+        {"residual_speed": sub["label"].to_numpy() * 0.8 + rng.uniform(0, 1.5, len(sub))}))
+    test, s = evaluate.geometric_baseline(pd.DataFrame(), tmp_path, folds=2)
+    assert test.index.tolist() == list(range(24))
+    assert s["ci"] == evaluate.score(test, seed=0)["ci"] != evaluate.score(test, seed=3)["ci"]
+    test3, s3 = evaluate.geometric_baseline(pd.DataFrame(), tmp_path, seed=3, folds=2)
+    assert s3["ci"] == evaluate.score(test3, seed=3)["ci"]
+
+
+def test_two_folds_are_cross_validation(monkeypatch):
+    """folds=2 is cross-validation too: each row by its own fold's model."""
+    monkeypatch.setattr(evaluate, "load_model", lambda path, dev, ch: path)
+    monkeypatch.setattr(evaluate, "predict", lambda model, x, **kw: np.full(len(x), model))
+    df = pd.DataFrame({"fold": [1, 0, 1]})
+    out = evaluate.predict_models([("f0", 0.2, None), ("f1", 0.7, None)], np.zeros((3, 2, 4, 4)),
+                                  df, "cpu", folds=2)
+    assert out["prob"].tolist() == [0.7, 0.2, 0.7] and "prob_f0" not in out

@@ -455,3 +455,19 @@ def test_box_samples_take_the_nearest_pixel_clipped_to_the_image_as_float32():
         res_px, _ = geometry.box_residual(np.full((grid * grid, 2), 2.0), box, center, K,
                                           np.eye(4), np.eye(4), dt_s=0.5)
         assert res_px == pytest.approx(np.hypot(2.0, 2.0))
+
+
+def test_the_deployable_box_is_bounded_by_its_own_columns_and_rows():
+    """deployed_depth: a pixel right of the box (within its rows) and one on its bottom edge
+    away from the middle: the ground outside, the contact depth inside."""
+    roll = np.eye(4)
+    a = np.radians(8.0)
+    roll[:3, :3] = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    cam = FORWARD @ roll
+    box = np.array([1000.0, 560.0, 1200.0, 640.0])
+    contact = geometry.contact_depth(box, K, cam, 0.0)
+    xy = np.array([[1201.0, 600.0], [1050.0, 640.0]])
+    d = geometry.deployed_depth(xy, box, K, cam, 0.0)
+    ground = geometry.plane_depth(xy, K, cam, 0.0)
+    assert d[0] == pytest.approx(ground[0]) and d[0] != pytest.approx(contact)
+    assert d[1] == pytest.approx(contact) and ground[1] != pytest.approx(contact)

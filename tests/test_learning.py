@@ -985,3 +985,51 @@ def test_an_epoch_that_ties_the_best_validation_f1_keeps_the_earlier_weights(tmp
     assert (run.best_epoch, run.best_f1, run.epoch) == (1, 0.5, 2)
     assert (tmp_path / "best.pt").stat().st_mtime_ns == first
     assert torch.load(tmp_path / "best.pt", weights_only=True)["w"].item() == 1.0
+
+
+def test_the_validation_loss_is_the_stable_binary_cross_entropy() -> None:
+    """_bce_with_logits equals -mean(y log p + (1 - y) log(1 - p)), p = sigmoid(z), also
+    where |z| is large (computed here in long double)."""
+    from flowmod.train import _bce_with_logits
+
+    z = np.array([-30.0, -2.0, -0.1, 0.0, 0.7, 3.0, 25.0], np.float32)
+    y = np.array([1, 0, 1, 0, 1, 1, 0], np.float32)
+    zl = z.astype(np.longdouble)
+    p = 1 / (1 + np.exp(-zl))
+    want = float(-np.mean(y * np.log(p) + (1 - y) * np.log1p(-p)))
+    assert _bce_with_logits(z, y) == pytest.approx(want, rel=1e-9)
+
+
+def test_the_stage_trainer_resumes_and_passes_the_input_on(data, tmp_path, capsys) -> None:
+    """train_seed resumes a killed build's last.pt and hands train_model the record, the
+    progress flag and the input's channels, flips and scaled channels: its history is that
+    of train_model with the same arguments, resumed from the same checkpoint."""
+    from types import SimpleNamespace
+
+    from flowmod import dag, train
+    from flowmod.params import load_profile
+
+    tx, tdf, vx, vdf = data
+    tx3, vx3 = (np.concatenate([a, a[:, :1]], axis=1) for a in (tx, vx))
+    q = load_profile("demo").model_copy(update=dict(
+        epochs=2, batch_size=16, model_width=16, device="cpu", amp="off", seed=7, force=False,
+        num_workers=0, input_scaling="log", hflip_p=0.5))
+    args = dict(in_channels=3, flip_negate=(0, 2), flow_channels=(0,))
+    first = {}
+    for folder in ("stage", "direct"):  # a killed build: epoch 1 and its last.pt
+        first[folder] = train_model(
+            tx3, tdf, vx3, vdf, tmp_path / folder, train.TrainSettings.of(q), seed=207,
+            progress=False, record=vx3[:5], **{**args, "epochs": 1})
+    b = SimpleNamespace(params=q, node=dag.Node("train", "dis", "f0s2"),
+                        start=lambda fresh=False: tmp_path / "stage")
+    capsys.readouterr()
+    train.train_seed(b, (tx3, tdf), (vx3, vdf), True, "dis", record=vx3[:5], **args)
+    assert "train dis seed 207" in capsys.readouterr().err
+    direct = train_model(tx3, tdf, vx3, vdf, tmp_path / "direct", train.TrainSettings.of(q),
+                         seed=207, progress=False, record=vx3[:5], **args)
+    got = pd.read_csv(tmp_path / "stage" / "history.csv")
+    np.testing.assert_allclose(got["val_loss"], direct["val_loss"], rtol=1e-6)
+    np.testing.assert_allclose(np.load(tmp_path / "stage" / train.EPOCH_PROBS),
+                               np.load(tmp_path / "direct" / train.EPOCH_PROBS), rtol=1e-5)
+    assert len(got) == 2 and got["seconds"].iloc[0] == pytest.approx(
+        first["stage"]["seconds"].iloc[0])  # epoch 1 was resumed, not retrained

@@ -702,8 +702,10 @@ def test_a_difference_is_detectable_from_two_replicates_on_and_a_paired_result_s
     assert ev.detectable(r, level=0.9) < ev.detectable(r)
     y = np.array([1, 0] * 20)
     a, b = np.where(y == 1, 0.9, 0.1), np.where(y == 1, 0.6, 0.4)
+    b[::3] = 1 - b[::3]  # B errs on a third of the objects
     scenes = np.arange(40) // 4
     d = ev.paired_comparison(y, a, b, scenes, n=200, level=0.9)
+    assert d["detectable"] > 0
     assert d["unit"] == "seed"
     reps = ev.scene_bootstrap(y, a, scenes, 200) - ev.scene_bootstrap(y, b, scenes, 200)
     assert d["detectable"] == pytest.approx(ev.detectable(reps, 0.9))
@@ -728,3 +730,10 @@ def test_the_comparison_table_keeps_each_interval_as_numbers():
     assert t.attrs["ci_points"][0] == pytest.approx((1.0, 9.0))
     assert t["detectable (points)"].tolist()[0] == 3.1
     assert np.isnan(t["detectable (points)"].tolist()[1])
+
+
+def test_label_and_probability_errors_in_full():
+    with pytest.raises(ValueError, match=r"^y_true must hold 0 \(still\) / 1 \(moving\) only$"):
+        ev.labels01([0, 2])
+    with pytest.raises(ValueError, match=r"^y_true has 4 values but y_prob has 3$"):
+        ev.metrics([0, 1, 0, 1], [0.1, 0.2, 0.3])

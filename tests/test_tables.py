@@ -298,3 +298,11 @@ def test_near_threshold_picks_the_nearest_within_half_a_metre_per_second():
     inside = df[(df["speed"] - 2.0).abs() < 0.5]
     drawn = inside.sample(24, random_state=0)  # 4 n of the 41 candidates, then the nearest
     assert near.index.tolist() == (drawn["speed"] - 2.0).abs().nsmallest(6).index.tolist()
+
+
+def test_near_threshold_draws_four_per_example_before_taking_the_nearest():
+    """With more candidates than 4 n, the examples are the nearest of a seeded draw of 4 n
+    (n 2, seed 1: speeds 19 and 23 of the lattice, where a draw of 5 n gives 19 and 22)."""
+    speeds = np.r_[np.linspace(1.55, 2.45, 41), [1.45, 2.6, 9.0]]
+    df = pd.DataFrame({"speed": speeds})
+    assert labels.near_threshold(df, 2.0, n=2, seed=1).index.tolist() == [19, 23]
