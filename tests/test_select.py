@@ -680,3 +680,25 @@ def test_select_gives_both_sets_with_fresh_indexes_and_shows_progress(tiny_param
     pd.testing.assert_frame_equal(back.objects, sel.objects)
     assert isinstance(back.boxes, pd.DataFrame) and back.boxes.empty
     assert list(pd.read_parquet(key / "pairs.parquet").columns) == list(sel.pairs.columns)
+
+
+def test_the_paper_s_one_split_on_the_tiny_world(tiny_nusc, tiny_params):
+    """folds 1 (the paper's protocol): the kept scenes split by split_scenes (seeded, each
+    scene its own group, swept scenes preferred for test), fold 0, val_scene marking the val
+    split; excluded scenes fold -1; the generalisation set from the test scenes only."""
+    p = tiny_params.model_copy(update={"folds": 1})
+    sel = select.select_keyframes(p, tiny_nusc, progress=False)
+    kept = sel.scenes[sel.scenes["split"] != "excluded"]
+    want = select.split_scenes(list(kept["scene"]), p.split_fractions, p.seed,
+                               prefer_test=kept.loc[kept["has_sweeps"], "scene"],
+                               groups={s: s for s in kept["scene"]})
+    assert dict(zip(kept["scene"], kept["split"], strict=True)) == want
+    assert set(want.values()) == {"train", "val", "test"}
+    assert (kept["fold"] == 0).all() and (kept["val_scene"] == (kept["split"] == "val")).all()
+    assert (sel.scenes.loc[sel.scenes["split"] == "excluded", "fold"] == -1).all()
+    assert set(sel.pairs["split"]) <= {"train", "val", "test"}
+    test_scenes = kept.loc[kept["split"] == "test", "scene"]
+    assert select.held_out(sel.scenes, 1)["scene"].tolist() == test_scenes.tolist()
+    gp, go, _ = select.select_general(p, sel.scenes, tiny_nusc, progress=False)
+    assert len(gp) > 0 and set(gp["scene"]) <= set(test_scenes)
+    assert set(go["split"]) == {"test"} and (go["fold"] == 0).all()
