@@ -33,6 +33,8 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
+from flowmod.artefacts import atomic_path, write_json
+
 ROOT = Path(__file__).resolve().parents[1]
 #: The modules whose numbers reach the book, as mutmut names their mutants.
 MODULES = ("flowmod.metrics", "flowmod.labels", "flowmod.crops", "flowmod.dag",
@@ -188,8 +190,7 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         times[m] = {"seconds": round(seconds, 1), "commit": commit(),
                     "date": time.strftime("%Y-%m-%d", time.gmtime())}
-        TIMES.parent.mkdir(parents=True, exist_ok=True)
-        TIMES.write_text(json.dumps(times, indent=1, sort_keys=True) + "\n")
+        write_json(TIMES, times)
     rows = results()
     unchecked = sum(v == "not checked" for v in rows.values())
     if not rows or (unchecked and not partial and chosen == list(MODULES)):
@@ -197,14 +198,13 @@ def main(argv: list[str] | None = None) -> int:
               "run failed: run the tests in mutants/ to see why)", file=sys.stderr)
         return 1
     verdicts = json.loads(VERDICTS.read_text()) if VERDICTS.is_file() else {}
-    out = ROOT / "benchmarks" / "results"
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "mutation.json").write_text(json.dumps(rows, indent=1, sort_keys=True) + "\n")
+    write_json(ROOT / "benchmarks" / "results" / "mutation.json", rows)
     text = report(rows, verdicts, times)
     if unchecked:
         text += (f"\n{unchecked} of {len(rows)} mutants not checked yet (`make mutation "
                  "MODULES=...` runs the modules they belong to).\n")
-    (ROOT / "benchmarks" / "mutation.md").write_text(text)
+    with atomic_path(ROOT / "benchmarks" / "mutation.md") as tmp:
+        tmp.write_text(text)
     print(text)
     return 0
 
