@@ -199,6 +199,17 @@ FORWARD = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0
                     [0.0, 0.0, 0.0, 1.0]])
 
 
+def _rolled(degrees: float) -> np.ndarray:
+    """FORWARD turned about its optical axis: the ground's depth then depends on the column."""
+    roll = np.eye(4)
+    a = np.radians(degrees)
+    roll[:3, :3] = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    return FORWARD @ roll
+
+
+ROLLED = _rolled(8.0)
+
+
 def test_ground_depth_below_the_horizon_and_none_above():
     xy = np.array([[816.0, 491.0 + 95.0], [300.0, 491.0 + 38.0], [816.0, 400.0],
                    [816.0, 491.0]])
@@ -413,10 +424,7 @@ def test_the_deployable_depth_on_a_rolled_camera_and_at_the_box_edges():
     """contact_depth is the ground depth under the middle of the box's bottom edge (on a
     camera rolled about its axis, that depends on the column too); deployed_depth puts the
     box's edges themselves at that depth and the sky at ``far``."""
-    roll = np.eye(4)
-    a = np.radians(8.0)
-    roll[:3, :3] = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
-    cam = FORWARD @ roll
+    cam = ROLLED
     box = np.array([1000.0, 560.0, 1200.0, 640.0])
     want = geometry.plane_depth(np.array([[1100.0, 640.0]]), K, cam, 0.0)[0]
     assert np.isfinite(want) and geometry.contact_depth(box, K, cam, 0.0) == pytest.approx(want)
@@ -460,10 +468,7 @@ def test_box_samples_take_the_nearest_pixel_clipped_to_the_image_as_float32():
 def test_the_deployable_box_is_bounded_by_its_own_columns_and_rows():
     """deployed_depth: a pixel right of the box (within its rows) and one on its bottom edge
     away from the middle: the ground outside, the contact depth inside."""
-    roll = np.eye(4)
-    a = np.radians(8.0)
-    roll[:3, :3] = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
-    cam = FORWARD @ roll
+    cam = ROLLED
     box = np.array([1000.0, 560.0, 1200.0, 640.0])
     contact = geometry.contact_depth(box, K, cam, 0.0)
     xy = np.array([[1201.0, 600.0], [1050.0, 640.0]])

@@ -707,6 +707,15 @@ def test_an_empty_checkpoint_is_one_clear_error(tmp_path) -> None:
         load_model(path)
 
 
+def _stage_params(**update):
+    """The demo profile's training settings cut to this file's tiny CPU runs (seed 7)."""
+    from flowmod.params import load_profile
+
+    return load_profile("demo").model_copy(update=dict(
+        epochs=2, batch_size=16, model_width=16, device="cpu", amp="off", seed=7, force=False,
+        num_workers=0, input_scaling="log", **update))
+
+
 def test_the_stage_trainer_seeds_by_part_keeps_a_float16_best_and_no_last(data, tmp_path) -> None:
     """train_seed: part f1s2 trains with seed ``seed + 1 + 100*2`` and the profile's
     settings, in the folder ``b.start`` gives (fresh only with ``force``); then best.pt is
@@ -714,12 +723,9 @@ def test_the_stage_trainer_seeds_by_part_keeps_a_float16_best_and_no_last(data, 
     from types import SimpleNamespace
 
     from flowmod import dag, train
-    from flowmod.params import load_profile
 
     tx, tdf, vx, vdf = data
-    q = load_profile("demo").model_copy(update=dict(
-        epochs=2, batch_size=16, model_width=16, device="cpu", amp="off", seed=7, force=False,
-        num_workers=0, input_scaling="log"))
+    q = _stage_params()
     fresh = []
 
     def start(fresh_: bool = False, **kw) -> Path:
@@ -1007,13 +1013,10 @@ def test_the_stage_trainer_resumes_and_passes_the_input_on(data, tmp_path, capsy
     from types import SimpleNamespace
 
     from flowmod import dag, train
-    from flowmod.params import load_profile
 
     tx, tdf, vx, vdf = data
     tx3, vx3 = (np.concatenate([a, a[:, :1]], axis=1) for a in (tx, vx))
-    q = load_profile("demo").model_copy(update=dict(
-        epochs=2, batch_size=16, model_width=16, device="cpu", amp="off", seed=7, force=False,
-        num_workers=0, input_scaling="log", hflip_p=0.5))
+    q = _stage_params(hflip_p=0.5)
     args = dict(in_channels=3, flip_negate=(0, 2), flow_channels=(0,))
     first = {}
     for folder in ("stage", "direct"):  # a killed build: epoch 1 and its last.pt
