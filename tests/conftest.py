@@ -86,13 +86,15 @@ TINY_WORLD = dict(world_scenes=5, world_keyframes=3, world_sweep_scenes=1, world
 
 
 def _world_code_digest() -> str:
-    """sha256 (16 hex) of the world generator's source files: a kept world is one that this
-    very code made."""
+    """sha256 (16 hex) of what the tiny world is made from (every parameter the world stage
+    reads, the smoke profile's included) and of the generator's source files: a kept world
+    is one that these very values and code made."""
     import hashlib
 
     import flowmod.world
 
-    h = hashlib.sha256(repr(sorted(TINY_WORLD.items())).encode())
+    made_from = _smoke(Path("."), **TINY_WORLD).world_generation()
+    h = hashlib.sha256(repr(sorted(made_from.items())).encode())
     for f in sorted(Path(flowmod.world.__file__).parent.glob("*.py")):
         h.update(f.name.encode() + f.read_bytes())
     return h.hexdigest()[:16]
