@@ -39,6 +39,22 @@ def test_groups_stay_together_and_sweep_scenes_are_spread():
         assign_folds(SCENES[:4], 5, 0.2, seed=0)
 
 
+def test_folds_of_one_and_two_groups_and_a_share_under_one_scene():
+    """As many groups as folds is allowed (one scene per fold, no validation scene there);
+    a fold of two groups gets one validation group; a share that rounds below one still
+    gives one."""
+    one = assign_folds(SCENES[:3], 3, 0.2, seed=0)
+    assert sorted(k for k, _ in one.values()) == [0, 1, 2]
+    assert not any(v for _, v in one.values())
+    two = assign_folds(SCENES[:6], 3, 0.2, seed=0)
+    assert np.bincount([k for k, v in two.values() if v], minlength=3).tolist() == [1, 1, 1]
+    three = assign_folds(SCENES[:9], 3, 0.25, seed=0)  # 0.25 * 3 groups rounds to 1
+    assert np.bincount([k for k, v in three.values() if v], minlength=3).tolist() == [1, 1, 1]
+    with pytest.raises(SelectionError, match=r"form only 2 independent group\(s\): use fewer "
+                       r"folds or more scenes$"):
+        assign_folds(SCENES[:2], 3, 0.2, seed=0)
+
+
 def _objects() -> pd.DataFrame:
     a = assign_folds(SCENES[:9], 3, 0.25, seed=0)
     scenes = pd.DataFrame({"scene": list(a), "fold": [k for k, _ in a.values()],

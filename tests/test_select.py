@@ -214,6 +214,88 @@ def test_general_stride_keeps_every_other_starting_frame(tiny_nusc, tiny_params)
     assert sorted(two["pair_id"]) == sorted(even["pair_id"])
 
 
+def test_general_set_defaults_are_every_frame_of_both_kinds_with_a_bar(tiny_nusc, tiny_params,
+                                                                      selection, capsys):
+    """By default general_set starts a pair at every camera frame, keyframes and sweeps
+    alike, names pairs <scene>-g<frame> and shows a bar over the scenes; progress False
+    shows none."""
+    scenes = selection.scenes[selection.scenes["has_sweeps"]]
+    default = select.general_set(tiny_nusc, scenes, tiny_params)
+    err = capsys.readouterr().err
+    assert "general pairs: 100%" in err and f"{len(scenes)}/{len(scenes)}" in err
+    explicit = select.general_set(tiny_nusc, scenes, tiny_params, False, stride=1,
+                                  sweeps_only=False, kind="general")
+    assert capsys.readouterr().err == ""
+    for a, b in zip(default, explicit, strict=True):
+        pd.testing.assert_frame_equal(a, b)
+    pairs = default[0]
+    digits = pairs["pair_id"].str[-4:]
+    assert digits.str.isdigit().all()
+    assert (pairs["pair_id"] == pairs["scene"] + "-g" + digits).all(), pairs["pair_id"]
+    first = {tiny_nusc.get("sample_data", t)["is_key_frame"] for t in pairs["sd_token_1"]}
+    assert first == {True, False}
+
+
+def test_distance_is_from_the_ego_origin_or_the_camera_and_both_ends_are_kept(tiny_nusc):
+    """distance_mode ego measures from the ego pose's translation, camera from the
+    camera's position (both m, global frame); a box at exactly min_d or max_d qualifies."""
+    sc = tiny_nusc.scene[0]
+    sd = select.camera_frames(tiny_nusc, sc["token"], keyframes_only=True)[0]
+    cats = {c["name"] for c in tiny_nusc.category}
+    ego = select.qualifying_boxes(tiny_nusc, sd, cats, 0.0, 1e9, "ego", None)
+    cam = select.qualifying_boxes(tiny_nusc, sd, cats, 0.0, 1e9, "camera", None)
+    assert len(ego) >= 2 and ego.keys() == cam.keys()
+    pose = np.asarray(tiny_nusc.get("ego_pose", sd["ego_pose_token"])["translation"])
+    camera = select.camera_to_global(tiny_nusc, sd)[:3, 3]
+    for inst in ego:
+        centre = np.asarray(ego[inst].center)
+        assert ego[inst].distance == pytest.approx(np.linalg.norm(centre - pose), abs=1e-9)
+        assert cam[inst].distance == pytest.approx(np.linalg.norm(centre - camera), abs=1e-9)
+        assert abs(cam[inst].distance - ego[inst].distance) > 0.1
+    d = sorted(c.distance for c in ego.values())
+    ends = select.qualifying_boxes(tiny_nusc, sd, cats, d[0], d[-1], "ego", None)
+    assert sorted(c.distance for c in ends.values()) == d
+    inner = select.qualifying_boxes(tiny_nusc, sd, cats, d[0] + 1e-6, d[-1] - 1e-6, "ego", None)
+    assert len(inner) == len(d) - 2
+
+
+def test_the_scene_table_and_the_split_columns_of_the_keyframe_selection(tiny_nusc,
+                                                                        tiny_params):
+    """scene_table carries each scene's log and sample count; the selection's scene table
+    adds split, fold (int), val_scene (bool) and the split unit (scene, on a generated
+    world)."""
+    table = select.scene_table(tiny_nusc)
+    want = {s["name"]: (s["log_token"], s["nbr_samples"]) for s in tiny_nusc.scene}
+    got = {r.scene: (r.log_token, r.n_samples) for r in table.itertuples()}
+    assert got == want
+    scenes = select.select_keyframes(tiny_params, tiny_nusc, progress=False).scenes
+    assert scenes["fold"].dtype == np.int64 and scenes["val_scene"].dtype == bool
+    assert set(scenes["split_unit"]) == {"scene"}
+    out = scenes["split"] == "excluded"
+    assert set(scenes.loc[~out, "split"]) == {f"f{k}" for k in range(tiny_params.folds)}
+    assert (scenes.loc[~out, "split"] == "f" + scenes.loc[~out, "fold"].astype(str)).all()
+    assert out.any() and (scenes.loc[out, "fold"] == -1).all()
+    assert not scenes.loc[out, "val_scene"].any() and scenes.loc[~out, "val_scene"].any()
+
+
+def test_each_selection_function_shows_its_bar_by_default_and_none_when_told(
+        tiny_nusc, tiny_params, selection, capsys):
+    """keyframe_set, select_keyframes and select_general show their bars unless progress
+    is False, and select passes progress False on to both sets."""
+    capsys.readouterr()
+    kept = selection.scenes[selection.scenes["split"] != "excluded"]
+    for call, desc in ((lambda: select.keyframe_set(tiny_nusc, kept, tiny_params),
+                        "keyframe pairs"),
+                       (lambda: select.select_keyframes(tiny_params, tiny_nusc),
+                        "keyframe pairs"),
+                       (lambda: select.select_general(tiny_params, selection.scenes, tiny_nusc),
+                        "general pairs")):
+        call()
+        assert f"{desc}: 100%" in capsys.readouterr().err, desc
+    select.select(tiny_params, progress=False)
+    assert capsys.readouterr().err == ""
+
+
 def test_artefacts_are_skipped_when_up_to_date(tiny_params, selection):
     paths = sorted(tiny_params.run_path.glob("*/*.parquet"))
     assert {p.parent.name for p in paths} == {"select", "general"}
@@ -249,6 +331,25 @@ def test_missing_dataroot_version_and_table(tmp_path, tiny_world):
         select.check_dataroot(broken, version)
 
 
+def test_a_dataroot_s_errors_in_full(tmp_path):
+    """The whole line of each refusal: version folders are the folders named v*, 'none'
+    when there is none; every missing table, comma-separated."""
+    (tmp_path / "samples").mkdir()
+    (tmp_path / "v2.txt").write_text("")
+    with pytest.raises(select.SelectionError) as err:
+        select.check_dataroot(tmp_path, "v1.0-mini")
+    assert str(err.value) == (
+        f"version folder {tmp_path / 'v1.0-mini'} not found; version folders in {tmp_path}: "
+        "none (set the `version` parameter to one of them)")
+    (tmp_path / "v1.0-mini").mkdir()
+    for t in select.TABLES[2:]:
+        (tmp_path / "v1.0-mini" / f"{t}.json").write_text("[]")
+    with pytest.raises(select.SelectionError) as err:
+        select.check_dataroot(tmp_path, "v1.0-mini")
+    assert str(err.value) == (f"{tmp_path / 'v1.0-mini'} lacks tables: "
+                              f"{select.TABLES[0]}, {select.TABLES[1]} (.json)")
+
+
 def test_empty_selection_names_the_filter(tiny_params):
     p = tiny_params.model_copy(update={"min_distance": 500.0, "max_distance": 600.0})
     with pytest.raises(select.SelectionError, match=r"no vehicle passed Table 1.*\[500.0, 600.0\]"):
@@ -268,6 +369,49 @@ def test_missing_images_error_or_skip(tmp_path, tiny_world, tiny_params):
     skipped = select.select(p.model_copy(update={"missing_images": "skip"}), progress=False)
     assert victim not in set(skipped.pairs["path_1"]) | set(skipped.pairs["path_2"])
     assert len(skipped.pairs) < len(sel.pairs)
+
+
+def test_missing_images_are_named_and_their_pairs_dropped_with_fresh_indexes(tmp_path):
+    """The error names how many images are missing and the first three; ``skip`` drops
+    every pair that reads one, and those pairs' objects, and renumbers both tables."""
+    for name in ("a.jpg", "c.jpg"):
+        (tmp_path / name).write_bytes(b"x")
+    pairs = pd.DataFrame({"pair_id": ["p0", "p1", "p2", "p3"],
+                          "path_1": ["a.jpg", "m1.jpg", "a.jpg", "m3.jpg"],
+                          "path_2": ["c.jpg", "c.jpg", "m2.jpg", "m4.jpg"]})
+    objects = pd.DataFrame({"pair_id": ["p3", "p0", "p1", "p0"], "speed": [1.0, 2.0, 3.0, 4.0]})
+    p = validate({"dataroot": str(tmp_path), "synthetic": False})
+    with pytest.raises(select.SelectionError) as err:
+        select._missing_images(p, pairs, objects)
+    assert str(err.value) == (
+        f"4 image files are missing under {p.dataroot_path}, e.g. "
+        "['m1.jpg', 'm3.jpg', 'm2.jpg'] (set missing_images: skip to drop their pairs)")
+    kept, kept_objects = select._missing_images(
+        p.model_copy(update={"missing_images": "skip"}), pairs, objects)
+    assert kept.to_dict("list") == {"pair_id": ["p0"], "path_1": ["a.jpg"],
+                                    "path_2": ["c.jpg"]}
+    assert kept_objects.to_dict("list") == {"pair_id": ["p0", "p0"], "speed": [2.0, 4.0]}
+    assert kept.index.tolist() == [0] and kept_objects.index.tolist() == [0, 1]
+
+
+def test_true_speeds_label_at_the_profile_s_threshold_and_only_on_a_generated_world(
+        tmp_path, tiny_params, selection):
+    """On a generated world each object gets its true speed and a label at the profile's
+    speed_threshold (not the default 2 m/s); on real data (no world file) nothing is added."""
+    pairs = selection.pairs
+    objects = selection.objects.drop(columns=["true_speed", "true_label"])
+    threshold = float(np.median(selection.objects["true_speed"]))
+    p = tiny_params.model_copy(update={"speed_threshold": threshold})
+    out = select._add_true_speed(objects, pairs, p)
+    np.testing.assert_array_equal(out["true_speed"], selection.objects["true_speed"])
+    assert out["true_label"].tolist() == (out["true_speed"] >= threshold).astype(int).tolist()
+    assert out["true_label"].tolist() != (out["true_speed"] >= 2.0).astype(int).tolist()
+    real = tiny_params.model_copy(update={"dataroot": str(tmp_path)})
+    for f in set(pairs["path_1"]) | set(pairs["path_2"]):
+        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / f).write_bytes(b"x")
+    _, same = select._finish(real, pairs, objects)
+    assert same.equals(objects)
 
 
 def test_generalisation_boxes_and_labels_against_the_devkit(tiny_nusc, selection):
@@ -413,6 +557,58 @@ def test_split_sizes_groups_and_the_smallest_worlds():
         for seed in range(3):
             out = select.split_scenes(scenes[:3], fractions, seed=seed)
             assert sorted(out.values()) == ["test", "train", "val"], (fractions, out)
+
+
+def _kept_scenes(n: int, per_log: int, sweeps: tuple[int, ...] = ()) -> pd.DataFrame:
+    """A kept-scenes table of n scenes, ``per_log`` consecutive scenes to a log."""
+    return pd.DataFrame({"scene": [f"s{i:02d}" for i in range(n)],
+                         "log_token": [f"log{i // per_log}" for i in range(n)],
+                         "has_sweeps": [i in sweeps for i in range(n)]})
+
+
+def test_the_split_unit_is_the_log_on_real_data_and_the_scene_here():
+    """unit "log" keeps a log's scenes in one split (folds 1) and one fold (folds 3), each
+    exactly as split_scenes / assign_folds give them with the log as the group."""
+    kept = _kept_scenes(24, per_log=3)
+    logs = dict(zip(kept["scene"], kept["log_token"], strict=True))
+    scenes = list(kept["scene"])
+    for folds in (1, 3):
+        p = validate({"folds": folds, "seed": 5})
+        by_log = select._scene_split(p, kept, "log")
+        by_scene = select._scene_split(p, kept, "scene")
+        for log in set(logs.values()):
+            members = [s for s in scenes if logs[s] == log]
+            assert len(set(map(tuple, by_log.loc[members].to_numpy().tolist()))) == 1
+        assert by_log.loc[scenes].to_numpy().tolist() != by_scene.loc[scenes].to_numpy().tolist()
+    one = select._scene_split(validate({"folds": 1, "seed": 5}), kept, "log")
+    want = select.split_scenes(scenes, validate({}).split_fractions, 5, groups=logs)
+    assert one["split"].to_dict() == want
+
+
+def test_cross_validation_folds_use_the_val_share_seed_and_sweep_scenes():
+    """folds 3: assign_folds with val share f_val / (f_train + f_val) (here 0.3 / 0.8, so a
+    fold of eight scenes has three validation scenes), the profile's seed, and the sweep
+    scenes dealt out over the folds."""
+    kept = _kept_scenes(24, per_log=1, sweeps=(0, 1, 2, 3, 4, 5))
+    p = validate({"folds": 3, "seed": 7, "split_fractions": [0.5, 0.3, 0.2]})
+    out = select._scene_split(p, kept, "scene")
+    sweeps = kept.loc[kept["has_sweeps"], "scene"]
+    want = select.assign_folds(list(kept["scene"]), 3, 0.375, 7, spread=sweeps)
+    assert {s: (int(r.fold), bool(r.val_scene)) for s, r in out.iterrows()} == want
+    assert out["split"].to_dict() == {s: f"f{k}" for s, (k, _) in want.items()}
+    assert np.bincount(out.loc[out["val_scene"], "fold"], minlength=3).tolist() == [3, 3, 3]
+    assert np.bincount(out.loc[list(sweeps), "fold"], minlength=3).tolist() == [2, 2, 2]
+
+
+def test_a_split_left_without_a_scene_is_refused_with_its_cause():
+    """Two logs cannot fill train, val and test: one line naming the empty split, the
+    counts, the unit and the fractions."""
+    p = validate({"folds": 1, "seed": 0})
+    with pytest.raises(select.SelectionError) as err:
+        select._scene_split(p, _kept_scenes(4, per_log=2), "log")
+    assert str(err.value) == (
+        f"split(s) ['val'] got no scene: 4 kept scenes in 2 log(s) cannot fill train, val "
+        f"and test (split_fractions={p.split_fractions}); use more scenes or other fractions")
 
 
 def test_the_all_distances_training_set_of_chapter_11(tiny_nusc, tiny_params, selection):
