@@ -63,6 +63,13 @@ def _objects() -> pd.DataFrame:
     return with_folds(obj, scenes).assign(split=lambda d: "f" + d["fold"].astype(str))
 
 
+def test_rows_get_their_scene_s_fold_as_int_and_val_flag_as_bool():
+    scenes = pd.DataFrame({"scene": ["a", "b"], "fold": [1.0, 0.0], "val_scene": [1, 0]})
+    out = with_folds(pd.DataFrame({"scene": ["b", "a", "a"]}), scenes)
+    assert out["fold"].tolist() == [0, 1, 1] and out["fold"].dtype == int
+    assert out["val_scene"].tolist() == [False, True, True] and out["val_scene"].dtype == bool
+
+
 def test_fold_roles_test_its_own_fold_and_train_on_the_others():
     obj = _objects()
     seen_test = []

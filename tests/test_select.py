@@ -296,6 +296,74 @@ def test_each_selection_function_shows_its_bar_by_default_and_none_when_told(
     assert capsys.readouterr().err == ""
 
 
+def _as_real_data(tiny_world, root):
+    """A copy of the tiny world's tables without the generator's world file (so read as
+    real nuScenes), its image folders linked."""
+    from flowmod.params import WORLD_FILE
+
+    dataroot, version = tiny_world
+    shutil.copytree(dataroot / version, root / version,
+                    ignore=shutil.ignore_patterns(WORLD_FILE))
+    for d in ("samples", "sweeps", "maps"):
+        (root / d).symlink_to(dataroot / d)
+    return root
+
+
+def test_real_data_is_split_by_log(tmp_path, tiny_world, tiny_params):
+    """Read as real data (no world file), scenes are split by log: the tiny world's first
+    four scenes share one log (one of them excluded at night), so three folds cannot be
+    made and two keep that log's scenes in one fold."""
+    p = tiny_params.model_copy(update={"dataroot": str(_as_real_data(tiny_world, tmp_path))})
+    with pytest.raises(select.SelectionError, match=r"^folds=3 but the kept scenes form only "
+                                                    r"2 independent group\(s\)"):
+        select.select_keyframes(p, progress=False)
+    scenes = select.select_keyframes(p.model_copy(update={"folds": 2}), progress=False).scenes
+    assert set(scenes["split_unit"]) == {"log"}
+    kept = scenes[scenes["split"] != "excluded"]
+    assert kept.groupby("log_token")["fold"].nunique().tolist() == [1, 1]
+
+
+def test_without_a_devkit_the_dataroot_is_opened_and_reread_when_a_table_changes(
+        tmp_path, tiny_world, tiny_params, tiny_nusc, selection):
+    """select_keyframes and select_general open the profile's dataroot when given no devkit
+    (same tables as with one); the opened devkit is reused until a table file changes."""
+    alone = select.select_keyframes(tiny_params, progress=False)
+    given = select.select_keyframes(tiny_params, tiny_nusc, progress=False)
+    pd.testing.assert_frame_equal(alone.objects, given.objects)
+    gen = select.select_general(tiny_params, selection.scenes, progress=False)
+    for a, b in zip(gen, select.select_general(tiny_params, selection.scenes, tiny_nusc,
+                                               progress=False), strict=True):
+        pd.testing.assert_frame_equal(a, b)
+    root = _as_real_data(tiny_world, tmp_path)
+    version = tiny_world[1]
+    first = select.open_nuscenes(root, version)
+    assert select.open_nuscenes(root, version) is first
+    scene = root / version / "scene.json"
+    scene.write_text(scene.read_text() + " ")
+    assert select.open_nuscenes(root, version) is not first
+
+
+def test_a_filter_that_excludes_every_scene_is_named(tiny_params, tiny_nusc):
+    with pytest.raises(select.SelectionError) as err:
+        select.select_keyframes(tiny_params.model_copy(update={"exclude_descriptions": ["peds"]}),
+                                tiny_nusc, progress=False)
+    assert str(err.value) == ("all 5 scenes were excluded by their descriptions (['peds']); "
+                              "change exclude_descriptions")
+
+
+def test_the_all_distances_set_without_bars_and_with_fresh_indexes(tiny_params, selection,
+                                                                   capsys):
+    """select_wide(progress=False) shows no bar and numbers the keyframe and sweep pairs
+    afresh, one row each."""
+    capsys.readouterr()
+    p = tiny_params.model_copy(update={"wide_sweep_stride": 2})
+    pairs, objects = select.select_wide(p, selection.scenes, progress=False)
+    assert capsys.readouterr().err == ""
+    assert set(pairs["set"]) == {"keyframe", "sweep"}
+    assert pairs.index.tolist() == list(range(len(pairs)))
+    assert objects.index.tolist() == list(range(len(objects)))
+
+
 def test_artefacts_are_skipped_when_up_to_date(tiny_params, selection):
     paths = sorted(tiny_params.run_path.glob("*/*.parquet"))
     assert {p.parent.name for p in paths} == {"select", "general"}
