@@ -364,6 +364,43 @@ def test_the_all_distances_set_without_bars_and_with_fresh_indexes(tiny_params, 
     assert objects.index.tolist() == list(range(len(objects)))
 
 
+def test_both_sets_measure_distance_as_the_profile_says(tiny_nusc, tiny_params, selection):
+    """keyframe_set and general_set pass distance_mode on: with camera, each object's
+    distance is measured from the camera, not from the ego origin."""
+    kept = selection.scenes[selection.scenes["split"] != "excluded"]
+    swept = selection.scenes[selection.scenes["has_sweeps"]]
+    cam = tiny_params.model_copy(update={"distance_mode": "camera"})
+    for run in (lambda q: select.keyframe_set(tiny_nusc, kept, q, False)[1],
+                lambda q: select.general_set(tiny_nusc, swept, q, False)[1]):
+        ego, camera = run(tiny_params), run(cam)
+        both = ego.merge(camera, on=["pair_id", "instance_token"], suffixes=("_ego", "_cam"))
+        assert len(both) >= 3
+        assert ((both["distance_cam"] - both["distance_ego"]).abs() > 0.1).all()
+
+
+def test_generalisation_scenes_take_turns_over_the_folds(tiny_nusc, tiny_params, selection):
+    """With every kept scene taken as swept (pairs one frame apart), general_max_scenes 2 picks the first scene of
+    fold 0 and of fold 1 (fold 0 has two); with one split only the test scene is used.
+    Objects keep the profile's visibility at the previous keyframe; boxes are renumbered."""
+    scenes = selection.scenes.assign(has_sweeps=True)
+    kept = scenes[scenes["fold"] >= 0]
+    assert (kept["fold"] == 0).sum() == 2
+    p = tiny_params.model_copy(update={"general_max_scenes": 2, "general_interval": 1})
+    pairs, objects, boxes = select.select_general(p, scenes, tiny_nusc, progress=False)
+    first = [kept.loc[kept["fold"] == k, "scene"].iloc[0] for k in (0, 1)]
+    assert sorted(set(pairs["scene"])) == sorted(first)
+    assert set(objects["visibility"]) == {"4"}
+    assert len(boxes) and boxes.index.tolist() == list(range(len(boxes)))
+    assert "index" not in boxes.columns
+    seen = select.select_general(p.model_copy(update={"visibility_tokens": ["1", "2", "3"]}),
+                                 scenes, tiny_nusc, progress=False)[1]
+    assert len(seen) and "4" not in set(seen["visibility"])
+    test = first[1]
+    one = scenes.assign(split=np.where(scenes["scene"] == test, "test", "train"))
+    q = p.model_copy(update={"folds": 1})
+    assert set(select.select_general(q, one, tiny_nusc, progress=False)[0]["scene"]) == {test}
+
+
 def test_artefacts_are_skipped_when_up_to_date(tiny_params, selection):
     paths = sorted(tiny_params.run_path.glob("*/*.parquet"))
     assert {p.parent.name for p in paths} == {"select", "general"}
