@@ -364,6 +364,13 @@ def test_the_all_distances_set_without_bars_and_with_fresh_indexes(tiny_params, 
     assert objects.index.tolist() == list(range(len(objects)))
 
 
+def test_the_all_distances_set_shows_both_bars_by_default(tiny_params, selection, capsys):
+    capsys.readouterr()
+    select.select_wide(tiny_params.model_copy(update={"wide_sweep_stride": 2}), selection.scenes)
+    err = capsys.readouterr().err
+    assert "keyframe pairs: 100%" in err and "sweep pairs: 100%" in err
+
+
 def test_both_sets_measure_distance_as_the_profile_says(tiny_nusc, tiny_params, selection):
     """keyframe_set and general_set pass distance_mode on: with camera, each object's
     distance is measured from the camera, not from the ego origin."""
@@ -399,6 +406,40 @@ def test_generalisation_scenes_take_turns_over_the_folds(tiny_nusc, tiny_params,
     one = scenes.assign(split=np.where(scenes["scene"] == test, "test", "train"))
     q = p.model_copy(update={"folds": 1})
     assert set(select.select_general(q, one, tiny_nusc, progress=False)[0]["scene"]) == {test}
+
+
+def _build(root, p, stage: str, select_dir):
+    """A dag.Build of one selection node into root/<stage> (the select node's published
+    folder: select_dir), with a stray file left in its building folder."""
+    from types import SimpleNamespace
+
+    from flowmod import dag
+
+    graph = SimpleNamespace(node_dir=lambda params, node: select_dir)
+    b = dag.Build(graph=graph, node=dag.Node(stage), params=dag.StageParams(p, dag.Node(stage)),
+                  inputs={"select": {}}, payload={}, fingerprint="f", final=root / stage,
+                  up_to_date=False)
+    b.dir.mkdir(parents=True)
+    (b.dir / "left-by-a-killed-build.parquet").write_text("x")
+    return b
+
+
+def test_the_selection_nodes_build_afresh_with_bars_as_asked(tmp_path, tiny_params, selection,
+                                                            capsys):
+    """build_select and build_general open the dataroot, show their bars only when asked
+    and start from an empty building folder (a killed build's files are not published)."""
+    (tmp_path / "select_in").mkdir()
+    selection.scenes.to_parquet(tmp_path / "select_in" / "scenes.parquet")
+    capsys.readouterr()
+    for stage, build, bar, files in (
+            ("select", select.build_select, "keyframe pairs", ["objects", "pairs", "scenes"]),
+            ("general", select.build_general, "general pairs", ["boxes", "objects", "pairs"])):
+        for progress in (True, False):
+            b = _build(tmp_path / str(progress), tiny_params, stage, tmp_path / "select_in")
+            info = build(b, progress)
+            assert (bar in capsys.readouterr().err) == progress, (stage, progress)
+            assert sorted(f.name for f in b.dir.iterdir()) == [f"{n}.parquet" for n in files]
+            assert info["pairs"] == len(pd.read_parquet(b.dir / "pairs.parquet")) > 0
 
 
 def test_artefacts_are_skipped_when_up_to_date(tiny_params, selection):
