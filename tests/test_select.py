@@ -950,6 +950,53 @@ def test_the_failure_analysis_boxes_are_every_object_in_front_clipped(tiny_nusc,
                                    atol=1e-6)
 
 
+def _frame_box_edges(nusc) -> set[str]:
+    """Check frame_boxes on every camera frame of ``nusc`` against the devkit's boxes: the
+    corners more than 0.1 m in front, clipped to [0, w - 1] x [0, h - 1]. Returns the image
+    edges that some box crosses."""
+    from nuscenes.utils.geometry_utils import BoxVisibility, view_points
+
+    crossed = set()
+    for sc in nusc.scene:
+        for sd in select.camera_frames(nusc, sc["token"], keyframes_only=False):
+            _, boxes, K = nusc.get_sample_data(sd["token"], box_vis_level=BoxVisibility.ANY)
+            w, h = sd["width"], sd["height"]
+            want = []
+            for b in boxes:
+                c = b.corners()
+                uv = view_points(c[:, c[2] > 0.1], K, normalize=True)
+                x0, y0, x1, y1 = uv[0].min(), uv[1].min(), uv[0].max(), uv[1].max()
+                crossed |= {e for e, out in (("left", x0 < 0), ("top", y0 < 0),
+                                             ("right", x1 > w - 1), ("bottom", y1 > h - 1)) if out}
+                want.append([max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)])
+            got = [[r["xmin"], r["ymin"], r["xmax"], r["ymax"]]
+                   for r in select.frame_boxes(nusc, sd)]
+            np.testing.assert_allclose(np.reshape(got, (-1, 4)), np.reshape(want, (-1, 4)),
+                                       atol=1e-6)
+    return crossed
+
+
+def test_frame_boxes_of_every_frame_clipped_at_each_image_edge(tmp_path, tiny_world, tiny_nusc):
+    """frame_boxes against the devkit on every camera frame of the tiny world, and of two
+    copies whose camera's principal point is moved (boxes pushed over the right and bottom
+    edges, then over the top one), so that each edge's clipping is exercised."""
+    from nuscenes.nuscenes import NuScenes
+
+    crossed = _frame_box_edges(tiny_nusc)
+    version = tiny_world[1]
+    for name, (dx, dy) in {"right-bottom": (500.0, 300.0), "top": (0.0, -480.0)}.items():
+        root = _as_real_data(tiny_world, tmp_path / name)
+        table = root / version / "calibrated_sensor.json"
+        rows = json.loads(table.read_text())
+        for r in rows:
+            if r["camera_intrinsic"]:
+                r["camera_intrinsic"][0][2] += dx
+                r["camera_intrinsic"][1][2] += dy
+        table.write_text(json.dumps(rows))
+        crossed |= _frame_box_edges(NuScenes(version=version, dataroot=str(root), verbose=False))
+    assert crossed == {"left", "top", "right", "bottom"}
+
+
 def test_the_all_distances_training_set_of_one_split(tiny_params, selection, capsys):
     """With one split (folds 1) the training set comes from the train and val scenes only,
     opened from the dataroot when no devkit is given, with progress bars by default; it is
