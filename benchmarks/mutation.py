@@ -105,11 +105,13 @@ def module_of(name: str) -> str:
 
 
 def commit() -> str:
-    """The checkout's commit (short), ``+ changes`` when its tracked files differ from it."""
+    """The checkout's commit (short), ``+ changes`` when its tracked files differ from it
+    (the report itself, which every run rewrites, not counted)."""
     def git(*args: str) -> str:
         return subprocess.run(["git", *args], cwd=ROOT, capture_output=True,
                               text=True).stdout.strip()
-    dirty = git("status", "--porcelain", "--untracked-files=no")
+    dirty = git("status", "--porcelain", "--untracked-files=no", "--", ".",
+                ":!benchmarks/mutation.md")
     return (git("rev-parse", "--short", "HEAD") or "unknown") + (" + changes" if dirty else "")
 
 

@@ -132,6 +132,30 @@ def test_the_mutation_report_names_its_commit_and_scores_each_module(monkeypatch
     assert "open (the verdict was given for another change: recheck)" in text
 
 
+def test_the_mutation_report_s_commit_ignores_the_report_it_rewrites(tmp_path, monkeypatch):
+    """'+ changes' marks an edited tracked file, but not benchmarks/mutation.md, which every
+    run rewrites before the next report reads the commit."""
+    sys.path.insert(0, str(repo_root() / "benchmarks"))
+    try:
+        mutation = importlib.import_module("mutation")
+    finally:
+        sys.path.pop(0)
+    git = lambda *a: subprocess.run(["git", "-C", str(tmp_path), *a], check=True,  # noqa: E731
+                                    capture_output=True, text=True).stdout.strip()
+    git("init", "-q")
+    (tmp_path / "benchmarks").mkdir()
+    for f in ("benchmarks/mutation.md", "code.py"):
+        (tmp_path / f).write_text("a\n")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "x")
+    head = git("rev-parse", "--short", "HEAD")
+    monkeypatch.setattr(mutation, "ROOT", tmp_path)
+    (tmp_path / "benchmarks/mutation.md").write_text("b\n")
+    assert mutation.commit() == head
+    (tmp_path / "code.py").write_text("b\n")
+    assert mutation.commit() == head + " + changes"
+
+
 def test_the_mutation_run_records_a_time_only_for_a_whole_run():
     """An interrupted mutmut run (mutants left ``not checked``) or a module with no mutants
     is not a whole run: its seconds must not reach the report."""
