@@ -386,9 +386,10 @@ def test_both_sets_measure_distance_as_the_profile_says(tiny_nusc, tiny_params, 
 
 
 def test_generalisation_scenes_take_turns_over_the_folds(tiny_nusc, tiny_params, selection):
-    """With every kept scene taken as swept (pairs one frame apart), general_max_scenes 2 picks the first scene of
-    fold 0 and of fold 1 (fold 0 has two); with one split only the test scene is used.
-    Objects keep the profile's visibility at the previous keyframe; boxes are renumbered."""
+    """With every kept scene taken as swept (pairs one frame apart), general_max_scenes 2
+    picks the first scene of fold 0 and of fold 1 (fold 0 has two); with one split only the
+    test scene is used. Objects keep the profile's visibility at the previous keyframe;
+    boxes are renumbered."""
     scenes = selection.scenes.assign(has_sweeps=True)
     kept = scenes[scenes["fold"] >= 0]
     assert (kept["fold"] == 0).sum() == 2
@@ -924,25 +925,38 @@ def test_keyframe_pairs_and_objects_carry_their_tables_fields(tiny_world, tiny_p
         assert o.category == cat and cat in tiny_params.categories
 
 
+def _devkit_frame_boxes(nusc, sd: dict) -> tuple[list[list], set[str]]:
+    """What frame_boxes should give for frame ``sd``, from the devkit's boxes: per box
+    [instance_token, category, xmin, ymin, xmax, ymax], the box of its corners more than
+    0.1 m in front clipped to [0, w - 1] x [0, h - 1] (px); and the image edges that some
+    box crosses before clipping."""
+    from nuscenes.utils.geometry_utils import BoxVisibility, view_points
+
+    _, boxes, K = nusc.get_sample_data(sd["token"], box_vis_level=BoxVisibility.ANY)
+    w, h = sd["width"], sd["height"]
+    rows, crossed = [], set()
+    for b in boxes:
+        c = b.corners()
+        c = c[:, c[2] > 0.1]
+        if not c.shape[1]:
+            continue
+        uv = view_points(c, K, normalize=True)
+        x0, y0, x1, y1 = uv[0].min(), uv[1].min(), uv[0].max(), uv[1].max()
+        crossed |= {e for e, out in (("left", x0 < 0), ("top", y0 < 0),
+                                     ("right", x1 > w - 1), ("bottom", y1 > h - 1)) if out}
+        rows.append([nusc.get("sample_annotation", b.token)["instance_token"], b.name,
+                     max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)])
+    return rows, crossed
+
+
 def test_the_failure_analysis_boxes_are_every_object_in_front_clipped(tiny_nusc, selection):
     """frame_boxes of a generalisation pair's frame 1: every annotated object (any category
     or visibility) with a corner in front of the camera, its box over those corners clipped
     to the image, in the devkit's order."""
-    from nuscenes.utils.geometry_utils import BoxVisibility, view_points
-
     pairs = selection.pairs[selection.pairs["set"] == "general"].head(4)
     assert len(pairs) > 0
     for pid, sd_token in zip(pairs["pair_id"], pairs["sd_token_1"], strict=True):
-        _, boxes, K = tiny_nusc.get_sample_data(sd_token, box_vis_level=BoxVisibility.ANY)
-        want = []
-        for b in boxes:
-            c = b.corners()
-            c = c[:, c[2] > 0.1]
-            if c.shape[1]:
-                uv = view_points(c, K, normalize=True)
-                want.append([tiny_nusc.get("sample_annotation", b.token)["instance_token"],
-                             b.name, max(uv[0].min(), 0), max(uv[1].min(), 0),
-                             min(uv[0].max(), 1599), min(uv[1].max(), 899)])
+        want, _ = _devkit_frame_boxes(tiny_nusc, tiny_nusc.get("sample_data", sd_token))
         got = selection.boxes[selection.boxes["pair_id"] == pid]
         cols = ["instance_token", "category", "xmin", "ymin", "xmax", "ymax"]
         assert got[cols[:2]].to_numpy().tolist() == [w[:2] for w in want] and want
@@ -951,28 +965,18 @@ def test_the_failure_analysis_boxes_are_every_object_in_front_clipped(tiny_nusc,
 
 
 def _frame_box_edges(nusc) -> set[str]:
-    """Check frame_boxes on every camera frame of ``nusc`` against the devkit's boxes: the
-    corners more than 0.1 m in front, clipped to [0, w - 1] x [0, h - 1]. Returns the image
-    edges that some box crosses."""
-    from nuscenes.utils.geometry_utils import BoxVisibility, view_points
-
+    """Check frame_boxes on every camera frame of ``nusc`` against
+    :func:`_devkit_frame_boxes`. Returns the image edges that some box crosses."""
     crossed = set()
     for sc in nusc.scene:
         for sd in select.camera_frames(nusc, sc["token"], keyframes_only=False):
-            _, boxes, K = nusc.get_sample_data(sd["token"], box_vis_level=BoxVisibility.ANY)
-            w, h = sd["width"], sd["height"]
-            want = []
-            for b in boxes:
-                c = b.corners()
-                uv = view_points(c[:, c[2] > 0.1], K, normalize=True)
-                x0, y0, x1, y1 = uv[0].min(), uv[1].min(), uv[0].max(), uv[1].max()
-                crossed |= {e for e, out in (("left", x0 < 0), ("top", y0 < 0),
-                                             ("right", x1 > w - 1), ("bottom", y1 > h - 1)) if out}
-                want.append([max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)])
-            got = [[r["xmin"], r["ymin"], r["xmax"], r["ymax"]]
-                   for r in select.frame_boxes(nusc, sd)]
-            np.testing.assert_allclose(np.reshape(got, (-1, 4)), np.reshape(want, (-1, 4)),
-                                       atol=1e-6)
+            want, edges = _devkit_frame_boxes(nusc, sd)
+            crossed |= edges
+            got = [[r["instance_token"], r["category"], r["xmin"], r["ymin"], r["xmax"],
+                    r["ymax"]] for r in select.frame_boxes(nusc, sd)]
+            assert [g[:2] for g in got] == [w[:2] for w in want]
+            np.testing.assert_allclose(np.reshape([g[2:] for g in got], (-1, 4)),
+                                       np.reshape([w[2:] for w in want], (-1, 4)), atol=1e-6)
     return crossed
 
 
