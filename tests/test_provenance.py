@@ -9,6 +9,7 @@ parameter back restores instead of recomputing; a failed forced rerun loses noth
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -589,3 +590,43 @@ def test_published_files_are_readable_as_the_umask_allows(tmp_path):
         assert (tmp_path / "c.json").stat().st_mode & 0o777 == 0o600
     finally:
         os.umask(old)
+
+
+def test_an_edit_of_a_stages_code_makes_exactly_it_and_its_readers_stale(finished, tmp_path):
+    """Issue 53: the crop window scaled by 1.25 in a scratch copy of the package. Its status
+    (in a process that imports the copy) names the edited file for every stage whose code
+    imports crops.py, their readers wait for them, and nothing else is stale; the copy
+    unedited is up to date (a digest is of the code, never of where it lives)."""
+    import subprocess
+    import sys
+
+    from flowmod import codedigest
+
+    src = tmp_path / "src"
+    shutil.copytree(codedigest.PACKAGE_ROOT, src / "flowmod",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    script = ("import json, sys; from flowmod import pipeline; from flowmod.params import Params; "
+              "p = Params.model_validate_json(sys.argv[1]); "
+              "print(json.dumps({str(s.node): [s.state, s.why] for s in pipeline.status(p)}))")
+
+    def status() -> dict[str, list[str]]:
+        out = subprocess.run([sys.executable, "-c", script, finished.model_dump_json()],
+                             capture_output=True, text=True, check=True,
+                             env={**os.environ, "PYTHONPATH": str(src)})
+        return json.loads(out.stdout)
+
+    assert {state for state, _ in status().values()} == {"up to date"}
+    crops_py = src / "flowmod" / "crops.py"
+    text = crops_py.read_text()
+    line = "    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)\n"
+    assert text.count(line) == 1
+    crops_py.write_text(text.replace(line, line + "    scale = scale * 1.25\n", 1))
+    st = status()
+    edited = {n for n in pipeline.nodes(finished)
+              if "crops.py" in pipeline.GRAPH.stage(n).code()}
+    assert {dag.Node("crops", "dis", "keyframe"), dag.Node("train", "dis", "f0s0")} <= edited
+    assert {n for n, (state, _) in st.items() if state != "up to date"} == {
+        str(n) for n in downstream(finished, edited)}
+    assert st["crops[dis/keyframe]"][1].startswith("code changed since built: crops.py")
+    for n in ("world", "select", "flow[dis/keyframe]", "shipped"):
+        assert st[n] == ["up to date", ""], n

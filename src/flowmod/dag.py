@@ -9,12 +9,15 @@ A *node* is one stage for one flow method and part (``crops[dis/keyframe]``). It
 *fingerprint* is :func:`flowmod.artefacts.fingerprint` of :func:`payload`:
 
     (stage name, the stage's code version, the node,
+     the digests of the code the stage runs,
      the values of exactly the parameters the stage reads,
      the fingerprints of the artefacts it read)
 
 where "the parameters the stage reads" is the ``read_by`` declaration on the
 :class:`~flowmod.params.Params` fields (the only list; a stage that reads an undeclared
-parameter fails, see :class:`StageParams`). A *source* stage (the data) has no inputs: its
+parameter fails, see :class:`StageParams`). "The code the stage runs" is the module of its
+build function and every flowmod module that one imports (:mod:`flowmod.codedigest`), so
+an edit of that code makes exactly its nodes, and their readers, stale. A *source* stage (the data) has no inputs: its
 fingerprint is the identity of its data (:class:`Source`). No file time enters any
 fingerprint.
 
@@ -38,6 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
+from flowmod import codedigest
 from flowmod.artefacts import (
     canonical,
     file_digest,
@@ -119,7 +123,9 @@ class Stage:
     """
 
     name: str
-    #: Bump when the stage's code changes what it writes: every node of it becomes stale.
+    #: An override: the code a stage runs enters its fingerprint by content
+    #: (:meth:`code`); bump this only for a change the code digest cannot see (a library's
+    #: behaviour, a file the code reads): every node of the stage becomes stale.
     version: int
     chapter: str
     #: Folder under the run directory (``{method}``, ``{part}``, ``{key}`` filled per node).
@@ -135,6 +141,12 @@ class Stage:
     def chapters(self) -> set[str]:
         """Every chapter that builds some node of this stage."""
         return {self.chapter, *(c for c, _ in self.parts.values())}
+
+    def code(self) -> dict[str, str]:
+        """``{module file: digest}`` of the code the stage runs: its build function's module
+        and the flowmod modules that imports (:func:`flowmod.codedigest.digests`; {} for a
+        source)."""
+        return codedigest.digests(self.build.__module__) if self.build is not None else {}
 
 
 # --- parameters as a node sees them ----------------------------------------------------------
@@ -185,9 +197,12 @@ def values(p: Params, node: Node) -> dict[str, Any]:
     return out
 
 
-def payload(p: Params, node: Node, version: int, input_fps: Mapping[str, str]) -> dict[str, Any]:
-    """What ``node``'s fingerprint is the hash of (``version``: its stage's code version)."""
+def payload(p: Params, node: Node, version: int, input_fps: Mapping[str, str],
+            code: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """What ``node``'s fingerprint is the hash of (``version``: its stage's code version;
+    ``code``: the digests of the code it runs, :meth:`Stage.code`)."""
     return {"stage": node.stage, "version": version, "node": str(node),
+            "code": dict(sorted((code or {}).items())),
             "params": values(p, node), "inputs": dict(sorted(input_fps.items()))}
 
 
@@ -375,6 +390,16 @@ def _short(v: Any) -> str:
     return s if len(s) <= 40 else s[:37] + "..."
 
 
+def code_changes(rec: Mapping[str, Any], code: Mapping[str, str], n: int = 3) -> list[str]:
+    """``["code changed since built: crops.py, flow/stage.py"]`` (the first ``n`` files
+    whose code differs from what the manifest ``rec`` records), or [] if none does."""
+    if "code" not in rec:
+        return ["code not recorded (built before code entered fingerprints)"] if code else []
+    files = codedigest.changed(rec["code"], dict(code))
+    more = f" (+{len(files) - n} more)" if len(files) > n else ""
+    return [f"code changed since built: {', '.join(files[:n])}{more}"] if files else []
+
+
 def diff(old: Mapping[str, Any], new: Mapping[str, Any], n: int = 3) -> list[str]:
     """``key: old -> new`` for the (first ``n``) keys whose values differ."""
     keys = [k for k in sorted(set(old) | set(new)) if canonical(old.get(k)) != canonical(new.get(k))]
@@ -462,7 +487,7 @@ class Graph:
             ins = self.inputs(node, p)
             fps = {str(i): exp.get(i) if i in exp else self._recorded_fp(p, i) for i in ins}
             exp[node] = None if any(v is None for v in fps.values()) else fingerprint(
-                payload(p, node, s.version, fps))
+                payload(p, node, s.version, fps, s.code()))
         return exp
 
     def _recorded_fp(self, p: Params, node: Node) -> str | None:
@@ -493,10 +518,11 @@ class Graph:
         """(state, reason) of a node whose manifest does not carry ``fp``."""
         if rec is None:
             return "missing", "never built" + (f"; waits for {waiting[-1]}" if waiting else "")
-        version = self.stage(node).version
+        s = self.stage(node)
         reasons = []
-        if rec.get("version") != version:
-            reasons.append(f"code version {rec.get('version')} -> {version}")
+        if rec.get("version") != s.version:
+            reasons.append(f"code version {rec.get('version')} -> {s.version}")
+        reasons += code_changes(rec, s.code())
         reasons += diff(rec.get("params", {}), values(p, node))
         changed = [f"input {i} " + ("changed" if i not in waiting else "is missing"
                                     if exp[i] is None and self.stage(i).source else "is stale")
@@ -519,8 +545,9 @@ class Graph:
             if rec is None:
                 raise MissingInput(f"{node} reads {i}, which has not been built: {self.how(i)}")
             recs[str(i)] = rec
-        pl = payload(p, node, self.stage(node).version,
-                     {k: r["fingerprint"] for k, r in recs.items()})
+        s = self.stage(node)
+        pl = payload(p, node, s.version, {k: r["fingerprint"] for k, r in recs.items()},
+                     s.code())
         fp = fingerprint(pl)
         final = self.node_dir(p, node)
         current = read_manifest(final / "manifest.json")

@@ -120,7 +120,7 @@ class GTFlow(FlowEstimator):
     def _world() -> Any:
         import importlib
 
-        return importlib.import_module("flowmod.world")  # lazy: another stage, heavy import
+        return importlib.import_module("flowmod.world.truth")  # lazy: another stage, heavy import
 
     def estimate_tokens(self, sd_token_1: str, sd_token_2: str) -> tuple[np.ndarray, np.ndarray]:
         """Exact flow (H, W, 2) float32 px and its valid mask (H, W) bool, frame
