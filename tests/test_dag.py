@@ -515,3 +515,43 @@ def test_published_digests_can_go_through_a_cache_and_a_file_without_default_sta
     monkeypatch.delitem(dag.FILE_DEFAULTS, "raft_weights", raising=False)
     p = validate({"run_dir": str(tmp_path / "runs"), "raft_weights": None})
     assert dag.values(p, dag.Node("flow", "raft", "keyframe"))["raft_weights"] is None
+
+
+def test_an_edit_whose_mtime_is_put_back_is_still_seen(tmp_path):
+    """Issue 53: the stat cache was keyed by size and mtime, so a same-size edit with its
+    mtime restored (``touch -d``, ``os.utime``) kept the old digest and passed as up to
+    date. The ctime, which no user call can set back, is in the key."""
+    import hashlib
+    import os
+
+    from flowmod import artefacts
+
+    f, cache = tmp_path / "crops.npy", tmp_path / ".digests.json"
+    f.write_bytes(b"\x01" * 64)
+    st = f.stat()
+    assert artefacts.file_digest(f, cache) == hashlib.sha256(b"\x01" * 64).hexdigest()
+    f.write_bytes(b"\x00" * 64)
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert f.stat().st_mtime_ns == st.st_mtime_ns and f.stat().st_size == st.st_size
+    assert artefacts.file_digest(f, cache) == hashlib.sha256(b"\x00" * 64).hexdigest()
+    assert dag.damage(tmp_path, {"files": {"crops.npy": {
+        "size": 64, "sha256": hashlib.sha256(b"\x01" * 64).hexdigest()}}}, cache) == (
+        f"{f} changed since it was built (same size, other content)")
+
+
+@pytest.mark.parametrize("text", ['["not", "a", "dict"]', '{"/x": 5}', '{"/x": [1, 2, "h"]}',
+                                  '{"/x": [1, 2, 3, 4]}', "{cut"])
+def test_a_malformed_digest_cache_is_ignored_and_rewritten(toy, text):
+    """Issue 53: a ``.digests.json`` of the wrong shape crashed ``--status`` with a
+    TypeError; it is ignored (every file read again) and rewritten well-formed."""
+    from flowmod import artefacts
+
+    g, p = toy
+    g.build(p)
+    artefacts._DIGESTS.clear()
+    artefacts._LOADED.clear()
+    dag.digest_cache(p).write_text(text)
+    assert {s.state for s in g.status(p)} == {"up to date", "missing"}
+    entries = json.loads(dag.digest_cache(p).read_text())
+    out = str((g.node_dir(p, dag.Node("select")) / "out.json").resolve())
+    assert "/x" not in entries and len(entries[out]) == 4 and len(entries[out][3]) == 64

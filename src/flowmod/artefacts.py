@@ -84,13 +84,37 @@ def write_manifest(path: str | os.PathLike[str], record: Mapping[str, Any]) -> N
     write_json(path, {**record, "written": time.time()})
 
 
-_DIGESTS: dict[str, tuple[int, int, str]] = {}
+#: ``{resolved path: (size, mtime_ns, ctime_ns, sha256)}``: the digests this process knows.
+_DIGESTS: dict[str, tuple[int, int, int, str]] = {}
+#: The stat caches read into :data:`_DIGESTS` by this process.
+_LOADED: set[str] = set()
+
+
+def _stat_key(st: os.stat_result) -> tuple[int, int, int]:
+    """What decides whether a file is read again: its size, mtime and ctime (ns). Putting
+    the mtime back after an edit (``touch -d``, ``os.utime``) cannot reset the ctime."""
+    return st.st_size, st.st_mtime_ns, st.st_ctime_ns
+
+
+def _load_digest_cache(cache: Path) -> None:
+    """Read a stat cache into :data:`_DIGESTS`, keeping only well-formed entries (a cache of
+    another layout, edited or cut short is ignored, and rewritten when next saved)."""
+    try:
+        data = json.loads(cache.read_text())
+    except (OSError, ValueError):
+        return
+    if not isinstance(data, dict):
+        return
+    for k, v in data.items():
+        if (isinstance(v, list) and len(v) == 4 and all(type(x) is int for x in v[:3])
+                and isinstance(v[3], str) and len(v[3]) == 64):
+            _DIGESTS.setdefault(k, tuple(v))  # type: ignore[arg-type]
 
 
 def file_digest(path: str | os.PathLike[str], cache: str | os.PathLike[str] | None = None) -> str:
     """sha256 (hex) of a file's content. ``cache``: a JSON file that remembers digests by
-    (resolved path, size, mtime_ns), so a file is read again only when its stat changed (the
-    stat only decides whether to re-read: it never enters a digest)."""
+    (resolved path, size, mtime_ns, ctime_ns), so a file is read again only when its stat
+    changed (the stat only decides whether to re-read: it never enters a digest)."""
     return file_digests([path], cache)[0]
 
 
@@ -98,24 +122,22 @@ def file_digests(paths: Sequence[str | os.PathLike[str]],
                  cache: str | os.PathLike[str] | None = None) -> list[str]:
     """:func:`file_digest` of many files, the cache written once at the end (OSError for a
     file that cannot be read)."""
-    if cache is not None and not _DIGESTS:
-        try:
-            _DIGESTS.update({k: tuple(v) for k, v in json.loads(Path(cache).read_text()).items()})
-        except (OSError, ValueError):
-            pass
+    if cache is not None and (str(cache) not in _LOADED or not _DIGESTS):
+        _LOADED.add(str(cache))
+        _load_digest_cache(Path(cache))
     out, new = [], False
     for path in paths:
         p = Path(path).resolve()
-        st = p.stat()
+        key = _stat_key(p.stat())
         hit = _DIGESTS.get(str(p))
-        if not (hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns):
+        if not (hit and hit[:3] == key):
             h = hashlib.sha256()
             with open(p, "rb") as f:
                 for block in iter(lambda f=f: f.read(1 << 22), b""):
                     h.update(block)
-            hit = _DIGESTS[str(p)] = (st.st_size, st.st_mtime_ns, h.hexdigest())
+            hit = _DIGESTS[str(p)] = (*key, h.hexdigest())
             new = True
-        out.append(hit[2])
+        out.append(hit[3])
     if cache is not None and new:
         with contextlib.suppress(OSError):
             write_json(cache, _DIGESTS)
