@@ -71,8 +71,7 @@ def test_a_relative_import_is_resolved_like_an_absolute_one(tmp_path):
 
 def fresh_digest(f: Path) -> str:
     """:func:`source_digest` of ``f`` as it is now (the per-process caches dropped)."""
-    source_digest.cache_clear()
-    codedigest._tree.cache_clear()
+    codedigest.forget()
     return source_digest(f)
 
 

@@ -531,3 +531,51 @@ def test_swept_scenes_get_near_movers_and_keep_everything_else():
             added.append((agent["role"], float(gap.min())))
     assert len(added) >= 8 and all(role == "moving" for role, _ in added)
     assert all(gap < 30.0 for _, gap in added), added
+
+
+def test_a_same_size_edit_of_a_frame_is_an_edit_of_the_world(tiny_world, tmp_path):
+    """Issue 53: the world's identity read each frame's size and JPEG end marker, so 64
+    zeroed bytes in the middle of a frame left DIS flow, crops and models "up to date"
+    against a changed image. Frames are identified by content now."""
+    import shutil
+
+    from flowmod.world import source
+
+    root, version = tiny_world
+    data = tmp_path / "data"
+    shutil.copytree(root, data)
+    p = validate({"profile": "smoke", "dataroot": str(data), "version": version,
+                  "run_dir": str(tmp_path / "runs"), "synthetic": False})
+    before = source.world_fingerprint(p)
+    assert source.edits(p) == "" and before == source.world_fingerprint(p)
+    frame = sorted((data / "samples").rglob("*.jpg"))[3]
+    raw = bytearray(frame.read_bytes())
+    raw[len(raw) // 2: len(raw) // 2 + 64] = bytes(64)
+    frame.write_bytes(bytes(raw))
+    assert source.world_fingerprint(p) != before
+    rel = frame.relative_to(data).as_posix()
+    assert f"1 image(s), e.g. {rel}" in source.edits(p)
+    assert source.WorldSource().status(p)[0] == "up to date"
+
+
+def test_the_generators_code_names_the_world(tmp_path):
+    """An edit of what the generator draws names another world (generated beside the old
+    one), a docstring does not; its parameters name it as before."""
+    import shutil
+
+    from flowmod import codedigest
+    from flowmod.params import GENERATOR_MODULE
+
+    p = load_profile("smoke", dataroot=str(tmp_path))
+    assert p.world_generation()["generator_code"] == codedigest.code_id(GENERATOR_MODULE)
+    assert p.world_id != p.model_copy(update={"seed": 7}).world_id
+    copy = tmp_path / "flowmod"
+    shutil.copytree(codedigest.PACKAGE_ROOT, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    assert codedigest.code_id(GENERATOR_MODULE, copy) == codedigest.code_id(GENERATOR_MODULE)
+    render = copy / "world" / "render.py"
+    render.write_text(render.read_text().replace('"""', '"""Edited. ', 1))
+    codedigest.forget()
+    assert codedigest.code_id(GENERATOR_MODULE, copy) == codedigest.code_id(GENERATOR_MODULE)
+    render.write_text(render.read_text() + "\nEXTRA = 1\n")
+    codedigest.forget()
+    assert codedigest.code_id(GENERATOR_MODULE, copy) != codedigest.code_id(GENERATOR_MODULE)

@@ -212,6 +212,14 @@ def code_id(module: str, root: Path = PACKAGE_ROOT) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
+def forget() -> None:
+    """Drop what this process has read and computed (for a process that edits sources and
+    reads them again, such as a test: a running stage runs the code it imported, so the
+    digests are otherwise read once per process)."""
+    for fn in (_tree, imports, source_digest, _digests):
+        fn.cache_clear()
+
+
 def changed(old: dict[str, str], new: dict[str, str]) -> list[str]:
     """The files whose digest differs between two :func:`digests` records (added, removed
     or edited), sorted."""

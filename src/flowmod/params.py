@@ -22,6 +22,7 @@ import pandas as pd
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from flowmod.codedigest import code_id
 from flowmod.paths import repo_root
 
 #: Table 1 of the paper: the seven target vehicle categories (official nuScenes names).
@@ -39,6 +40,8 @@ FLOW_METHODS = ("gt", "dis", "farneback", "raft", "raft_small", "fastflownet")
 #: Version of the synthetic world's generator (:mod:`flowmod.world`): bump when it changes
 #: what it writes. With the generation parameters it names the folder a world is made in.
 GENERATOR_VERSION = 2
+#: The module that generates a world (its code, and the code it imports, name the world).
+GENERATOR_MODULE = "flowmod.world.dataset"
 #: A generated world's table written by the generator (real nuScenes has none).
 WORLD_FILE = "synth_world.json"
 #: A generated world's manifest, beside its tables (``flowmod.world.source``).
@@ -456,8 +459,11 @@ class Params(BaseModel):
 
     def world_generation(self) -> dict[str, Any]:
         """What a world generated from these parameters is made from: the generator's
-        version and the values of the parameters the world stage reads."""
-        out: dict[str, Any] = {"generator_version": GENERATOR_VERSION}
+        version, its code (:func:`flowmod.codedigest.code_id` of the generator, so an edit
+        of what it draws names another world, generated beside the old one) and the values
+        of the parameters the world stage reads."""
+        out: dict[str, Any] = {"generator_version": GENERATOR_VERSION,
+                               "generator_code": code_id(GENERATOR_MODULE)}
         out.update({n: getattr(self, n) for n, f in Params.model_fields.items()
                     if "world" in f.json_schema_extra["read_by"]})  # type: ignore[index]
         return out

@@ -75,6 +75,7 @@ from flowmod.select import (
 )
 from flowmod.world import agent_boxes
 from flowmod.world import ensure_world as ensure_world_data
+from flowmod.world import world_fingerprint
 
 #: Where the shipped weights live (relative to the repository root).
 WEIGHTS_DIR = "weights/fastflownet_synth"
@@ -674,7 +675,7 @@ def smoke_check(recipe: Recipe, weights: Path, smoke: Params, work: Path, scale:
     _, rows = train(recipe, data, work / "train", CHECK_STEPS, None, progress=False)
     held = validation_set(replace(recipe, eval_pairs=CHECK_PAIRS), root,
                           {s: "val" for s in frames})
-    return {"world_id": smoke.world_id, "steps": CHECK_STEPS, "scale": scale,
+    return {"world": world_fingerprint(smoke), "steps": CHECK_STEPS, "scale": scale,
             "first_losses": [r["loss"] for r in rows],
             "weights": score_model(load_half(weights), held, scale)}
 

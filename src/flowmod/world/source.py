@@ -4,10 +4,12 @@ The ``world`` node is the data every other node reads: a world generated from th
 (``synthetic: true``), in its own folder ``<dataroot>/worlds/<world_id>`` (so that the worlds
 of other parameters never overwrite each other), or a nuScenes-format data set (real
 nuScenes, ``synthetic: false``). Its fingerprint is its **content**, for both: the tables'
-digests and, for a generated world, its images (names, sizes, JPEG end markers). Any edit of
-the data (an annotation moved, an image cut short) therefore makes exactly the nodes that
-read it stale; nothing is known below a world that is not there yet. Digests are cached by
-(size, mtime), so a status costs a few stat calls.
+digests and, for a generated world, its camera frames' (sha256 of every image). Any edit of
+the data (an annotation moved, an image cut short or changed in place at the same size)
+therefore makes exactly the nodes that read it stale; nothing is known below a world that
+is not there yet. Digests are cached by (size, mtime, ctime), so a status costs a stat call
+per file. (Real nuScenes keeps the fingerprint of its tables alone: its 1.4 million images
+are identified where they are read, by the image flow methods' per-pair keys.)
 """
 
 from __future__ import annotations
@@ -18,14 +20,13 @@ from pathlib import Path
 from typing import Any
 
 from flowmod import dag
-from flowmod.artefacts import file_digest, fingerprint, read_manifest, write_manifest
+from flowmod.artefacts import file_digest, file_digests, fingerprint, read_manifest, write_manifest
 from flowmod.lock import file_lock
 from flowmod.params import WORLD_FILE, WORLD_MANIFEST, Params
 from flowmod.world.dataset import generate_world
 from flowmod.world.truth import WorldError, is_synthetic
 
 NODE = dag.Node("world")
-_JPEG_EOI = b"\xff\xd9"
 
 
 def is_generated_world(p: Params) -> bool:
@@ -41,25 +42,22 @@ def table_digests(p: Params) -> dict[str, str]:
             for f in sorted(vdir.glob("*.json")) if f.name != WORLD_MANIFEST}
 
 
-def image_inventory(root: Path) -> dict[str, list[Any]]:
-    """``{relative path: [size, ends with the JPEG end marker]}`` of a generated world's
-    camera images (``samples/``, ``sweeps/``): what a truncated or replaced frame changes."""
-    out: dict[str, list[Any]] = {}
-    for sub in ("samples", "sweeps"):
-        for f in sorted((root / sub).rglob("*.jpg")):
-            size = f.stat().st_size
-            with open(f, "rb") as fh:
-                fh.seek(max(size - 2, 0))
-                out[str(f.relative_to(root))] = [size, fh.read(2) == _JPEG_EOI]
-    return out
+def image_digests(p: Params) -> dict[str, str]:
+    """``{relative path: sha256}`` of a generated world's camera images (``samples/``,
+    ``sweeps/``), cached by stat in the run's digest cache: any edit of a frame, a
+    same-size one included, changes it."""
+    root = p.dataroot_path
+    files = sorted(f for sub in ("samples", "sweeps") for f in (root / sub).rglob("*.jpg"))
+    return dict(zip((f.relative_to(root).as_posix() for f in files),
+                    file_digests(files, dag.digest_cache(p)), strict=True))
 
 
 def content(p: Params) -> dict[str, Any]:
     """What the world's fingerprint is the hash of: its tables' digests and, for a
-    generated world, its image inventory's."""
+    generated world, its images' (one digest of :func:`image_digests`)."""
     out: dict[str, Any] = {"tables": table_digests(p)}
     if (p.dataroot_path / p.version / WORLD_FILE).is_file():
-        out["images"] = fingerprint(image_inventory(p.dataroot_path), n=64)
+        out["images"] = fingerprint(image_digests(p), n=64)
     return out
 
 
@@ -84,10 +82,10 @@ def edits(p: Params) -> str:
     now = table_digests(p)
     tables = sorted(k for k in set(rec["tables"]) | set(now) if rec["tables"].get(k) != now.get(k))
     images = []
-    if rec.get("inventory"):
-        inv = image_inventory(p.dataroot_path)
-        images = sorted(k for k in set(rec["inventory"]) | set(inv)
-                        if rec["inventory"].get(k) != inv.get(k))
+    if isinstance(rec.get("images"), dict):
+        now_images = image_digests(p)
+        images = sorted(k for k in set(rec["images"]) | set(now_images)
+                        if rec["images"].get(k) != now_images.get(k))
     if not tables and not images:
         return ""
     what = ([f"tables {', '.join(tables)}"] if tables else []) + (
@@ -158,7 +156,7 @@ def _generate(p: Params, root: Path, version: str, progress: bool) -> None:
                    progress=progress, near_movers=g["world_near_movers"])
     write_manifest(root / version / WORLD_MANIFEST, {
         "node": "world", "world_id": p.world_id, "generation": g,
-        "tables": table_digests(p), "inventory": image_inventory(root),
+        "tables": table_digests(p), "images": image_digests(p),
         "fingerprint": world_fingerprint(p)})
 
 
