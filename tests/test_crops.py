@@ -378,6 +378,19 @@ def test_crops_mode_gives_the_stored_flow_crops_and_keeps_few_pairs(smoke_built,
         np.testing.assert_array_equal(xa, xb)
         assert not list((Path(q.run_dir) / "crops" / m / "pool").rglob("*.npy"))
 
+    # issue 53: a node whose files changed in place is never a source of restored pairs
+    # (the kept variant of p's node is: it still holds what it published)
+    r = Params.model_validate({**p.model_dump(), "split_fractions": [0.5, 0.25, 0.25]})
+    for m in q.flow_methods:
+        node = dag.Node("crops", m, "keyframe")
+        arrays, _ = crops.crop_paths(pipeline.published(q, node), crops.part_splits(
+            "keyframe", q.folds)[0])
+        raw = arrays.read_bytes()
+        arrays.write_bytes(raw[:128] + bytes(len(raw) - 128))
+    pipeline.build(r, chapters=["02", "05"])
+    for m in r.flow_methods:
+        np.testing.assert_array_equal(every_split(p, m)[0], every_split(r, m)[0])
+
 
 def test_pair_crops_writer_resumes_and_refuses_mixed_splits(tmp_path) -> None:
     """Crops mode's per-pair files through compute_flow: a crops file cut short (a kill while

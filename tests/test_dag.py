@@ -555,3 +555,43 @@ def test_a_malformed_digest_cache_is_ignored_and_rewritten(toy, text):
     entries = json.loads(dag.digest_cache(p).read_text())
     out = str((g.node_dir(p, dag.Node("select")) / "out.json").resolve())
     assert "/x" not in entries and len(entries[out]) == 4 and len(entries[out][3]) == 64
+
+
+def build_pooled(b: dag.Build, progress: bool) -> dict[str, Any]:
+    """A toy select whose result lists a file of a per-pair cache outside its folder."""
+    CALLS.append(str(b.node))
+    pool = b.params.all.run_path / "pool"
+    pool.mkdir(parents=True, exist_ok=True)
+    (pool / "a.npy").write_bytes(b"flow")
+    (b.start(fresh=True) / "out.json").write_text(json.dumps({"file": "a.npy"}))
+    b.cached([pool / "a.npy"])
+    return {}
+
+
+def test_a_cached_file_is_recorded_checked_and_guards_its_readers(tmp_path):
+    """Issue 53: the flow pool's files were outside the damage check; a zeroed one left
+    status silent and its readers were built from it. A node's cached files are in its
+    manifest; damaged, the node says so, no reader is built from it, and a run rebuilds
+    it before its readers."""
+    g = graph(tmp_path, select_build=build_pooled)
+    p = validate({"run_dir": str(tmp_path / "runs"), "dataroot": str(tmp_path / "data"),
+                  "seeds": 1, "folds": 1, "synthetic": False, "extension_build": False})
+    g.build(p)
+    files = g.recorded(p, dag.Node("select"))["files"]
+    assert sorted(files) == ["../pool/a.npy", "out.json"]
+    assert files["../pool/a.npy"]["size"] == 4
+    pool_file = tmp_path / "runs" / "pool" / "a.npy"
+    pool_file.write_bytes(b"\0\0\0\0")
+    st = {str(s.node): s for s in g.status(p)}
+    assert st["select"].state == "damaged"
+    assert st["select"].why == (f"{pool_file} changed since it was built (same size, other "
+                                "content); the next run rebuilds it")
+    with pytest.raises(dag.MissingInput, match=re.escape(
+            f"train[s0] reads select, whose files are damaged ({pool_file} changed since it "
+            "was built (same size, other content)): rebuild it, run chapter 02 first")):
+        g.build_node(p, dag.Node("train", None, "s0"))
+    CALLS.clear()
+    g.build(p)
+    assert CALLS == ["select"] and pool_file.read_bytes() == b"flow"
+    pool_file.unlink()
+    assert g.damaged(p, dag.Node("select")) == f"{pool_file} is missing"

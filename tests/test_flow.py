@@ -7,6 +7,8 @@ Farneback are checked for accuracy on textured synthetic pairs with known flow.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import shutil
 import sys
@@ -491,6 +493,71 @@ def test_compute_flow_writes_resumes_and_survives_a_kill(tmp_path):
     assert not back["computed"].any()
 
 
+def test_a_pool_file_changed_in_place_is_computed_again_not_reused(tmp_path):
+    """Issue 53: a pool file zeroed in place (header kept: it is complete) was reused, so a
+    crops rebuild published all-zero crops. The pool records each file's sha256 when it
+    is written; a file whose content differs is computed again (only that one), and files
+    of a pool that recorded no digests are trusted as before."""
+
+    root, pool = tmp_path / "data", tmp_path / "pool"
+    pairs = make_dataroot(root, n=3)
+    kw = {"dataroot": root, **KW}
+    first = fl.compute_flow(pairs, "dis", pool, preset="fast", **kw)
+    files = {r.pair_id: pool / r.file for r in first.itertuples()}
+    good = files["p1"].read_bytes()
+    log = (files["p1"].parent / fl.stage.TIMINGS).read_text().splitlines()
+    assert [json.loads(x)["sha256"] for x in log] == [
+        hashlib.sha256(files[p].read_bytes()).hexdigest() for p in first["pair_id"]]
+    st = files["p1"].stat()
+    header = len(good) - 60 * 80 * 2 * 2
+    files["p1"].write_bytes(good[:header] + bytes(len(good) - header))
+    os.utime(files["p1"], ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert fl.stage.altered(files["p1"].parent, list(first["key"]), fl.stage.FlowFiles()) == {
+        first.set_index("pair_id").loc["p1", "key"]}
+    again = fl.compute_flow(pairs, "dis", pool, preset="fast", **kw)
+    assert list(again.loc[again["computed"], "pair_id"]) == ["p1"]
+    assert files["p1"].read_bytes() == good
+    # a pool written before digests were logged: its files are trusted
+    (files["p1"].parent / fl.stage.TIMINGS).write_text(
+        "".join(json.dumps({"key": k, "seconds": 0.1}) + "\n" for k in first["key"]))
+    files["p2"].write_bytes(files["p2"].read_bytes()[:header] + bytes(len(good) - header))
+    assert not fl.compute_flow(pairs, "dis", pool, preset="fast", **kw)["computed"].any()
+
+
+def test_the_exact_flow_is_keyed_by_the_worlds_description_not_its_annotations(tmp_path):
+    """gt reads only the world's own description (synth_world.json): an edited annotation
+    leaves its pair keys alone, an edited description changes them all; image methods keep
+    the data's fingerprint (their keys are their images)."""
+    from flowmod import dag
+    from flowmod.params import WORLD_FILE, validate
+
+    vdir = tmp_path / "data" / "v1.0-synth"
+    vdir.mkdir(parents=True)
+    (vdir / WORLD_FILE).write_text('{"scenes": []}')
+    (vdir / "sample_annotation.json").write_text("[]")
+    p = validate({"dataroot": str(tmp_path / "data"), "version": "v1.0-synth",
+                  "run_dir": str(tmp_path / "runs"), "synthetic": False})
+    q = dag.StageParams(p, dag.Node("flow", "gt", "keyframe"))
+    gt = fl.stage.world_identity(q, "gt", "world-A")
+    assert gt == fl.stage.world_identity(q, "gt", "world-B") != "world-A"
+    assert fl.stage.world_identity(q, "dis", "world-A") == "world-A"
+    (vdir / "sample_annotation.json").write_text('[{"token": "a"}]')
+    assert fl.stage.world_identity(q, "gt", "world-A") == gt
+    (vdir / WORLD_FILE).write_text('{"scenes": [{}]}')
+    assert fl.stage.world_identity(q, "gt", "world-A") != gt
+
+
+def test_a_pool_folder_is_named_by_its_estimators_code(tmp_path):
+    """Code as an input, one level down: the flow files of a method are kept under the
+    digest of the estimator's code, so an edited estimator never reuses old flow."""
+    from flowmod import codedigest
+
+    cfg = fl.stage.options_config("dis", "float16", 1.0, {})
+    assert cfg["code"] == codedigest.code_id("flowmod.flow.estimators")
+    assert fl.stage.options_config("raft", "float16", 1.0, {"weights": None})["code"] == (
+        codedigest.code_id("flowmod.flow.networks"))
+
+
 def test_pair_keys_follow_the_data_not_the_pair_id(tmp_path):
     """Another world (seed, dataroot content), other tokens or other image files never match."""
     root = tmp_path / "data"
@@ -648,7 +715,7 @@ def test_gt_estimator_passes_its_world_and_returns_float32_and_bool(tmp_path, mo
     """GTFlow asks the world of its own dataroot and version, at scale 1, and returns the
     flow as float32 and the mask as bool whatever the world hands back."""
     seen = []
-    world = types.ModuleType("flowmod.world")
+    world = types.ModuleType("flowmod.world.truth")
     world.is_synthetic = lambda dataroot, version: seen.append(("is", dataroot, version)) or True
 
     def gt_flow(dataroot, version, t1, t2):
@@ -656,7 +723,7 @@ def test_gt_estimator_passes_its_world_and_returns_float32_and_bool(tmp_path, mo
         return np.full((2, 3, 2), 1.5, np.float64).tolist(), np.array([[1, 0, 2]] * 2)
 
     world.gt_flow = gt_flow
-    monkeypatch.setitem(sys.modules, "flowmod.world", world)
+    monkeypatch.setitem(sys.modules, "flowmod.world.truth", world)
     est = fl.get_estimator("gt", dataroot=tmp_path / "w", version="v1.0-x")
     assert est.scale == 1.0 and est.options() == {"dataroot": str(tmp_path / "w"),
                                                   "version": "v1.0-x"}
@@ -711,10 +778,10 @@ def test_gt_method_works_from_tokens(tmp_path, monkeypatch):
         valid[0, 0] = False  # e.g. the point leaves the image
         return flow, valid
 
-    world = types.ModuleType("flowmod.world")
+    world = types.ModuleType("flowmod.world.truth")
     world.is_synthetic = lambda dataroot, version: Path(dataroot).name == "synth"
     world.gt_flow = gt_flow
-    monkeypatch.setitem(sys.modules, "flowmod.world", world)
+    monkeypatch.setitem(sys.modules, "flowmod.world.truth", world)
     pairs = make_dataroot(tmp_path / "synth", n=2)
     res = fl.compute_flow(pairs, "gt", tmp_path / "pool", dataroot=tmp_path / "synth", **KW)
     assert res["computed"].all() and calls == [("t0a", "t0b"), ("t1a", "t1b")]

@@ -492,9 +492,10 @@ def test_gc_removes_only_what_no_node_reads(finished, tmp_path):
 
 def test_edited_world_makes_its_readers_stale_and_recomputes_flow(finished, tmp_path):
     """One annotation moved by 2 m (a still vehicle now drives 4 m/s): the world says what
-    was edited, its readers are stale, and a rebuild relabels the vehicle and computes the
-    exact flow again (its pool key is the world's content, never its version name), while
-    the image methods' flow, keyed by the two images each pair reads, is all reused."""
+    was edited, its readers are stale, and a rebuild relabels the vehicle while every pair's
+    flow is reused: the image methods' keys are the two images each pair reads, the exact
+    flow's the world's own description (issue 53: an edited annotation recomputed all of
+    it, though no pair reads annotations)."""
     run, data = tmp_path / "runs", tmp_path / "data"
     shutil.copytree(finished.run_path, run, symlinks=True)
     shutil.copytree(finished.dataroot_path, data)
@@ -521,10 +522,9 @@ def test_edited_world_makes_its_readers_stale_and_recomputes_flow(finished, tmp_
     again = pd.read_parquet(pipeline.node_dir(p, dag.Node("select")) / "objects.parquet")
     row = again[(again["ann_token"] == still["ann_token"])].iloc[0]
     assert row["label"] == 1 and row["speed"] == pytest.approx(4.0, abs=0.1)
-    for m in p.flow_methods:  # gt reads the world; the image methods read only the images
+    for m in p.flow_methods:
         rec = pipeline.recorded(p, dag.Node("flow", m, "keyframe"))
-        want = rec["pairs"] if m == "gt" else 0
-        assert rec["computed"] == want and rec["pairs"] > 0, (m, rec["computed"])
+        assert rec["computed"] == 0 and rec["pairs"] > 0, (m, rec["computed"])
 
 
 def test_train_stage_chooses_the_epoch_on_validation(finished, tmp_path, monkeypatch):
@@ -630,3 +630,32 @@ def test_an_edit_of_a_stages_code_makes_exactly_it_and_its_readers_stale(finishe
     assert st["crops[dis/keyframe]"][1].startswith("code changed since built: crops.py")
     for n in ("world", "select", "flow[dis/keyframe]", "shipped"):
         assert st[n] == ["up to date", ""], n
+
+
+def test_a_damaged_flow_pool_file_is_named_and_recomputed_never_cropped(finished, tmp_path):
+    """Issue 53: one pool file zeroed in place left status silent and a crops rebuild
+    (crop_size=32) published all-zero crops; a deleted one gave a raw FileNotFoundError.
+    Now the flow node names the file, no crops are built from it, and a run recomputes that
+    pair alone, byte for byte."""
+    run = tmp_path / "runs"
+    shutil.copytree(finished.run_path, run, symlinks=True)
+    p = finished.model_copy(update={"run_dir": str(run)})
+    node = dag.Node("flow", "dis", "keyframe")
+    idx = pd.read_parquet(pipeline.node_dir(p, node) / "index.parquet")
+    victim = run / "flow" / "dis" / "pool" / idx["file"].iloc[1]
+    good = victim.read_bytes()
+    header = len(good) - int(np.prod(np.load(victim, mmap_mode="r").shape)) * 2
+    victim.write_bytes(good[:header] + bytes(len(good) - header))
+    st = {s.node: s for s in pipeline.status(p)}
+    assert st[node].state == "damaged" and st[node].why.startswith(
+        f"{victim} changed since it was built (same size, other content)")
+    smaller = p.model_copy(update={"crop_size": 32})
+    with pytest.raises(dag.MissingInput, match="crops\\[dis/keyframe\\] reads flow\\[dis/"
+                                               "keyframe\\], whose files are damaged"):
+        pipeline.build(smaller, ["05"])
+    pipeline.build(p, ["03", "05"])  # the gt crops built at 32 px before the refusal: restored
+    assert pipeline.recorded(p, node)["computed"] == 1 and victim.read_bytes() == good
+    victim.unlink()
+    assert pipeline.damaged(p, node) == f"{victim} is missing"
+    pipeline.build(p, ["03"])
+    assert victim.read_bytes() == good and not_up_to_date(p) == set()

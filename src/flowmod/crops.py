@@ -34,10 +34,10 @@ import numpy as np
 import pandas as pd
 
 from flowmod import dag, geometry
-from flowmod.artefacts import atomic_path, fingerprint, write_json
+from flowmod.artefacts import atomic_path, fingerprint, read_manifest, write_json
 from flowmod.dag import StageParams
 from flowmod.flow import FlowReader, compute_flow, estimator_options, flow_root
-from flowmod.flow.stage import DIGESTS, FlowFiles, pair_files, pool_config
+from flowmod.flow.stage import DIGESTS, FlowFiles, pair_files, pool_config, world_identity
 from flowmod.flow.store import npy_ok, roundtrip
 from flowmod.geometry import GRID, box_samples
 from flowmod.params import Params
@@ -763,11 +763,15 @@ def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:  # pragma: no muta
     work = b.start(fresh=q.force)
     if q.flow_store == "crops":
         pairs = pd.read_parquet(b.input_dir(objects_node(part)) / "pairs.parquet")
-        # a pair of the same boxes may be in another part's node too
+        # a pair of the same boxes may be in another part's node too (never restored from
+        # a node whose files are not what it published)
         sources = [d for other in CROP_PARTS
-                   for d in dag.results(b.other(dag.Node("crops", m, other)))]
+                   for d in dag.results(b.other(dag.Node("crops", m, other)))
+                   if dag.damage(d, read_manifest(d / "manifest.json"),
+                                 dag.digest_cache(q.all)) is None]
         items, files, computed = _crops_from_flow(
-            q, m, part, pairs, objects, b.inputs["world"]["fingerprint"], progress, sources)
+            q, m, part, pairs, objects,
+            world_identity(q, m, b.inputs["world"]["fingerprint"]), progress, sources)
     else:
         load = FlowReader(b.input_dir(dag.Node("flow", m, part)),
                           flow_root(q) / m / "pool", m, part).load

@@ -45,6 +45,7 @@ from flowmod import codedigest
 from flowmod.artefacts import (
     canonical,
     file_digest,
+    file_digests,
     fingerprint,
     read_manifest,
     write_manifest,
@@ -285,11 +286,22 @@ def output_files(folder: Path, cache: Path | None = None) -> dict[str, dict[str,
     return out
 
 
+def cached_files(final: Path, files: Iterable[Path], cache: Path | None = None
+                 ) -> dict[str, dict[str, Any]]:
+    """:func:`output_files`' record of files outside a node's folder ``final`` (a per-pair
+    cache), each by its path relative to ``final`` (``../pool/<options>/<key>.npy``)."""
+    files = sorted(set(files))
+    digests = file_digests(files, cache)
+    return {os.path.relpath(f, final): {"size": f.stat().st_size, "sha256": d}
+            for f, d in zip(files, digests, strict=True)}
+
+
 def damage(folder: Path, rec: Mapping[str, Any] | None, cache: Path | None = None) -> str | None:
     """What is wrong with the files a manifest ``rec`` recorded in ``folder`` (the first
-    missing, resized or changed file), or None (also for manifests that record none)."""
+    missing, resized or changed file, per-pair cache files included), or None (also for
+    manifests that record none)."""
     for rel, want in (rec or {}).get("files", {}).items():
-        f = folder / rel
+        f = Path(os.path.normpath(folder / rel))
         try:
             size = f.stat().st_size
         except OSError:
@@ -334,6 +346,7 @@ class Build:
     restored: bool = False
     dir: Path = field(init=False)
     _after: list[Callable[[], None]] = field(default_factory=list, repr=False)
+    _cached: list[Path] = field(default_factory=list, repr=False)
 
     def __post_init__(self) -> None:
         self.dir = self.final.parent / f".{self.final.name}.building-{self.fingerprint}"
@@ -356,6 +369,13 @@ class Build:
         self.dir.mkdir(parents=True, exist_ok=True)
         return self.dir
 
+    def cached(self, files: Iterable[Path]) -> None:
+        """Files outside the node's folder that its result lists and its readers read (a
+        per-pair cache such as the flow pool): the manifest records them beside the
+        published files (by path relative to the node's folder) and :func:`damage` checks
+        them alike."""
+        self._cached += [Path(f) for f in files]
+
     def after_publish(self, fn: Callable[[], None]) -> None:
         """Run ``fn`` once the node is published (to remove what the result replaces)."""
         self._after.append(fn)
@@ -363,8 +383,10 @@ class Build:
     def publish(self, **info: Any) -> Path:  # pragma: no mutate block
         """Write the manifest into the building folder and make it the published one; the
         previous result becomes a variant. Returns the published folder."""
+        cache = digest_cache(self.params.all)
+        files = {**output_files(self.dir, cache), **cached_files(self.final, self._cached, cache)}
         write_manifest(self.dir / "manifest.json", {**self.payload, "fingerprint": self.fingerprint,
-                                                    **info, "files": output_files(self.dir)})
+                                                    **info, "files": files})
         swap_in(self.dir, self.final)
         for fn in self._after:
             fn()
@@ -537,13 +559,18 @@ class Graph:
     # -- the driver --
     def begin(self, p: Params, node: Node) -> Build:  # pragma: no mutate block
         """Start building ``node``: read its inputs' manifests (:class:`MissingInput` if one
-        was never built), compute its fingerprint, and decide whether anything must be done
-        (a kept variant with this fingerprint is restored instead of recomputed)."""
+        was never built or its files are damaged: nothing is built from a file that is not
+        what was published), compute its fingerprint, and decide whether anything must be
+        done (a kept variant with this fingerprint is restored instead of recomputed)."""
         recs: dict[str, dict[str, Any]] = {}
         for i in self.inputs(node, p):
             rec = self.recorded(p, i)
             if rec is None:
                 raise MissingInput(f"{node} reads {i}, which has not been built: {self.how(i)}")
+            broken = self.damaged(p, i, rec)
+            if broken:
+                raise MissingInput(f"{node} reads {i}, whose files are damaged ({broken}): "
+                                   f"rebuild it, {self.how(i)}")
             recs[str(i)] = rec
         s = self.stage(node)
         pl = payload(p, node, s.version, {k: r["fingerprint"] for k, r in recs.items()},

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from flowmod.flow.registry import FlowEstimator, NotSyntheticError, register_estimator
+from flowmod.params import WORLD_FILE
 
 
 def _gray(img: np.ndarray) -> np.ndarray:
@@ -101,6 +102,9 @@ class GTFlow(FlowEstimator):
 
     name = "gt"
     inputs = "tokens"
+    #: The world's own description (its annotations are never read: an edited annotation
+    #: recomputes no exact flow).
+    world_files = (WORLD_FILE,)
     #: 2: the world's validity convention (issue 11): finite, physical values, stored mask.
     code_version = 2
 

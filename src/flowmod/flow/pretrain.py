@@ -73,9 +73,8 @@ from flowmod.select import (
     open_nuscenes,
     scene_table,
 )
-from flowmod.world import agent_boxes
+from flowmod.world import agent_boxes, world_fingerprint
 from flowmod.world import ensure_world as ensure_world_data
-from flowmod.world import world_fingerprint
 
 #: Where the shipped weights live (relative to the repository root).
 WEIGHTS_DIR = "weights/fastflownet_synth"

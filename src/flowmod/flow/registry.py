@@ -144,6 +144,9 @@ class FlowEstimator:
     #: Options naming a file (weights) whose content the flow depends on: a pool keys them
     #: by their sha256 as well as their name.
     file_options: ClassVar[tuple[str, ...]] = ()
+    #: Files of the data's version folder that a token method reads (its pairs' keys hold
+    #: their digests, not the whole data set's identity).
+    world_files: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, scale: float = 1.0) -> None:
         if not (0.0 < float(scale) <= 4.0):

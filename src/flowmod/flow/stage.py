@@ -3,13 +3,16 @@
 Two levels of caching, both keyed so that nothing made from other inputs can ever match:
 
 * the **pool** of per-pair flow files, ``<run>/flow/<method>/pool/<options>/<pair key>.npy``:
-  ``options`` is the fingerprint of the method, its code version, its options with their
-  defaults, the storage dtype and scale; a pair's key is the fingerprint of what its flow
-  reads (:func:`pair_keys`): for image methods the two image files' names and contents, for
-  ``gt`` the world (the data's identity, :func:`flowmod.world.world_fingerprint`), the pair's
-  two sample_data tokens and its image files' names and sizes. Files are written atomically one by one, so a killed
-  run resumes where it stopped; a forced recompute replaces each file only when its new flow
-  is written; other options live side by side (switching back costs nothing).
+  ``options`` is the fingerprint of the method, its code (digest and version), its options
+  with their defaults, the storage dtype and scale; a pair's key is the fingerprint of what
+  its flow reads (:func:`pair_keys`): for image methods the two image files' names and
+  contents, for ``gt`` the world's own description (:func:`world_identity`), the pair's two
+  sample_data tokens and its image files' names and sizes. Files are written atomically one
+  by one, each with its sha256 logged (a file changed in place is computed again, never
+  reused: :func:`altered`), so a killed run resumes where it stopped; a forced recompute
+  replaces each file only when its new flow is written; other options live side by side
+  (switching back costs nothing). A flow node's manifest records its pool files like its
+  own, so a damaged one makes the node "damaged" (:meth:`flowmod.dag.Build.cached`).
 * the **nodes** ``flow[<method>/<part>]`` (:data:`STAGE`; parts ``keyframe``, ``general``,
   and chapter 11's ``wide``): ``index.parquet`` listing, for the part's pairs, their pool file and the
   estimation time, with the node's manifest.
@@ -21,6 +24,7 @@ first. :class:`FlowReader` reads a published node's flow back at full image size
 from __future__ import annotations
 
 import concurrent.futures
+import hashlib
 import inspect
 import json
 import logging
@@ -37,6 +41,7 @@ from joblib import Parallel, delayed
 
 from flowmod import dag
 from flowmod.artefacts import atomic_path, file_digest, file_digests, fingerprint, read_manifest
+from flowmod.codedigest import code_id
 from flowmod.flow.networks import estimator_options
 from flowmod.flow.registry import (
     REGISTRY,
@@ -63,9 +68,11 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-#: Estimation seconds of each pool file, one JSON line per computed pair (last one wins).
+#: Each pool file's estimation seconds and sha256 when it was written, one JSON line per
+#: computed pair (last one wins): a reused file must still have that content.
 TIMINGS = "seconds.jsonl"
-#: The stat cache of the images' digests (the image methods' pair keys), in each pool folder.
+#: The stat cache of the digests of the images (the image methods' pair keys) and of the
+#: pool's files, in each pool folder.
 DIGESTS = ".image-digests.json"
 
 # --- images --------------------------------------------------------------------------------
@@ -124,8 +131,10 @@ _NOT_CONFIG = ("device", "batch_size", "model", "dataroot", "version")
 
 def options_config(method: str, dtype: str, store_scale: float,
                    options: Mapping[str, Any]) -> dict[str, Any]:
-    """What a method's flow files depend on besides the pair: method, its code version,
-    its options with their defaults, the storage dtype and scale."""
+    """What a method's flow files depend on besides the pair: method, its code (the
+    estimator's module and what it imports, :func:`flowmod.codedigest.code_id`, and the
+    class's ``code_version`` override), its options with their defaults, the storage dtype
+    and scale."""
     if method not in REGISTRY:
         raise ValueError(f"unknown flow method {method!r}; known: {', '.join(available_methods())}")
     if dtype not in ("float16", "float32"):
@@ -143,8 +152,8 @@ def options_config(method: str, dtype: str, store_scale: float,
     for k in cls.file_options:  # new content under an old name is another input
         if isinstance(opts.get(k), str) and Path(opts[k]).expanduser().is_file():
             opts[f"{k}_sha256"] = file_digest(Path(opts[k]).expanduser())
-    return {"method": method, "code_version": cls.code_version, "dtype": dtype,
-            "store_scale": float(store_scale), "options": opts}
+    return {"method": method, "code_version": cls.code_version, "code": code_id(cls.__module__),
+            "dtype": dtype, "store_scale": float(store_scale), "options": opts}
 
 
 def pool_config(method: str, dtype: str, store_scale: float, options: Mapping[str, Any],
@@ -153,7 +162,7 @@ def pool_config(method: str, dtype: str, store_scale: float, options: Mapping[st
     :func:`options_config` and, for a writer other than flow files, its ``config()``."""
     config = options_config(method, dtype, store_scale, options)
     if writer is not None and writer.config():  # flow files keep the key they always had
-        config["writer"] = writer.config()
+        config["writer"] = {**writer.config(), "code": code_id(type(writer).__module__)}
     return config
 
 
@@ -189,8 +198,9 @@ def pair_keys(pairs: pd.DataFrame, dataroot: str | os.PathLike[str], world: str,
     """Per-pair cache keys, each from what the pair's flow reads. Image methods
     (``by_images``: DIS, Farneback, the networks): the two image files' names and sha256
     (``cache``: a stat cache of those digests), so an edited annotation or another pair's
-    image leaves the key alone. Token methods (``gt``, read from the world's records): the
-    world's fingerprint, the two sample_data tokens and the images' names and sizes.
+    image leaves the key alone. Token methods (``gt``, read from the world's records): ``world``
+    (what the method reads of the data, :func:`world_identity`), the two sample_data tokens
+    and the images' names and sizes.
 
     A missing image raises :class:`ImageError` naming it."""
     root = Path(dataroot)
@@ -208,18 +218,36 @@ def pair_keys(pairs: pd.DataFrame, dataroot: str | os.PathLike[str], world: str,
     return keys
 
 
-def read_timings(pool: Path) -> dict[str, float]:
-    """Seconds per pool file from :data:`TIMINGS` (unreadable lines of a killed run skipped)."""
-    out: dict[str, float] = {}
+def _pool_log(pool: Path) -> dict[str, dict[str, Any]]:
+    """``{key: record}`` from :data:`TIMINGS` (the last line of a key wins; unreadable
+    lines of a killed run skipped)."""
+    out: dict[str, dict[str, Any]] = {}
     f = pool / TIMINGS
     if f.is_file():
         for line in f.read_text().splitlines():
             try:
                 rec = json.loads(line)
-                out[str(rec["key"])] = float(rec["seconds"])
-            except (ValueError, KeyError, TypeError):
+                out[str(rec["key"])] = {"seconds": float(rec["seconds"]),
+                                        "sha256": rec.get("sha256")}
+            except (ValueError, KeyError, TypeError, AttributeError):
                 continue
     return out
+
+
+def read_timings(pool: Path) -> dict[str, float]:
+    """Seconds per pool file from :data:`TIMINGS`."""
+    return {k: r["seconds"] for k, r in _pool_log(pool).items()}
+
+
+def altered(pool: Path, keys: Sequence[str], writer: FlowFiles) -> set[str]:
+    """The keys whose complete pool file no longer has the content recorded when it was
+    written (changed in place: zeroed, overwritten at the same size); they are computed
+    again instead of reused. Files written before digests were recorded are trusted."""
+    logged = {k: r["sha256"] for k, r in _pool_log(pool).items() if r["sha256"]}
+    check = [k for k in dict.fromkeys(keys)
+             if k in logged and writer.complete(pool / f"{k}.npy")]
+    now = file_digests([pool / f"{k}.npy" for k in check], pool / DIGESTS)
+    return {k for k, d in zip(check, now, strict=True) if d != logged[k]}
 
 
 # --- what is kept of a pair -----------------------------------------------------------------
@@ -354,7 +382,9 @@ def compute_flow(
     root = Path(dataroot)
     keys = _keys(pairs, root, world, extras, cls.inputs == "images", pool / DIGESTS)
     extra = [None] * len(ids) if extras is None else [extras[i] for i in ids]
-    todo = [i for i, k in enumerate(keys) if force or not writer.complete(pool / f"{k}.npy")]
+    redo = altered(pool, keys, writer) if not force else set()
+    todo = [i for i, k in enumerate(keys)
+            if force or k in redo or not writer.complete(pool / f"{k}.npy")]
     rows = pairs.iloc[todo]
     if len(rows) and cls.inputs == "images":
         check_images([root / p for p in (*rows["path_1"], *rows["path_2"])], n_jobs=n_jobs)
@@ -435,13 +465,15 @@ def _results(cls: type[FlowEstimator], calls: list[tuple], writer: FlowFiles,
 
 def _log_results(results: Iterator[Result], pool: Path, total: int, label: str,
                  progress: bool) -> set[str]:
-    """Consume ``results``, logging each pair's estimation seconds to the pool's
-    :data:`TIMINGS` as it finishes; returns the keys computed."""
+    """Consume ``results``, logging each pair's estimation seconds and its file's sha256 to
+    the pool's :data:`TIMINGS` as it finishes; returns the keys computed."""
     computed: set[str] = set()
     with (bar(total=total, desc=label, unit="pair", disable=not progress) as pbar,
           open(pool / TIMINGS, "a") as log_f):
         for key, seconds, _shape in results:
-            log_f.write(json.dumps({"key": key, "seconds": round(seconds, 6)}) + "\n")
+            sha = hashlib.sha256((pool / f"{key}.npy").read_bytes()).hexdigest()
+            log_f.write(json.dumps({"key": key, "seconds": round(seconds, 6),
+                                    "sha256": sha}) + "\n")
             log_f.flush()
             computed.add(key)
             pbar.update(1)
@@ -498,15 +530,28 @@ def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:
                            clip=method == q.clip_method)
     idx = compute_flow(
         pairs, method, flow_root(q) / method / "pool", dataroot=q.dataroot_path,
-        version=q.version, world=b.inputs["world"]["fingerprint"],
+        version=q.version, world=world_identity(q, method, b.inputs["world"]["fingerprint"]),
         dtype=q.flow_dtype, n_jobs=q.n_jobs, progress=progress, force=q.force,
         store_scale=q.flow_scale, label=f"flow {method}/{part}",
         executor=q.executor, ray_address=q.ray_address,
         **estimator_options(q, method))
     with atomic_path(b.start(fresh=True) / "index.parquet") as tmp:
         idx.drop(columns="computed").to_parquet(tmp, index=False)
+    b.cached(flow_root(q) / method / "pool" / f for f in idx["file"])
     return {"pairs": len(idx), "computed": int(idx["computed"].sum()),
             "store_scale": q.flow_scale, "dtype": q.flow_dtype, "kept": q.flow_store}
+
+
+def world_identity(q: dag.StageParams, method: str, world: str) -> str:
+    """What the pair keys of ``method`` take of the data besides each pair: for a token
+    method the digests of the files it reads (``world_files``: ``gt`` reads the world's own
+    description, so an edited annotation recomputes none of its pairs), else the data's
+    fingerprint ``world`` (image methods' keys are their images)."""
+    files = REGISTRY[method].world_files
+    if not files:
+        return world
+    vdir = q.dataroot_path / q.version
+    return fingerprint({f: file_digest(vdir / f, dag.digest_cache(q.all)) for f in files})
 
 
 def _nodes(p: Params) -> list[dag.Node]:
