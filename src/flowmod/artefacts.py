@@ -58,6 +58,18 @@ def write_json(path: str | os.PathLike[str], obj: Any) -> None:
         tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n")
 
 
+def save_checkpoint(obj: Any, path: str | os.PathLike[str]) -> None:
+    """``torch.save`` of ``obj`` to ``path``, atomically and byte for byte the same for equal
+    tensors: the one writer of the package's ``.pt`` files. Saved to a path, torch names
+    the zip's archive folder after the (random) temporary file; saved to a file object it is
+    always ``archive``, and nothing else in the file varies (torch 2.14's serialization id
+    hashes the record names and data). Load with ``torch.load(..., weights_only=True)``."""
+    import torch  # only the trainers call this; most processes never load torch
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        torch.save(obj, f)
+
+
 def canonical(obj: Any) -> str:
     """Stable JSON text of ``obj`` (sorted keys, no spaces; tuples as lists, floats as repr)."""
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
