@@ -205,8 +205,19 @@ def _running_copy(target: Path) -> Path:
     return target.with_name(f".{target.stem}.running.ipynb")
 
 
+def stable_cell_ids(nb: nbformat.NotebookNode) -> None:
+    """Give every cell of ``nb`` an id derived from its position, type and source (12 hex
+    digits), in place: papermill's injected-parameters cell gets a random id each run,
+    which would change the executed copy, and the book's pages, on every execution."""
+    nb.nbformat_minor = max(nb.nbformat_minor, 5)  # cell ids came with nbformat 4.5
+    for i, cell in enumerate(nb.cells):
+        key = f"{i}\0{cell.cell_type}\0{cell.source}".encode()
+        cell["id"] = hashlib.sha256(key).hexdigest()[:12]
+
+
 def _stamp(target: Path, fp: str | None, seconds: float, executed: str) -> None:
     nb = nbformat.read(str(target), as_version=4)
+    stable_cell_ids(nb)
     nb.metadata["flowmod"] = {"fingerprint": fp, "seconds": seconds, "executed": executed}
     with atomic_path(target) as tmp:
         nbformat.write(nb, str(tmp))

@@ -122,9 +122,9 @@ def for_the_page(nb: nbformat.NotebookNode) -> nbformat.NotebookNode:
         if "parameters" in tags:
             comments = declared_comments(cell.source)
             continue
-        if "injected-parameters" in tags:
+        if "injected-parameters" in tags:  # a fixed id: a random one changes every page
             cell = nbformat.v4.new_markdown_cell(
-                parameters_html(injected_values(cell.source), comments))
+                parameters_html(injected_values(cell.source), comments), id="parameters-ran")
         cells.append(cell)
     out = nbformat.from_dict(dict(nb))
     out.cells = cells
