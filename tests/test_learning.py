@@ -193,6 +193,26 @@ def test_same_seed_is_bit_identical(data, run_a, tmp_path) -> None:
     cols = [c for c in HISTORY_COLUMNS if c != "seconds"]
     pd.testing.assert_frame_equal(hist_a[cols], hist_b[cols], check_exact=True)
     _assert_same_weights(_state(out_a / "last.pt"), _state(tmp_path / "last.pt"))
+    # and the published weights byte for byte (last.pt records the seconds each epoch took)
+    assert (out_a / "best.pt").read_bytes() == (tmp_path / "best.pt").read_bytes()
+
+
+def test_equal_tensors_save_to_equal_bytes(tmp_path) -> None:
+    """``save_checkpoint``, the package's one writer of .pt files: the same state_dict
+    saved twice (under other names, in other folders) gives the same bytes, and loads with
+    ``weights_only`` (torch.save to a path names the zip's folder after the temporary file)."""
+    from flowmod.artefacts import save_checkpoint
+
+    def state() -> dict[str, torch.Tensor]:  # a new model each call, equal weights
+        torch.manual_seed(0)
+        return motion_resnet18(width=8).state_dict()
+
+    a, b = tmp_path / "a" / "best.pt", tmp_path / "b" / "other.pt"
+    save_checkpoint(state(), a)
+    save_checkpoint(state(), b)
+    assert a.read_bytes() == b.read_bytes()
+    _assert_same_weights(torch.load(b, map_location="cpu", weights_only=True), state())
+    assert sorted(p.name for p in b.parent.iterdir()) == ["other.pt"], "no temporary file left"
 
 
 def test_resume_gives_the_uninterrupted_result(data, run_a, tmp_path) -> None:

@@ -52,7 +52,9 @@ def test_a_rerun_with_nothing_changed_reuses_every_notebook_and_the_page(smoke_r
     page that changed would send Sphinx and the browser check over the book again)."""
     first = smoke_run["record"]
     overrides = {"run_dir": str(smoke_run["base"] / "runs"), "dataroot": str(smoke_run["data"])}
+    copies = {p: p.read_bytes() for p in smoke_run["executed"].glob("*.ipynb")}
     again = runner.run("smoke", overrides, out_dir=smoke_run["executed"])
+    assert [p.name for p in copies if p.read_bytes() != copies[p]] == []
     assert all(v.get("reused") for v in again["notebooks"].values())
     for stem, rec in first["notebooks"].items():
         assert rec["seconds"] > 0 and rec["executed"], stem
@@ -274,9 +276,10 @@ def test_book_builds_offline_with_warnings_as_errors(smoke_run, tmp_path):
         remote = re.findall(r'<(?:script|link|img)[^>]+(?:src|href)="(https?:)?//', page.read_text())
         assert not remote, f"{page.name} loads remote resources"
     assert (out / "_static" / "_vendor" / "mathjax" / "tex-chtml.js").is_file()
-    # a second build with nothing changed writes the same pages (else the no-change rerun of
-    # `make book` re-renders and re-checks the whole book)
-    pages = {p: p.read_bytes() for p in out.glob("*.html")}
+    # a second build with nothing changed writes the same pages and page sources (else the
+    # no-change rerun of `make book` re-renders and re-checks the whole book)
+    pages = {p: p.read_bytes() for p in [*out.glob("*.html"), *out.glob("_sources/*")]}
+    assert len(pages) > 2 * len(runner.notebooks())
     book.build(smoke_run["executed"], out)
     assert [p.name for p in pages if p.read_bytes() != pages[p]] == []
     # a build that fails (a dangling reference: Sphinx -W) or finds another build at work

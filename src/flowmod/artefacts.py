@@ -12,9 +12,12 @@ files by content (sha256), with a stat cache so that unchanged files are not rea
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import os
+import re
+import shutil
 import tempfile
 import time
 from collections.abc import Iterator, Mapping, Sequence
@@ -56,6 +59,97 @@ def write_json(path: str | os.PathLike[str], obj: Any) -> None:
     """Write JSON atomically (sorted keys, indented)."""
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n")
+
+
+def save_checkpoint(obj: Any, path: str | os.PathLike[str]) -> None:
+    """``torch.save`` of ``obj`` to ``path``, atomically and byte for byte the same for equal
+    tensors: the one writer of the package's ``.pt`` files. Saved to a path, torch names
+    the zip's archive folder after the (random) temporary file; saved to a file object it is
+    always ``archive``, and nothing else in the file varies (torch 2.14's serialization id
+    hashes the record names and data). Load with ``torch.load(..., weights_only=True)``."""
+    import torch  # only the trainers call this; most processes never load torch
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        torch.save(obj, f)
+
+
+#: numpy's message for a short write (``tofile``, ``np.save``; counts of array items):
+#: ``OSError`` without errno
+_SHORT_WRITE = re.compile(r"(\d+) requested and (\d+) written")
+_FULL_TEXT = re.compile("|".join(map(re.escape, (os.strerror(errno.ENOSPC),
+                                                 os.strerror(errno.EDQUOT)))))
+
+
+def disk_full(exc: BaseException | str) -> bool:
+    """Whether ``exc`` (or an error it was raised from or during) is a full disk or quota:
+    errno ENOSPC / EDQUOT, numpy's "N requested and M written", or (a string: a kernel's
+    or a subprocess's error text) either message."""
+    if isinstance(exc, str):
+        return bool(_FULL_TEXT.search(exc) or _SHORT_WRITE.search(exc))
+    return any(isinstance(e, OSError) and (e.errno in (errno.ENOSPC, errno.EDQUOT)
+                                           or _SHORT_WRITE.search(str(e)))
+               for e in _chain(exc))
+
+
+def _chain(exc: BaseException) -> Iterator[BaseException]:
+    """``exc`` and the errors it was raised from or while handling, outermost first."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        yield e
+        e = e.__cause__ or e.__context__
+
+
+class DiskFull(OSError):
+    """No space left where a run writes: one line naming the folder, the space free there,
+    what the failed write wanted (where known) and the fix (:meth:`at`)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(errno.ENOSPC, message)
+
+    def __str__(self) -> str:
+        return str(self.strerror)
+
+    def __reduce__(self) -> tuple[Any, ...]:  # one argument, not OSError's (errno, text)
+        return (type(self), (self.strerror,))
+
+    @classmethod
+    def at(cls, folder: str | os.PathLike[str], exc: BaseException | str | None = None,
+           doing: str = "", setting: str = "run_dir (--set run_dir=...)") -> DiskFull:
+        """The error for a full disk under ``folder`` while ``doing`` (e.g. "building
+        crops[dis/keyframe]"); ``exc``: the error seen, whose sizes are quoted when it says
+        them; ``setting``: what points the writes elsewhere."""
+        where = Path(folder).absolute()
+        while not where.exists() and where != where.parent:
+            where = where.parent
+        usage = shutil.disk_usage(where)
+        text = exc if isinstance(exc, str) else " ".join(map(str, _chain(exc))) if exc else ""
+        size = _SHORT_WRITE.search(text)
+        wanted = f"; a write stopped after {size[2]} of its {size[1]} items" if size else ""
+        what = f" while {doing}" if doing else ""
+        return cls(f"no space left in {Path(folder)}{what}: {_mb(usage.free)} of "
+                   f"{_mb(usage.total)} free there now{wanted}; free some (make gc, or remove "
+                   f"old runs) or set {setting} on a disk with room, then rerun: finished "
+                   "work is kept")
+
+    @classmethod
+    @contextlib.contextmanager
+    def guard(cls, folder: str | os.PathLike[str], doing: str = "",
+              setting: str = "run_dir (--set run_dir=...)") -> Iterator[None]:
+        """Turn a full disk (:func:`disk_full`) inside the block into :meth:`at`'s error;
+        every other error passes as it is."""
+        try:
+            yield
+        except Exception as e:
+            if isinstance(e, DiskFull) or not disk_full(e):
+                raise
+            raise cls.at(folder, e, doing, setting) from e
+
+
+def _mb(n: int) -> str:
+    """``n`` bytes in MB, one decimal."""
+    return f"{n / 1e6:.1f} MB"
 
 
 def canonical(obj: Any) -> str:

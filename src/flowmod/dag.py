@@ -43,6 +43,7 @@ from typing import Any, Protocol
 
 from flowmod import codedigest
 from flowmod.artefacts import (
+    DiskFull,
     canonical,
     file_digest,
     file_digests,
@@ -591,13 +592,15 @@ class Graph:
         build function runs and its result is published. Returns the published folder."""
         s = self.stage(node)
         if s.source is not None:
-            s.source.ensure(p, progress)
+            with DiskFull.guard(p.dataroot_path, f"making {node}", "dataroot (--set dataroot=...)"):
+                s.source.ensure(p, progress)
             return s.source.location(p)
         b = self.begin(p, node)
         if not b.up_to_date:
             if s.build is None:
                 raise TypeError(f"stage {s.name} declares no build function")
-            b.publish(**(s.build(b, progress) or {}))
+            with DiskFull.guard(p.run_path, f"building {node}"):
+                b.publish(**(s.build(b, progress) or {}))
         return b.final
 
     def build(self, p: Params, chapters: Iterable[str] | None = None,

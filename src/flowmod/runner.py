@@ -39,7 +39,7 @@ import papermill
 from jupyter_client.manager import AsyncKernelManager
 
 from flowmod import environment, pipeline, progress
-from flowmod.artefacts import atomic_path, fingerprint, write_json
+from flowmod.artefacts import DiskFull, atomic_path, disk_full, fingerprint, write_json
 from flowmod.chapters.ch06_training import ABLATION_RECORD, STEPS_RECORD
 from flowmod.flow.networks import planned_methods
 from flowmod.lock import FolderBusy, folder_lock
@@ -205,8 +205,19 @@ def _running_copy(target: Path) -> Path:
     return target.with_name(f".{target.stem}.running.ipynb")
 
 
+def stable_cell_ids(nb: nbformat.NotebookNode) -> None:
+    """Give every cell of ``nb`` an id derived from its position, type and source (12 hex
+    digits), in place: papermill's injected-parameters cell gets a random id each run,
+    which would change the executed copy, and the book's pages, on every execution."""
+    nb.nbformat_minor = max(nb.nbformat_minor, 5)  # cell ids came with nbformat 4.5
+    for i, cell in enumerate(nb.cells):
+        key = f"{i}\0{cell.cell_type}\0{cell.source}".encode()
+        cell["id"] = hashlib.sha256(key).hexdigest()[:12]
+
+
 def _stamp(target: Path, fp: str | None, seconds: float, executed: str) -> None:
     nb = nbformat.read(str(target), as_version=4)
+    stable_cell_ids(nb)
     nb.metadata["flowmod"] = {"fingerprint": fp, "seconds": seconds, "executed": executed}
     with atomic_path(target) as tmp:
         nbformat.write(nb, str(tmp))
@@ -313,7 +324,7 @@ def execute(nb: Path, values: dict[str, Any], plan: Plan, kernel: str, ipc: Path
         os.replace(running, failed)
         kept = "; the previous good copy is kept" if target.is_file() else ""
         raise NotebookFailed(
-            f"{nb.name} failed in cell {e.exec_count}: {e.ename}: {e.evalue}\n"
+            f"{nb.name} failed in cell {e.exec_count}: {cell_error(e, p.run_path)}\n"
             f"executed copy with the traceback: {failed}{kept}",
             round(time.perf_counter() - t0, 1)) from None
     except BaseException:  # interrupted or papermill itself failed: no half-run copy stays
@@ -325,6 +336,16 @@ def execute(nb: Path, values: dict[str, Any], plan: Plan, kernel: str, ipc: Path
     failed.unlink(missing_ok=True)
     print(f"[flowmod] {nb.name} ok ({seconds:.1f} s)", flush=True)
     return {"status": "ok", "seconds": seconds, "executed": executed}
+
+
+def cell_error(e: papermill.PapermillExecutionError, run_path: Path) -> str:
+    """``ename: evalue`` of a cell's error; a full disk that the stage driver did not name
+    (a chapter's own write, or one in a chained error) as :class:`DiskFull`'s line for the
+    run folder, the kernels' place of writing."""
+    text = _ANSI.sub("", "\n".join([str(e.evalue), *e.traceback]))
+    if e.ename != DiskFull.__name__ and disk_full(text):
+        return f"{DiskFull.__name__}: {DiskFull.at(run_path, text)}"
+    return f"{e.ename}: {e.evalue}"
 
 
 def run(
@@ -347,7 +368,8 @@ def run(
     plan = preflight(profile, overrides, out_dir, only, notebooks_dir)
     command = f"runner --profile {profile}"
     with folder_lock(plan.p.run_path, command, wait), folder_lock(plan.out_dir, command, wait):
-        return _execute_all(plan, profile, overrides, only, kernel)
+        with DiskFull.guard(plan.out_dir, "writing executed notebooks", "--out"):
+            return _execute_all(plan, profile, overrides, only, kernel)
 
 
 def _execute_all(plan: Plan, profile: str | Path, overrides: dict[str, Any] | None,
@@ -462,6 +484,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def os_error_line(e: OSError) -> str:
     """One line for an unusable folder or file: what, where, and what to do."""
+    if isinstance(e, DiskFull):
+        return str(e)
     where = e.filename or "a file of the run"
     if e.errno == errno.ENOSPC:
         return (f"no space left on the device of {where}: free some (make gc, or remove old "

@@ -39,7 +39,7 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
 from flowmod import dag
-from flowmod.artefacts import atomic_path, read_manifest
+from flowmod.artefacts import atomic_path, read_manifest, save_checkpoint
 from flowmod.crops import fold_crops, hflip
 from flowmod.dag import StageParams
 from flowmod.metrics import metrics, sigmoid
@@ -265,16 +265,11 @@ def _bce_with_logits(z: np.ndarray, y: np.ndarray) -> float:
     return float(np.mean(np.maximum(z, 0) - z * y + np.log1p(np.exp(-np.abs(z)))))
 
 
-def _save(obj: Any, path: Path) -> None:
-    with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
-
-
 def half_weights(path: Path) -> None:
     """Rewrite the state_dict at ``path`` with its floating-point tensors in float16 (integer
     buffers as they are); :func:`flowmod.model.load_model` loads it back into float32."""
     state = torch.load(path, map_location="cpu", weights_only=True)
-    _save({k: v.half() if v.is_floating_point() else v for k, v in state.items()}, path)
+    save_checkpoint({k: v.half() if v.is_floating_point() else v for k, v in state.items()}, path)
 
 
 def _append_probs(path: Path, epoch: int, probs: np.ndarray) -> None:
@@ -390,7 +385,7 @@ def _resume(run: _Run, last_path: Path, config: dict[str, Any], dev: torch.devic
 
 
 def _checkpoint(run: _Run, path: Path, config: dict[str, Any], dev: torch.device) -> None:
-    _save({
+    save_checkpoint({
         "format": CHECKPOINT_FORMAT, "epoch": run.epoch, "config": config,
         "model": run.model.state_dict(), "optimizer": run.opt.state_dict(),
         "scheduler": run.sched.state_dict(), "scaler": run.scaler.state_dict(),
@@ -555,7 +550,7 @@ def _end_epoch(run: _Run, epoch: int, train_loss: float, lr_now: float, t0: floa
         _append_probs(out / EPOCH_PROBS, epoch, sigmoid(z_rec))
     if m["f1"] > run.best_f1:  # strict: ties keep the earlier epoch
         run.best_f1, run.best_epoch = m["f1"], epoch
-        _save(run.model.state_dict(), out / "best.pt")
+        save_checkpoint(run.model.state_dict(), out / "best.pt")
     run.epoch = epoch
 
 

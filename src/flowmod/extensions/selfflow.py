@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from flowmod import dag, world
-from flowmod.artefacts import atomic_path, write_json
+from flowmod.artefacts import atomic_path, save_checkpoint, write_json
 from flowmod.flow.networks import FastFlowNetFlow
 from flowmod.flow.selftrain import (
     DIS_PRESET,
@@ -32,7 +32,6 @@ from flowmod.flow.selftrain import (
     pair_metrics,
     reference_estimators,
     sample_pairs,
-    save_state,
     score_model,
     train_flow,
     validation_pairs,
@@ -79,7 +78,7 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
         desc=f"train fastflownet ({mode})", device=q.device, init=init,
         window=q.selfflow_window,
         warmup=q.selfflow_warmup if mode == "photometric" else 0)
-    save_state({k: v.cpu() for k, v in model.state_dict().items()}, work / "weights.pt")
+    save_checkpoint({k: v.cpu() for k, v in model.state_dict().items()}, work / "weights.pt")
     with atomic_path(work / "history.csv") as tmp:
         hist.to_csv(tmp, index=False)
     test_data = held_out(test, objects, root, q.version, synthetic)  # read once, at the end

@@ -11,24 +11,39 @@ run record; vendor MathJax; run ``sphinx-build -W -n --keep-going``.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import errno
 import json
 import os
 import re
 import shutil
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import nbformat
 import pandas as pd
 
+from flowmod.artefacts import DiskFull, disk_full
 from flowmod.lock import FolderBusy, file_lock
 from flowmod.paths import repo_root
 
 
 class BookError(RuntimeError):
     """The book cannot be built from what was run; the message says what to do."""
+
+
+@contextlib.contextmanager
+def _room(folder: Path, doing: str) -> Iterator[None]:
+    """A full disk under ``folder`` inside the block: :class:`BookError` with
+    :class:`~flowmod.artefacts.DiskFull`'s line (the CLI prints a BookError as one line)."""
+    try:
+        with DiskFull.guard(folder, doing, "--out"):
+            yield
+    except DiskFull as e:
+        raise BookError(f"{e}; the published book is unchanged") from e
 
 
 def read_glue(nb_path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -122,9 +137,9 @@ def for_the_page(nb: nbformat.NotebookNode) -> nbformat.NotebookNode:
         if "parameters" in tags:
             comments = declared_comments(cell.source)
             continue
-        if "injected-parameters" in tags:
+        if "injected-parameters" in tags:  # a fixed id: a random one changes every page
             cell = nbformat.v4.new_markdown_cell(
-                parameters_html(injected_values(cell.source), comments))
+                parameters_html(injected_values(cell.source), comments), id="parameters-ran")
         cells.append(cell)
     out = nbformat.from_dict(dict(nb))
     out.cells = cells
@@ -224,15 +239,17 @@ def assemble(executed: Path, staging: Path) -> dict[str, Any]:
             f"notebooks not executed in this run: {', '.join(missing)}; run `make run` "
             "(all notebooks) before `make book`"
         )
-    _sync(repo_root() / "book", staging, keep={nb.name for nb in sources} | {"reproduce.md"})
-    for nb in sources:
-        done = executed / nb.name
-        if not done.is_file():
-            raise BookError(f"{done} is missing; rerun `make run`")
-        check_executed(done)
-        page = for_the_page(nbformat.read(str(done), as_version=4))
-        _write_if_changed(staging / nb.name, nbformat.writes(page))
-    _write_if_changed(staging / "reproduce.md", reproduce_page(info))
+    with _room(staging, "staging the book's sources"):
+        _sync(repo_root() / "book", staging,
+              keep={nb.name for nb in sources} | {"reproduce.md"})
+        for nb in sources:
+            done = executed / nb.name
+            if not done.is_file():
+                raise BookError(f"{done} is missing; rerun `make run`")
+            check_executed(done)
+            page = for_the_page(nbformat.read(str(done), as_version=4))
+            _write_if_changed(staging / nb.name, nbformat.writes(page))
+        _write_if_changed(staging / "reproduce.md", reproduce_page(info))
     return info
 
 
@@ -273,10 +290,11 @@ def build(executed: Path, out: Path, staging: Path | None = None) -> Path:
             )
         work = out.with_name(f".{out.name}.building")
         shutil.rmtree(work, ignore_errors=True)  # what a killed build left
-        if out.is_dir():
-            shutil.copytree(out, work, symlinks=True)
         try:
-            _sphinx(staging, work, _sphinx_env(staging, es5, info))
+            with _room(out, "building the book"):
+                if out.is_dir():
+                    shutil.copytree(out, work, symlinks=True)
+                _sphinx(staging, work, _sphinx_env(staging, es5, info))
         except BaseException:
             shutil.rmtree(work, ignore_errors=True)
             raise
@@ -308,7 +326,11 @@ def _sphinx(staging: Path, out: Path, env: dict[str, str]) -> None:
     # every page a second time (``-a``), so that a rerun with nothing changed finds them.
     passes = [[]] if (out / ".doctrees").is_dir() else [[], ["-a"]]
     for extra in passes:
-        proc = subprocess.run([*cmd, *extra, str(staging), str(out)], env=env)
+        proc = subprocess.run([*cmd, *extra, str(staging), str(out)], env=env,
+                              stderr=subprocess.PIPE, text=True, errors="replace")
+        if proc.returncode != 0 and disk_full(proc.stderr):  # not Sphinx's page of report
+            raise OSError(errno.ENOSPC, f"sphinx-build: {os.strerror(errno.ENOSPC)}")
+        sys.stderr.write(proc.stderr)  # its warnings
         if proc.returncode != 0:
             raise BookError(f"sphinx-build failed (exit {proc.returncode}); "
                             "see the warnings above; the published book is unchanged")
