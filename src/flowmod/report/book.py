@@ -24,7 +24,7 @@ import nbformat
 import pandas as pd
 
 from flowmod.lock import FolderBusy, file_lock
-from flowmod.paths import repo_root
+from flowmod.paths import file_in_the_way, repo_root
 
 
 class BookError(RuntimeError):
@@ -255,12 +255,17 @@ def _sync(src: Path, dst: Path, keep: set[str]) -> None:
 def build(executed: Path, out: Path, staging: Path | None = None) -> Path:
     """Assemble and run Sphinx (warnings are errors); returns ``out/index.html``.
 
-    One build per ``out`` at a time (a lock file beside it). The book is built into a
-    copy of ``out`` (``.<out>.building``, modification times kept, so Sphinx rewrites only
-    what changed) that replaces ``out`` only when Sphinx succeeds: a build that fails or is
+    ``out`` must be a folder or absent (:class:`BookError` before any work otherwise). One
+    build per ``out`` at a time (a lock file beside it). The book is built into a copy of
+    ``out`` (``.<out>.building``, modification times kept, so Sphinx rewrites only what
+    changed) that replaces ``out`` only when Sphinx succeeds: a build that fails or is
     killed leaves the published book as it was.
     """
     out = Path(out).resolve()
+    blocker = file_in_the_way(out)
+    if blocker is not None:
+        raise BookError(f"--out {out}: {blocker} is a file, not a folder; give a folder for "
+                        "the HTML book (it is made if absent) or move the file away")
     staging = Path(staging or out.parent / "book-src").resolve()
     with file_lock(out.with_name(f".{out.name}.lock"), "python -m flowmod.report.book",
                    what=out):
@@ -328,7 +333,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m flowmod.report.book", description=__doc__.split("\n\n")[0])
     root = repo_root()
     ap.add_argument("--executed", type=Path, default=root / "build" / "executed")
-    ap.add_argument("--out", type=Path, default=root / "build" / "html")
+    ap.add_argument("--out", type=Path, default=root / "build" / "html",
+                    help="folder of the HTML book (made if absent)")
     args = ap.parse_args(argv)
     try:
         index = build(args.executed, args.out)
