@@ -44,7 +44,7 @@ from flowmod.chapters.ch06_training import ABLATION_RECORD, STEPS_RECORD
 from flowmod.flow.networks import planned_methods
 from flowmod.lock import FolderBusy, folder_lock
 from flowmod.params import Params, ProfileError, load_profile, parse_overrides, profile_path
-from flowmod.paths import repo_root
+from flowmod.paths import file_in_the_way, repo_root
 from flowmod.report.book import check_executed
 from flowmod.select import SelectionError, check_dataroot
 from flowmod.world import source as world_source
@@ -247,6 +247,8 @@ def preflight(profile: str | Path, overrides: dict[str, Any] | None, out_dir: Pa
     """Validate the profile, every selected notebook's parameters, the device and (for real
     data) the dataroot; :class:`ProfileError` in one line for the first problem."""
     p = resolve_profile(profile, overrides)
+    out = Path(out_dir or repo_root() / "build" / "executed").resolve()
+    check_folders(p, out)
     selected = notebooks(notebooks_dir)
     if only:
         selected = [nb for nb in selected if any(nb.stem.startswith(o) for o in only)]
@@ -262,8 +264,19 @@ def preflight(profile: str | Path, overrides: dict[str, Any] | None, out_dir: Pa
             check_dataroot(p.dataroot_path, p.version)
         except SelectionError as e:
             raise ProfileError(f"dataroot={p.dataroot!r}, version={p.version!r}: {e}") from None
-    out = Path(out_dir or repo_root() / "build" / "executed").resolve()
     return Plan(p, plan, out, device)
+
+
+def check_folders(p: Params, out_dir: Path | None = None) -> None:
+    """:class:`ProfileError` when a file stands where the run folder (``run_dir``) or the
+    folder of executed notebooks (``--out``) must be a folder (before any work)."""
+    for what, folder, fix in (("run_dir", p.run_path, "--set run_dir=..."),
+                              ("--out", out_dir, "--out ...")):
+        blocker = None if folder is None else file_in_the_way(folder)
+        if blocker is not None:
+            under = "" if blocker == folder else f" (its parent {blocker})"
+            raise ProfileError(f"{what} {folder}: a file stands where a folder is needed"
+                               f"{under}; remove it or give another folder ({fix})")
 
 
 def _record(plan: Plan, profile: str | Path, overrides: dict[str, Any] | None,
@@ -419,6 +432,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _gc(args: argparse.Namespace) -> None:
     p = resolve_profile(args.profile, parse_overrides(args.overrides))
+    check_folders(p)
     if not p.run_path.exists():  # nothing to free, and a dry run creates nothing
         print(f"{p.run_path}: no run folder; nothing to free")
         return
@@ -439,8 +453,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.gc:
             _gc(args)
         elif args.status:
-            print(pipeline.format_status(resolve_profile(args.profile,
-                                                         parse_overrides(args.overrides))))
+            p = resolve_profile(args.profile, parse_overrides(args.overrides))
+            check_folders(p)
+            print(pipeline.format_status(p))
         else:
             run(args.profile, parse_overrides(args.overrides), out_dir=args.out,
                 only=args.only, wait=args.wait)
