@@ -62,6 +62,13 @@ def test_failing_notebook_stops_the_run_and_is_never_rendered(tmp_path):
     with pytest.raises(book.BookError, match="failed when it ran"):
         book.check_executed(executed / "failed" / "00_setup.ipynb")
     assert not (tmp_path / "html").exists()
+    # the fix undone: the kept good copy is reused, and the failure it answers goes (issue
+    # 53: failed/00_setup.ipynb stayed beside a good copy)
+    nbformat.write(good, nbs / "00_setup.ipynb")
+    (nbs / "01_later.ipynb").unlink()
+    runner.run("smoke", {"run_dir": str(tmp_path / "runs")}, **kw)
+    assert (executed / "00_setup.ipynb").read_bytes() == before, "the good copy, reused"
+    assert not (executed / "failed" / "00_setup.ipynb").exists()
 
 
 @pytest.mark.parametrize("nb_path", runner.notebooks(), ids=lambda p: p.stem)

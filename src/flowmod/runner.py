@@ -310,6 +310,7 @@ def execute(nb: Path, values: dict[str, Any], plan: Plan, kernel: str, ipc: Path
     stamp = _executed_stamp(target)
     if fp is not None and not p.force and stamp.get("fingerprint") == fp:
         print(f"[flowmod] {nb.name} up to date (executed copy reused)", flush=True)
+        (plan.out_dir / "failed" / nb.name).unlink(missing_ok=True)  # a good copy stands
         return {"status": "ok", "seconds": stamp.get("seconds", 0.0),
                 "executed": stamp.get("executed"), "reused": True}
     print(f"[flowmod] {nb.name} ...", flush=True)
