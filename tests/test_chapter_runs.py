@@ -71,6 +71,30 @@ def test_failing_notebook_stops_the_run_and_is_never_rendered(tmp_path):
     assert not (executed / "failed" / "00_setup.ipynb").exists()
 
 
+def test_a_bad_value_given_to_papermill_directly_is_one_line_in_the_kernel(tmp_path):
+    """Issue 53: a chapter run by papermill itself (as each chapter's first cell shows) with
+    a bad value named the key only at the end of 57-86 lines of traceback through flowmod.
+    The kernel now reports flowmod.params.ProfileError as its one line (what papermill
+    prints after "Exception encountered at"; papermill's own traceback above it stays)."""
+    import subprocess
+    import sys
+
+    from flowmod.paths import repo_root
+
+    out = tmp_path / "00_setup.ipynb"
+    proc = subprocess.run([sys.executable, "-m", "papermill", "notebooks/00_setup.ipynb",
+                           str(out), "-p", "seed", "-1", "--no-progress-bar"],
+                          capture_output=True, text=True, cwd=repo_root())
+    line = ("ProfileError: notebook parameters (papermill -p / -f, or the parameters cell): "
+            "seed=-1: Input should be greater than or equal to 0")
+    assert proc.returncode == 1
+    kernel = proc.stderr.split("Exception encountered at ", 1)[1].strip().splitlines()
+    assert kernel[1:] == [line], proc.stderr[-3000:]
+    errors = [o for c in nbformat.read(out, as_version=4).cells for o in c.get("outputs", [])
+              if o.get("output_type") == "error"]
+    assert [(e["ename"], e["traceback"]) for e in errors] == [("ProfileError", [line])]
+
+
 @pytest.mark.parametrize("nb_path", runner.notebooks(), ids=lambda p: p.stem)
 def test_try_it_commands_run(nb_path, smoke_built, tmp_path, capsys):
     """A chapter's "Try it" commands, as a reader would type them, on a copy of the built
