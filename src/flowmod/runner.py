@@ -25,10 +25,12 @@ import json
 import os
 import re
 import shutil
+import signal
 import sys
 import tempfile
 import threading
 import time
+import weakref
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +53,15 @@ from flowmod.world import source as world_source
 
 #: how run records and executed copies write times
 TIME_FORMAT = "%Y-%m-%d %H:%M:%S %Z"
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the runner is, so that it unwinds as Ctrl-C does (no half-run
+    copy stays; a node being built stays in its building folder)."""
+
+
+#: The kernels this process started (:func:`_kernel_manager`): Ctrl-C and SIGTERM kill them.
+KERNELS: weakref.WeakSet[AsyncKernelManager] = weakref.WeakSet()
 
 
 class NotebookFailed(RuntimeError):
@@ -220,6 +231,7 @@ def _kernel_manager(folder: Path) -> type:
             kw.setdefault("transport", "ipc")
             kw.setdefault("ip", str(folder / "kernel"))
             super().__init__(**kw)
+            KERNELS.add(self)
 
         async def _async_interrupt_kernel(self) -> None:
             # jupyter_client interrupts a kernel before shutting it down; after a finished
@@ -448,28 +460,66 @@ def _gc(args: argparse.Namespace) -> None:
               "(--gc --worlds removes them)")
 
 
+def kill_kernels() -> None:
+    """SIGKILL the process group of every kernel this process started that still runs (its
+    own session: a Ctrl-C in the terminal never reaches it). Left to die with the runner,
+    a kernel stopped mid-cell prints a ZMQ traceback over the runner's one line; killed,
+    it leaves what ``kill -9`` leaves (building folders the next run resumes)."""
+    for km in list(KERNELS):
+        proc = getattr(km.provisioner, "process", None)
+        if proc is not None and proc.poll() is None:
+            with contextlib.suppress(OSError):
+                group = os.getpgid(proc.pid)
+                if group != os.getpgrp():  # never the runner's own group
+                    os.killpg(group, signal.SIGKILL)
+
+
+@contextlib.contextmanager
+def stop_signals() -> Iterator[None]:
+    """For the block, Ctrl-C (SIGINT) and SIGTERM kill the running kernels
+    (:func:`kill_kernels`) and raise KeyboardInterrupt and :class:`Terminated` where the
+    runner is, so that it unwinds alike for both (in the main thread; elsewhere nothing
+    changes); the previous handlers are put back after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        kill_kernels()
+        raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+    old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
-        if args.gc:
-            _gc(args)
-        elif args.status:
-            p = resolve_profile(args.profile, parse_overrides(args.overrides))
-            check_folders(p)
-            print(pipeline.format_status(p))
-        else:
-            run(args.profile, parse_overrides(args.overrides), out_dir=args.out,
-                only=args.only, wait=args.wait)
+        with stop_signals():
+            if args.gc:
+                _gc(args)
+            elif args.status:
+                p = resolve_profile(args.profile, parse_overrides(args.overrides))
+                check_folders(p)
+                print(pipeline.format_status(p))
+            else:
+                run(args.profile, parse_overrides(args.overrides), out_dir=args.out,
+                    only=args.only, wait=args.wait)
     except (ProfileError, FolderBusy) as e:
         print(f"{type(e).__name__}: {e}", file=sys.stderr)
         return 2
     except NotebookFailed as e:
         print(f"NotebookFailed: {e}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print("interrupted: finished artefacts are kept; the same command resumes",
-              file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:
+        how = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted (Ctrl-C)"
+        print(f"{how}: python -m flowmod.runner --profile {args.profile} stopped; the "
+              "published results are untouched and the same command resumes", file=sys.stderr)
+        return 143 if isinstance(e, Terminated) else 130
     except OSError as e:
         print(os_error_line(e), file=sys.stderr)
         return 2
