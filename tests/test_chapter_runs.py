@@ -4,6 +4,7 @@ pytest-xdist (``--dist loadfile``) runs it beside the executed smoke study of
 test_notebooks.py."""
 
 import json
+from pathlib import Path
 
 import nbformat
 import pytest
@@ -62,6 +63,77 @@ def test_failing_notebook_stops_the_run_and_is_never_rendered(tmp_path):
     with pytest.raises(book.BookError, match="failed when it ran"):
         book.check_executed(executed / "failed" / "00_setup.ipynb")
     assert not (tmp_path / "html").exists()
+    # the fix undone: the kept good copy is reused, and the failure it answers goes (issue
+    # 53: failed/00_setup.ipynb stayed beside a good copy)
+    nbformat.write(good, nbs / "00_setup.ipynb")
+    (nbs / "01_later.ipynb").unlink()
+    runner.run("smoke", {"run_dir": str(tmp_path / "runs")}, **kw)
+    assert (executed / "00_setup.ipynb").read_bytes() == before, "the good copy, reused"
+    assert not (executed / "failed" / "00_setup.ipynb").exists()
+
+
+def test_sigterm_mid_cell_is_one_line_and_the_run_resumes(tmp_path):
+    """Issue 53: a runner killed with SIGTERM exited without a word. Sent while a cell runs
+    (the kernel's import of flowmod), it now prints one line, as Ctrl-C does (and no ZMQ
+    traceback from a kernel shut down mid-cell: the runner kills it), leaves no executed or
+    running copy, and the same command then runs the notebook to the end."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out, runs = tmp_path / "executed", tmp_path / "runs"
+    argv = ["--profile", "smoke", "--only", "00", "--out", str(out), "--set", f"run_dir={runs}"]
+    proc = subprocess.Popen([sys.executable, "-m", "flowmod.runner", *argv],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    running = out / ".00_setup.running.ipynb"
+    try:
+        while proc.poll() is None and not _cell_running(running, "params.from_notebook"):
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert (proc.returncode, stderr) == (
+        143, "terminated (SIGTERM): python -m flowmod.runner --profile smoke stopped; the "
+        "published results are untouched and the same command resumes\n"), stdout
+    assert sorted(p.name for p in out.glob("*.ipynb")) == [] and not running.exists()
+    assert runner.main(argv) == 0
+    assert (out / "00_setup.ipynb").is_file()
+
+
+def _cell_running(nb: Path, source: str) -> bool:
+    """Whether papermill's running copy ``nb`` marks the cell holding ``source`` running."""
+    try:
+        cells = nbformat.read(nb, as_version=4).cells
+    except Exception:  # noqa: BLE001 - not written yet, or half written
+        return False
+    return any(source in c.source and c.metadata.get("papermill", {}).get("status") == "running"
+               for c in cells)
+
+
+def test_a_bad_value_given_to_papermill_directly_is_one_line_in_the_kernel(tmp_path):
+    """Issue 53: a chapter run by papermill itself (as each chapter's first cell shows) with
+    a bad value named the key only at the end of 57-86 lines of traceback through flowmod.
+    The kernel now reports flowmod.params.ProfileError as its one line (what papermill
+    prints after "Exception encountered at"; papermill's own traceback above it stays)."""
+    import subprocess
+    import sys
+
+    from flowmod.paths import repo_root
+
+    out = tmp_path / "00_setup.ipynb"
+    proc = subprocess.run([sys.executable, "-m", "papermill", "notebooks/00_setup.ipynb",
+                           str(out), "-p", "seed", "-1", "--no-progress-bar"],
+                          capture_output=True, text=True, cwd=repo_root())
+    line = ("ProfileError: notebook parameters (papermill -p / -f, or the parameters cell): "
+            "seed=-1: Input should be greater than or equal to 0")
+    assert proc.returncode == 1
+    kernel = proc.stderr.split("Exception encountered at ", 1)[1].strip().splitlines()
+    assert kernel[1:] == [line], proc.stderr[-3000:]
+    errors = [o for c in nbformat.read(out, as_version=4).cells for o in c.get("outputs", [])
+              if o.get("output_type") == "error"]
+    assert [(e["ename"], e["traceback"]) for e in errors] == [("ProfileError", [line])]
 
 
 @pytest.mark.parametrize("nb_path", runner.notebooks(), ids=lambda p: p.stem)

@@ -220,6 +220,33 @@ def test_runner_faults_are_one_line(tmp_path, monkeypatch, capsys):
     assert "cannot write /mnt/ro/runs" in runner.os_error_line(ro)
 
 
+def test_a_run_folder_that_is_a_file_is_one_line_before_any_work(tmp_path, call_main):
+    """Issue 53: ``--status`` with run_dir a file printed a "missing" line per node (48);
+    now it, ``--gc`` and a run each say once which file stands in the way, and a run with
+    ``--out`` a file touches nothing (the file, the run folder)."""
+    from flowmod import runner
+
+    afile = tmp_path / "afile"
+    afile.write_text("keep")
+    want = (f"ProfileError: run_dir {afile}: a file stands where a folder is needed; remove "
+            "it or give another folder (--set run_dir=...)\n")
+    for mode in ("--status", "--gc"):
+        proc = call_main(runner.main, "--profile", "smoke", "--set", f"run_dir={afile}", mode)
+        assert (proc.returncode, proc.stdout, proc.stderr) == (2, "", want), mode
+    below = afile / "runs"
+    proc = call_main(runner.main, "--profile", "smoke", "--set", f"run_dir={below}", "--status")
+    assert (proc.returncode, proc.stdout, proc.stderr) == (
+        2, "", f"ProfileError: run_dir {below}: a file stands where a folder is needed (its "
+        f"parent {afile}); remove it or give another folder (--set run_dir=...)\n")
+    runs = tmp_path / "runs"
+    proc = call_main(runner.main, "--profile", "smoke", "--set", f"run_dir={runs}", "--only",
+                     "00", "--out", afile)
+    assert (proc.returncode, proc.stderr) == (2, f"ProfileError: --out {afile}: a file stands "
+                                              "where a folder is needed; remove it or give "
+                                              "another folder (--out ...)\n")
+    assert afile.read_text() == "keep" and not runs.exists()
+
+
 @pytest.mark.parametrize(("values", "want"), [
     ({}, ["gt", "dis"]),                                      # the exact flow and DIS
     ({"flow_methods": ["farneback", "gt", "dis"]}, ["gt", "farneback"]),

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import json
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -147,6 +150,86 @@ def test_a_broken_manifest_and_an_out_that_is_no_image_are_one_line(tmp_path, ca
     proc = call_main(predict.main, *frames, "--boxes", tmp_path / "b.csv", "--model", model,
                      "--out", tmp_path / "out.txt")
     assert "--out" in one_line(proc) and "no image writer for .txt" in one_line(proc)
+
+
+def test_an_unusable_recipe_is_one_line_naming_the_manifest_and_key(case, call_main):
+    """Issue 53: a model manifest without "node" (and no recipe) ended in a KeyError, a null
+    recipe value in a TypeError. Each, on a copy of a real model and its manifest, is now one
+    line naming the manifest (and the key) and the fix, before the frames are read; and a
+    model from before recipes were recorded still gets its recipe from its run folder."""
+    real = json.loads((case["model"].parent / "manifest.json").read_text())
+    root = case["tmp"] / "recipes"
+
+    def model_with(rel: str, rec: dict, stage_manifests: bool = False) -> Path:
+        model = root / rel / "best.pt"
+        model.parent.mkdir(parents=True)
+        shutil.copy(case["model"], model)
+        (model.parent / "manifest.json").write_text(json.dumps(rec))
+        if stage_manifests:  # the run folder's flow and crops manifests of the model's method
+            run = case["model"].parents[3]  # <run>/models/dis/<part>/best.pt
+            for stage in ("flow", "crops"):
+                dst = model.parents[3] / stage / "dis" / "keyframe" / "manifest.json"
+                dst.parent.mkdir(parents=True)
+                shutil.copy(run / stage / "dis" / "keyframe" / "manifest.json", dst)
+        return model
+
+    def err(model: Path) -> str:
+        return one_line(call_main(predict.main, case["f1"], case["f2"], "--boxes",
+                                  case["boxes"], "--model", model, "--device", "cpu"))
+
+    fix = "copy the model's folder again or retrain it"
+    bare = {k: v for k, v in real.items() if k not in ("node", "recipe")}
+    model = model_with("bare/f0", bare)
+    assert err(model) == (f"PredictError: {model.parent / 'manifest.json'}: records neither "
+                          "the model's recipe nor the node that trained it (\"node\": None, "
+                          f"want \"train[<method>/<part>]\"); {fix}")
+    nulls = {**real, "recipe": {**real["recipe"], "flow_params": None, "crop_size": None}}
+    model = model_with("nulls/f0", nulls)
+    assert err(model) == (f"PredictError: {model.parent / 'manifest.json'}: recipe "
+                          "flow_params=None (want a mapping of the flow's parameters); "
+                          "crop_size=None (want a whole number of pixels); the manifest is "
+                          f"damaged or was edited: {fix}")
+    edited = {**real, "recipe": {**real["recipe"], "method": "nope"}}
+    model = model_with("method/f0", edited)
+    assert err(model) == (f"PredictError: {model.parent / 'manifest.json'}: recipe "
+                          "method='nope' is no flow method (known: dis, farneback, "
+                          "fastflownet, gt, raft, raft_small); the manifest is damaged or was "
+                          f"edited: {fix}")
+    flow_params = {**real["recipe"]["flow_params"], "flow_scale": -1}
+    edited = {**real, "recipe": {**real["recipe"], "flow_params": flow_params}}
+    model = model_with("scale/f0", edited)
+    assert err(model) == (f"PredictError: {model.parent / 'manifest.json'}: recipe "
+                          "flow_params: flow_scale=-1: Input should be greater than 0; the "
+                          f"manifest is damaged or was edited: {fix}")
+    old = {k: v for k, v in real.items() if k != "recipe"}  # recorded before recipes were
+    assert old["node"].startswith("train[dis/")
+    model = model_with("lone/models/dis/f0", old)
+    line = err(model)
+    assert line.startswith(f"PredictError: {root / 'lone/flow/dis/keyframe/manifest.json'} "
+                           f"not found; {model.parent / 'manifest.json'} has no recipe")
+    model = model_with("run/models/dis/f0", old, stage_manifests=True)
+    assert predict.read_recipe(model) == real["recipe"]
+
+
+def test_a_device_that_is_not_there_is_one_line_before_work(case, call_main):
+    """Issue 53: ``--device foo`` ended in a traceback (a ProfileError from deep inside),
+    ``--device cuda`` on a machine without a GPU in a RuntimeError after the flow was
+    computed. Both are one line naming the option and the choices, before any work."""
+    import torch
+
+    out = case["tmp"] / "device.png"
+
+    def err(device: str) -> str:
+        return one_line(call_main(predict.main, case["f1"], case["f2"], "--boxes",
+                                  case["boxes"], "--model", case["model"], "--device", device,
+                                  "--out", out))
+
+    assert err("foo") == "PredictError: --device 'foo': not a device; give auto, cpu or cuda"
+    if not torch.cuda.is_available():
+        assert err("cuda") == ("PredictError: --device cuda: no CUDA device is visible on "
+                               "this machine; give --device cpu (or auto, which uses a GPU "
+                               "when there is one)")
+    assert not out.exists()
 
 
 def test_predict_imports_without_notebook_packages():

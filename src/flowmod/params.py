@@ -51,6 +51,11 @@ WORLD_MANIFEST = "flowmod.manifest.json"
 class ProfileError(ValueError):
     """A profile or a notebook parameter is invalid; the message names the key and the fix."""
 
+    def _render_traceback_(self) -> list[str]:
+        """What IPython shows (a notebook's kernel, so papermill too): this one line, not the
+        frames through flowmod that raised it; the message says all the user needs."""
+        return [f"{type(self).__name__}: {self}"]
+
 
 def _field(default: Any = ..., *, read_by: tuple[str, ...] = (), role: str = "input",
            methods: tuple[str, ...] = (), file: bool = False, **kw: Any) -> Any:
@@ -587,7 +592,8 @@ def load_profile(name_or_path: str | Path, **overrides: Any) -> Params:
 def from_notebook(namespace: dict[str, Any]) -> Params:
     """Validate the parameters a notebook declared (its globals that are Params fields)."""
     values = {k: namespace[k] for k in Params.model_fields if k in namespace}
-    return validate(values, source="notebook parameters")
+    return validate(values, source="notebook parameters (papermill -p / -f, or the "
+                    "parameters cell)")
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:

@@ -29,3 +29,14 @@ def figures_dir(run_dir: Path) -> Path:
     d = Path(run_dir) / "figures"
     d.mkdir(parents=True, exist_ok=True)
     return d
+
+
+def file_in_the_way(folder: str | os.PathLike[str]) -> Path | None:
+    """The file (or dangling link) that stands where ``folder`` or one of its parents must
+    be a folder; None when ``folder`` is a folder or can be made (a CLI's check of an output
+    folder, before any work)."""
+    path = Path(folder).absolute()
+    for d in (path, *path.parents):
+        if d.exists() or d.is_symlink():
+            return None if d.is_dir() else d
+    return None

@@ -26,9 +26,11 @@ import pandas as pd
 
 from flowmod.artefacts import CheckpointError
 from flowmod.crops import pair_crops
+from flowmod.environment import resolve_device
 from flowmod.flow import (
     ImageError,
     MissingWeightsError,
+    available_methods,
     check_images,
     get_estimator,
     read_image,
@@ -36,7 +38,7 @@ from flowmod.flow import (
 from flowmod.flow.networks import estimator_options
 from flowmod.flow.store import roundtrip
 from flowmod.model import load_model, predict
-from flowmod.params import validate
+from flowmod.params import ProfileError, validate
 from flowmod.report.draw import draw_boxes, label_colors
 from flowmod.train import recipe_from
 
@@ -45,29 +47,100 @@ class PredictError(ValueError):
     """The inputs cannot be used; the message names the file or value and the fix."""
 
 
+#: What a model's recipe must give: key -> (types its value may take, in words).
+RECIPE_FIELDS: dict[str, tuple[tuple[type, ...], str]] = {
+    "method": ((str,), "a flow method's name"),
+    "flow_params": ((dict,), "a mapping of the flow's parameters"),
+    "crop_size": ((int,), "a whole number of pixels"),
+    "crop_scale": ((int, float), "a number"),
+    "flow_dtype": ((str, type(None)), "a dtype name or null"),
+    "store_scale": ((int, float, type(None)), "a number or null"),
+}
+
+
 def read_recipe(model: Path) -> dict[str, Any]:
     """The recipe recorded beside a model (flow method and options, storage, crops); for a
-    model published before recipes were recorded, rebuilt from its run folder's manifests."""
+    model published before recipes were recorded, rebuilt from its run folder's manifests.
+    :class:`PredictError` naming the manifest and the key when it is not usable."""
     man = model.parent / "manifest.json"
     if not man.is_file():
         raise PredictError(f"{man} not found: --model must be a best.pt published by the "
                            "training stage (runs/<profile>/models/<method>/<part>/best.pt, "
                            "part f<k>s<j>, f<k> or s<k>)")
+    rec = _read_json(man, "model manifest", "copy the model's folder again or retrain it")
+    recipe = rec["recipe"] if rec.get("recipe") else _recipe_from_run(model, man, rec)
+    check_recipe(recipe, man)
+    return recipe
+
+
+def _read_json(path: Path, what: str, fix: str) -> dict[str, Any]:
+    """A JSON object from ``path``; :class:`PredictError` saying ``what`` it should be and
+    the ``fix`` when it is unreadable or not an object."""
     try:
-        rec = json.loads(man.read_text())
+        rec = json.loads(path.read_text())
+    except OSError as e:
+        raise PredictError(f"{path}: cannot read the {what} ({e.strerror}); {fix}") from None
     except ValueError as e:  # JSONDecodeError, or bytes that are not text
-        raise PredictError(f"{man}: not a readable manifest ({e}); copy the model's folder "
-                           "again or retrain it") from None
+        raise PredictError(f"{path}: not a readable manifest ({e}); {fix}") from None
     if not isinstance(rec, dict):
-        raise PredictError(f"{man}: not a model manifest (a JSON object); copy the model's "
+        raise PredictError(f"{path}: not a {what} (a JSON object); {fix}")
+    return rec
+
+
+def _recipe_from_run(model: Path, man: Path, rec: dict[str, Any]) -> dict[str, Any]:
+    """The recipe of a model published before recipes were recorded: from the manifests of
+    the flow and crops nodes in the run folder it was published in."""
+    node = rec.get("node")
+    parts = node.split("[", 1)[1].split("/", 1) if isinstance(node, str) and "[" in node else []
+    if len(parts) != 2:
+        raise PredictError(f"{man}: records neither the model's recipe nor the node that "
+                           f"trained it (\"node\": {node!r}, want \"train[<method>/<part>]\");"
+                           " copy the model's folder again or retrain it")
+    method, folder = parts[0], model.resolve().parent
+    run = folder.parents[2] if len(folder.parents) > 2 else folder
+    fix = (f"{man} has no recipe (a model from before recipes were recorded), so predict "
+           "reads its run folder: keep the model in the run that trained it, or retrain it")
+    found = []
+    for stage in ("flow", "crops"):
+        path = run / stage / method / "keyframe" / "manifest.json"
+        if not path.is_file():
+            raise PredictError(f"{path} not found; {fix}")
+        found.append(_read_json(path, f"{stage} manifest", fix))
+    return recipe_from(method, *found)
+
+
+def check_recipe(recipe: Any, man: Path) -> None:
+    """:class:`PredictError` naming every key of :data:`RECIPE_FIELDS` that ``recipe`` (read
+    from ``man``) lacks or holds a value of the wrong type for."""
+    if not isinstance(recipe, dict):
+        raise PredictError(f"{man}: its recipe is {recipe!r}, not a mapping; copy the model's "
                            "folder again or retrain it")
-    if rec.get("recipe"):
-        return rec["recipe"]
-    method = rec["node"].split("[", 1)[1].split("/", 1)[0]
-    run = model.parent.parents[2]
-    flow = json.loads((run / "flow" / method / "keyframe" / "manifest.json").read_text())
-    crops = json.loads((run / "crops" / method / "keyframe" / "manifest.json").read_text())
-    return recipe_from(method, flow, crops)
+    bad = [f"{key}={recipe.get(key)!r} (want {words})"
+           for key, (types, words) in RECIPE_FIELDS.items()
+           if not isinstance(recipe.get(key), types) or isinstance(recipe.get(key), bool)]
+    fix = "the manifest is damaged or was edited: copy the model's folder again or retrain it"
+    if bad:
+        raise PredictError(f"{man}: recipe {'; '.join(bad)}; {fix}")
+    if recipe["method"] not in available_methods():
+        raise PredictError(f"{man}: recipe method={recipe['method']!r} is no flow method "
+                           f"(known: {', '.join(available_methods())}); {fix}")
+    try:  # the values the flow is computed with (a nested mapping is a file's record)
+        validate({k: v for k, v in recipe["flow_params"].items() if not isinstance(v, dict)},
+                 source=f"{man}: recipe flow_params")
+    except ProfileError as e:
+        raise PredictError(f"{e}; {fix}") from None
+
+
+def check_device(device: str) -> None:
+    """:class:`PredictError` for a ``--device`` that is not auto, cpu or cuda, or cuda on a
+    machine without a visible CUDA device."""
+    if device not in ("auto", "cpu", "cuda"):
+        raise PredictError(f"--device {device!r}: not a device; give auto, cpu or cuda")
+    try:
+        resolve_device(device)
+    except RuntimeError:
+        raise PredictError("--device cuda: no CUDA device is visible on this machine; give "
+                           "--device cpu (or auto, which uses a GPU when there is one)") from None
 
 
 def read_boxes(path: Path, width: int, height: int) -> pd.DataFrame:
@@ -142,6 +215,7 @@ def main(argv: list[str] | None = None) -> int:
             raise PredictError(f"--out {args.out}: no image writer for "
                                f"{args.out.suffix or 'a name without extension'}; give a .png "
                                "or .jpg path")
+        check_device(args.device)
         if not args.model.is_file():
             raise PredictError(f"model not found: {args.model}")
         recipe = read_recipe(args.model)

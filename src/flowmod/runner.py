@@ -25,10 +25,12 @@ import json
 import os
 import re
 import shutil
+import signal
 import sys
 import tempfile
 import threading
 import time
+import weakref
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,13 +46,22 @@ from flowmod.chapters.ch06_training import ABLATION_RECORD, STEPS_RECORD
 from flowmod.flow.networks import planned_methods
 from flowmod.lock import FolderBusy, folder_lock
 from flowmod.params import Params, ProfileError, load_profile, parse_overrides, profile_path
-from flowmod.paths import repo_root
+from flowmod.paths import file_in_the_way, repo_root
 from flowmod.report.book import check_executed
 from flowmod.select import SelectionError, check_dataroot
 from flowmod.world import source as world_source
 
 #: how run records and executed copies write times
 TIME_FORMAT = "%Y-%m-%d %H:%M:%S %Z"
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the runner is, so that it unwinds as Ctrl-C does (no half-run
+    copy stays; a node being built stays in its building folder)."""
+
+
+#: The kernels this process started (:func:`_kernel_manager`): Ctrl-C and SIGTERM kill them.
+KERNELS: weakref.WeakSet[AsyncKernelManager] = weakref.WeakSet()
 
 
 class NotebookFailed(RuntimeError):
@@ -231,6 +242,7 @@ def _kernel_manager(folder: Path) -> type:
             kw.setdefault("transport", "ipc")
             kw.setdefault("ip", str(folder / "kernel"))
             super().__init__(**kw)
+            KERNELS.add(self)
 
         async def _async_interrupt_kernel(self) -> None:
             # jupyter_client interrupts a kernel before shutting it down; after a finished
@@ -258,6 +270,8 @@ def preflight(profile: str | Path, overrides: dict[str, Any] | None, out_dir: Pa
     """Validate the profile, every selected notebook's parameters, the device and (for real
     data) the dataroot; :class:`ProfileError` in one line for the first problem."""
     p = resolve_profile(profile, overrides)
+    out = Path(out_dir or repo_root() / "build" / "executed").resolve()
+    check_folders(p, out)
     selected = notebooks(notebooks_dir)
     if only:
         selected = [nb for nb in selected if any(nb.stem.startswith(o) for o in only)]
@@ -273,8 +287,19 @@ def preflight(profile: str | Path, overrides: dict[str, Any] | None, out_dir: Pa
             check_dataroot(p.dataroot_path, p.version)
         except SelectionError as e:
             raise ProfileError(f"dataroot={p.dataroot!r}, version={p.version!r}: {e}") from None
-    out = Path(out_dir or repo_root() / "build" / "executed").resolve()
     return Plan(p, plan, out, device)
+
+
+def check_folders(p: Params, out_dir: Path | None = None) -> None:
+    """:class:`ProfileError` when a file stands where the run folder (``run_dir``) or the
+    folder of executed notebooks (``--out``) must be a folder (before any work)."""
+    for what, folder, fix in (("run_dir", p.run_path, "--set run_dir=..."),
+                              ("--out", out_dir, "--out ...")):
+        blocker = None if folder is None else file_in_the_way(folder)
+        if blocker is not None:
+            under = "" if blocker == folder else f" (its parent {blocker})"
+            raise ProfileError(f"{what} {folder}: a file stands where a folder is needed"
+                               f"{under}; remove it or give another folder ({fix})")
 
 
 def _record(plan: Plan, profile: str | Path, overrides: dict[str, Any] | None,
@@ -308,6 +333,7 @@ def execute(nb: Path, values: dict[str, Any], plan: Plan, kernel: str, ipc: Path
     stamp = _executed_stamp(target)
     if fp is not None and not p.force and stamp.get("fingerprint") == fp:
         print(f"[flowmod] {nb.name} up to date (executed copy reused)", flush=True)
+        (plan.out_dir / "failed" / nb.name).unlink(missing_ok=True)  # a good copy stands
         return {"status": "ok", "seconds": stamp.get("seconds", 0.0),
                 "executed": stamp.get("executed"), "reused": True}
     print(f"[flowmod] {nb.name} ...", flush=True)
@@ -441,6 +467,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _gc(args: argparse.Namespace) -> None:
     p = resolve_profile(args.profile, parse_overrides(args.overrides))
+    check_folders(p)
     if not p.run_path.exists():  # nothing to free, and a dry run creates nothing
         print(f"{p.run_path}: no run folder; nothing to free")
         return
@@ -455,27 +482,66 @@ def _gc(args: argparse.Namespace) -> None:
               "(--gc --worlds removes them)")
 
 
+def kill_kernels() -> None:
+    """SIGKILL the process group of every kernel this process started that still runs (its
+    own session: a Ctrl-C in the terminal never reaches it). Left to die with the runner,
+    a kernel stopped mid-cell prints a ZMQ traceback over the runner's one line; killed,
+    it leaves what ``kill -9`` leaves (building folders the next run resumes)."""
+    for km in list(KERNELS):
+        proc = getattr(km.provisioner, "process", None)
+        if proc is not None and proc.poll() is None:
+            with contextlib.suppress(OSError):
+                group = os.getpgid(proc.pid)
+                if group != os.getpgrp():  # never the runner's own group
+                    os.killpg(group, signal.SIGKILL)
+
+
+@contextlib.contextmanager
+def stop_signals() -> Iterator[None]:
+    """For the block, Ctrl-C (SIGINT) and SIGTERM kill the running kernels
+    (:func:`kill_kernels`) and raise KeyboardInterrupt and :class:`Terminated` where the
+    runner is, so that it unwinds alike for both (in the main thread; elsewhere nothing
+    changes); the previous handlers are put back after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        kill_kernels()
+        raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+    old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
-        if args.gc:
-            _gc(args)
-        elif args.status:
-            print(pipeline.format_status(resolve_profile(args.profile,
-                                                         parse_overrides(args.overrides))))
-        else:
-            run(args.profile, parse_overrides(args.overrides), out_dir=args.out,
-                only=args.only, wait=args.wait)
+        with stop_signals():
+            if args.gc:
+                _gc(args)
+            elif args.status:
+                p = resolve_profile(args.profile, parse_overrides(args.overrides))
+                check_folders(p)
+                print(pipeline.format_status(p))
+            else:
+                run(args.profile, parse_overrides(args.overrides), out_dir=args.out,
+                    only=args.only, wait=args.wait)
     except (ProfileError, FolderBusy) as e:
         print(f"{type(e).__name__}: {e}", file=sys.stderr)
         return 2
     except NotebookFailed as e:
         print(f"NotebookFailed: {e}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print("interrupted: finished artefacts are kept; the same command resumes",
-              file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:
+        how = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted (Ctrl-C)"
+        print(f"{how}: python -m flowmod.runner --profile {args.profile} stopped; the "
+              "published results are untouched and the same command resumes", file=sys.stderr)
+        return 143 if isinstance(e, Terminated) else 130
     except OSError as e:
         print(os_error_line(e), file=sys.stderr)
         return 2

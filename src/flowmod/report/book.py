@@ -28,7 +28,7 @@ import pandas as pd
 
 from flowmod.artefacts import DiskFull, disk_full
 from flowmod.lock import FolderBusy, file_lock
-from flowmod.paths import repo_root
+from flowmod.paths import file_in_the_way, repo_root
 
 
 class BookError(RuntimeError):
@@ -269,18 +269,24 @@ def _sync(src: Path, dst: Path, keep: set[str]) -> None:
             p.unlink()
 
 
-def build(executed: Path, out: Path, staging: Path | None = None) -> Path:
+def build(executed: Path, out: Path, staging: Path | None = None, wait: bool = False) -> Path:
     """Assemble and run Sphinx (warnings are errors); returns ``out/index.html``.
 
-    One build per ``out`` at a time (a lock file beside it). The book is built into a
-    copy of ``out`` (``.<out>.building``, modification times kept, so Sphinx rewrites only
-    what changed) that replaces ``out`` only when Sphinx succeeds: a build that fails or is
-    killed leaves the published book as it was.
+    ``out`` must be a folder or absent (:class:`BookError` before any work otherwise). One
+    build per ``out`` at a time (a lock file beside it; ``wait``: wait for the other build
+    instead of :class:`FolderBusy`). The book is built into a copy of ``out``
+    (``.<out>.building``, modification times kept, so Sphinx rewrites only what changed)
+    that replaces ``out`` only when Sphinx succeeds: a build that fails or is killed leaves
+    the published book as it was.
     """
     out = Path(out).resolve()
+    blocker = file_in_the_way(out)
+    if blocker is not None:
+        raise BookError(f"--out {out}: {blocker} is a file, not a folder; give a folder for "
+                        "the HTML book (it is made if absent) or move the file away")
     staging = Path(staging or out.parent / "book-src").resolve()
     with file_lock(out.with_name(f".{out.name}.lock"), "python -m flowmod.report.book",
-                   what=out):
+                   wait=wait, what=out):
         info = assemble(Path(executed), staging)
         es5 = find_mathjax()
         if es5 is None:
@@ -350,10 +356,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m flowmod.report.book", description=__doc__.split("\n\n")[0])
     root = repo_root()
     ap.add_argument("--executed", type=Path, default=root / "build" / "executed")
-    ap.add_argument("--out", type=Path, default=root / "build" / "html")
+    ap.add_argument("--out", type=Path, default=root / "build" / "html",
+                    help="folder of the HTML book (made if absent)")
+    ap.add_argument("--wait", action="store_true",
+                    help="if another build holds --out, wait for it instead of stopping")
     args = ap.parse_args(argv)
     try:
-        index = build(args.executed, args.out)
+        index = build(args.executed, args.out, wait=args.wait)
     except (BookError, FolderBusy) as e:
         print(f"{type(e).__name__}: {e}", file=sys.stderr)
         return 1
