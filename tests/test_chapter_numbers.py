@@ -1,6 +1,6 @@
 """Chapters 06-13's numbers from hand-made published predictions: every Table 3 row carries
-its own method's scores and every paired effect is A minus B of its own two prediction
-tables (issue 53, item 10).
+its own method's scores, every paired effect is A minus B of its own two prediction tables,
+and a verdict is "decided" only when its interval excludes 0 (issue 53, item 10).
 
 The published nodes are written here by hand: the files each stage publishes (its
 ``<split>.parquet`` tables through :func:`flowmod.evaluate.write_frames`, the evaluate
@@ -20,7 +20,7 @@ import pandas as pd
 import pytest
 from sklearn.metrics import f1_score, precision_score, recall_score
 
-from flowmod import pipeline
+from flowmod import metrics, pipeline
 from flowmod.artefacts import write_manifest
 from flowmod.chapters import ch06_training as ch06
 from flowmod.chapters import ch07_evaluation as ch07
@@ -302,3 +302,52 @@ def test_chapter06_effects_are_the_variant_minus_the_recipe_of_the_committed_row
     shown = ch06.steps_table(rec)
     assert shown["effect (points)"].tolist() == [round(e["effect (points)"], 1)
                                                  for e in rec["effects"]]
+
+
+# --- verdicts -----------------------------------------------------------------------------
+
+#: (low, high) of an effect's interval (points) and whether it decides: both signs, and
+#: intervals that reach 0 exactly (they hold 0: not decided).
+INTERVALS = [((0.4, 2.0), True), ((-2.0, -0.4), True), ((-1.0, 1.0), False),
+             ((-1.5, 0.0), False), ((0.0, 1.5), False), ((0.0, 0.0), False)]
+
+
+def test_chapter06_calls_a_step_decided_only_when_its_interval_excludes_0():
+    """Chapter 06's table and words on a record of one step per interval of
+    :data:`INTERVALS` (issue 53: an interval that holds 0 called "decided" passed a test
+    that read the words' prefix)."""
+    effects = [{"step": f"step {i}", "variant": f"variant {i}", "scored against": "annotated",
+                "units": 3, "recipe (%)": 80.0, "variant (%)": 80.0 + (lo + hi) / 2,
+                "effect (points)": (lo + hi) / 2, "low": lo, "high": hi,
+                "seconds a model": 10.0} for i, ((lo, hi), _) in enumerate(INTERVALS)]
+    rec = {"date": "2026-12-06", "commit": "abc1234", "effects": effects}
+    table = ch06.steps_table(rec)
+    assert table["decided"].tolist() == ["yes" if d else "no" for _, d in INTERVALS]
+    words = ch06.steps_words(rec)
+    for i, ((lo, hi), decided) in enumerate(INTERVALS):
+        said = "decided" if decided else "not decided"
+        assert (f"step {i} (variant {i}): {(lo + hi) / 2:+.1f} points ({lo:+.1f} to "
+                f"{hi:+.1f}, {said})") in words
+
+
+def test_a_paired_verdict_decides_only_when_its_interval_excludes_0():
+    """The paired comparisons' verdict (chapters 07, 10-13) on the same intervals: A or B
+    better by the interval's side of 0, undecided when it holds 0; chapter 07's words and
+    chapter 13's count follow it."""
+    want = {(0.4, 2.0): "A better", (-2.0, -0.4): "B better"}
+    row = {"detectable": 0.02, "per_seed": [0.0], "p_not_better": 0.5, "n_scenes": 29,
+           "n": 90}
+    rows = {f"a{i} - b{i}": {**row, "delta_f1": (lo + hi) / 200, "ci": (lo / 100, hi / 100)}
+            for i, ((lo, hi), _) in enumerate(INTERVALS)}
+    table = metrics.comparison_table(rows)
+    verdicts = [want.get(ci, "undecided") for ci, _ in INTERVALS]
+    assert [metrics.verdict(ci) for ci, _ in INTERVALS] == verdicts
+    assert table["verdict"].tolist() == verdicts
+    answer = ch07.answer(table)
+    assert answer.count(", decided: the first is better") == 1
+    assert answer.count(", decided: the second is better") == 1
+    eff = pd.DataFrame({"chapter": "07", "question": "q", "comparison": table["comparison"],
+                        "ΔF1 (points)": table["ΔF1 (points)"], "verdict": table["verdict"],
+                        "95% CI, scenes and seeds (points)": table[
+                            "95% CI, scenes and seeds (points)"]})
+    assert ch13.answers(eff)["decided"].tolist() == [f"2 of {len(INTERVALS)}"]
