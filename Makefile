@@ -99,8 +99,8 @@ lab: env  ## JupyterLab on notebooks/ with the venv's kernel: run a chapter cell
 	JUPYTER_PATH=$(abspath $(LAB_KERNELS))/share/jupyter $(VENV)/bin/jupyter lab --notebook-dir=notebooks \
 	  --no-browser --ip=127.0.0.1 --port=$(LAB_PORT) $(if $(filter 0,$(shell id -u)),--allow-root)
 
-mutation: env  ## mutation testing of the modules whose numbers reach the book, one at a time (mutmut; MODULES="flowmod.train ..." runs those; not part of make test)
-	$(PY) benchmarks/mutation.py $(MODULES)
+mutation: env  ## mutation testing of the modules whose numbers reach the book, one at a time (mutmut; PART=k runs part k, each within 45 min, PART=plan lists them; MODULES="flowmod.train ..." runs those; not part of make test)
+	$(PY) benchmarks/mutation.py $(if $(PART),--part $(PART)) $(MODULES)
 
 flownet: env  ## train the shipped FastFlowNet weights from scratch (weights/fastflownet_synth; hours on 2 CPU cores, resumable; FROM_SHIPPED=1 trains only the phases the published file lacks)
 	$(PY) -m flowmod.flow.pretrain $(if $(STEPS),--steps $(STEPS)) $(if $(FROM_SHIPPED),--from-shipped)

@@ -16,14 +16,24 @@ mutant that no test notices *survives*. This script runs mutmut, then writes
 Goal: at least 90 % of the non-equivalent mutants killed on each module. Not part of
 ``make test``. Each module is run on its own (``mutmut run "<module>.*"``, which re-tests
 every mutant of that module) and timed; the report gives each module's minutes, so a run
-can be split by module (``make mutation MODULES="flowmod.train flowmod.select"``) and each
-part still fits in 45 min on 2 cores.
+can be split by module (``make mutation MODULES="flowmod.train flowmod.select"``).
+
+The whole set takes many hours on 2 cores, so it is run in parts that each fit in 45 min
+(``make mutation PART=k``; ``PART=plan`` lists them without running a test): the modules of
+each group (the core modules, the chapters' backends, the extensions, the world) in order,
+packed into parts of at most :data:`PART_MINUTES` estimated minutes, a module too large for
+one part cut into chunks of whole functions (``flowmod.world.agents 2/5``). The estimate is
+mutmut's own listing of a module's mutants (no test run) times :data:`SECONDS_A_MUTANT`:
+measured for the modules already run, a guess for the others until their first run (then
+update it from the report's minutes).
 """
 
 from __future__ import annotations
 
 import ast
 import difflib
+import fnmatch
+import hashlib
 import json
 import os
 import subprocess
@@ -36,12 +46,43 @@ from typing import Any
 from flowmod.artefacts import atomic_path, write_json
 
 ROOT = Path(__file__).resolve().parents[1]
-#: The modules whose numbers reach the book, as mutmut names their mutants.
-MODULES = ("flowmod.metrics", "flowmod.labels", "flowmod.crops", "flowmod.dag",
-           "flowmod.evaluate", "flowmod.geometry", "flowmod.select", "flowmod.train",
-           "flowmod.flow.estimators", "flowmod.flow.metrics")
+#: The core modules whose numbers reach the book, as mutmut names their mutants.
+CORE = ("flowmod.metrics", "flowmod.labels", "flowmod.crops", "flowmod.dag",
+        "flowmod.evaluate", "flowmod.geometry", "flowmod.select", "flowmod.train",
+        "flowmod.flow.estimators", "flowmod.flow.metrics")
+#: The packages where the book's numbers are assembled: every module of each is mutated
+#: (``only_mutate`` in pyproject.toml; their ``__init__`` and ``__main__`` are not).
+PACKAGES = ("flowmod.chapters", "flowmod.extensions", "flowmod.world")
+
+
+def package_modules(package: str) -> tuple[str, ...]:
+    """The modules of ``package`` (its source files but ``__init__``, ``__main__``)."""
+    folder = ROOT / "src" / package.replace(".", "/")
+    return tuple(f"{package}.{f.stem}" for f in sorted(folder.glob("*.py"))
+                 if not f.stem.startswith("__"))
+
+
+#: Each group's modules in order (the parts of :func:`plan` never mix groups).
+GROUPS = {"core": CORE, **{p.rsplit(".", 1)[1]: package_modules(p) for p in PACKAGES}}
+#: Every module in scope.
+MODULES = tuple(m for mods in GROUPS.values() for m in mods)
+#: The most minutes a part is planned to take: each must fit in 45 min, and the estimate
+#: (:data:`SECONDS_A_MUTANT`) is rough.
+PART_MINUTES = 40.0
+#: Wall seconds a mutant takes on 2 cores. Measured: a module's minutes / its mutants in
+#: benchmarks/mutation.md at d4a0f7f. Guessed, until a first run: the chapters' and the
+#: extensions' quick tests read small hand-made tables (about the core modules' 0.4-1.4 s);
+#: the world's generate small worlds of their own (test_world.py: 3 to 12 s a test).
+SECONDS_A_MUTANT = {
+    "flowmod.metrics": 0.39, "flowmod.labels": 0.53, "flowmod.crops": 0.42,
+    "flowmod.dag": 0.55, "flowmod.evaluate": 0.36, "flowmod.geometry": 0.58,
+    "flowmod.select": 0.65, "flowmod.train": 1.42, "flowmod.flow.estimators": 1.13,
+    "flowmod.flow.metrics": 0.55,
+    "flowmod.chapters": 1.0, "flowmod.extensions": 1.0, "flowmod.world": 3.5,
+}
 VERDICTS = ROOT / "benchmarks" / "mutation_verdicts.json"
-#: ``{module: {"seconds": s, "commit": c, "date": d}}`` of each module's last timed run.
+#: ``{module or chunk: {"seconds": s, "commit": c, "date": d, "mutants": n}}`` of each
+#: module's (or chunk's, ``<module> i/k``) last whole run.
 TIMES = ROOT / "benchmarks" / "results" / "mutation_times.json"
 
 
@@ -115,6 +156,24 @@ def commit() -> str:
     return (git("rev-parse", "--short", "HEAD") or "unknown") + (" + changes" if dirty else "")
 
 
+def module_time(module: str, times: dict[str, dict[str, Any]]) -> dict[str, Any] | None:
+    """The last whole timing of ``module``: its own run, or the sum of the runs of all its
+    chunks of one plan (``<module> i/k``, :func:`plan`; the last chunk's commit)."""
+    if module in times:
+        return times[module]
+    runs: dict[int, dict[int, dict[str, Any]]] = {}
+    for key, t in times.items():
+        name, _, frac = key.rpartition(" ")
+        i, _, k = frac.partition("/")
+        if name == module and i.isdigit() and k.isdigit():
+            runs.setdefault(int(k), {})[int(i)] = t
+    for k, got in sorted(runs.items()):
+        if set(got) == set(range(1, k + 1)):
+            return {"seconds": sum(t["seconds"] for t in got.values()),
+                    "commit": got[k]["commit"]}
+    return None
+
+
 def report(rows: dict[str, str], verdicts: dict[str, dict[str, str]],
            times: dict[str, dict[str, Any]]) -> str:
     """The markdown report: when and at which commit, the score and the minutes of the last
@@ -128,7 +187,8 @@ def report(rows: dict[str, str], verdicts: dict[str, dict[str, str]],
              "why); CUDA only = a survivor whose change matters only on a GPU, which no test "
              "here can run (the verdict says what). Score = killed / (mutants - equivalent - "
              "CUDA only). Minutes: the module's last whole run (`mutmut run "
-             "\"<module>.*\"`) and the commit it ran at; a function changed since then has "
+             "\"<module>.*\"`, or the runs of all its chunks: `make mutation PART=k`) and "
+             "the commit it ran at; a function changed since then has "
              "its mutants re-tested by mutmut, so every row is of the code above.", "",
              "| module | mutants | killed | survived | no test | equivalent | CUDA only "
              "| score | minutes (commit) |",
@@ -144,7 +204,7 @@ def report(rows: dict[str, str], verdicts: dict[str, dict[str, str]],
         cuda = [k for k in survived if given[k].startswith("cuda-only")]
         denom = len(mine) - len(equivalent) - len(cuda) - c["skipped"] - c["not checked"]
         score = f"{100 * killed / denom:.1f} %" if denom else "-"
-        t = times.get(m)
+        t = module_time(m, times)
         took = f"{t['seconds'] / 60:.1f} ({t['commit']})" if t else "-"
         lines.append(f"| {m} | {len(mine)} | {killed} | {len(survived)} | {c['no tests']} "
                      f"| {len(equivalent)} | {len(cuda)} | {score} | {took} |")
@@ -162,40 +222,160 @@ def finished(module: str, rows: dict[str, str]) -> bool:
     return bool(mine) and "not checked" not in mine
 
 
-def run_module(module: str) -> tuple[int, float]:
-    """``mutmut run "<module>.*"``: re-test every mutant of one module; (exit code, s)."""
+def run_patterns(patterns: list[str]) -> tuple[int, float]:
+    """``mutmut run <patterns>``: re-test every mutant whose name matches one; (exit code,
+    s)."""
     t0 = time.time()
-    proc = subprocess.run([sys.executable, "-m", "mutmut", "run", f"{module}.*"], cwd=ROOT)
+    proc = subprocess.run([sys.executable, "-m", "mutmut", "run", *patterns], cwd=ROOT)
     return proc.returncode, time.time() - t0
+
+
+# --- parts that each fit in 45 min ------------------------------------------------------------
+
+
+def seconds_a_mutant(module: str) -> float:
+    """:data:`SECONDS_A_MUTANT` of ``module``: its own, else its package's."""
+    key = next(k for k in (module, module.rsplit(".", 1)[0]) if k in SECONDS_A_MUTANT)
+    return SECONDS_A_MUTANT[key]
+
+
+def function_mutants(module: str) -> dict[str, int]:
+    """``{function: mutants}`` of ``module`` in source order, from mutmut's own listing of
+    the mutants it would make (no test is run); a function's name as mutmut's mutant names
+    hold it (``x_name``, ``xǁClassǁmethod``)."""
+    from mutmut.mutation.file_mutation import mutate_file_contents
+
+    rel = Path("src") / (module.replace(".", "/") + ".py")
+    names = mutate_file_contents(str(rel), (ROOT / rel).read_text()).mutant_names
+    return dict(Counter(n.partition("__mutmut_")[0] for n in names))
+
+
+def chunks(functions: dict[str, int], most: int) -> list[list[str]]:
+    """``functions`` (in order) cut into runs of whole functions of at most ``most``
+    mutants each (a function with more is a run of its own)."""
+    out: list[list[str]] = [[]]
+    acc = 0
+    for name, n in functions.items():
+        if out[-1] and acc + n > most:
+            out.append([])
+            acc = 0
+        out[-1].append(name)
+        acc += n
+    return out
+
+
+def plan(counts: dict[str, dict[str, int]] | None = None) -> list[list[dict[str, Any]]]:
+    """The parts of ``make mutation PART=k``: each a list of items (``name``, ``module``,
+    ``patterns`` for ``mutmut run``, ``mutants``, ``minutes``), the modules of each group of
+    :data:`GROUPS` in order, a part closed when the next item would take it over
+    :data:`PART_MINUTES`; a module over it alone is cut into chunks of whole functions
+    (:func:`chunks`). ``counts``: :func:`function_mutants` per module (default: listed
+    now)."""
+    counts = counts if counts is not None else listing()
+    parts: list[list[dict[str, Any]]] = []
+    for modules in GROUPS.values():
+        parts.append([])
+        for m in modules:
+            funcs, rate = counts[m], seconds_a_mutant(m)
+            pieces = chunks(funcs, int(PART_MINUTES * 60 / rate))
+            for i, names in enumerate(pieces, 1):
+                n = sum(funcs[f] for f in names)
+                item = {"name": m if len(pieces) == 1 else f"{m} {i}/{len(pieces)}",
+                        "module": m, "mutants": n, "minutes": n * rate / 60,
+                        "patterns": [f"{m}.*"] if len(pieces) == 1 else
+                        [f"{m}.{f}__mutmut_*" for f in names]}
+                if parts[-1] and sum(x["minutes"] for x in parts[-1]) + item["minutes"] > \
+                        PART_MINUTES:
+                    parts.append([])
+                parts[-1].append(item)
+    return [p for p in parts if p]
+
+
+#: :func:`function_mutants` of each module, kept by the sha256 of its source.
+LISTING = ROOT / "benchmarks" / "results" / "mutant_listing.json"
+
+
+def listing() -> dict[str, dict[str, int]]:
+    """:func:`function_mutants` of every module of :data:`MODULES`, listed again only for
+    a module whose source changed since it was last listed (:data:`LISTING`: listing them
+    all takes about 2 min)."""
+    kept = json.loads(LISTING.read_text()) if LISTING.is_file() else {}
+    out, fresh = {}, {}
+    for m in MODULES:
+        digest = hashlib.sha256((ROOT / "src" / (m.replace(".", "/") + ".py")).read_bytes())
+        key = digest.hexdigest()
+        if kept.get(m, {}).get("sha256") != key:  # pairs: a JSON object's keys get sorted
+            fresh[m] = {"sha256": key, "functions": list(function_mutants(m).items())}
+        out[m] = dict((fresh.get(m) or kept[m])["functions"])
+    if fresh:
+        write_json(LISTING, {**kept, **fresh})
+    return out
+
+
+def plan_text(parts: list[list[dict[str, Any]]]) -> str:
+    """The parts in words: number, estimated minutes, mutants and items."""
+    lines = []
+    for k, part in enumerate(parts, 1):
+        lines.append(f"part {k}: {sum(x['minutes'] for x in part):.0f} min (estimated), "
+                     f"{sum(x['mutants'] for x in part)} mutants: "
+                     + ", ".join(x["name"] for x in part))
+    return "\n".join(lines)
+
+
+def item_finished(item: dict[str, Any], rows: dict[str, str]) -> bool:
+    """Whether a run tested every mutant of a plan's item (:func:`finished`, for a chunk of
+    a module: of its functions)."""
+    if len(item["patterns"]) == 1 and item["patterns"][0] == item["module"] + ".*":
+        return finished(item["module"], rows)
+    mine = [v for k, v in rows.items()
+            if any(fnmatch.fnmatchcase(k, p) for p in item["patterns"])]
+    return bool(mine) and "not checked" not in mine
 
 
 def main(argv: list[str] | None = None) -> int:
     """``make mutation``: run mutmut module by module (module names as arguments: those
-    only), then write the report. ``--report-only``: write the report of the last (possibly
-    interrupted) runs; their unchecked mutants are counted."""
+    only; ``--part k``: the k-th part of :func:`plan`, ``--part plan``: print the parts and
+    stop), then write the report. ``--report-only``: write the report of the last
+    (possibly interrupted) runs; their unchecked mutants are counted."""
     args = sys.argv[1:] if argv is None else argv
     partial = "--report-only" in args
-    chosen = [a for a in args if not a.startswith("--")] or list(MODULES)
+    part = args[args.index("--part") + 1] if "--part" in args else None
+    chosen = [a for a in args if not a.startswith("--") and a != part] or list(MODULES)
     unknown = sorted(set(chosen) - set(MODULES))
     if unknown:
         print(f"mutation: {', '.join(unknown)} not in scope (one of: {', '.join(MODULES)})",
               file=sys.stderr)
         return 2
+    items = [{"name": m, "module": m, "patterns": [f"{m}.*"]} for m in chosen]
+    if part is not None:
+        parts = plan()
+        if part == "plan":
+            print(plan_text(parts))
+            return 0
+        if not part.isdigit() or not 1 <= int(part) <= len(parts):
+            print(f"mutation: --part {part}: there are parts 1 to {len(parts)} (or plan)",
+                  file=sys.stderr)
+            return 2
+        items = parts[int(part) - 1]
     times = json.loads(TIMES.read_text()) if TIMES.is_file() else {}
-    for m in ([] if partial else chosen):
-        code, seconds = run_module(m)
+    for item in ([] if partial else items):
+        code, seconds = run_patterns(item["patterns"])
         if code not in (0, 1):
             return code
-        if not finished(m, results()):
-            print(f"mutation: the run of {m} stopped before every mutant was tested; its "
-                  "time is not recorded (run it again)", file=sys.stderr)
+        rows = results()
+        if not item_finished(item, rows):
+            print(f"mutation: the run of {item['name']} stopped before every mutant was "
+                  "tested; its time is not recorded (run it again)", file=sys.stderr)
             return 1
-        times[m] = {"seconds": round(seconds, 1), "commit": commit(),
-                    "date": time.strftime("%Y-%m-%d", time.gmtime())}
+        times[item["name"]] = {
+            "seconds": round(seconds, 1), "commit": commit(),
+            "date": time.strftime("%Y-%m-%d", time.gmtime()),
+            "mutants": sum(any(fnmatch.fnmatchcase(k, p) for p in item["patterns"])
+                           for k in rows)}
         write_json(TIMES, times)
     rows = results()
     unchecked = sum(v == "not checked" for v in rows.values())
-    if not rows or (unchecked and not partial and chosen == list(MODULES)):
+    if not rows or (unchecked and not partial and part is None and chosen == list(MODULES)):
         print(f"mutation: mutmut left {unchecked} of {len(rows)} mutants unchecked (its test "
               "run failed: run the tests in mutants/ to see why)", file=sys.stderr)
         return 1
@@ -204,7 +384,7 @@ def main(argv: list[str] | None = None) -> int:
     text = report(rows, verdicts, times)
     if unchecked:
         text += (f"\n{unchecked} of {len(rows)} mutants not checked yet (`make mutation "
-                 "MODULES=...` runs the modules they belong to).\n")
+                 "PART=k` or `MODULES=...` runs the ones they belong to).\n")
     with atomic_path(ROOT / "benchmarks" / "mutation.md") as tmp:
         tmp.write_text(text)
     print(text)

@@ -100,25 +100,39 @@ def _world_code_digest() -> str:
     return h.hexdigest()[:16]
 
 
+def _world_mutant() -> bool:
+    """Whether mutation testing (``make mutation``) runs this session with a mutant of the
+    world's generator active (mutmut names it in ``MUTANT_UNDER_TEST``): its source files
+    are the same for every mutant, so :func:`_world_code_digest` cannot tell the worlds
+    they make apart."""
+    return os.environ.get("MUTANT_UNDER_TEST", "").startswith("flowmod.world.")
+
+
 @pytest.fixture(scope="session")
 def tiny_world(tmp_path_factory) -> tuple[Path, str]:
     """(root, version) of a five-scene world (:data:`TINY_WORLD`, about 5 s to make), for
     the selection's quick tests. It is deterministic, so it is made once per version of the
     generator's code and kept in pytest's temporary root (``pytest-of-<user>/``) for later
     sessions: mutation testing (``make mutation``) starts a session per mutant. Made in a
-    temporary folder and renamed into place, so a session never sees half a world."""
+    temporary folder and renamed into place, so a session never sees half a world. Under a
+    mutant of the world's generator the session makes the mutant's world, not kept: its
+    tests must see what that code makes, and a world it made must never be kept for the
+    code's."""
     from flowmod.world import ensure_world
 
-    keep = tmp_path_factory.getbasetemp().parent / f"flowmod-tiny-world-{_world_code_digest()}"
-    if not (keep / ".made").is_file():
-        work = Path(tempfile.mkdtemp(prefix=".tiny-world-", dir=keep.parent))
+    root = tmp_path_factory.getbasetemp().parent / f"flowmod-tiny-world-{_world_code_digest()}"
+    if _world_mutant():  # the mutant's own world, never kept: the kept one is the code's
+        root = tmp_path_factory.mktemp("tiny_world")
+        ensure_world(_smoke(root, **TINY_WORLD), progress=False)
+    elif not (root / ".made").is_file():
+        work = Path(tempfile.mkdtemp(prefix=".tiny-world-", dir=root.parent))
         ensure_world(_smoke(work, **TINY_WORLD), progress=False)
         (work / ".made").touch()
         try:
-            work.rename(keep)
+            work.rename(root)
         except OSError:  # another session kept one meanwhile
             shutil.rmtree(work)
-    return _smoke(keep, **TINY_WORLD).dataroot_path, SMOKE_VERSION
+    return _smoke(root, **TINY_WORLD).dataroot_path, SMOKE_VERSION
 
 
 @pytest.fixture(scope="session")

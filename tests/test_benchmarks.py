@@ -96,16 +96,21 @@ def test_the_loader_benchmark_times_every_input_path(tmp_path):
     assert all(r["crops"] == 256 and r["crops_per_s"] > 0 for r in rows)
 
 
+def _mutation() -> types.ModuleType:
+    """benchmarks/mutation.py (``make mutation``) as a module."""
+    sys.path.insert(0, str(repo_root() / "benchmarks"))
+    try:
+        return importlib.import_module("mutation")
+    finally:
+        sys.path.pop(0)
+
+
 def test_the_mutation_report_names_its_commit_and_scores_each_module(monkeypatch):
     """benchmarks/mutation.py's report: its commit and date in the header; per module the
     killed share of the mutants that are neither equivalent nor CUDA-only (a verdict given
     for the survivor's current change), a mutant no test runs counted as not killed, and
     the module's last timed run; an open survivor listed."""
-    sys.path.insert(0, str(repo_root() / "benchmarks"))
-    try:
-        mutation = importlib.import_module("mutation")
-    finally:
-        sys.path.pop(0)
+    mutation = _mutation()
     monkeypatch.setattr(mutation, "commit", lambda: "abc1234")
     monkeypatch.setattr(mutation, "mutant_sources", lambda: {})
     monkeypatch.setattr(mutation, "change", lambda name, sources: f"change of {name}")
@@ -135,11 +140,7 @@ def test_the_mutation_report_names_its_commit_and_scores_each_module(monkeypatch
 def test_the_mutation_report_s_commit_ignores_the_report_it_rewrites(tmp_path, monkeypatch):
     """'+ changes' marks an edited tracked file, but not benchmarks/mutation.md, which every
     run rewrites before the next report reads the commit."""
-    sys.path.insert(0, str(repo_root() / "benchmarks"))
-    try:
-        mutation = importlib.import_module("mutation")
-    finally:
-        sys.path.pop(0)
+    mutation = _mutation()
     git = lambda *a: subprocess.run(["git", "-C", str(tmp_path), *a], check=True,  # noqa: E731
                                     capture_output=True, text=True).stdout.strip()
     git("init", "-q")
@@ -159,13 +160,51 @@ def test_the_mutation_report_s_commit_ignores_the_report_it_rewrites(tmp_path, m
 def test_the_mutation_run_records_a_time_only_for_a_whole_run():
     """An interrupted mutmut run (mutants left ``not checked``) or a module with no mutants
     is not a whole run: its seconds must not reach the report."""
-    sys.path.insert(0, str(repo_root() / "benchmarks"))
-    try:
-        mutation = importlib.import_module("mutation")
-    finally:
-        sys.path.pop(0)
+    mutation = _mutation()
     rows = {"flowmod.labels.x_f__mutmut_1": "killed", "flowmod.labels.x_f__mutmut_2": "no tests",
             "flowmod.crops.x_g__mutmut_1": "killed", "flowmod.crops.x_g__mutmut_2": "not checked"}
     assert mutation.finished("flowmod.labels", rows)
     assert not mutation.finished("flowmod.crops", rows)
     assert not mutation.finished("flowmod.geometry", rows)
+
+
+def test_mutation_parts_fit_their_minutes_and_cover_every_function_once(monkeypatch,
+                                                                          capsys):
+    """``make mutation PART=k``: each group's modules in order, a part closed before it
+    would pass PART_MINUTES (estimated: mutants x seconds a mutant), a module too large for
+    one part cut into chunks of whole functions in source order (a function larger than a
+    part alone), every function in exactly one item; a chunked module's minutes in the
+    report are the sum of a run of every chunk of one plan."""
+    mutation = _mutation()
+    monkeypatch.setattr(mutation, "GROUPS", {"core": ("m.a", "m.b"),
+                                             "world": ("w.d", "w.c", "w.e")})
+    monkeypatch.setattr(mutation, "SECONDS_A_MUTANT", {"m": 60.0, "w": 60.0})
+    monkeypatch.setattr(mutation, "PART_MINUTES", 6.0)  # 6 mutants a part
+    counts = {"m.a": {"x_f": 2, "x_g": 1}, "m.b": {"x_h": 2}, "w.d": {"x_n": 1},
+              "w.c": {"x_i": 2, "x_j": 4, "x_k": 9, "x_l": 1, "xǁCǁm": 2}, "w.e": {"x_o": 1}}
+    parts = mutation.plan(counts)
+    assert [[x["name"] for x in part] for part in parts] == [
+        ["m.a", "m.b"], ["w.d"], ["w.c 1/3"], ["w.c 2/3"], ["w.c 3/3", "w.e"]]
+    assert [sum(x["minutes"] for x in part) for part in parts] == [5.0, 1.0, 6.0, 9.0, 4.0]
+    assert parts[0][0]["patterns"] == ["m.a.*"]
+    assert [x["patterns"] for x in parts[2] + parts[3]] == [
+        ["w.c.x_i__mutmut_*", "w.c.x_j__mutmut_*"], ["w.c.x_k__mutmut_*"]]
+    assert parts[4][0]["patterns"] == ["w.c.x_l__mutmut_*", "w.c.xǁCǁm__mutmut_*"]
+    assert "part 4: 9 min (estimated), 9 mutants: w.c 2/3" in mutation.plan_text(parts)
+    rows = {"w.c.x_i__mutmut_1": "killed", "w.c.x_j__mutmut_1": "survived",
+            "w.c.x_k__mutmut_1": "not checked"}
+    assert mutation.item_finished(parts[2][0], rows)
+    assert not mutation.item_finished(parts[3][0], rows)
+    assert not mutation.item_finished(parts[2][0], {})  # no mutant of it ran
+    times = {"w.c 1/3": {"seconds": 60.0, "commit": "a"}, "w.c 3/3": {"seconds": 30.0,
+                                                                     "commit": "c"}}
+    assert mutation.module_time("w.c", times) is None  # 2/3 never ran
+    times["w.c 2/3"] = {"seconds": 90.0, "commit": "b"}
+    assert mutation.module_time("w.c", times) == {"seconds": 180.0, "commit": "c"}
+    monkeypatch.setattr(mutation, "listing", lambda: counts)  # what PART=... plans from
+    assert mutation.main(["--part", "plan"]) == 0
+    assert capsys.readouterr().out == mutation.plan_text(parts) + "\n"
+    for bad in ("0", "6", "two"):
+        assert mutation.main(["--part", bad]) == 2
+        assert capsys.readouterr().err == (f"mutation: --part {bad}: there are parts 1 to 5 "
+                                           "(or plan)\n")

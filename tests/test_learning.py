@@ -229,6 +229,22 @@ def test_resume_gives_the_uninterrupted_result(data, run_a, tmp_path) -> None:
         train_model(tx, tdf, vx, vdf, tmp_path, **{**KW, "lr": 0.1})
 
 
+def test_the_recorded_rate_falls_by_gamma_at_each_step_and_resumes_on_schedule(data,
+                                                                               tmp_path) -> None:
+    """The history's ``lr`` is the rate each epoch trained at: StepLR multiplies it by gamma
+    every ``step_size`` epochs (issue 53: a scheduler never stepped trained every model at
+    its first rate while the tests looked only at the scheduler object). Stopped after epoch
+    3 and resumed, the schedule goes on where it was, not from the start."""
+    tx, tdf, vx, vdf = data
+    kw = {**KW, "epochs": 5, "lr": 0.02, "step_size": 2, "gamma": 0.3}
+    small = (tx[:16], tdf.iloc[:16], vx[:8], vdf.iloc[:8])  # the rate, not the fit, is tested
+    assert small[1]["label"].nunique() == small[3]["label"].nunique() == 2
+    assert len(train_model(*small, tmp_path, **{**kw, "epochs": 3})) == 3
+    hist = train_model(*small, tmp_path, **kw)
+    assert hist["epoch"].tolist() == [1, 2, 3, 4, 5]
+    assert hist["lr"].tolist() == pytest.approx([0.02, 0.02, 0.006, 0.006, 0.0018], rel=1e-12)
+
+
 def test_epoch_plan_is_a_function_of_seed_and_epoch() -> None:
     b1, f1 = epoch_plan(33, 8, 0.5, seed=1, epoch=4)
     b2, f2 = epoch_plan(33, 8, 0.5, seed=1, epoch=4)

@@ -33,6 +33,17 @@ def test_paper_profile_keeps_paper_settings_and_requires_dataroot():
     assert (p.flow_store, p.amp, p.num_workers) == ("crops", "bf16", 4)
 
 
+@pytest.mark.parametrize("name", ["demo", "paper"])
+def test_the_crop_factor_and_table4_range_are_the_paper_s(name):
+    """The paper crops 3 times the box's longer side and scores Table 4 up to 70 m: values
+    of the method, not of a profile's size, so every shipped profile keeps them (issue 53:
+    2.5 or 75 m were caught only because notebook parameter cells must equal the defaults,
+    so the same change in a profile would have passed)."""
+    p = load_profile(name, dataroot="/data/sets/nuscenes")
+    assert (p.crop_scale, p.general_max_distance) == (3.0, 70.0)
+    assert (p.min_distance, p.max_distance) == (30.0, 70.0)  # Table 1's band
+
+
 def test_defaults_are_the_demo_profile():
     demo = load_profile("demo")
     assert Params() == demo

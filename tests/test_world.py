@@ -428,6 +428,22 @@ def test_rects_overlap_separating_axes_one_by_one_and_stacked():
     assert got[1].tolist() == [True, False, True] and got[2].all()
 
 
+def test_visibility_bins_are_the_nuscenes_levels_on_both_sides_of_every_edge():
+    """The nuScenes visibility levels: '1' 0-40 %, '2' 40-60 %, '3' 60-80 %, '4' 80-100 % of
+    the box visible, a fraction on an edge in the level above it. Table 1 keeps level '4'
+    only, so its 80 % edge decides which vehicles the book sees (issue 53: a '4' from 70 %
+    passed every quick test)."""
+    from flowmod.world.records import VISIBILITY, visibility_token
+
+    below = 1e-9
+    want = {0.0: "1", 0.2: "1", 0.4 - below: "1", 0.4: "2", 0.6 - below: "2", 0.6: "3",
+            0.7: "3", 0.8 - below: "3", 0.8: "4", 0.9: "4", 1.0: "4"}
+    assert {f: visibility_token(f) for f in want} == want
+    assert [(token, level) for token, level, _ in VISIBILITY] == [
+        ("1", "v0-40"), ("2", "v40-60"), ("3", "v60-80"), ("4", "v80-100")]
+    assert load_profile("demo").visibility_tokens == ["4"]
+
+
 def test_best_f1_and_scene_filter():
     f1, t = wrep.best_f1(np.array([0.1, 0.2, 0.8, 0.9]), np.array([0, 0, 1, 1]))
     assert f1 == 1.0 and 0.2 < t < 0.8
