@@ -174,3 +174,24 @@ def test_a_digest_is_the_same_in_every_process(module):
     code = f"import json; from flowmod import codedigest; print(json.dumps(codedigest.digests({module!r})))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert json.loads(out.stdout) == digests(module)
+
+
+def test_the_runners_library_digest_ignores_docstrings_not_code(tmp_path, monkeypatch):
+    """An executed chapter is reused while the library's code is unchanged: a docstring
+    edit re-executes no notebook, a code edit every one."""
+    import shutil
+
+    from flowmod import runner
+
+    copy = tmp_path / "flowmod"
+    shutil.copytree(codedigest.PACKAGE_ROOT, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    monkeypatch.setattr(codedigest, "PACKAGE_ROOT", copy)
+    codedigest.forget()
+    base = runner.code_digest()
+    f = copy / "report" / "viz.py"
+    f.write_text(f.read_text().replace('"""', '"""Reworded. ', 1) + "\n# a comment\n")
+    codedigest.forget()
+    assert runner.code_digest() == base
+    f.write_text(f.read_text() + "\nEXTRA = 1\n")
+    codedigest.forget()
+    assert runner.code_digest() != base

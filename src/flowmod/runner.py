@@ -40,7 +40,7 @@ import nbformat
 import papermill
 from jupyter_client.manager import AsyncKernelManager
 
-from flowmod import environment, pipeline, progress
+from flowmod import codedigest, environment, pipeline, progress
 from flowmod.artefacts import DiskFull, atomic_path, disk_full, fingerprint, write_json
 from flowmod.chapters.ch06_training import ABLATION_RECORD, STEPS_RECORD
 from flowmod.flow.networks import planned_methods
@@ -153,9 +153,11 @@ def _echo_progress(path: Path, name: str, every: float = 10.0) -> Iterator[None]
 
 
 def code_digest() -> str:
-    """Fingerprint of the library's source (every ``src/flowmod/**/*.py``)."""
-    pkg = Path(__file__).resolve().parent
-    return fingerprint([(str(f.relative_to(pkg)), hashlib.sha256(f.read_bytes()).hexdigest())
+    """Fingerprint of the library's code (every ``src/flowmod/**/*.py``, each by
+    :func:`flowmod.codedigest.source_digest`: a docstring or comment edit re-executes
+    nothing)."""
+    pkg = codedigest.PACKAGE_ROOT
+    return fingerprint([(codedigest.relative_name(f, pkg), codedigest.source_digest(f))
                         for f in sorted(pkg.rglob("*.py"))])
 
 
