@@ -24,7 +24,6 @@ first. :class:`FlowReader` reads a published node's flow back at full image size
 from __future__ import annotations
 
 import concurrent.futures
-import hashlib
 import inspect
 import json
 import logging
@@ -471,7 +470,7 @@ def _log_results(results: Iterator[Result], pool: Path, total: int, label: str,
     with (bar(total=total, desc=label, unit="pair", disable=not progress) as pbar,
           open(pool / TIMINGS, "a") as log_f):
         for key, seconds, _shape in results:
-            sha = hashlib.sha256((pool / f"{key}.npy").read_bytes()).hexdigest()
+            sha = file_digest(pool / f"{key}.npy")  # known to this process: not read again
             log_f.write(json.dumps({"key": key, "seconds": round(seconds, 6),
                                     "sha256": sha}) + "\n")
             log_f.flush()
