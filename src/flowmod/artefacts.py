@@ -216,7 +216,7 @@ def file_digests(paths: Sequence[str | os.PathLike[str]],
                  cache: str | os.PathLike[str] | None = None) -> list[str]:
     """:func:`file_digest` of many files, the cache written once at the end (OSError for a
     file that cannot be read)."""
-    if cache is not None and (str(cache) not in _LOADED or not _DIGESTS):
+    if cache is not None and str(cache) not in _LOADED:
         _LOADED.add(str(cache))
         _load_digest_cache(Path(cache))
     out, new = [], False

@@ -17,9 +17,9 @@ where "the parameters the stage reads" is the ``read_by`` declaration on the
 :class:`~flowmod.params.Params` fields (the only list; a stage that reads an undeclared
 parameter fails, see :class:`StageParams`). "The code the stage runs" is the module of its
 build function and every flowmod module that one imports (:mod:`flowmod.codedigest`), so
-an edit of that code makes exactly its nodes, and their readers, stale. A *source* stage (the data) has no inputs: its
-fingerprint is the identity of its data (:class:`Source`). No file time enters any
-fingerprint.
+an edit of that code makes exactly its nodes, and their readers, stale. A *source* stage
+(the data) has no inputs: its fingerprint is the identity of its data (:class:`Source`).
+No file time enters any fingerprint.
 
 An artefact is up to date iff the fingerprint in its ``manifest.json`` equals the one computed
 now. :meth:`Graph.build_node` is the one driver: it computes the fingerprint from the inputs'
