@@ -12,7 +12,7 @@ import json
 import os
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -138,11 +138,67 @@ def agent_boxes(
 
 
 def flow_between(geo: Any, t1: float, t2: float) -> tuple[np.ndarray, np.ndarray]:
-    """GT flow between scene times t1 and t2 (s) of a :class:`SceneGeometry` (see gt_flow)."""
-    f1 = wr.render(geo, t1, textured=False)
-    f2 = wr.render(geo, t2, textured=False)
+    """GT flow between scene times t1 and t2 (s) of a :class:`SceneGeometry` (see gt_flow).
+
+    Returns flow (H, W, 2) float32 px and valid (H, W) bool. The arithmetic is float64, in
+    blocks of :data:`BLOCK_ROWS` rows (the temporaries stay in cache); every value equals
+    that of the whole-frame formulation bit for bit (``tests/test_truth.py`` keeps it so)."""
+    f1, f2 = _depth_frame(geo, t1), _depth_frame(geo, t2)
+    pg = _pair_geometry(geo, f1, f2, t1, t2)
     H, W = wg.H_IMG, wg.W_IMG
-    K = f1.K
+    flow = np.empty((H * W, 2), np.float32)
+    defined = np.empty(H * W, bool)
+    valid = np.empty(H * W, bool)
+    for r0 in range(0, H, BLOCK_ROWS):
+        _flow_rows(pg, r0, min(r0 + BLOCK_ROWS, H), flow, defined, valid)
+    flow = flow.reshape(H, W, 2)
+    _fill_in_place(flow, defined.reshape(H, W))
+    return flow, valid.reshape(H, W)
+
+
+#: Flow is undefined for points that come nearer than this to camera 2 (m) ...
+NEAR_FLOW_M = 0.3
+#: ... or move farther than this in the image (px): such points pass by or behind the camera.
+MAX_FLOW_PX = 3200.0
+#: Image rows per block of :func:`flow_between` (32 x 1600 px: ~400 KB per float64 array).
+BLOCK_ROWS = 32
+
+
+@lru_cache(maxsize=3)
+def _depth_frame(geo: Any, t: float) -> wg.Frame:
+    """The depth / surface-id render (no image) of ``geo`` at scene time ``t`` s, read-only.
+
+    Kept for the next pairs: consecutive pairs (k, k + 1), (k + 1, k + 2) share a frame,
+    so a chain of pairs renders each frame once (invz and sid: ~8.6 MB a frame)."""
+    fr = wr.render(geo, t, textured=False)
+    fr.invz.flags.writeable = False
+    fr.sid.flags.writeable = False
+    return fr
+
+
+@lru_cache(maxsize=512)
+def _agent_pose(geo: Any, i: int, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """``geo.agent_pose(i, t)`` (rotation (3, 3), centre (3,) m), kept for the next pair."""
+    return geo.agent_pose(i, t)
+
+
+class _PairGeometry(NamedTuple):
+    """What every block of one pair reads (N = H * W pixels, row-major)."""
+
+    a0: np.ndarray  # (3, 4) frame-1 ray and inverse depth -> frame-2 homogeneous pixel (static)
+    rays: np.ndarray  # (3, N) float64 K^-1 (u, v, 1)
+    rho: np.ndarray  # (N,) float32 inverse depth in frame 1, 1/m (0: sky)
+    sid: np.ndarray  # (N,) uint16 surface ids in frame 1
+    invz2: np.ndarray  # (N,) float32 inverse depth in frame 2
+    sid2: np.ndarray  # (N,) uint16 surface ids in frame 2
+    agent_idx: np.ndarray  # (M,) int64 ascending: the agents' pixels in frame 1
+    agent_p: np.ndarray  # (3, M) float64 their homogeneous pixels in frame 2
+    n_agents: int  # agents of the scene: their ids are SID_AGENT0 .. SID_AGENT0 + n_agents - 1
+
+
+def _pair_geometry(geo: Any, f1: wg.Frame, f2: wg.Frame, t1: float, t2: float) -> _PairGeometry:
+    """The projections of one pair: the static world's, and each agent's pixels moved with
+    its own rigid motion (computed here, once, over the agents' pixels only)."""
 
     def T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
         m = np.eye(4)
@@ -150,54 +206,94 @@ def flow_between(geo: Any, t1: float, t2: float) -> tuple[np.ndarray, np.ndarray
         return m
 
     T_w1 = T(f1.R_wc, f1.c)
-    T_2w = np.linalg.inv(T(f2.R_wc, f2.c))
-    P2 = K @ np.eye(3, 4)
+    P2T = f1.K @ np.eye(3, 4) @ np.linalg.inv(T(f2.R_wc, f2.c))
+    rays = wg.pixel_rays(f1.K)
+    rho, sid = f1.invz.reshape(-1), f1.sid.reshape(-1)
+    ag = np.flatnonzero(sid >= wg.SID_AGENT0)
+    ag = ag[sid[ag] < wg.SID_AGENT0 + len(geo.agents)]
+    # the agents' pixels grouped by agent (stable: ascending within each), moved in place
+    order = np.argsort(sid[ag], kind="stable")
+    counts = np.bincount(sid[ag] - wg.SID_AGENT0, minlength=len(geo.agents))
+    grouped = ag[order]
+    r, rh = rays[:, grouped], rho[grouped].astype(np.float64)
+    ends = np.cumsum(counts)
+    for i in np.flatnonzero(counts).tolist():
+        g = slice(ends[i] - counts[i], ends[i])
+        R1, c1 = _agent_pose(geo, i, t1)
+        R2, c2 = _agent_pose(geo, i, t2)
+        ai = P2T @ (T(R2, c2) @ np.linalg.inv(T(R1, c1))) @ T_w1
+        r[:, g] = ai[:, :3] @ r[:, g] + ai[:, 3:4] * rh[None, g]
+    agent_p = np.empty((3, len(ag)))
+    agent_p[:, order] = r
+    return _PairGeometry(P2T @ np.eye(4) @ T_w1, rays, rho, sid, f2.invz.reshape(-1),
+                         f2.sid.reshape(-1), ag, agent_p, len(geo.agents))
 
-    def A(motion: np.ndarray) -> np.ndarray:
-        return P2 @ T_2w @ motion @ T_w1
 
-    rays = wg.pixel_rays(K)
-    rho = f1.invz.ravel().astype(np.float64)
-    sid = f1.sid.ravel()
-    a0 = A(np.eye(4))
-    p = a0[:, :3] @ rays + a0[:, 3:4] * rho[None, :]
-    counts = np.bincount(sid, minlength=wg.SID_AGENT0 + len(geo.agents))
-    for i in range(len(geo.agents)):
-        s = wg.SID_AGENT0 + i
-        if counts[s] == 0:
-            continue
-        R1, c1 = geo.agent_pose(i, t1)
-        R2, c2 = geo.agent_pose(i, t2)
-        motion = T(R2, c2) @ np.linalg.inv(T(R1, c1))
-        idx = np.flatnonzero(sid == s)
-        ai = A(motion)
-        p[:, idx] = ai[:, :3] @ rays[:, idx] + ai[:, 3:4] * rho[None, idx]
+def _flow_rows(pg: _PairGeometry, r0: int, r1: int, flow: np.ndarray, defined: np.ndarray,
+               valid: np.ndarray) -> None:
+    """Rows ``r0 .. r1 - 1`` of one pair into ``flow`` (N, 2) float32 px, ``defined`` and
+    ``valid`` (N,) bool (see :func:`gt_flow` for what they mean)."""
+    H, W = wg.H_IMG, wg.W_IMG
+    lo, hi = r0 * W, r1 * W
+    rho = pg.rho[lo:hi].astype(np.float64)
+    p = pg.a0[:, :3] @ pg.rays[:, lo:hi]
+    p += pg.a0[:, 3:4] * rho[None, :]
+    sid = pg.sid[lo:hi]
+    a, b = np.searchsorted(pg.agent_idx, (lo, hi))
+    if b > a:  # the agents' pixels, in the same ascending order as agent_idx
+        agent = (sid >= wg.SID_AGENT0) & (sid < wg.SID_AGENT0 + pg.n_agents)
+        for k in range(3):
+            p[k][agent] = pg.agent_p[k, a:b]
     z = p[2]
     front = z > 1e-9
     zs = np.where(front, z, 1.0)
-    u2 = p[0] / zs
-    v2 = p[1] / zs
-    vv, uu = np.divmod(np.arange(H * W), W)
-    du, dv = u2 - uu, v2 - vv
+    u2, v2 = p[0] / zs, p[1] / zs
+    du = (u2.reshape(-1, W) - _COLS).reshape(-1)
+    dv = (v2.reshape(-1, W) - np.arange(r0, r1, dtype=np.float64)[:, None]).reshape(-1)
     iz_pt = np.where(front, rho / zs, 0.0)  # inverse depth in frame 2 (0: at infinity)
-    defined = front & (iz_pt <= 1.0 / NEAR_FLOW_M) & (np.hypot(du, dv) <= MAX_FLOW_PX)
-    inside = defined & (u2 >= -0.5) & (u2 <= W - 0.5) & (v2 >= -0.5) & (v2 <= H - 0.5)
-    ui = np.clip(np.round(np.where(defined, u2, 0.0)), 0, W - 1).astype(np.int64)
-    vi = np.clip(np.round(np.where(defined, v2, 0.0)), 0, H - 1).astype(np.int64)
-    tgt = vi * W + ui
-    iz_buf = f2.invz.ravel()[tgt].astype(np.float64)
-    sid_buf = f2.sid.ravel()[tgt]
-    same = sid_buf == sid
-    occluded = np.where(same, iz_buf > iz_pt * 1.02 + 6e-4, iz_buf > iz_pt * 1.003 + 1e-5)
-    valid = inside & ~occluded
-    flow = np.stack([du, dv], axis=1).reshape(H, W, 2)
-    return fill_undefined(flow, defined.reshape(H, W)), valid.reshape(H, W)
+    ok = front & (iz_pt <= 1.0 / NEAR_FLOW_M) & _within_max_flow(du, dv)
+    inside = ok & (u2 >= -0.5) & (u2 <= W - 0.5) & (v2 >= -0.5) & (v2 <= H - 0.5)
+    # the target pixel, read only where the point is inside (so defined) in frame 2
+    tgt = _clipped_rint(v2, H - 1)
+    tgt *= W
+    tgt += _clipped_rint(u2, W - 1)
+    tgt = tgt.astype(np.intp)
+    same = pg.sid2[tgt] == sid
+    # occluded: something else is nearer there (tolerances: same surface, other surface)
+    thr = np.where(same, 1.02, 1.003)
+    thr *= iz_pt
+    thr += np.where(same, 6e-4, 1e-5)
+    valid[lo:hi] = inside & (pg.invz2[tgt] <= thr)
+    defined[lo:hi] = ok
+    flow[lo:hi, 0] = du
+    flow[lo:hi, 1] = dv
 
 
-#: Flow is undefined for points that come nearer than this to camera 2 (m) ...
-NEAR_FLOW_M = 0.3
-#: ... or move farther than this in the image (px): such points pass by or behind the camera.
-MAX_FLOW_PX = 3200.0
+#: Column index of every pixel, float64 (W,).
+_COLS = np.arange(wg.W_IMG, dtype=np.float64)
+
+
+def _clipped_rint(x: np.ndarray, top: int) -> np.ndarray:
+    """``np.clip(np.round(x), 0, top)`` of finite float64 ``x`` (a new array; clipped
+    first, which gives the same integers, with fmin / fmax: faster than clip)."""
+    out = np.fmin(np.fmax(x, 0.0), float(top))
+    return np.rint(out, out=out)
+
+
+def _within_max_flow(du: np.ndarray, dv: np.ndarray) -> np.ndarray:
+    """``np.hypot(du, dv) <= MAX_FLOW_PX`` (px, (n,) float64 -> (n,) bool), exactly, at a
+    fifth of its cost: the squared length decides unless it is within 0.1 % of the limit's
+    square (far beyond both roundings), where ``hypot`` itself does."""
+    sq = du * du
+    sq += dv * dv
+    lim = MAX_FLOW_PX * MAX_FLOW_PX
+    out = sq <= lim
+    if sq.max() < 0.999 * lim:  # most blocks: no point moves near the limit
+        return out
+    unsure = np.flatnonzero(np.abs(sq - lim) <= 1e-3 * lim)
+    if len(unsure):
+        out[unsure] = np.hypot(du[unsure], dv[unsure]) <= MAX_FLOW_PX
+    return out
 
 
 def fill_undefined(flow: np.ndarray, defined: np.ndarray) -> np.ndarray:
