@@ -138,6 +138,10 @@ def main(argv: list[str] | None = None) -> int:
         if "gt" in only:
             gt = get_estimator("gt", dataroot=root, version="v1.0-synth")
             gt.estimate_tokens(t1, t2)  # the world's description, loaded once per process
+            from flowmod.world import truth
+
+            truth._depth_frame.cache_clear()  # a cold pair: both frames rendered again
+            truth._agent_pose.cache_clear()
             out["gt"] = _profiled("gt", lambda: gt.estimate_tokens(t1, t2))
         a, b = read_image(p1), read_image(p2)
         if "fastflownet" in only:
