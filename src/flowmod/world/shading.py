@@ -404,9 +404,11 @@ def finish(fr: Frame, look: dict, frame_seed: tuple[int, ...], exposure: float) 
     o2 = rng.integers(0, 96, 2)
     n1 = _noise_bank(0)[o1[0] : o1[0] + H_IMG, o1[1] : o1[1] + W_IMG]
     n2 = _noise_bank(1)[o2[0] : o2[0] + H_IMG, o2[1] : o2[1] + W_IMG]
-    f += np.float32(sigma * 0.8) * n1
-    f += np.float32(sigma * 0.6) * n2
-    return np.clip(f, 0, 255).astype(np.uint8)
+    # in place, one scratch buffer: the same float32 operations as f += a * n, fewer copies
+    tmp = np.multiply(n1, np.float32(sigma * 0.8))
+    f += tmp
+    f += np.multiply(n2, np.float32(sigma * 0.6), out=tmp)
+    return np.clip(f, 0, 255, out=f).astype(np.uint8)
 
 
 def _draw_lights(fr: Frame, img: np.ndarray) -> None:
