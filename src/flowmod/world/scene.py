@@ -257,16 +257,17 @@ def rects_overlap(a, b) -> np.ndarray:
     bx, by, bh, bl, bw = b
     dx, dy = bx - ax, by - ay
     overlap = np.ones(np.broadcast_shapes(np.shape(ax), np.shape(bx)), dtype=bool)
-    for h in (ah, ah + math.pi / 2, bh, bh + math.pi / 2):
-        ux, uy = np.cos(h), np.sin(h)
-        ra = al * np.abs(np.cos(ah) * ux + np.sin(ah) * uy) + aw * np.abs(
-            -np.sin(ah) * ux + np.cos(ah) * uy
-        )
-        rb = bl * np.abs(np.cos(bh) * ux + np.sin(bh) * uy) + bw * np.abs(
-            -np.sin(bh) * ux + np.cos(bh) * uy
-        )
+    ca, sa, cb, sb = np.cos(ah), np.sin(ah), np.cos(bh), np.sin(bh)  # once, not per axis
+    for ux, uy in ((ca, sa), _cos_sin(ah + math.pi / 2), (cb, sb), _cos_sin(bh + math.pi / 2)):
+        ra = al * np.abs(ca * ux + sa * uy) + aw * np.abs(-sa * ux + ca * uy)
+        rb = bl * np.abs(cb * ux + sb * uy) + bw * np.abs(-sb * ux + cb * uy)
         overlap &= np.abs(dx * ux + dy * uy) <= ra + rb
     return overlap
+
+
+def _cos_sin(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(cos, sin) of the angles ``h`` (rad)."""
+    return np.cos(h), np.sin(h)
 
 
 def stack_rects(rects: list) -> tuple:
