@@ -180,11 +180,21 @@ def shade_background(geo: SceneGeometry, fr: Frame) -> None:
 
     gi = np.flatnonzero(sid == SID_GROUND)
     if gi.size:
-        img[gi] = _ground_colours(geo, fr, M, gi, horizon, fog_dist, wet)
+        _put_rows(img, gi, _ground_colours(geo, fr, M, gi, horizon, fog_dist, wet))
 
     si = np.flatnonzero(sid == SID_SKY)
     if si.size:
-        img[si] = _sky_colours(geo, M, si, horizon, zenith, cloudiness)
+        _put_rows(img, si, _sky_colours(geo, M, si, horizon, zenith, cloudiness))
+
+
+def _put_rows(dst: np.ndarray, idx: np.ndarray, rows: np.ndarray) -> None:
+    """``dst[idx] = rows`` for pixels (N, 3) and (n, 3): contiguous uint8 BGR rows move as
+    one 3-byte item each (the same bytes, about 2.5 times faster than row indexing)."""
+    if (dst.dtype == rows.dtype == np.uint8 and dst.shape[1:] == rows.shape[1:] == (3,)
+            and dst.flags.c_contiguous and rows.flags.c_contiguous):
+        dst.view("V3")[:, 0][idx] = rows.view("V3")[:, 0]
+    else:
+        dst[idx] = rows
 
 
 def _ray_dirs(M: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -274,9 +284,9 @@ def _ground_albedo(
         for k in np.unique(lv_m):
             sel = np.flatnonzero(lv_m == k)
             s = np.float32(2.0**-k)
-            col[idx_m[sel]] = _sample(
+            _put_rows(col, idx_m[sel], _sample(
                 levels[k], (u0[sel] + 0.5) * s - 0.5, (v0[sel] + 0.5) * s - 0.5, True
-            )
+            ))
     colf = col.astype(np.float32)
     mval = _sample(
         geo.modulation_field(),
