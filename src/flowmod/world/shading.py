@@ -230,7 +230,7 @@ def _ground_colours(
     fp = (t * norm / np.float32(f)) / np.sqrt(sin_g)  # pixel footprint on the ground, m
     coords = [ws.road_coords(r, gx, gy) for r in geo.roads]
     region = _ground_regions(geo, coords, gi.size)
-    colf = _ground_albedo(geo, region, fp, gx, gy)
+    colf = _ground_albedo(geo, region, fp, gx, gy)  # (3, n): one contiguous row a channel
     white, yellow, kerb = _road_paint(geo, coords, fp)
     for alpha, paint in (
         (white * 0.85, (222, 226, 228)),
@@ -239,12 +239,22 @@ def _ground_colours(
     ):
         idx = np.flatnonzero(alpha > 0)
         if idx.size:
-            colf[idx] += alpha[idx, None] * (np.array(paint, np.float32) - colf[idx])
+            a = alpha[idx]
+            for ch, p in zip(colf, np.array(paint, np.float32), strict=True):
+                c = ch[idx]
+                ch[idx] = c + a * (p - c)
     if wet != 1.0:
-        colf *= np.where(region == 2, np.float32(0.9), np.float32(wet))[:, None]
+        colf *= np.where(region == 2, np.float32(0.9), np.float32(wet))
     fog = 1.0 - np.exp(-t * norm * np.float32(1.0 / fog_dist))
-    colf += fog[:, None] * (horizon - colf)
-    return np.clip(colf, 0, 255).astype(np.uint8)
+    colf += fog * (horizon[:, None] - colf)
+    return _planes_to_u8_rows(colf)
+
+
+def _planes_to_u8_rows(planes: np.ndarray) -> np.ndarray:
+    """Channel planes (3, n) float32 clipped to [0, 255] and truncated to uint8 pixel rows
+    (n, 3), C-contiguous. The shading works on planes, not (n, 3) rows: per element the
+    same float32 operations, without numpy's slow broadcasting over a last axis of 3."""
+    return np.ascontiguousarray(np.clip(planes, 0, 255).astype(np.uint8).T)
 
 
 def _ground_regions(geo: SceneGeometry, coords: list, n: int) -> np.ndarray:
@@ -263,7 +273,7 @@ def _ground_regions(geo: SceneGeometry, coords: list, n: int) -> np.ndarray:
 def _ground_albedo(
     geo: SceneGeometry, region: np.ndarray, fp: np.ndarray, gx: np.ndarray, gy: np.ndarray
 ) -> np.ndarray:
-    """Texture colours (n, 3) float32 BGR of ground points (gx, gy) (m) of materials
+    """Texture colours (3, n) float32 BGR planes of ground points (gx, gy) (m) of materials
     ``region``, sampled at the mip level of their footprint ``fp`` (m), with a slow
     brightness modulation."""
     level = np.floor(np.log2(np.maximum(fp * np.float32(1.0 / wt.GROUND_RES), 1.0))).astype(
@@ -287,14 +297,14 @@ def _ground_albedo(
             _put_rows(col, idx_m[sel], _sample(
                 levels[k], (u0[sel] + 0.5) * s - 0.5, (v0[sel] + 0.5) * s - 0.5, True
             ))
-    colf = col.astype(np.float32)
+    colf = np.ascontiguousarray(col.T, dtype=np.float32)
     mval = _sample(
         geo.modulation_field(),
         np.mod(gx * np.float32(1.25), 256),
         np.mod(gy * np.float32(1.25), 256),
         True,
     )[:, 0]
-    colf *= (1.0 + 0.12 * mval)[:, None]
+    colf *= 1.0 + 0.12 * mval
     return colf
 
 
@@ -311,8 +321,8 @@ def _sky_colours(
     dx, dy, dz = _ray_dirs(M, si)
     norm = np.sqrt(dx * dx + dy * dy + dz * dz)
     e = np.clip(dz / norm, 0.0, 1.0)
-    mix = np.sqrt(e)[:, None]
-    col = horizon * (1 - mix) + zenith * mix
+    mix = np.sqrt(e)
+    col = horizon[:, None] * (1 - mix) + zenith[:, None] * mix  # (3, n) planes
     dzc = np.maximum(dz, 0.02 * norm)
     cu = np.mod(187.5 * dx / dzc, 512)
     cv = np.mod(187.5 * dy / dzc, 512)
@@ -321,8 +331,8 @@ def _sky_colours(
     cloud_col = np.array(
         [235, 235, 235] if geo.look["weather"] != "night" else [50, 45, 40], np.float32
     )
-    col += dens[:, None] * (cloud_col - col)
-    return np.clip(col, 0, 255).astype(np.uint8)
+    col += dens * (cloud_col[:, None] - col)
+    return _planes_to_u8_rows(col)
 
 
 # --------------------------------------------------------------------------------------------
