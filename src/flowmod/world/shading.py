@@ -254,7 +254,9 @@ def _planes_to_u8_rows(planes: np.ndarray) -> np.ndarray:
     """Channel planes (3, n) float32 clipped to [0, 255] and truncated to uint8 pixel rows
     (n, 3), C-contiguous. The shading works on planes, not (n, 3) rows: per element the
     same float32 operations, without numpy's slow broadcasting over a last axis of 3."""
-    return np.ascontiguousarray(np.clip(planes, 0, 255).astype(np.uint8).T)
+    u8 = np.clip(planes, 0, 255).astype(np.uint8)
+    n = u8.shape[1]
+    return cv2.merge([c.reshape(n, 1) for c in u8]).reshape(n, 3)  # interleaved by OpenCV
 
 
 def _ground_regions(geo: SceneGeometry, coords: list, n: int) -> np.ndarray:
