@@ -357,6 +357,39 @@ def test_same_seed_gives_byte_identical_tables_and_images(tmp_path):
     assert (a / "v1.0-synth/scene.json").read_bytes() != (c / "v1.0-synth/scene.json").read_bytes()
 
 
+#: sha256 over the tiny world's files (conftest ``TINY_WORLD``: 5 scenes x 3 keyframes, one
+#: swept, one at night), manifest left out: :func:`_content_fingerprint`. A speed-up of the
+#: generator must leave it as it is; re-pin it only for a deliberate change of what it draws
+#: (or of the OpenCV / numpy that draw it), with ``GENERATOR_VERSION`` where readers care.
+#: Pinned with numpy 1.26.4 and OpenCV 4.11.0 on an AVX-512 x86-64 CPU: their SIMD float32
+#: paths (exp, log, resize) could round differently on another CPU.
+TINY_WORLD_FINGERPRINT = "ab3884125d5d379069103a7d03c4de8dd9471f7bca6455744795a350e43db501"
+
+
+def _content_fingerprint(root) -> str:
+    """sha256 of every file under ``root`` (relative path and content digest, sorted by
+    path), less the world stage's manifest (it names the generator's code) and hidden files."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for f in sorted(root.rglob("*")):
+        if not f.is_file() or f.name.startswith(".") or f.name == "flowmod.manifest.json":
+            continue
+        digest = hashlib.sha256(f.read_bytes()).hexdigest()
+        h.update(f"{f.relative_to(root).as_posix()} {digest}\n".encode())
+    return h.hexdigest()
+
+
+def test_the_tiny_worlds_bytes_are_pinned(tiny_world):
+    """Issue 49: the generator's speed-ups draw the same world byte for byte: every table,
+    the world description and every JPEG of the tiny world hash as pinned."""
+    root, version = tiny_world
+    files = [f for f in root.rglob("*") if f.is_file()]
+    assert sum(f.suffix == ".jpg" for f in files) > 20
+    assert (root / version / "sample_annotation.json").is_file()
+    assert _content_fingerprint(root) == TINY_WORLD_FINGERPRINT
+
+
 def test_ensure_world_generates_reuses_regenerates_and_explains(tmp_path):
     base = {
         "dataroot": str(tmp_path / "w"),

@@ -91,8 +91,17 @@ def draw_quad(
     if (textured or q.alpha) and q.tex is not None:
         _texture_quad(fr, corners_w, q, poly, box, m, shade, textured)
     x0, x1, y0, y1 = box
-    np.copyto(fr.invz[y0:y1, x0:x1], iz, where=m)
-    fr.sid[y0:y1, x0:x1][m] = sid
+    _masked_copy(fr.invz[y0:y1, x0:x1], iz, m)
+    _masked_copy(fr.sid[y0:y1, x0:x1], np.full(m.shape, sid, np.uint16), m)
+
+
+def _masked_copy(dst: np.ndarray, src: np.ndarray, m: np.ndarray) -> None:
+    """``dst[m] = src[m]`` in place (``dst`` a view into a frame buffer, ``src`` of its
+    shape and dtype, ``m`` (h, w) bool): one ``cv2.copyTo``, the same bytes as
+    ``np.copyto(dst, src, where=m)`` and about ten times faster on small boxes."""
+    out = cv2.copyTo(src, m.view(np.uint8), dst)
+    if out is not dst:  # OpenCV could not write into the view: copy its result back
+        np.copyto(dst, out)
 
 
 def _quad_in_view(
@@ -168,7 +177,7 @@ def _texture_quad(
         if abs(shade - 1.0) > 1e-3:
             col = cv2.convertScaleAbs(col, alpha=shade)
         x0, x1, y0, y1 = box
-        np.copyto(fr.img[y0:y1, x0:x1], col, where=m[..., None])
+        _masked_copy(fr.img[y0:y1, x0:x1], col, m)
 
 
 def _mip_level(

@@ -26,6 +26,8 @@ is at arc length ``s0 + integral_0^t v``. Position, heading and velocity are ana
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -82,13 +84,49 @@ def speed_at(profile: dict, t: np.ndarray | float) -> np.ndarray:
     return np.interp(np.asarray(t, dtype=np.float64), profile["t"], profile["v"])
 
 
-def _antiderivative(profile: dict, t: np.ndarray) -> np.ndarray:
-    """Integral of the speed from the first knot to ``t`` (m); negative before it."""
-    tk = np.asarray(profile["t"], dtype=np.float64)
-    vk = np.asarray(profile["v"], dtype=np.float64)
-    # cumulative distance at each knot
+@lru_cache(maxsize=4096)
+def _knots(t_key: tuple, v_key: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A speed profile's knot times (s), speeds (m/s) and cumulative distances (m) at the
+    knots, as float64 arrays; computed once per profile (read-only)."""
+    tk = np.asarray(t_key, dtype=np.float64)
+    vk = np.asarray(v_key, dtype=np.float64)
     seg = 0.5 * (vk[1:] + vk[:-1]) * np.diff(tk)
     cum = np.concatenate([[0.0], np.cumsum(seg)])
+    for a in (tk, vk, cum):
+        a.flags.writeable = False
+    return tk, vk, cum
+
+
+def _profile_knots(profile: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_knots` of a speed profile ``{"t": [s...], "v": [m/s...]}``."""
+    return _knots(tuple(profile["t"]), tuple(profile["v"]))
+
+
+@lru_cache(maxsize=4096)
+def _knot_lists(t_key: tuple, v_key: tuple) -> tuple[list, list, list]:
+    """:func:`_knots` as lists of Python floats (the scalar path of :func:`_antiderivative`)."""
+    return tuple(a.tolist() for a in _knots(t_key, v_key))  # type: ignore[return-value]
+
+
+def _antiderivative_scalar(profile: dict, t: float) -> float:
+    """:func:`_antiderivative` at one time ``t`` (s) in plain floats: the same operations in
+    the same order, so the same IEEE double (m)."""
+    tk, vk, cum = _knot_lists(tuple(profile["t"]), tuple(profile["v"]))
+    n = len(tk)
+    if not t >= tk[0]:  # before the first knot (or NaN, which the array form maps to 0)
+        return vk[0] * (t - tk[0]) if t < tk[0] else 0.0
+    i = min(bisect_right(tk, t) - 1, n - 1)
+    if i == n - 1:
+        return cum[-1] + vk[-1] * (t - tk[-1])
+    dt = t - tk[i]
+    span = tk[i + 1] - tk[i]
+    a = (vk[i + 1] - vk[i]) / span if span > 0 else 0.0
+    return cum[i] + vk[i] * dt + 0.5 * a * dt * dt
+
+
+def _antiderivative(profile: dict, t: np.ndarray) -> np.ndarray:
+    """Integral of the speed from the first knot to ``t`` (m); negative before it."""
+    tk, vk, cum = _profile_knots(profile)
     t = np.asarray(t, dtype=np.float64)
     i = np.clip(np.searchsorted(tk, t, side="right") - 1, 0, len(tk) - 1)
     dt = t - tk[i]
@@ -104,12 +142,17 @@ def _antiderivative(profile: dict, t: np.ndarray) -> np.ndarray:
 
 
 def arc_length(traj: dict, t: np.ndarray | float) -> np.ndarray:
-    """Arc length (m) along the path at scene time ``t`` (s)."""
+    """Arc length (m) along the path at scene time ``t`` (s). One time (a number or a 0-d
+    array) takes a plain-float path with the same arithmetic: a float64 scalar."""
+    speed = traj["speed"]
+    if np.ndim(t) == 0:
+        t0 = _antiderivative_scalar(speed, float(t))
+        return np.float64(float(traj["s0"]) + t0 - _antiderivative_scalar(speed, 0.0))
     t = np.asarray(t, dtype=np.float64)
     return (
         float(traj["s0"])
-        + _antiderivative(traj["speed"], t)
-        - _antiderivative(traj["speed"], np.zeros(()))
+        + _antiderivative(speed, t)
+        - _antiderivative(speed, np.zeros(()))
     )
 
 
@@ -214,16 +257,17 @@ def rects_overlap(a, b) -> np.ndarray:
     bx, by, bh, bl, bw = b
     dx, dy = bx - ax, by - ay
     overlap = np.ones(np.broadcast_shapes(np.shape(ax), np.shape(bx)), dtype=bool)
-    for h in (ah, ah + math.pi / 2, bh, bh + math.pi / 2):
-        ux, uy = np.cos(h), np.sin(h)
-        ra = al * np.abs(np.cos(ah) * ux + np.sin(ah) * uy) + aw * np.abs(
-            -np.sin(ah) * ux + np.cos(ah) * uy
-        )
-        rb = bl * np.abs(np.cos(bh) * ux + np.sin(bh) * uy) + bw * np.abs(
-            -np.sin(bh) * ux + np.cos(bh) * uy
-        )
+    ca, sa, cb, sb = np.cos(ah), np.sin(ah), np.cos(bh), np.sin(bh)  # once, not per axis
+    for ux, uy in ((ca, sa), _cos_sin(ah + math.pi / 2), (cb, sb), _cos_sin(bh + math.pi / 2)):
+        ra = al * np.abs(ca * ux + sa * uy) + aw * np.abs(-sa * ux + ca * uy)
+        rb = bl * np.abs(cb * ux + sb * uy) + bw * np.abs(-sb * ux + cb * uy)
         overlap &= np.abs(dx * ux + dy * uy) <= ra + rb
     return overlap
+
+
+def _cos_sin(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(cos, sin) of the angles ``h`` (rad)."""
+    return np.cos(h), np.sin(h)
 
 
 def stack_rects(rects: list) -> tuple:

@@ -180,11 +180,21 @@ def shade_background(geo: SceneGeometry, fr: Frame) -> None:
 
     gi = np.flatnonzero(sid == SID_GROUND)
     if gi.size:
-        img[gi] = _ground_colours(geo, fr, M, gi, horizon, fog_dist, wet)
+        _put_rows(img, gi, _ground_colours(geo, fr, M, gi, horizon, fog_dist, wet))
 
     si = np.flatnonzero(sid == SID_SKY)
     if si.size:
-        img[si] = _sky_colours(geo, M, si, horizon, zenith, cloudiness)
+        _put_rows(img, si, _sky_colours(geo, M, si, horizon, zenith, cloudiness))
+
+
+def _put_rows(dst: np.ndarray, idx: np.ndarray, rows: np.ndarray) -> None:
+    """``dst[idx] = rows`` for pixels (N, 3) and (n, 3): contiguous uint8 BGR rows move as
+    one 3-byte item each (the same bytes, about 2.5 times faster than row indexing)."""
+    if (dst.dtype == rows.dtype == np.uint8 and dst.shape[1:] == rows.shape[1:] == (3,)
+            and dst.flags.c_contiguous and rows.flags.c_contiguous):
+        dst.view("V3")[:, 0][idx] = rows.view("V3")[:, 0]
+    else:
+        dst[idx] = rows
 
 
 def _ray_dirs(M: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -220,7 +230,7 @@ def _ground_colours(
     fp = (t * norm / np.float32(f)) / np.sqrt(sin_g)  # pixel footprint on the ground, m
     coords = [ws.road_coords(r, gx, gy) for r in geo.roads]
     region = _ground_regions(geo, coords, gi.size)
-    colf = _ground_albedo(geo, region, fp, gx, gy)
+    colf = _ground_albedo(geo, region, fp, gx, gy)  # (3, n): one contiguous row a channel
     white, yellow, kerb = _road_paint(geo, coords, fp)
     for alpha, paint in (
         (white * 0.85, (222, 226, 228)),
@@ -229,12 +239,24 @@ def _ground_colours(
     ):
         idx = np.flatnonzero(alpha > 0)
         if idx.size:
-            colf[idx] += alpha[idx, None] * (np.array(paint, np.float32) - colf[idx])
+            a = alpha[idx]
+            for ch, p in zip(colf, np.array(paint, np.float32), strict=True):
+                c = ch[idx]
+                ch[idx] = c + a * (p - c)
     if wet != 1.0:
-        colf *= np.where(region == 2, np.float32(0.9), np.float32(wet))[:, None]
+        colf *= np.where(region == 2, np.float32(0.9), np.float32(wet))
     fog = 1.0 - np.exp(-t * norm * np.float32(1.0 / fog_dist))
-    colf += fog[:, None] * (horizon - colf)
-    return np.clip(colf, 0, 255).astype(np.uint8)
+    colf += fog * (horizon[:, None] - colf)
+    return _planes_to_u8_rows(colf)
+
+
+def _planes_to_u8_rows(planes: np.ndarray) -> np.ndarray:
+    """Channel planes (3, n) float32 clipped to [0, 255] and truncated to uint8 pixel rows
+    (n, 3), C-contiguous. The shading works on planes, not (n, 3) rows: per element the
+    same float32 operations, without numpy's slow broadcasting over a last axis of 3."""
+    u8 = np.clip(planes, 0, 255).astype(np.uint8)
+    n = u8.shape[1]
+    return cv2.merge([c.reshape(n, 1) for c in u8]).reshape(n, 3)  # interleaved by OpenCV
 
 
 def _ground_regions(geo: SceneGeometry, coords: list, n: int) -> np.ndarray:
@@ -253,7 +275,7 @@ def _ground_regions(geo: SceneGeometry, coords: list, n: int) -> np.ndarray:
 def _ground_albedo(
     geo: SceneGeometry, region: np.ndarray, fp: np.ndarray, gx: np.ndarray, gy: np.ndarray
 ) -> np.ndarray:
-    """Texture colours (n, 3) float32 BGR of ground points (gx, gy) (m) of materials
+    """Texture colours (3, n) float32 BGR planes of ground points (gx, gy) (m) of materials
     ``region``, sampled at the mip level of their footprint ``fp`` (m), with a slow
     brightness modulation."""
     level = np.floor(np.log2(np.maximum(fp * np.float32(1.0 / wt.GROUND_RES), 1.0))).astype(
@@ -274,17 +296,17 @@ def _ground_albedo(
         for k in np.unique(lv_m):
             sel = np.flatnonzero(lv_m == k)
             s = np.float32(2.0**-k)
-            col[idx_m[sel]] = _sample(
+            _put_rows(col, idx_m[sel], _sample(
                 levels[k], (u0[sel] + 0.5) * s - 0.5, (v0[sel] + 0.5) * s - 0.5, True
-            )
-    colf = col.astype(np.float32)
+            ))
+    colf = np.ascontiguousarray(col.T, dtype=np.float32)
     mval = _sample(
         geo.modulation_field(),
         np.mod(gx * np.float32(1.25), 256),
         np.mod(gy * np.float32(1.25), 256),
         True,
     )[:, 0]
-    colf *= (1.0 + 0.12 * mval)[:, None]
+    colf *= 1.0 + 0.12 * mval
     return colf
 
 
@@ -301,8 +323,8 @@ def _sky_colours(
     dx, dy, dz = _ray_dirs(M, si)
     norm = np.sqrt(dx * dx + dy * dy + dz * dz)
     e = np.clip(dz / norm, 0.0, 1.0)
-    mix = np.sqrt(e)[:, None]
-    col = horizon * (1 - mix) + zenith * mix
+    mix = np.sqrt(e)
+    col = horizon[:, None] * (1 - mix) + zenith[:, None] * mix  # (3, n) planes
     dzc = np.maximum(dz, 0.02 * norm)
     cu = np.mod(187.5 * dx / dzc, 512)
     cv = np.mod(187.5 * dy / dzc, 512)
@@ -311,8 +333,8 @@ def _sky_colours(
     cloud_col = np.array(
         [235, 235, 235] if geo.look["weather"] != "night" else [50, 45, 40], np.float32
     )
-    col += dens[:, None] * (cloud_col - col)
-    return np.clip(col, 0, 255).astype(np.uint8)
+    col += dens * (cloud_col[:, None] - col)
+    return _planes_to_u8_rows(col)
 
 
 # --------------------------------------------------------------------------------------------
@@ -372,12 +394,15 @@ def _noise_bank(which: int) -> np.ndarray:
     return rng.standard_normal((H_IMG + 96, W_IMG + 96, 3), dtype=np.float32)
 
 
-@lru_cache(maxsize=4)
+@lru_cache(maxsize=2)
 def _vignette(k_key: tuple) -> np.ndarray:
+    """The vignetting gain of every pixel, (H, W, 3) float32, the same in each channel
+    (stored per channel: a frame multiplies by it without broadcasting; 17 MB a camera)."""
     K = np.array(k_key).reshape(3, 3)
     v, u = np.mgrid[0:H_IMG, 0:W_IMG].astype(np.float32)
     r2 = ((u - K[0, 2]) ** 2 + (v - K[1, 2]) ** 2) / (K[0, 0] ** 2)
-    return (1.0 / (1.0 + r2) ** 2)[..., None].astype(np.float32) ** 0.35
+    gain = (1.0 / (1.0 + r2) ** 2)[..., None].astype(np.float32) ** 0.35
+    return np.ascontiguousarray(np.broadcast_to(gain, (H_IMG, W_IMG, 3)))
 
 
 def finish(fr: Frame, look: dict, frame_seed: tuple[int, ...], exposure: float) -> np.ndarray:
@@ -397,16 +422,19 @@ def finish(fr: Frame, look: dict, frame_seed: tuple[int, ...], exposure: float) 
     wb = np.asarray(look["white_balance"], np.float32) * gain
     f = img.astype(np.float32)
     f *= _vignette(tuple(fr.K.ravel().tolist()))
-    f *= wb[None, None, :]
+    # per channel: one float32 product each, as f *= wb would broadcast (3 times faster)
+    cv2.multiply(f, (float(wb[0]), float(wb[1]), float(wb[2]), 0.0), dst=f)
     f = cv2.GaussianBlur(f, (0, 0), 0.6)
     sigma = look["noise"] * (2.2 if weather == "night" else 1.0)
     o1 = rng.integers(0, 96, 2)
     o2 = rng.integers(0, 96, 2)
     n1 = _noise_bank(0)[o1[0] : o1[0] + H_IMG, o1[1] : o1[1] + W_IMG]
     n2 = _noise_bank(1)[o2[0] : o2[0] + H_IMG, o2[1] : o2[1] + W_IMG]
-    f += np.float32(sigma * 0.8) * n1
-    f += np.float32(sigma * 0.6) * n2
-    return np.clip(f, 0, 255).astype(np.uint8)
+    # in place, one scratch buffer: the same float32 operations as f += a * n, fewer copies
+    tmp = np.multiply(n1, np.float32(sigma * 0.8))
+    f += tmp
+    f += np.multiply(n2, np.float32(sigma * 0.6), out=tmp)
+    return np.clip(f, 0, 255, out=f).astype(np.uint8)
 
 
 def _draw_lights(fr: Frame, img: np.ndarray) -> None:
