@@ -1,5 +1,5 @@
 """Controlled flow errors (issue 52): each kind reaches its requested error on a synthetic
-field, the pull toward the still-world flow, matched levels, seeding."""
+field, the pull toward the still-world flow, matched levels, seeding; the three verdicts."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from flowmod.chapters.common import three_verdicts
 from flowmod.extensions import flowerrors as fe
 
 S, SCALE = 40, 3.0
@@ -207,3 +208,22 @@ def test_the_pull_needs_the_still_world_flow(batch: fe.CropBatch) -> None:
         fe.degrade("pull", fe.CropBatch(batch.flow, batch.box), 0.5)
     with pytest.raises(ValueError):
         fe.white_noise(batch.flow[:, 0], 1.0, 0)
+
+
+@pytest.mark.parametrize(("ci", "expected"), [
+    ((0.5, 3.0), "decided"), ((-4.0, -0.1), "decided"),
+    ((-0.8, 0.9), "equivalent"), ((-0.5, 4.0), "inconclusive"), ((-3.0, 0.2), "inconclusive"),
+    ((0.0, 0.5), "equivalent"), ((0.0, 2.0), "inconclusive"), ((-0.5, 0.0), "equivalent"),
+    ((-1.0, 0.5), "inconclusive"), ((-0.5, 1.0), "inconclusive"), ((1e-9, 0.5), "decided"),
+    ((float("nan"), float("nan")), "inconclusive"),
+])
+def test_three_verdicts(ci: tuple[float, float], expected: str) -> None:
+    assert three_verdicts(ci, 1.0) == expected
+
+
+@pytest.mark.parametrize("delta", [0.0, -1.0, float("nan")])
+def test_three_verdicts_needs_a_positive_delta(delta: float) -> None:
+    with pytest.raises(ValueError):
+        three_verdicts((-0.1, 0.1), delta)
+    with pytest.raises(ValueError):
+        three_verdicts((0.5, 0.1), 1.0)
