@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from flowmod import pipeline
@@ -95,6 +96,31 @@ def difference_words(row: Any) -> str:
         text += (f"; undecided: these scenes would detect {row['detectable (points)']:.1f} "
                  "points or more")
     return text + ")"
+
+
+#: The three verdicts of :func:`three_verdicts`.
+VERDICTS = ("decided", "equivalent", "inconclusive")
+
+
+def three_verdicts(ci: tuple[float, float], delta: float) -> str:
+    """The verdict on a paired effect from its interval ``ci`` = (lo, hi) and the smallest
+    effect that matters ``delta`` > 0 (same unit, F1 points say): ``decided`` when the
+    interval excludes 0 (lo > 0 or hi < 0, as :func:`flowmod.metrics.verdict`), else
+    ``equivalent`` when it lies inside (-delta, +delta) (open: touching +/- delta is not
+    inside), else ``inconclusive`` (also for an undefined interval). An interval touching
+    0 does not exclude it. ValueError for delta <= 0 (or NaN) and for lo > hi."""
+    if not delta > 0:
+        raise ValueError(f"the smallest effect that matters must be positive, got {delta}")
+    lo, hi = float(ci[0]), float(ci[1])
+    if np.isnan(lo) or np.isnan(hi):
+        return "inconclusive"
+    if lo > hi:
+        raise ValueError(f"interval ({lo}, {hi}) has its low end above its high end")
+    if lo > 0 or hi < 0:
+        return "decided"
+    if -delta < lo and hi < delta:
+        return "equivalent"
+    return "inconclusive"
 
 
 def headline_method(p: Params) -> str:

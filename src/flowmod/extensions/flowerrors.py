@@ -1,0 +1,369 @@
+"""Controlled flow errors (issue 52): degrade the exact flow one kind of error at a time.
+
+Where the errors act: on the stored flow crops, not on the full frame. A crop is the exact
+flow of the paper's window (``scale`` x the box's longer side, square, about the box centre)
+resized bilinearly to ``S x S`` (:mod:`flowmod.crops`), stored as (N, 2, S, S) float16 px
+(channel 0 = u, 1 = v). Degrading full frames and cropping them again would cost the exact
+flow of every pair once more per degraded variant (~0.26 s a pair: ~700 pairs x 18 variants
+is ~55 min on the demo), and the classifier never sees anything outside its crop. What a
+faithful degradation needs of the frame is per-object geometry, all of which the crop rows
+hold: the crop window ``x0, y0, n`` (frame px, :func:`flowmod.crops.crop_windows`), so that
+lost resolution averages cells of the frame's pixel grid however much the crop magnifies a
+far vehicle; the box inside the crop (:func:`box_masks`, chapter 07's convention), so that
+the pull acts on the vehicle and the ring error only around it; and the still-world flow of
+the window (chapter 10's ``<split>.static.npy``, :func:`flowmod.crops.static_crops`), the
+flow the vehicle would have standing still. What this gives up, and says so: white noise is
+drawn per crop pixel (per frame pixel it would be smoothed by the crop's resize of a far
+vehicle and sharpened for a near one), and a cell of lost resolution that the window cuts is
+averaged over the part inside the window only.
+
+Arrays: ``flow`` (N, 2, S, S) float px (any float dtype; results are float32); ``box`` (N, S,
+S) bool, the crop pixels inside the 2D box; ``still`` (N, 2, S, S) px; ``windows`` (N, 3)
+int frame px. Each random error draws from an explicit ``numpy.random.Generator`` or an int
+seed (``numpy.random.default_rng`` of it), so a seed gives the same degradation.
+
+Levels (:data:`KINDS`, each kind's one parameter and its search range): ``noise`` sigma px
+(per component), ``resolution`` k frame px (cell side), ``pull`` alpha in [0, 1], ``scale``
+s (flow x (1 + s)), ``outliers`` p (share of pixels; each gets a vector of fixed length
+added), ``ring`` sigma px outside the box. :func:`endpoint_errors` measures the realised
+error in the box and in the ring the way chapter 07 does (each object's mean end-point error
+over its pixels, then the mean and median over objects); :func:`match_level` finds the level
+of a kind that reaches a requested error (the ring's in the ring, which leaves the box exact;
+every other kind's in the box), so kinds can be compared at the same box end-point error.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from flowmod.crops import crop_windows
+from flowmod.geometry import window_lattice
+
+Seed = np.random.Generator | int
+
+#: Length (px) of each sparse outlier's error vector.
+OUTLIER_PX = 16.0
+
+
+def _crops(flow: Any) -> np.ndarray:
+    """(N, 2, S, S) float32 copy of ``flow``; ValueError on another shape."""
+    f = np.array(flow, dtype=np.float32)
+    if f.ndim != 4 or f.shape[1] != 2 or f.shape[2] != f.shape[3]:
+        raise ValueError(f"flow crops must be (N, 2, S, S), got {f.shape}")
+    return f
+
+
+def _mask(mask: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """(N, 1, S, S) bool of ``mask`` (N, S, S) (all True for None) for crops of ``shape``."""
+    if mask is None:
+        return np.ones((shape[0], 1, *shape[2:]), bool)
+    m = np.asarray(mask, bool)
+    if m.shape != (shape[0], *shape[2:]):
+        raise ValueError(f"mask {m.shape} does not fit crops {shape}")
+    return m[:, None]
+
+
+# --- the box inside its crop ------------------------------------------------------------------
+
+
+def box_masks(boxes: np.ndarray, size: int, scale: float) -> np.ndarray:
+    """(N, S, S) bool: the pixels of each crop (``scale`` x the box's longer side about its
+    centre, resized to S = ``size``) that the 2D box covers, partly or wholly.
+
+    boxes: (N, 4) xmin, ymin, xmax, ymax frame px. The convention of chapter 07's crop
+    errors (:func:`flowmod.chapters.ch07_evaluation.box_masks`), so errors measured here
+    are comparable with its box and around-the-box medians."""
+    b = np.asarray(boxes, np.float64).reshape(-1, 4)
+    win = crop_windows(b, scale).astype(np.float64)
+    lo = (b[:, :2] - win[:, :2]) / win[:, 2:3] * size
+    hi = (b[:, 2:] + 1 - win[:, :2]) / win[:, 2:3] * size
+    a = np.clip(np.floor(lo), 0, size).astype(int)
+    z = np.clip(np.ceil(hi), 0, size).astype(int)
+    mask = np.zeros((len(b), size, size), bool)
+    for i, (c0, r0, c1, r1) in enumerate(np.hstack([a, z])):
+        mask[i, r0:r1, c0:c1] = True
+    return mask
+
+
+@dataclass(frozen=True)
+class CropBatch:
+    """Clean crops and what the degradations need of their objects.
+
+    flow: (N, 2, S, S) float32 px, the exact flow; box: (N, S, S) bool (:func:`box_masks`);
+    still: (N, 2, S, S) float32 px, the still-world flow of each window (None: no ``pull``);
+    windows: (N, 3) int ``x0, y0, n`` frame px (None: ``resolution`` counts crop px)."""
+
+    flow: np.ndarray
+    box: np.ndarray
+    still: np.ndarray | None = None
+    windows: np.ndarray | None = None
+
+
+def crop_batch(flow: Any, boxes: np.ndarray, scale: float, still: Any = None) -> CropBatch:
+    """A :class:`CropBatch` of stored crops (N, 2, S, S) px and their rows' boxes (N, 4)
+    frame px (``xmin, ymin, xmax, ymax``), the crop ``scale`` they were cut with and, for the
+    pull, their still-world flow crops (N, 2, S, S) px."""
+    f = _crops(flow)
+    return CropBatch(f, box_masks(boxes, f.shape[-1], scale),
+                     None if still is None else _crops(still), crop_windows(boxes, scale))
+
+
+# --- the kinds of error -----------------------------------------------------------------------
+
+
+def white_noise(flow: Any, sigma: float, rng: Seed, mask: Any = None) -> np.ndarray:
+    """flow (N, 2, S, S) px plus independent Gaussian noise of ``sigma`` px on each component
+    of each crop pixel where ``mask`` (N, S, S) bool is True (None: everywhere). The
+    end-point error of a noisy pixel is Rayleigh: mean ``sigma * sqrt(pi / 2)``, median
+    ``sigma * sqrt(2 ln 2)``. The draw does not depend on ``mask`` or ``sigma``."""
+    if sigma < 0:
+        raise ValueError(f"sigma must be >= 0 px, got {sigma}")
+    f = _crops(flow)
+    z = np.random.default_rng(rng).standard_normal(f.shape, dtype=np.float32)
+    return f + np.float32(sigma) * z * _mask(mask, f.shape)
+
+
+def ring_noise(flow: Any, sigma: float, box: Any, rng: Seed) -> np.ndarray:
+    """White noise of ``sigma`` px (:func:`white_noise`) in the ring only: the crop pixels
+    outside the box ``box`` (N, S, S) bool; the box's flow is returned unchanged."""
+    return white_noise(flow, sigma, rng, ~np.asarray(box, bool))
+
+
+def pull_to_still(flow: Any, still: Any, alpha: float, mask: Any = None) -> np.ndarray:
+    """``flow + alpha * (still - flow)`` where ``mask`` (N, S, S) is True (the vehicle's box;
+    None: the whole crop), flow and still (N, 2, S, S) px: the vehicle's own motion shrunk
+    by the share ``alpha`` in [0, 1] (1 erases it: the still-world flow). A still vehicle,
+    whose flow is the still-world flow, is unchanged."""
+    if not 0.0 <= alpha <= 1.0:
+        raise ValueError(f"alpha must lie in [0, 1], got {alpha}")
+    f, s = _crops(flow), _crops(still)
+    if s.shape != f.shape:
+        raise ValueError(f"still-world flow {s.shape} does not fit flow {f.shape}")
+    pulled = f + np.float32(alpha) * (s - f)
+    return np.where(_mask(mask, f.shape), pulled, f)
+
+
+def scale_error(flow: Any, s: float) -> np.ndarray:
+    """``flow * (1 + s)``: a global scale error (s > -1; s = 0.1 makes every vector 10 %
+    longer). End-point error ``|s| * |flow|``."""
+    if s <= -1:
+        raise ValueError(f"scale error s must be > -1, got {s}")
+    return _crops(flow) * np.float32(1.0 + s)
+
+
+def outliers(flow: Any, p: float, rng: Seed, magnitude: float = OUTLIER_PX,
+             mask: Any = None) -> np.ndarray:
+    """Sparse large errors: each crop pixel (where ``mask`` is True) gets, with probability
+    ``p``, a vector of ``magnitude`` px in a uniform direction added (its end-point error is
+    ``magnitude``; mean error ``p * magnitude``). One uniform draw per pixel decides, so a
+    larger ``p`` keeps the outliers of a smaller one (same seed)."""
+    if not 0.0 <= p <= 1.0:
+        raise ValueError(f"outlier share p must lie in [0, 1], got {p}")
+    f = _crops(flow)
+    g = np.random.default_rng(rng)
+    n, _, s, _ = f.shape
+    u = g.random((n, s, s))
+    angle = g.uniform(0.0, 2.0 * np.pi, (n, s, s))
+    hit = (u < p) & _mask(mask, f.shape)[:, 0]
+    vec = np.stack([np.cos(angle), np.sin(angle)], axis=1) * magnitude
+    return f + np.where(hit[:, None], vec, 0.0).astype(np.float32)
+
+
+def _cells_1d(x: np.ndarray, k: float, upsample: str) -> tuple[np.ndarray, ...]:
+    """For coordinates x (S,) frame px and cells of k px (cell c holds the pixels whose
+    span lies in ``[c k - 0.5, (c + 1) k - 0.5)``): each x's cell (from 0), the two cells
+    the upsampling reads and their weights."""
+    cell = np.floor((x + 0.5) / k).astype(int)
+    first = cell.min()
+    if upsample == "nearest":
+        c = cell - first
+        return c, c, c, np.ones_like(x), np.zeros_like(x)
+    u = (x + 0.5) / k - 0.5 - first  # in cell units, cell centres at integers
+    i0 = np.floor(u).astype(int)
+    w1 = u - i0
+    return cell - first, i0, i0 + 1, 1.0 - w1, w1
+
+
+def _lost_resolution_one(f: np.ndarray, window: np.ndarray, k: float, upsample: str
+                         ) -> np.ndarray:
+    """One crop (2, S, S): average over k-px cells of the frame, then upsample."""
+    size = f.shape[-1]
+    xy = window_lattice(window, size).reshape(size, size, 2)  # where the crop's resize reads
+    cx, ax, bx, wax, wbx = _cells_1d(xy[0, :, 0], k, upsample)
+    cy, ay, by, way, wby = _cells_1d(xy[:, 0, 1], k, upsample)
+    m = int(max(cx.max(), cy.max(), ax.max(), ay.max())) + 2
+    idx = (cy[:, None] * m + cx[None, :]).ravel()
+    count = np.bincount(idx, minlength=m * m).reshape(m, m)
+    sums = np.stack([np.bincount(idx, f[c].ravel(), m * m).reshape(m, m) for c in range(2)])
+    mean = sums / np.maximum(count, 1)
+    num = np.zeros(f.shape, np.float64)
+    den = np.zeros((size, size), np.float64)
+    for ry, wy in ((ay, way), (by, wby)):
+        for rx, wx in ((ax, wax), (bx, wbx)):
+            ry_, rx_ = np.clip(ry, 0, m - 1), np.clip(rx, 0, m - 1)
+            w = wy[:, None] * wx[None, :] * (count[np.ix_(ry_, rx_)] > 0)
+            num += w * mean[:, ry_][:, :, rx_]
+            den += w
+    return (num / den).astype(np.float32)
+
+
+def lost_resolution(flow: Any, k: float, windows: Any = None, upsample: str = "bilinear"
+                    ) -> np.ndarray:
+    """The flow averaged over k x k px cells of the frame's pixel grid, then upsampled back,
+    as a network that predicts at 1/k resolution does: ``bilinear`` (default; cell means at
+    the cells' centres, PyTorch's ``align_corners=False`` upsampling, which FastFlowNet
+    uses) or ``nearest`` (each pixel its cell's mean).
+
+    flow (N, 2, S, S) px; k >= 1 frame px (not necessarily whole); windows (N, 3) ``x0, y0,
+    n`` frame px of each crop (:func:`flowmod.crops.crop_windows`), None: the crop's own
+    pixels are the grid. A cell's mean is that of the crop pixels in it (cells cut by the
+    window: the part inside); a cell without a crop pixel (a crop smaller than its window)
+    leaves the upsampling's weights to its neighbours. A constant field is unchanged."""
+    if not k >= 1:
+        raise ValueError(f"cell side k must be >= 1 px, got {k}")
+    if upsample not in ("bilinear", "nearest"):
+        raise ValueError(f"upsample must be 'bilinear' or 'nearest', got {upsample!r}")
+    f = _crops(flow)
+    n, _, size, _ = f.shape
+    win = (np.tile([0, 0, size], (n, 1)) if windows is None
+           else np.asarray(windows, np.float64).reshape(-1, 3))
+    if len(win) != n:
+        raise ValueError(f"{len(win)} windows for {n} crops")
+    out = np.empty_like(f)
+    for i in range(n):
+        out[i] = _lost_resolution_one(f[i], win[i], float(k), upsample)
+    return out
+
+
+# --- one interface over the kinds, the realised errors, matched levels -------------------------
+
+
+@dataclass(frozen=True)
+class Kind:
+    """One kind of error: its level's name and unit, the range :func:`match_level`
+    searches, where its error is measured (``box`` or ``ring``) and how it degrades a
+    batch: ``apply(batch, level, seed)`` -> (N, 2, S, S) float32 px."""
+
+    level: str
+    lo: float
+    hi: float
+    region: str
+    apply: Callable[[CropBatch, float, Seed], np.ndarray]
+
+
+def _pull(b: CropBatch, alpha: float, seed: Seed) -> np.ndarray:
+    if b.still is None:
+        raise ValueError("the pull needs the batch's still-world flow (CropBatch.still)")
+    return pull_to_still(b.flow, b.still, alpha, b.box)
+
+
+#: The kinds of issue 52, by name.
+KINDS: dict[str, Kind] = {
+    "noise": Kind("sigma (px)", 0.0, 20.0, "box",
+                  lambda b, v, r: white_noise(b.flow, v, r)),
+    "resolution": Kind("k (frame px)", 1.0, 32.0, "box",
+                       lambda b, v, r: lost_resolution(b.flow, v, b.windows)),
+    "pull": Kind("alpha", 0.0, 1.0, "box", _pull),
+    "scale": Kind("s", 0.0, 1.0, "box", lambda b, v, r: scale_error(b.flow, v)),
+    "outliers": Kind("p", 0.0, 1.0, "box", lambda b, v, r: outliers(b.flow, v, r)),
+    "ring": Kind("sigma (px)", 0.0, 20.0, "ring",
+                 lambda b, v, r: ring_noise(b.flow, v, b.box, r)),
+}
+
+
+def degrade(kind: str, batch: CropBatch, level: float, seed: Seed = 0) -> np.ndarray:
+    """The batch's flow with one ``kind`` of error (:data:`KINDS`) at ``level``: (N, 2, S,
+    S) float32 px."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown kind of flow error {kind!r}; known: {list(KINDS)}")
+    return KINDS[kind].apply(batch, level, seed)
+
+
+def endpoint_errors(degraded: Any, clean: Any, box: Any) -> dict[str, Any]:
+    """Realised end-point error of ``degraded`` against ``clean`` (N, 2, S, S) px, as
+    chapter 07 measures it: each object's mean over its box pixels and over its ring (the
+    crop outside the box; NaN where either is empty), then over objects.
+
+    Returns ``box`` and ``ring`` (N,) float64 px per object, and ``box_mean``,
+    ``box_median``, ``ring_mean``, ``ring_median`` floats px over the objects."""
+    d, c = _crops(degraded), _crops(clean)
+    if d.shape != c.shape:
+        raise ValueError(f"degraded {d.shape} and clean {c.shape} crops differ in shape")
+    inside = _mask(box, d.shape)[:, 0]
+    err = np.sqrt(((d.astype(np.float64) - c) ** 2).sum(axis=1))
+    out: dict[str, Any] = {}
+    for name, m in (("box", inside), ("ring", ~inside)):
+        k = m.sum((1, 2))
+        per = np.where(k > 0, (err * m).sum((1, 2)) / np.maximum(k, 1), np.nan)
+        out[name] = per
+        defined = per[~np.isnan(per)]
+        out[f"{name}_mean"] = float(defined.mean()) if defined.size else float("nan")
+        out[f"{name}_median"] = float(np.median(defined)) if defined.size else float("nan")
+    return out
+
+
+def realised_error(kind: str, batch: CropBatch, level: float, seed: Seed = 0,
+                   stat: str = "mean") -> float:
+    """The error (px) ``kind`` at ``level`` realises where it is measured (its region's
+    ``stat``: ``mean`` or ``median`` over objects, :func:`endpoint_errors`)."""
+    if stat not in ("mean", "median"):
+        raise ValueError(f"stat must be 'mean' or 'median', got {stat!r}")
+    e = endpoint_errors(degrade(kind, batch, level, seed), batch.flow, batch.box)
+    return float(e[f"{KINDS[kind].region}_{stat}"])
+
+
+def match_level(kind: str, batch: CropBatch, target: float, seed: Seed = 0,
+                stat: str = "mean", tol: float = 0.01, steps: int = 16) -> float:
+    """The level of ``kind`` whose realised error (:func:`realised_error`, the box's; the
+    ring's for ``ring``) on the calibration ``batch`` is ``target`` px within ``tol``
+    (relative): the range of :data:`KINDS` is scanned in ``steps`` for the first level that
+    reaches the target, then bisected (so mildly non-monotone kinds, lost resolution, are
+    handled). The noise is the same draw at every level (a Generator is turned into one
+    seed first). ValueError when the range cannot reach the target."""
+    k = KINDS[kind] if kind in KINDS else None
+    if k is None:
+        raise ValueError(f"unknown kind of flow error {kind!r}; known: {list(KINDS)}")
+    if not target > 0:
+        raise ValueError(f"target error must be > 0 px, got {target}")
+    s = seed if isinstance(seed, int) else int(np.random.default_rng(seed).integers(2**62))
+
+    def err(v: float) -> float:
+        return realised_error(kind, batch, v, s, stat)
+
+    grid = np.linspace(k.lo, k.hi, steps + 1)
+    errs = [err(float(v)) for v in grid]
+    above = [i for i, e in enumerate(errs) if e >= target]
+    if not above or above[0] == 0:
+        reach = f"{min(errs):.3g} to {max(errs):.3g} px"
+        raise ValueError(f"{kind}: a {stat} {k.region} error of {target:.3g} px is out of "
+                         f"reach over {k.level} in [{k.lo}, {k.hi}] ({reach})")
+    lo, hi = float(grid[above[0] - 1]), float(grid[above[0]])
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        e = err(mid)
+        if abs(e - target) <= tol * target:
+            return mid
+        lo, hi = (mid, hi) if e < target else (lo, mid)
+    return (lo + hi) / 2
+
+
+def match_levels(batch: CropBatch, targets: Any, kinds: Any = None, seed: Seed = 0,
+                 stat: str = "mean", tol: float = 0.01) -> dict[str, list[float]]:
+    """``{kind: [level per target]}``: :func:`match_level` of each kind (all of
+    :data:`KINDS` by default) at each target error (px) on the same calibration batch, so
+    the kinds meet at the same box (ring: ring) end-point errors; a target out of a kind's
+    reach gives NaN."""
+    out: dict[str, list[float]] = {}
+    for kind in (list(KINDS) if kinds is None else kinds):
+        levels = []
+        for t in targets:
+            try:
+                levels.append(match_level(kind, batch, float(t), seed, stat, tol))
+            except ValueError:
+                levels.append(float("nan"))
+        out[kind] = levels
+    return out

@@ -1,0 +1,229 @@
+"""Controlled flow errors (issue 52): each kind reaches its requested error on a synthetic
+field, the pull toward the still-world flow, matched levels, seeding; the three verdicts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from flowmod.chapters.common import three_verdicts
+from flowmod.extensions import flowerrors as fe
+
+S, SCALE = 40, 3.0
+RAYLEIGH_MEAN = np.sqrt(np.pi / 2)
+
+
+def _boxes(n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, 4) frame-px boxes of far vehicles (8-40 px wide), some cut by the frame edge."""
+    w = rng.uniform(8, 40, n)
+    h = w * rng.uniform(0.5, 1.0, n)
+    x0 = rng.uniform(-5, 1500, n)
+    y0 = rng.uniform(300, 600, n)
+    return np.stack([x0, y0, x0 + w, y0 + h], axis=1)
+
+
+def _batch(n: int = 24, seed: int = 7) -> fe.CropBatch:
+    """Synthetic crops: a smooth still world (a gradient with ripples) and, in each box, the
+    still flow plus a vehicle's own motion (0 for every third object: still vehicles)."""
+    rng = np.random.default_rng(seed)
+    boxes = _boxes(n, rng)
+    yy, xx = np.mgrid[0:S, 0:S] / S
+    still = np.stack([1.5 * xx + 0.3 * np.sin(9 * yy), 0.5 * yy + 0.2 * np.cos(7 * xx)])
+    still = np.repeat(still[None], n, axis=0) * rng.uniform(0.5, 2.0, (n, 1, 1, 1))
+    box = fe.box_masks(boxes, S, SCALE)
+    own = rng.uniform(-3, 3, (n, 2, 1, 1)) * (np.arange(n) % 3 != 0)[:, None, None, None]
+    ripple = 0.4 * np.sin(2.1 * np.arange(S))[None, None, None, :]
+    flow = still + (own + ripple) * box[:, None]
+    return fe.crop_batch(flow, boxes, SCALE, still=still)
+
+
+@pytest.fixture(scope="module")
+def batch() -> fe.CropBatch:
+    return _batch()
+
+
+def test_box_masks_cover_the_middle_of_the_window() -> None:
+    m = fe.box_masks(np.array([[100.0, 200.0, 129.0, 229.0]]), 30, 3.0)[0]  # window (72, 172), n = 87
+    rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+    assert (rows[0], rows[-1], cols[0], cols[-1]) == (9, 19, 9, 19)
+    assert m[9:20, 9:20].all() and m.sum() == 11 * 11
+
+
+def test_box_masks_follow_chapter_07() -> None:
+    from flowmod.chapters.ch07_evaluation import box_masks
+
+    boxes = _boxes(50, np.random.default_rng(1))
+    df = pd.DataFrame(boxes, columns=["xmin", "ymin", "xmax", "ymax"])
+    assert np.array_equal(fe.box_masks(boxes, S, SCALE), box_masks(df, S, SCALE))
+
+
+def test_noise_reaches_sigma_times_rayleigh_mean(batch: fe.CropBatch) -> None:
+    e = fe.endpoint_errors(fe.white_noise(batch.flow, 0.8, 0), batch.flow, batch.box)
+    assert e["box_mean"] == pytest.approx(0.8 * RAYLEIGH_MEAN, rel=0.03)
+    assert e["ring_mean"] == pytest.approx(0.8 * RAYLEIGH_MEAN, rel=0.02)
+    assert e["box"].shape == (len(batch.flow),)
+
+
+def test_ring_noise_leaves_the_box_exact(batch: fe.CropBatch) -> None:
+    out = fe.ring_noise(batch.flow, 2.0, batch.box, 3)
+    inside = np.broadcast_to(batch.box[:, None], out.shape)
+    assert np.array_equal(out[inside], batch.flow[inside])
+    e = fe.endpoint_errors(out, batch.flow, batch.box)
+    assert e["box_mean"] == 0.0
+    assert e["ring_mean"] == pytest.approx(2.0 * RAYLEIGH_MEAN, rel=0.02)
+
+
+def test_pull_leaves_a_still_vehicle_unchanged_and_erases_motion_at_one(
+        batch: fe.CropBatch) -> None:
+    assert batch.still is not None
+    for alpha in (0.3, 1.0):
+        same = fe.pull_to_still(batch.still, batch.still, alpha, batch.box)
+        assert np.array_equal(same, batch.still)
+    full = fe.pull_to_still(batch.flow, batch.still, 1.0)
+    np.testing.assert_allclose(full, batch.still, atol=1e-6)
+    boxed = fe.pull_to_still(batch.flow, batch.still, 1.0, batch.box)
+    inside = np.broadcast_to(batch.box[:, None], boxed.shape)
+    np.testing.assert_allclose(boxed[inside], batch.still[inside], atol=1e-6)
+    assert np.array_equal(boxed[~inside], batch.flow[~inside])
+    assert np.array_equal(fe.pull_to_still(batch.flow, batch.still, 0.0), batch.flow)
+    moved = batch.flow + np.float32(0.3)  # the ring off the still world: left as it is
+    ring = fe.pull_to_still(moved, batch.still, 1.0, batch.box)
+    assert np.array_equal(ring[~inside], moved[~inside])
+    half = fe.pull_to_still(batch.flow, batch.still, 0.5, batch.box)
+    own = np.linalg.norm(batch.flow - batch.still, axis=1)
+    err = np.linalg.norm(half - batch.flow, axis=1)
+    np.testing.assert_allclose(err, 0.5 * own * batch.box, atol=1e-5)
+    with pytest.raises(ValueError):
+        fe.pull_to_still(batch.flow, batch.still, 1.5)
+
+
+def test_scale_error_is_s_times_the_flow_length(batch: fe.CropBatch) -> None:
+    out = fe.scale_error(batch.flow, 0.2)
+    np.testing.assert_allclose(np.linalg.norm(out - batch.flow, axis=1),
+                               0.2 * np.linalg.norm(batch.flow, axis=1), rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError):
+        fe.scale_error(batch.flow, -1.0)
+
+
+def test_outliers_reach_p_times_their_length_and_nest(batch: fe.CropBatch) -> None:
+    small = fe.outliers(batch.flow, 0.05, 11)
+    large = fe.outliers(batch.flow, 0.2, 11)
+    e = fe.endpoint_errors(large, batch.flow, batch.box)
+    assert e["box_mean"] == pytest.approx(0.2 * fe.OUTLIER_PX, rel=0.08)
+    err = np.linalg.norm(large - batch.flow, axis=1)
+    assert set(np.round(np.unique(err), 3)) <= {0.0, fe.OUTLIER_PX}
+    hit_small = np.linalg.norm(small - batch.flow, axis=1) > 1
+    assert (err[hit_small] > 1).all()
+    assert np.array_equal(fe.outliers(batch.flow, 0.0, 11), batch.flow)
+
+
+@pytest.mark.parametrize("upsample", ["bilinear", "nearest"])
+def test_lost_resolution_of_a_constant_field_is_a_no_op(batch: fe.CropBatch,
+                                                         upsample: str) -> None:
+    const = np.broadcast_to(np.array([1.25, -0.5], np.float32)[None, :, None, None],
+                            batch.flow.shape)
+    for k in (1.0, 2.5, 4.0, 16.0):
+        out = fe.lost_resolution(const, k, batch.windows, upsample)
+        np.testing.assert_allclose(out, const, atol=1e-6)
+    np.testing.assert_allclose(fe.lost_resolution(const, 4.0, None, upsample), const,
+                               atol=1e-6)
+
+
+def test_lost_resolution_averages_cells_of_the_grid() -> None:
+    f = np.random.default_rng(0).normal(size=(3, 2, 8, 8)).astype(np.float32)
+    out = fe.lost_resolution(f, 4, upsample="nearest")
+    cells = f.reshape(3, 2, 2, 4, 2, 4).mean(axis=(3, 5))
+    np.testing.assert_allclose(out, np.repeat(np.repeat(cells, 4, 2), 4, 3), atol=1e-6)
+    bil = fe.lost_resolution(f, 4)
+    assert bil[:, :, :2, :2] == pytest.approx(np.broadcast_to(cells[:, :, :1, :1],
+                                                              (3, 2, 2, 2)))
+    np.testing.assert_allclose(bil.mean(), f.mean(), atol=0.2)
+    # a linear field inside the cell centres is reproduced by bilinear upsampling
+    ramp = np.broadcast_to(np.arange(16, dtype=np.float32)[None, None, None, :], (1, 2, 16, 16))
+    np.testing.assert_allclose(fe.lost_resolution(ramp, 4)[..., 2:14], ramp[..., 2:14],
+                               atol=1e-5)
+
+
+def test_lost_resolution_cells_are_those_of_the_frame_grid() -> None:
+    """A crop that shrinks its window twofold: each crop pixel takes the mean of the crop
+    pixels in its frame cell (cell c: frame pixels 4c .. 4c + 3), located as the crop's
+    resize locates them (:func:`flowmod.geometry.window_lattice`)."""
+    from flowmod.geometry import window_lattice
+
+    f = np.random.default_rng(3).normal(size=(1, 2, 8, 8)).astype(np.float32)
+    window = np.array([1, 5, 16])
+    xy = window_lattice(window, 8).reshape(8, 8, 2)
+    cell = np.floor((xy + 0.5) / 4).astype(int)
+    key = cell[..., 1] * 100 + cell[..., 0]
+    expected = np.empty_like(f)
+    for c in np.unique(key):
+        expected[0, :, key == c] = f[0, :, key == c].mean(axis=0)  # (pixels, 2)
+    out = fe.lost_resolution(f, 4, window[None], "nearest")
+    np.testing.assert_allclose(out, expected, atol=1e-6)
+
+
+def test_lost_resolution_grows_with_the_cell(batch: fe.CropBatch) -> None:
+    errs = [fe.realised_error("resolution", batch, k) for k in (2.0, 6.0, 20.0)]
+    assert 0 < errs[0] < errs[1] < errs[2]
+
+
+@pytest.mark.parametrize("kind", list(fe.KINDS))
+def test_each_kind_is_matched_to_a_requested_box_error(batch: fe.CropBatch, kind: str) -> None:
+    level = fe.match_level(kind, batch, 0.4, seed=5, tol=0.01)
+    assert fe.KINDS[kind].lo <= level <= fe.KINDS[kind].hi
+    assert fe.realised_error(kind, batch, level, 5) == pytest.approx(0.4, rel=0.01)
+
+
+def test_levels_are_matched_across_kinds(batch: fe.CropBatch) -> None:
+    levels = fe.match_levels(batch, [0.2, 0.5], kinds=["noise", "scale", "outliers"], seed=2)
+    for kind, ls in levels.items():
+        got = [fe.realised_error(kind, batch, v, 2) for v in ls]
+        np.testing.assert_allclose(got, [0.2, 0.5], rtol=0.01)
+    assert levels["noise"][0] == pytest.approx(0.2 / RAYLEIGH_MEAN, rel=0.05)
+    assert np.isnan(fe.match_levels(batch, [500.0], kinds=["pull"])["pull"][0])
+
+
+def test_an_unreachable_error_raises(batch: fe.CropBatch) -> None:
+    with pytest.raises(ValueError, match="out of reach"):
+        fe.match_level("pull", batch, 100.0)
+    with pytest.raises(ValueError):
+        fe.match_level("blur", batch, 1.0)
+    with pytest.raises(ValueError):
+        fe.match_level("noise", batch, 0.0)
+
+
+def test_seeds_make_degradations_reproducible(batch: fe.CropBatch) -> None:
+    for kind in ("noise", "outliers", "ring"):
+        a = fe.degrade(kind, batch, 0.3, seed=4)
+        assert np.array_equal(a, fe.degrade(kind, batch, 0.3, seed=4))
+        assert np.array_equal(a, fe.degrade(kind, batch, 0.3, np.random.default_rng(4)))
+        assert not np.array_equal(a, fe.degrade(kind, batch, 0.3, seed=5))
+    a = fe.match_level("noise", batch, 0.5, seed=np.random.default_rng(9))
+    assert a == fe.match_level("noise", batch, 0.5, seed=np.random.default_rng(9))
+
+
+def test_the_pull_needs_the_still_world_flow(batch: fe.CropBatch) -> None:
+    with pytest.raises(ValueError, match="still-world"):
+        fe.degrade("pull", fe.CropBatch(batch.flow, batch.box), 0.5)
+    with pytest.raises(ValueError):
+        fe.white_noise(batch.flow[:, 0], 1.0, 0)
+
+
+@pytest.mark.parametrize(("ci", "expected"), [
+    ((0.5, 3.0), "decided"), ((-4.0, -0.1), "decided"),
+    ((-0.8, 0.9), "equivalent"), ((-0.5, 4.0), "inconclusive"), ((-3.0, 0.2), "inconclusive"),
+    ((0.0, 0.5), "equivalent"), ((0.0, 2.0), "inconclusive"), ((-0.5, 0.0), "equivalent"),
+    ((-1.0, 0.5), "inconclusive"), ((-0.5, 1.0), "inconclusive"), ((1e-9, 0.5), "decided"),
+    ((float("nan"), float("nan")), "inconclusive"),
+])
+def test_three_verdicts(ci: tuple[float, float], expected: str) -> None:
+    assert three_verdicts(ci, 1.0) == expected
+
+
+@pytest.mark.parametrize("delta", [0.0, -1.0, float("nan")])
+def test_three_verdicts_needs_a_positive_delta(delta: float) -> None:
+    with pytest.raises(ValueError):
+        three_verdicts((-0.1, 0.1), delta)
+    with pytest.raises(ValueError):
+        three_verdicts((0.5, 0.1), 1.0)
