@@ -5,6 +5,8 @@ from __future__ import annotations
 import copy
 import json
 import math
+import os
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -358,12 +360,24 @@ def test_same_seed_gives_byte_identical_tables_and_images(tmp_path):
 
 
 #: sha256 over the tiny world's files (conftest ``TINY_WORLD``: 5 scenes x 3 keyframes, one
-#: swept, one at night), manifest left out: :func:`_content_fingerprint`. A speed-up of the
-#: generator must leave it as it is; re-pin it only for a deliberate change of what it draws
-#: (or of the OpenCV / numpy that draw it), with ``GENERATOR_VERSION`` where readers care.
-#: Pinned with numpy 1.26.4 and OpenCV 4.11.0 on an AVX-512 x86-64 CPU: their SIMD float32
-#: paths (exp, log, resize) could round differently on another CPU.
-TINY_WORLD_FINGERPRINT = "ab3884125d5d379069103a7d03c4de8dd9471f7bca6455744795a350e43db501"
+#: swept, one at night), manifest left out: :func:`_content_fingerprint`, per SIMD path of
+#: numpy (its float32 exp, log and friends round differently with AVX-512 than with AVX2; this
+#: project's machines have either). A speed-up of the generator must leave both as they are;
+#: re-pin only for a deliberate change of what it draws (or of the numpy / OpenCV that draw
+#: it), with ``GENERATOR_VERSION`` where readers care. Pinned with numpy 1.26.4 and OpenCV
+#: 4.11.0; the AVX2 value under ``NPY_DISABLE_CPU_FEATURES`` (:data:`NO_AVX512`).
+TINY_WORLD_FINGERPRINTS = {
+    "avx512": "ab3884125d5d379069103a7d03c4de8dd9471f7bca6455744795a350e43db501",
+    "avx2": "3816adae6d89411a55f38ac62d5ed0d68f880c0d4470a96c2d87f15d06b1122c",
+}
+NO_AVX512 = "AVX512F AVX512CD AVX512_SKX AVX512_CLX AVX512_CNL AVX512_ICL"
+
+
+def _simd_path() -> str | None:
+    """``avx512``, ``avx2`` or None: which of numpy's pinned SIMD paths this process runs."""
+    from numpy.core._multiarray_umath import __cpu_features__ as cpu
+
+    return "avx512" if cpu.get("AVX512_SKX") else "avx2" if cpu.get("AVX2") else None
 
 
 def _content_fingerprint(root) -> str:
@@ -387,7 +401,30 @@ def test_the_tiny_worlds_bytes_are_pinned(tiny_world):
     files = [f for f in root.rglob("*") if f.is_file()]
     assert sum(f.suffix == ".jpg" for f in files) > 20
     assert (root / version / "sample_annotation.json").is_file()
-    assert _content_fingerprint(root) == TINY_WORLD_FINGERPRINT
+    path = _simd_path()
+    if path is None:
+        pytest.skip("numpy runs neither pinned SIMD path (AVX-512, AVX2) on this CPU")
+    assert _content_fingerprint(root) == TINY_WORLD_FINGERPRINTS[path]
+
+
+def test_the_tiny_worlds_bytes_are_pinned_on_the_avx2_path_too(tmp_path):
+    """The other pin, where this CPU has AVX-512: the tiny world made in a process whose
+    numpy may not use it (CI machines may lack it), hashed as pinned for AVX2."""
+    import subprocess
+    import sys
+
+    if _simd_path() != "avx512":
+        pytest.skip("this CPU runs the AVX2 path already (the test above)")
+    code = (
+        "import sys; sys.path.insert(0, 'tests'); from pathlib import Path; import conftest;"
+        "import test_world as t; from flowmod.world import ensure_world;"
+        f"p = conftest._smoke(Path({str(tmp_path)!r}), **conftest.TINY_WORLD);"
+        "ensure_world(p, progress=False); print(t._simd_path(), t._content_fingerprint(p.dataroot_path))"
+    )
+    env = {**os.environ, "NPY_DISABLE_CPU_FEATURES": NO_AVX512}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parents[1], check=True).stdout.split()
+    assert out == ["avx2", TINY_WORLD_FINGERPRINTS["avx2"]]
 
 
 def test_ensure_world_generates_reuses_regenerates_and_explains(tmp_path):
