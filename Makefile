@@ -31,7 +31,7 @@ help:  ## list the targets
 	@echo
 	@grep -E '^[a-z]+:.*## ' $(MAKEFILE_LIST) | sed -E 's/:.*## /\t/' | expand -t 12
 	@echo
-	@echo "variables: PROFILE=$(PROFILE) (smoke|demo|paper or a YAML path), DATAROOT=, SET='key=value ...', VENV=$(VENV)"
+	@echo "variables: PROFILE=$(PROFILE) (smoke|classroom|demo|paper or a YAML path), DATAROOT=, SET='key=value ...', VENV=$(VENV)"
 
 env: $(STAMP) $(MATHJAX)  ## create the venv (pinned requirements, editable flowmod) and vendor MathJax
 

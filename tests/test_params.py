@@ -33,7 +33,7 @@ def test_paper_profile_keeps_paper_settings_and_requires_dataroot():
     assert (p.flow_store, p.amp, p.num_workers) == ("crops", "bf16", 4)
 
 
-@pytest.mark.parametrize("name", ["demo", "paper"])
+@pytest.mark.parametrize("name", ["demo", "classroom", "paper"])
 def test_the_crop_factor_and_table4_range_are_the_paper_s(name):
     """The paper crops 3 times the box's longer side and scores Table 4 up to 70 m: values
     of the method, not of a profile's size, so every shipped profile keeps them (issue 53:
@@ -90,7 +90,7 @@ def test_several_errors_are_reported_together():
 
 
 def test_missing_profile_lists_known_ones():
-    with pytest.raises(ProfileError, match="known: demo, paper, smoke"):
+    with pytest.raises(ProfileError, match="known: classroom, demo, paper, smoke"):
         load_profile("nonexistent")
 
 
