@@ -351,3 +351,19 @@ def test_a_paired_verdict_decides_only_when_its_interval_excludes_0():
                         "95% CI, scenes and seeds (points)": table[
                             "95% CI, scenes and seeds (points)"]})
     assert ch13.answers(eff)["decided"].tolist() == [f"2 of {len(INTERVALS)}"]
+
+
+def test_the_landing_page_names_its_build_and_says_when_intervals_are_wide():
+    """Chapter 13's scope sentence: the profile, the test scenes (the most any effect
+    counts) and the seeds; the warning only below 60 scenes or 3 seeds."""
+    eff = pd.DataFrame({"scenes": [31, 26]})
+    few = ch13.scope_words(load_profile("classroom"), eff)
+    assert few.startswith("This build: the classroom profile, 31 test scenes, one training "
+                          "seed a fold in Table 3.")
+    assert "intervals are wide" in few
+    demo = load_profile("demo")
+    many = ch13.scope_words(demo, pd.DataFrame({"scenes": [100, 60]}))
+    assert many == "This build: the demo profile, 100 test scenes, 3 training seeds a fold in Table 3."
+    assert "wide" in ch13.scope_words(demo, pd.DataFrame({"scenes": [59]}))
+    assert "wide" in ch13.scope_words(load_profile("demo", seeds=2), pd.DataFrame({"scenes": [100]}))
+    assert "0 test scenes" in ch13.scope_words(demo, pd.DataFrame({"scenes": []}))

@@ -68,3 +68,22 @@ def answers(eff: pd.DataFrame) -> pd.DataFrame:
                     "decided": f"{int((g['verdict'] != 'undecided').sum())} of {len(g)}",
                     "chapter": chapter})
     return pd.DataFrame(out)
+
+
+#: Fewer test scenes than this, or fewer training seeds a fold than :data:`FEW_SEEDS`, and the
+#: landing page says its intervals are wide (the demo: 100 scenes, 3 seeds).
+FEW_SCENES = 60
+FEW_SEEDS = 3
+
+
+def scope_words(params: Params, eff: pd.DataFrame) -> str:
+    """One sentence for the landing page: which profile built this book, on how many test
+    scenes and training seeds, and (when few) that its intervals are wide."""
+    scenes = int(eff["scenes"].max()) if len(eff) else 0
+    seeds = "one training seed" if params.seeds == 1 else f"{params.seeds} training seeds"
+    words = (f"This build: the {params.profile} profile, {scenes} test scenes, {seeds} a fold "
+             "in Table 3.")
+    if scenes < FEW_SCENES or params.seeds < FEW_SEEDS:
+        words += (" With this few, the intervals are wide and a point estimate can move by"
+                  " several points in a rebuild on another world; read the intervals.")
+    return words
