@@ -113,8 +113,9 @@ def test_velocity_speed_label_on_exact_values():
 
 def test_chapter07_answer_says_decided_only_when_the_interval_excludes_0():
     from flowmod.chapters import ch07_evaluation as ch07
+    from flowmod.chapters.common import comparison_table
 
-    table = ev.comparison_table({
+    table = comparison_table({
         "gt - dis": {"delta_f1": 0.03, "ci": (0.01, 0.05), "detectable": 0.02,
                      "per_seed": [0.03], "p_not_better": 0.0, "n_scenes": 29, "n": 90},
         "dis - farneback": {"delta_f1": -0.01, "ci": (-0.03, 0.01), "detectable": 0.03,
@@ -125,7 +126,7 @@ def test_chapter07_answer_says_decided_only_when_the_interval_excludes_0():
     words = ch07.answer(table).split("; gt: classifier")
     assert words[0].startswith("gt - dis: +3.0 F1 points (95 % interval over scenes and "
                                "training seeds 1.0 to 5.0), decided: the first is better")
-    assert "dis - farneback: -1.0 F1 points" in words[0] and "undecided" in words[0]
+    assert "dis - farneback: -1.0 F1 points" in words[0] and "; inconclusive: " in words[0]
     assert words[0].count(", decided: ") == 1
     assert words[1].endswith("decided: the second is better.")
 
@@ -151,13 +152,16 @@ def test_the_landing_page_quotes_decided_comparisons_as_decided():
     from flowmod.chapters import ch07_evaluation as ch07
     from flowmod.params import load_profile
 
+    from flowmod.chapters.common import comparison_table
+
     row = {"detectable": 0.02, "per_seed": [0.0], "p_not_better": 0.0, "n_scenes": 29, "n": 90}
-    table = ev.comparison_table({
+    table = comparison_table({
         "gt - dis": {**row, "delta_f1": 0.022, "ci": (0.002, 0.044)},
         "dis: classifier - oracle rule": {**row, "delta_f1": 0.021, "ci": (-0.009, 0.05)}})
     w = ch07.landing_words(table, load_profile("demo"))
     assert w["exact_vs_headline"].endswith("0.2 to 4.4), decided")
-    assert w["headline_vs_oracle"].endswith("or more)") and "undecided" in w["headline_vs_oracle"]
+    assert w["headline_vs_oracle"].endswith("or more)")
+    assert "inconclusive" in w["headline_vs_oracle"]
     assert ch07.landing_words(table.iloc[:1], load_profile("demo"))["headline_vs_oracle"] == (
         "not in this profile")
 
@@ -306,3 +310,40 @@ def test_near_threshold_draws_four_per_example_before_taking_the_nearest():
     speeds = np.r_[np.linspace(1.55, 2.45, 41), [1.45, 2.6, 9.0]]
     df = pd.DataFrame({"speed": speeds})
     assert labels.near_threshold(df, 2.0, n=2, seed=1).index.tolist() == [19, 23]
+
+
+def test_three_verdicts_in_the_chapters_tables_words_and_forest():
+    """Issue 52 item 5: a paired effect is decided (its interval excludes 0), equivalent
+    (inside +/- the smallest effect that matters, 2 points) or inconclusive; the chapters'
+    tables, their words, the landing page's count and the forest plot say which."""
+    from flowmod.chapters import ch07_evaluation as ch07
+    from flowmod.chapters import ch13_answers as ch13
+    from flowmod.chapters.common import SMALLEST_EFFECT, comparison_table
+    from flowmod.report import viz
+
+    assert SMALLEST_EFFECT == 2.0
+    row = {"detectable": 0.02, "per_seed": [0.0], "p_not_better": 0.0, "n_scenes": 29, "n": 90}
+    table = comparison_table({
+        "a - b": {**row, "delta_f1": 0.03, "ci": (0.01, 0.05)},
+        "c - d": {**row, "delta_f1": 0.002, "ci": (-0.019, 0.019)},
+        "e - f": {**row, "delta_f1": 0.002, "ci": (-0.021, 0.019)},
+        "g - h": {**row, "delta_f1": -0.03, "ci": (-0.05, -0.001)}})
+    assert table["verdict"].tolist() == ["A better", "equivalent", "inconclusive", "B better"]
+    assert ("c - d: +0.2 F1 points (95 % interval over scenes and training seeds -1.9 to 1.9; "
+            "equivalent: within +/-2 points); e - f") in ch07.answer(table)
+    assert "inconclusive: these scenes would detect 2.0 points or more" in ch07.answer(table)
+    assert ch07.answer(table).count(", decided: ") == 2
+    eff = pd.DataFrame({"chapter": "07", "question": "q", "comparison": table["comparison"],
+                        "ΔF1 (points)": table["ΔF1 (points)"], "verdict": table["verdict"],
+                        "low": [p[0] for p in table.attrs["ci_points"]],
+                        "high": [p[1] for p in table.attrs["ci_points"]],
+                        "95% CI, scenes and seeds (points)": table[
+                            "95% CI, scenes and seeds (points)"]})
+    ans = ch13.answers(eff)
+    assert ans["decided"].tolist() == ["2 of 4"]
+    lines = ans.iloc[0, 1].split("<br>")
+    assert [ln.rsplit(")", 1)[1] for ln in lines] == [", decided", ", equivalent", "", ", decided"]
+    ax = viz.forest(eff, SMALLEST_EFFECT).axes[0]
+    marks = [(ln.get_marker(), ln.get_markerfacecolor() == "white") for ln in ax.get_lines()
+             if ln.get_marker() in ("o", "s")]
+    assert marks == [("o", False), ("s", True), ("o", True), ("o", False)]

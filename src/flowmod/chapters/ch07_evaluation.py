@@ -9,11 +9,19 @@ import numpy as np
 import pandas as pd
 
 from flowmod import evaluate, pipeline
-from flowmod.chapters.common import difference_words, headline_method, read_json, results
+from flowmod.chapters.common import (
+    comparison_table,
+    decided,
+    difference_words,
+    headline_method,
+    read_json,
+    results,
+    verdict_words,
+)
 from flowmod.crops import crop_windows
 from flowmod.dag import Node
 from flowmod.evaluate import paired, scored_crops, seed_probs
-from flowmod.metrics import comparison_table, group_mean_bootstrap, interval, protocol_comparison
+from flowmod.metrics import group_mean_bootstrap, interval, protocol_comparison
 from flowmod.metrics import table3 as metrics_table3
 from flowmod.params import Params
 
@@ -77,7 +85,7 @@ def answer(table: pd.DataFrame) -> str:
     out = []
     for _, row in table.iterrows():
         words = difference_words(row)
-        if row["verdict"] != "undecided":
+        if decided(row["verdict"]):
             words += f", decided: {'the first' if row['verdict'] == 'A better' else 'the second'}"
             words += " is better"
         out.append(f"{row['comparison']}: {words}")
@@ -275,7 +283,7 @@ def landing_words(table: pd.DataFrame, params: Params) -> dict[str, str]:
         if name not in rows.index:
             return "not in this profile"
         row = rows.loc[name]
-        return difference_words(row) + ("" if row["verdict"] == "undecided" else ", decided")
+        return difference_words(row) + verdict_words(row["verdict"])
 
     return {"headline_vs_oracle": words(f"{head}: classifier - oracle rule"),
             "exact_vs_headline": words(f"gt - {head}")}

@@ -9,13 +9,13 @@ import pandas as pd
 
 from flowmod import pipeline
 from flowmod.chapters import common
-from flowmod.chapters.common import results
+from flowmod.chapters.common import comparison_table, results
 from flowmod.crops import gather_fold
 from flowmod.dag import Node
 from flowmod.evaluate import fold_of, paired, scored, seed_probs
 from flowmod.extensions.context import read_context
 from flowmod.extensions.inputs import VARIANTS, chains
-from flowmod.metrics import ci_text, comparison_table, points, seed_summary, span
+from flowmod.metrics import ci_text, points, seed_summary, span
 from flowmod.params import Params
 from flowmod.select import SPLITS
 from flowmod.train import extension_parts

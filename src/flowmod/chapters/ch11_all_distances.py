@@ -9,12 +9,12 @@ import pandas as pd
 
 from flowmod import pipeline
 from flowmod.chapters import common
-from flowmod.chapters.common import results
+from flowmod.chapters.common import comparison_table, results
 from flowmod.crops import part_splits
 from flowmod.dag import Node
 from flowmod.evaluate import breakdown, paired, scored, seed_probs
 from flowmod.evaluate import table4 as evaluate_table4
-from flowmod.metrics import CI_COLUMN, comparison_table, false_alarm_rate, metrics
+from flowmod.metrics import CI_COLUMN, false_alarm_rate, metrics
 from flowmod.params import Params
 from flowmod.train import extension_parts
 

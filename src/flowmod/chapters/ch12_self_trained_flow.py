@@ -30,7 +30,6 @@ from flowmod.flow.selftrain import (
 )
 from flowmod.metrics import (
     ci_text,
-    comparison_table,
     group_mean_bootstrap,
     interval,
     verdict,
@@ -346,7 +345,7 @@ def observation(params: Params, errors: pd.DataFrame | None,
     for name, label in (("test", "Table 3"), ("general", "Table 4")):
         a, b = (scored(common.results(params, m, name)[0], name, params.general_max_distance)
                 for m in methods)
-        row = comparison_table({f"{methods[0]} - {methods[1]} ({label})": paired(
+        row = common.comparison_table({f"{methods[0]} - {methods[1]} ({label})": paired(
             a, b, f"{methods[0]} and {methods[1]} ({label})", seed=params.seed)}).iloc[0]
         out[name] = row
     return out
@@ -392,7 +391,7 @@ def observation_words(obs: dict[str, Any]) -> str:
     text = (f"Inside the target boxes the shipped FastFlowNet's flow is {acc} DIS's "
             f"({d['diff']:+.2f} px of end-point error, 95 % interval over {d['scenes']} "
             f"scenes {d['ci'][0]:+.2f} to {d['ci'][1]:+.2f}). " + text)
-    if t3["verdict"] == "undecided":
+    if not common.decided(t3["verdict"]):
         return text + ("These scenes cannot tell the two classifiers apart on Table 3, so "
                        "they neither repeat nor contradict the paper's observation.")
     if d["verdict"] == "undecided":

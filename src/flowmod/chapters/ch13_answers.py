@@ -12,7 +12,12 @@ import pandas as pd
 from flowmod.chapters import ch07_evaluation as ch07
 from flowmod.chapters import ch10_inputs as ch10
 from flowmod.chapters import ch11_all_distances as ch11
+from flowmod.chapters import common
+from flowmod.chapters.common import decided, verdict_words
 from flowmod.params import Params
+
+#: The smallest effect that matters (F1 points), as every chapter's verdicts use it.
+SMALLEST_EFFECT = common.SMALLEST_EFFECT
 
 #: The question each chapter's paired effects answer (landing-page wording).
 QUESTIONS = {
@@ -61,11 +66,11 @@ def answers(eff: pd.DataFrame) -> pd.DataFrame:
     for chapter, g in eff.groupby("chapter", sort=True):
         parts = [f"{r['comparison']}: {r['ΔF1 (points)']:+.1f} "
                  f"({r['95% CI, scenes and seeds (points)']})"
-                 + ("" if r["verdict"] == "undecided" else ", decided")
+                 + verdict_words(r["verdict"])
                  for _, r in g.iterrows()]
         out.append({"question": g["question"].iloc[0],
                     "answer (ΔF1 points, 95 % interval over scenes and seeds)": "<br>".join(parts),
-                    "decided": f"{int((g['verdict'] != 'undecided').sum())} of {len(g)}",
+                    "decided": f"{int(g['verdict'].map(decided).sum())} of {len(g)}",
                     "chapter": chapter})
     return pd.DataFrame(out)
 

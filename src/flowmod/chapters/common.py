@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from flowmod import pipeline
+from flowmod import metrics, pipeline
 from flowmod.crops import fold_crops, part_of, read_crops
 from flowmod.dag import Node
 from flowmod.flow import FlowReader, flow_root
@@ -92,10 +92,40 @@ def difference_words(row: Any) -> str:
     open, the smallest difference these scenes would detect."""
     text = (f"{row['ΔF1 (points)']:+.1f} F1 points (95 % interval over scenes and training "
             f"seeds {row['95% CI, scenes and seeds (points)']}")
-    if "verdict" in row and row["verdict"] == "undecided":
-        text += (f"; undecided: these scenes would detect {row['detectable (points)']:.1f} "
+    if "verdict" in row and row["verdict"] == "inconclusive":
+        text += (f"; inconclusive: these scenes would detect {row['detectable (points)']:.1f} "
                  "points or more")
+    elif "verdict" in row and row["verdict"] == "equivalent":
+        text += f"; equivalent: within +/-{SMALLEST_EFFECT:.0f} points"
     return text + ")"
+
+
+#: The smallest difference in F1 (points) that matters, fixed before any test row was read:
+#: a bit more than half the paper's FastFlowNet - RAFT gap (92.9 - 89.5 = 3.4 points), the
+#: difference its conclusion rests on. An interval inside +/- this is "equivalent": too
+#: small an effect to carry a conclusion of that kind either way.
+SMALLEST_EFFECT = 2.0
+
+
+def decided(verdict: str) -> bool:
+    """True for a verdict whose interval excludes 0 (``A better``, ``B better``)."""
+    return verdict in ("A better", "B better")
+
+
+def comparison_table(rows: dict[str, dict[str, Any]]) -> pd.DataFrame:
+    """:func:`flowmod.metrics.comparison_table` with three verdicts: ``A better`` or ``B
+    better`` (decided: the interval excludes 0), ``equivalent`` (inside +/-
+    :data:`SMALLEST_EFFECT`) or ``inconclusive`` (:func:`three_verdicts`)."""
+    table = metrics.comparison_table(rows)
+    table["verdict"] = [v if decided(v) else three_verdicts(ci, SMALLEST_EFFECT)
+                        for v, ci in zip(table["verdict"], table.attrs["ci_points"], strict=True)]
+    return table
+
+
+def verdict_words(verdict: str) -> str:
+    """What a verdict adds after an interval in a sentence: ``, decided``, ``, equivalent``
+    or nothing (inconclusive)."""
+    return ", decided" if decided(verdict) else ", equivalent" if verdict == "equivalent" else ""
 
 
 #: The three verdicts of :func:`three_verdicts`.

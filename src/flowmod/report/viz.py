@@ -468,11 +468,13 @@ def f1_by(tables: dict[str, pd.DataFrame], key: str, xlabel: str, min_n: int = 1
     return fig
 
 
-def forest(effects: pd.DataFrame) -> plt.Figure:
+def forest(effects: pd.DataFrame, delta: float | None = None) -> plt.Figure:
     """Every paired effect of the book (rows of :func:`flowmod.chapters.ch13_answers.effects`:
     chapter, comparison, ``ΔF1 (points)``, ``low``, ``high``, verdict) as a point with its
     95 % interval over scenes and training seeds; filled where the interval excludes 0
-    (decided), hollow where it does not; one colour per chapter."""
+    (decided: ``A better``, ``B better``), a hollow square where it is ``equivalent``, a
+    hollow circle otherwise; one colour per chapter; ``delta`` (points): the band of
+    equivalence, shaded."""
     n = len(effects)
     fig, ax = plt.subplots(figsize=(7.5, 0.3 * n + 1.2))
     chapters = sorted(effects["chapter"].unique())
@@ -482,14 +484,18 @@ def forest(effects: pd.DataFrame) -> plt.Figure:
                                            strict=True):
         c = f"C{chapters.index(ch)}"
         err = [[d - lo], [hi - d]] if np.isfinite([lo, hi]).all() else None
-        ax.errorbar([d], [yi], xerr=err, fmt="o", ms=5, capsize=2, color=c,
-                    mfc=c if verdict != "undecided" else "white")
+        filled = verdict in ("A better", "B better")
+        ax.errorbar([d], [yi], xerr=err, fmt="s" if verdict == "equivalent" else "o", ms=5,
+                    capsize=2, color=c, mfc=c if filled else "white")
+    if delta:
+        ax.axvspan(-delta, delta, color="0.92", zorder=0)
     ax.axvline(0.0, color="0.4", lw=0.8, ls="--")
     ax.set_yticks(y, [f"{ch}: {name}" for ch, name in zip(effects["chapter"],
                                                           effects["comparison"], strict=True)],
                   fontsize=7)
     ax.set_xlabel("ΔF1, A - B (points); bar: 95 % interval over scenes and training seeds; "
-                  "filled: decided", fontsize=8)
+                  "filled: decided" + ("; square: equivalent (shaded band)" if delta else ""),
+                  fontsize=8)
     fig.tight_layout()
     return fig
 
