@@ -150,9 +150,8 @@ def test_chapter06_shows_the_validation_choice_of_the_input():
 
 def test_the_landing_page_quotes_decided_comparisons_as_decided():
     from flowmod.chapters import ch07_evaluation as ch07
-    from flowmod.params import load_profile
-
     from flowmod.chapters.common import comparison_table
+    from flowmod.params import load_profile
 
     row = {"detectable": 0.02, "per_seed": [0.0], "p_not_better": 0.0, "n_scenes": 29, "n": 90}
     table = comparison_table({
