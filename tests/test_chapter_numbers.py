@@ -349,7 +349,7 @@ def test_a_paired_verdict_decides_only_when_its_interval_excludes_0():
     eff = pd.DataFrame({"chapter": "07", "question": "q", "comparison": table["comparison"],
                         "ΔF1 (points)": table["ΔF1 (points)"], "verdict": table["verdict"],
                         "95% CI, scenes and seeds (points)": table[
-                            "95% CI, scenes and seeds (points)"]})
+                            "95% CI, scenes and seeds (points)"], "Holm, all effects": "decided"})
     assert ch13.answers(eff)["decided"].tolist() == [f"2 of {len(INTERVALS)}"]
 
 
@@ -367,3 +367,18 @@ def test_the_landing_page_names_its_build_and_says_when_intervals_are_wide():
     assert "wide" in ch13.scope_words(demo, pd.DataFrame({"scenes": [59]}))
     assert "wide" in ch13.scope_words(load_profile("demo", seeds=2), pd.DataFrame({"scenes": [100]}))
     assert "0 test scenes" in ch13.scope_words(demo, pd.DataFrame({"scenes": []}))
+
+
+def test_holm_corrects_over_all_the_books_effects():
+    """Issue 50 item 4: Holm's step-down procedure at 5 % over every effect, from the
+    bootstrap's two-sided p-values; a p-value that fails stops the procedure."""
+    p = np.array([0.01, 0.04, 0.03, 0.005, np.nan])
+    # sorted 0.005 <= 0.05/5, 0.01 <= 0.05/4, 0.03 > 0.05/3: stop; 0.04 never tested
+    assert ch13.holm(p).tolist() == [True, False, False, True, False]
+    assert ch13.holm(np.array([0.02, 0.024])).tolist() == [True, True]  # 0.02 <= .025, .024 <= .05
+    assert ch13.holm(np.array([0.051, 0.001])).tolist() == [False, True]
+    assert ch13.holm(np.array([0.025, 0.05])).tolist() == [True, True]  # at the bounds
+    assert ch13.holm(np.array([])).tolist() == []
+    assert ch13.two_sided(0.004) == pytest.approx(0.008)
+    assert ch13.two_sided(0.999) == pytest.approx(0.002)
+    assert ch13.two_sided(0.5) == 1.0 and np.isnan(ch13.two_sided(float("nan")))

@@ -248,6 +248,9 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
     assert g13["n_effects"] == len(eff) == (len(ch07.comparisons(p)) + len(
         ch10.comparisons(p, "test", ch10.rows(p))) + len(ch11.comparisons(p, ["dis"], "general")))
     assert g13["n_decided"] == int(eff["verdict"].isin(["A better", "B better"]).sum())
+    assert g13["n_holm"] == int((eff["Holm, all effects"] == "decided").sum()) <= g13["n_decided"]
+    assert g13["n_equivalent"] == int((eff["verdict"] == "equivalent").sum())
+    assert g13["smallest_effect"] == 2.0
     assert (smoke_run["base"] / "runs" / "figures" / "answers_forest.png").stat().st_size > 5000
 
 

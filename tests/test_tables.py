@@ -189,6 +189,9 @@ def test_the_answers_page_gathers_each_chapters_rows_and_draws_them_all(monkeypa
     assert eff["chapter"].tolist() == ["07", "07", "11"]
     assert eff[["low", "high"]].to_numpy().round(1).tolist() == [[0.2, 4.4], [-0.9, 5.0],
                                                                    [-8.0, -1.0]]
+    # p two-sided from the replicates' share (0 here): every effect decided after Holm too
+    assert eff["p (two-sided)"].tolist() == [0.0, 0.0, 0.0]
+    assert eff["Holm, all effects"].tolist() == ["decided"] * 3
     table = ch13.answers(eff)
     assert table["decided"].tolist() == ["1 of 2", "1 of 1"]
     assert table["chapter"].tolist() == ["07", "11"]
@@ -337,8 +340,11 @@ def test_three_verdicts_in_the_chapters_tables_words_and_forest():
                         "low": [p[0] for p in table.attrs["ci_points"]],
                         "high": [p[1] for p in table.attrs["ci_points"]],
                         "95% CI, scenes and seeds (points)": table[
-                            "95% CI, scenes and seeds (points)"]})
+                            "95% CI, scenes and seeds (points)"],
+                        "Holm, all effects": ["decided", "not decided", "not decided",
+                                              "not decided"]})
     ans = ch13.answers(eff)
+    assert ans["Holm, all effects"].tolist() == ["1"]
     assert ans["decided"].tolist() == ["2 of 4"]
     lines = ans.iloc[0, 1].split("<br>")
     assert [ln.rsplit(")", 1)[1] for ln in lines] == [", decided", ", equivalent", "", ", decided"]

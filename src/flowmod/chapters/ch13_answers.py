@@ -7,6 +7,7 @@ Reads what chapters 07, 10 and 11 read (their published predictions); computes n
 
 from __future__ import annotations
 
+import numpy as np
 import pandas as pd
 
 from flowmod.chapters import ch07_evaluation as ch07
@@ -29,7 +30,11 @@ QUESTIONS = {
 
 #: Columns of :func:`effects`.
 EFFECT_COLUMNS = ["chapter", "question", "comparison", "ΔF1 (points)", "low", "high",
-                  "95% CI, scenes and seeds (points)", "verdict", "scenes"]
+                  "95% CI, scenes and seeds (points)", "verdict", "p (two-sided)",
+                  "Holm, all effects", "scenes"]
+
+#: The family-wise error rate of :func:`holm` (two-sided, as the 95 % intervals).
+HOLM_ALPHA = 0.05
 
 
 def _chapter_tables(params: Params) -> list[tuple[str, pd.DataFrame]]:
@@ -54,14 +59,39 @@ def effects(params: Params) -> pd.DataFrame:
                          "low": lo, "high": hi,
                          "95% CI, scenes and seeds (points)": r[
                              "95% CI, scenes and seeds (points)"],
-                         "verdict": r["verdict"], "scenes": r["scenes"]})
-    return pd.DataFrame(rows, columns=EFFECT_COLUMNS)
+                         "verdict": r["verdict"],
+                         "p (two-sided)": two_sided(r["replicates with A <= B (%)"] / 100),
+                         "scenes": r["scenes"]})
+    out = pd.DataFrame(rows, columns=EFFECT_COLUMNS)
+    out["Holm, all effects"] = np.where(holm(out["p (two-sided)"].to_numpy(float)),
+                                        "decided", "not decided")
+    return out
+
+
+def two_sided(share: float) -> float:
+    """The bootstrap's two-sided p-value from the share of its replicates with A <= B:
+    2 min(share, 1 - share), at most 1 (NaN stays NaN)."""
+    return float(min(1.0, 2 * min(share, 1 - share))) if np.isfinite(share) else float("nan")
+
+
+def holm(p: np.ndarray, alpha: float = HOLM_ALPHA) -> np.ndarray:
+    """(m,) bool: which of ``m`` p-values Holm's step-down procedure rejects at family-wise
+    error rate ``alpha`` (the k-th smallest against alpha / (m - k + 1), stopping at the
+    first that fails); an undefined p-value is never rejected."""
+    p = np.where(np.isfinite(p), p, np.inf)
+    reject = np.zeros(len(p), dtype=bool)
+    for rank, i in enumerate(np.argsort(p, kind="stable")):
+        if p[i] > alpha / (len(p) - rank):
+            break
+        reject[i] = True
+    return reject
 
 
 def answers(eff: pd.DataFrame) -> pd.DataFrame:
     """The landing page's table: one row per question, its effects in words, one line each
     (``name: +1.2 (-0.5 to 2.9), decided``, joined by HTML line breaks), the share decided,
-    the chapter."""
+    how many stay decided after Holm's correction over all the book's effects, the
+    chapter."""
     out = []
     for chapter, g in eff.groupby("chapter", sort=True):
         parts = [f"{r['comparison']}: {r['ΔF1 (points)']:+.1f} "
@@ -71,6 +101,7 @@ def answers(eff: pd.DataFrame) -> pd.DataFrame:
         out.append({"question": g["question"].iloc[0],
                     "answer (ΔF1 points, 95 % interval over scenes and seeds)": "<br>".join(parts),
                     "decided": f"{int(g['verdict'].map(decided).sum())} of {len(g)}",
+                    "Holm, all effects": f"{int((g['Holm, all effects'] == 'decided').sum())}",
                     "chapter": chapter})
     return pd.DataFrame(out)
 

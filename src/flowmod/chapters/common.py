@@ -100,8 +100,8 @@ def difference_words(row: Any) -> str:
     return text + ")"
 
 
-#: The smallest difference in F1 (points) that matters, fixed before any test row was read:
-#: a bit more than half the paper's FastFlowNet - RAFT gap (92.9 - 89.5 = 3.4 points), the
+#: The smallest difference in F1 (points) that matters, set from the paper's numbers, not
+#: from this book's: a bit more than half the paper's FastFlowNet - RAFT gap (92.9 - 89.5 = 3.4 points), the
 #: difference its conclusion rests on. An interval inside +/- this is "equivalent": too
 #: small an effect to carry a conclusion of that kind either way.
 SMALLEST_EFFECT = 2.0
