@@ -172,6 +172,13 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
         # tests/test_evaluate.py::test_table4_scores_the_papers_range_and_beyond_apart)
     assert g8["n_general"] == (common.results(p, "dis", "general")[0]["distance"]
                                <= p.general_max_distance).sum()
+    assert g7["bootstrap_draws"] == 2000  # the interval's method, stated once in chapter 07
+    # the landing page's Table 4 number carries its interval and the always-moving F1
+    gen = common.results(p, "dis", "general")[0]
+    gen = gen[gen["distance"] <= p.general_max_distance]
+    assert g8["headline_general_chance"] == round(100 * metrics(
+        gen["label"], np.ones(len(gen)))["f1"], 1)
+    assert g8["headline_general_ci"].split(" ")[0].count("-") >= 1
     assert g2["split_unit"] == "scene", "a generated world is split by scene"
     # chapter 09: the recorded signal and recalls, recomputed
     from flowmod.extensions import blind_spots

@@ -159,8 +159,22 @@ def numbers(params: Params) -> dict[str, Any]:
                headline_recall=round(100 * s["recall"], 1),
                headline_ci_lo=round(100 * s["ci"][0], 1), headline_ci_hi=round(100 * s["ci"][1], 1),
                headline_baseline_f1=out[f"baseline_f1_{head}"],
-               protocol_gap=round(100 * float(np.mean(gaps)), 1))
+               protocol_gap=round(100 * float(np.mean(gaps)), 1),
+               bootstrap_draws=bootstrap_draws())
     return out
+
+
+def bootstrap_draws() -> int:
+    """Replicates behind every interval of the book: the default of
+    :func:`flowmod.metrics.scene_bootstrap` (and of the paired comparisons, which use it)."""
+    import inspect
+
+    from flowmod.metrics import paired_comparison, scene_bootstrap
+
+    n = inspect.signature(scene_bootstrap).parameters["n"].default
+    if inspect.signature(paired_comparison).parameters["n"].default != n:
+        raise ValueError("the paired comparisons and Table 3 bootstrap different replicates")
+    return int(n)
 
 
 # --- why one flow method's classifier trails another's: the flow error in and around the box ---

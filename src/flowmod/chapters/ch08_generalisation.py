@@ -23,7 +23,8 @@ def table(params: Params) -> pd.DataFrame:
 
 def numbers(params: Params, table: pd.DataFrame) -> dict[str, Any]:
     """The numbers chapter 08 records: Table 4's F1 per method (paper's range, both
-    labels), the objects scored, and the headline method's F1."""
+    labels), the objects scored, and the headline method's F1 with its interval (text) and
+    the F1 of calling every vehicle moving on the same objects."""
     out: dict[str, Any] = {}
     t4 = table[table["vehicles"].str.endswith("(Table 4)")]
     for r in t4.to_dict("records"):
@@ -33,6 +34,11 @@ def numbers(params: Params, table: pd.DataFrame) -> dict[str, Any]:
     out["n_general"] = int(paper["objects"].iloc[0]) if len(paper) else 0
     head = headline_method(params)
     out["headline_general_f1"] = out.get(f"general_f1_{head}_paper", float("nan"))
+    row = paper[paper["method"] == head]
+    out["headline_general_ci"] = (str(row["F1 95% CI, scenes and seeds (%)"].iloc[0])
+                                  if len(row) else "undefined")
+    out["headline_general_chance"] = (float(row["always moving F1 (%)"].iloc[0]) if len(row)
+                                      else float("nan"))
     beyond = table[~table["vehicles"].str.endswith("(Table 4)")
                    & table["scored against"].str.startswith("paper")]
     for r in beyond.to_dict("records"):
