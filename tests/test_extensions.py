@@ -97,13 +97,15 @@ def test_speed_by_angle_sets_the_classifier_beside_the_oracle_rule():
     assert e["ci"] == pytest.approx((50.0, 50.0))  # every scene the same
     words = blind_spots.slow_radial_words(e, "dis")
     assert words.startswith("Of the 36 movers at 2-3 m/s within 30 degrees")
-    assert "the classifier loses it" in words and "too few" not in words
+    assert words.endswith("at their own operating points (rule minus classifier +50.0 "
+                          "points, 95 % interval over scenes +50.0 to +50.0).")
+    assert "loses" not in words and "too few" not in words
+    assert blind_spots.slow_radial_words(e, "dis", 5.0, 20.0).endswith(
+        "but the rule calls 20.0 % of the still vehicles moving and the classifier 5.0 %, so "
+        "these two recalls are not comparable.")
     k = df["scene"].isin(["s0", "s1", "s2"]).to_numpy()
     few = blind_spots.cell_effect(df[k], probs[:, k], rule[k], (0, 30), (2, 3))
     assert "3 scenes: too few)" in blind_spots.slow_radial_words(few, "dis")
-    blind_rule = blind_spots.cell_effect(df, probs, np.zeros(len(df)), (0, 30), (2, 3))
-    assert blind_spots.slow_radial_words(blind_rule, "dis").endswith(
-        "the classifier finds more of them than the rule.")
     assert "Only 12 of the movers cross" in blind_spots.crossing_words(t)
     assert blind_spots.crossing_words(t.assign(movers=100)).startswith("100 movers cross")
 
@@ -113,3 +115,64 @@ def test_rule_calls_follow_the_annotation_not_the_row_order():
     base = pd.DataFrame({"ann_token": ["c", "a"], "prob": [1.0, 0.0]})
     got = blind_spots.rule_calls(df, base)
     assert got[0] == 0.0 and np.isnan(got[1]) and got[2] == 1.0
+
+
+def _operating_points(n_scenes: int = 12) -> tuple[pd.DataFrame, np.ndarray, np.ndarray]:
+    """Per scene 10 still vehicles and 5 slow radial movers; the classifier's score and a
+    rule whose score ranks every object exactly as the classifier's does (so at any one
+    false-alarm rate they find the same movers) but that calls far more moving at its own
+    threshold (0 against the classifier's 0.5)."""
+    rows, clf = [], []
+    for s in range(n_scenes):
+        for i in range(10):
+            rows.append({"scene": f"s{s}", "label": 0, "motion_angle": 0.0, "speed": 0.0})
+            clf.append(0.06 + 0.09 * i + 0.001 * s)  # stills: 0.06 .. 0.88
+        for i in range(5):
+            rows.append({"scene": f"s{s}", "label": 1, "motion_angle": 10.0, "speed": 2.5})
+            clf.append(0.3 + 0.15 * i + 0.001 * s)  # movers: 0.3 .. 0.9
+    clf = np.array(clf)
+    return pd.DataFrame(rows), clf, 10 * (clf - 0.2)  # rule: calls moving above 0.2
+
+
+def test_a_rule_and_a_classifier_are_compared_at_one_false_alarm_rate():
+    """Issue 50 item 1: at their own thresholds the rule recalls more slow movers than the
+    classifier only because it calls more still vehicles moving; at either one's false-alarm
+    rate the two find the same movers, and the words say so."""
+    df, clf, rule = _operating_points()
+    labels = df["label"].to_numpy()
+    far_clf = blind_spots.false_alarm_rate(clf > 0.5, labels)
+    far_rule = blind_spots.false_alarm_rate(rule > 0, labels)
+    assert (far_clf, far_rule) == (pytest.approx(0.5), pytest.approx(0.8))
+    own = blind_spots.cell_effect(df, clf[None], (rule > 0).astype(float), (0, 30), (2, 3))
+    assert (own["classifier"], own["rule"]) == (pytest.approx(60.0), pytest.approx(100.0))
+    for far in (far_clf, far_rule):
+        e = blind_spots.matched_effect(df, clf, rule, (0, 30), (2, 3), far, n=200)
+        assert e["far"] == pytest.approx(100 * far)
+        assert e["classifier"] == pytest.approx(e["rule"])
+        assert e["ci"] == pytest.approx((0.0, 0.0))
+    at_clf = blind_spots.matched_effect(df, clf, rule, (0, 30), (2, 3), far_clf, n=200)
+    # recall at a false-alarm rate is the most any threshold with no more false alarms
+    # finds: below 0.5, down to the highest still under it, the 0.45 movers join (60 -> 80)
+    assert at_clf["classifier"] == pytest.approx(80.0)
+    at_rule = blind_spots.matched_effect(df, clf, rule, (0, 30), (2, 3), far_rule, n=200)
+    words = blind_spots.matched_words(own, at_rule, at_clf, "dis")
+    assert words.startswith("Compared at equal false-alarm rates, the 60 movers at 2-3 m/s")
+    assert words.endswith("these scenes do not tell the two apart (neither interval excludes 0).")
+    # a rule that finds more at one rate than a classifier shifted to miss the slow movers
+    worse = np.where(labels == 1, clf - 0.25, clf)
+    e = blind_spots.matched_effect(df, worse, rule, (0, 30), (2, 3), far_clf, n=200)
+    assert e["ci"][0] > 0 and e["rule"] > e["classifier"]
+    assert blind_spots.threshold_at(clf, labels, 0.0) == pytest.approx(clf[labels == 0].max())
+    assert blind_spots.threshold_at(clf, labels, 1.0) == -np.inf
+
+
+def test_the_rules_score_is_its_margin_over_its_folds_threshold():
+    from flowmod.chapters import ch09_blind_spots as ch09
+
+    df = pd.DataFrame({"ann_token": ["b", "a", "c"]})
+    base = pd.DataFrame({"ann_token": ["a", "b", "c"], "fold": [0, 1, 1],
+                         "residual_speed": [1.0, 0.5, 3.0]})
+    got = ch09.rule_margin(df, base, {"thresholds_m_s": [0.2, 0.7], "threshold_m_s": 0.45})
+    assert got.tolist() == pytest.approx([-0.2, 0.8, 2.3])
+    one = ch09.rule_margin(df, base, {"threshold_m_s": 0.5})  # one split: one threshold
+    assert one.tolist() == pytest.approx([0.0, 0.5, 2.5])

@@ -197,8 +197,13 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
         g9["recall_slow_dis"] == round(100 * slow, 1))
     rule = blind_spots.rule_calls(df, common.results(p, "dis", "baseline")[0])
     assert not np.isnan(rule).any(), "the rule scored every object of Table 3"
-    e = blind_spots.cell_effect(df, evaluate.seed_probs(df), rule, (0, 30), (2, 3), seed=p.seed)
-    assert g9["slow_radial_words"] == blind_spots.slow_radial_words(e, "dis")
+    from flowmod.chapters import ch09_blind_spots as ch09
+
+    slow = ch09.slow_radial(p, df, common.results(p, "dis", "baseline"), "dis")
+    assert g9["slow_radial_words"] == slow["own_words"]
+    assert g9["matched_words"] == slow["matched_words"]
+    assert slow["at_rule"]["rule"] >= slow["own"]["rule"]  # the most at its own rate
+    assert (smoke_run["base"] / "runs" / "figures" / "blind_roc.png").stat().st_size > 5000
     media = smoke_run["base"] / "runs" / "figures" / "media"
     assert any(media.glob("*.mp4")) and any(media.glob("*-strip.png"))
     # chapter 10: every chain built (smoke: extension_build), its F1 that of its predictions

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from flowmod.metrics import MIN_SCENES, group_mean_bootstrap, interval
+from flowmod.metrics import MIN_SCENES, group_mean_bootstrap, interval, scene_draws
 from flowmod.metrics import breakdown as _breakdown
 
 
@@ -119,7 +119,7 @@ def _bin_names(edges: list[float]) -> list[str]:
     return [f"{a:g}-{90.0 if b == 90.01 else b:g}" for a, b in pairwise(edges)]
 
 
-def _in_cell(df: pd.DataFrame, angle: tuple[float, float], speed: tuple[float, float]
+def in_cell(df: pd.DataFrame, angle: tuple[float, float], speed: tuple[float, float]
              ) -> np.ndarray:
     """(N,) the movers whose motion angle (deg) and speed (m/s) each lie in ``[lo, hi)``."""
     a, s = df["motion_angle"].to_numpy(), df["speed"].to_numpy()
@@ -145,7 +145,7 @@ def speed_angle_table(df: pd.DataFrame, probs: np.ndarray, rule: np.ndarray) -> 
     for a_name, angle in zip(_bin_names(ANGLE_BINS), pairwise(ANGLE_BINS), strict=True):
         for s_name, speed in zip(_bin_names(MOVER_SPEED_BINS), pairwise(MOVER_SPEED_BINS),
                                  strict=True):
-            k = _in_cell(df, angle, speed)
+            k = in_cell(df, angle, speed)
             if not k.any():
                 continue
             clf, hit = _hits(probs, rule, k)
@@ -165,7 +165,7 @@ def cell_effect(df: pd.DataFrame, probs: np.ndarray, rule: np.ndarray, angle: tu
     and the rule minus the classifier (points) with its 95 % interval over scenes (per
     mover: the rule's hit minus the share of seeds that found it;
     :func:`flowmod.metrics.group_mean_bootstrap`)."""
-    k = _in_cell(df, angle, speed)
+    k = in_cell(df, angle, speed)
     clf, hit = _hits(probs, rule, k)
     lo, hi = interval(group_mean_bootstrap(hit - clf, df["scene"].to_numpy()[k], seed=seed))
     return {"angle": tuple(angle), "speed": tuple(speed),
@@ -183,25 +183,26 @@ def _cell_words(e: dict[str, Any]) -> str:
     return f"at {s0:g}-{s1:g} m/s {where} the line of sight"
 
 
-def slow_radial_words(e: dict[str, Any], method: str) -> str:
-    """:func:`cell_effect` of the slow movers along the line of sight in words: where the
-    rule, reading the same flow, finds movers the classifier misses, the motion is in the
-    flow and the classifier loses it; said only when the interval excludes 0."""
+def slow_radial_words(e: dict[str, Any], method: str, far_clf: float | None = None,
+                      far_rule: float | None = None) -> str:
+    """:func:`cell_effect` of the slow movers along the line of sight in words, at each
+    one's own operating point; with their false-alarm rates (%, ``far_clf``, ``far_rule``)
+    said beside, because recalls at different false-alarm rates are not comparable (the
+    verdict is :func:`matched_words`')."""
     if not e["movers"]:
         return f"This run has no mover {_cell_words(e)}."
     lo, hi = e["ci"]
-    head = (f"Of the {e['movers']} movers {_cell_words(e)} "
+    text = (f"Of the {e['movers']} movers {_cell_words(e)} "
             f"({e['scenes']} scenes), the classifier on {method} flow recalls "
             f"{e['classifier']:.1f} % and the oracle rule on the same flow "
-            f"{e['rule']:.1f} % (rule minus classifier {e['rule_minus_classifier']:+.1f} "
-            f"points, 95 % interval over scenes {lo:+.1f} to {hi:+.1f}"
-            + (f", {e['scenes']} scenes: too few" if e["scenes"] < MIN_SCENES else "") + ")")
-    if lo > 0:
-        return head + (": the rule finds in this flow movers the classifier misses, so the "
-                       "slow radial motion is in the flow and the classifier loses it.")
-    if hi < 0:
-        return head + ": the classifier finds more of them than the rule."
-    return head + ": the two are not told apart."
+            f"{e['rule']:.1f} % at their own operating points (rule minus classifier "
+            f"{e['rule_minus_classifier']:+.1f} points, 95 % interval over scenes {lo:+.1f} "
+            f"to {hi:+.1f}" + (f", {e['scenes']} scenes: too few" if e["scenes"] < MIN_SCENES
+                               else "") + ")")
+    if far_clf is None or far_rule is None:
+        return text + "."
+    return text + (f"; but the rule calls {far_rule:.1f} % of the still vehicles moving and "
+                   f"the classifier {far_clf:.1f} %, so these two recalls are not comparable.")
 
 
 def crossing_words(table: pd.DataFrame) -> str:
@@ -223,3 +224,102 @@ def rule_calls(df: pd.DataFrame, baseline: pd.DataFrame) -> np.ndarray:
     published predictions (``baseline``: the evaluate node's ``baseline`` table); NaN where
     the rule has no row."""
     return baseline.set_index("ann_token")["prob"].reindex(df["ann_token"]).to_numpy(float)
+
+
+# --- matched operating points ---------------------------------------------------------------
+
+
+def false_alarm_rate(calls: np.ndarray, labels: np.ndarray,
+                     weights: np.ndarray | None = None) -> float:
+    """Share (0-1) of the still vehicles (``labels`` 0) that ``calls`` (0/1) call moving,
+    each object weighted by ``weights`` (None: 1); NaN without a still vehicle."""
+    still = np.asarray(labels) == 0
+    w = np.ones(len(still)) if weights is None else np.asarray(weights, float)
+    total = w[still].sum()
+    return float((w[still] * (np.asarray(calls, float)[still] > 0.5)).sum() / total) if total \
+        else float("nan")
+
+
+def threshold_at(scores: np.ndarray, labels: np.ndarray, far: float,
+                 weights: np.ndarray | None = None) -> float:
+    """The lowest score threshold whose calls (``score > threshold``) give the still
+    vehicles a false-alarm rate of at most ``far`` (0-1): the highest-scoring stills are the
+    false alarms, and the threshold sits on the highest still left out, so the recall at
+    that rate is the most any threshold allows (the ROC curve's, Neyman-Pearson's)."""
+    still = np.asarray(labels) == 0
+    sc = np.asarray(scores, float)[still]
+    w = np.ones(len(sc)) if weights is None else np.asarray(weights, float)[still]
+    order = np.argsort(-sc, kind="stable")
+    share = np.cumsum(w[order]) / max(w.sum(), 1e-12)
+    k = int(np.searchsorted(share, far + 1e-12, side="right"))  # stills allowed above it
+    return float(sc[order][k]) if k < len(sc) else float("-inf")
+
+
+def _recall(scores: np.ndarray, cell: np.ndarray, t: float, w: np.ndarray) -> float:
+    """Weighted share of the movers of ``cell`` whose score exceeds ``t``."""
+    total = w[cell].sum()
+    return float((w[cell] * (scores[cell] > t)).sum() / total) if total else float("nan")
+
+
+def matched_effect(df: pd.DataFrame, clf_score: np.ndarray, rule_score: np.ndarray,
+                   angle: tuple[float, float], speed: tuple[float, float], far: float,
+                   seed: int = 0, n: int = 2000) -> dict[str, Any]:
+    """The movers of one angle x speed cell recalled by the classifier (``clf_score``: its
+    seed-mean probability) and by the oracle rule (``rule_score``: its residual speed, m/s)
+    when each calls the same share ``far`` (0-1) of all still test vehicles moving: each
+    threshold set on the stills, the recalls (%) and the rule minus the classifier (points)
+    with its 95 % interval over scenes (each replicate draws the scenes and sets both
+    thresholds again on its stills)."""
+    k = in_cell(df, angle, speed)
+    labels = df["label"].to_numpy()
+    clf, rule = np.asarray(clf_score, float), np.asarray(rule_score, float)
+
+    def recalls(w: np.ndarray) -> tuple[float, float]:
+        return (_recall(clf, k, threshold_at(clf, labels, far, w), w),
+                _recall(rule, k, threshold_at(rule, labels, far, w), w))
+
+    c, r = recalls(np.ones(len(df)))
+    scenes, idx = np.unique(df["scene"].to_numpy(), return_inverse=True)
+    draws = scene_draws(len(scenes), n, seed)
+    diffs = np.array([np.subtract(*recalls(d[idx])[::-1]) for d in draws])
+    lo, hi = interval(diffs)
+    return {"angle": tuple(angle), "speed": tuple(speed), "far": 100 * far,
+            "movers": int(k.sum()), "scenes": int(df["scene"][k].nunique()),
+            "classifier": 100 * c, "rule": 100 * r, "rule_minus_classifier": 100 * (r - c),
+            "ci": (100 * lo, 100 * hi)}
+
+
+def matched_words(own: dict[str, Any], at_rule: dict[str, Any], at_clf: dict[str, Any],
+                  method: str) -> str:
+    """Chapter 09's answer on one cell: the recalls at each one's own operating point are not
+    comparable when their false-alarm rates differ, so the verdict comes from the two
+    matched comparisons (:func:`matched_effect` at the rule's and at the classifier's
+    false-alarm rate): the flow carries motion the classifier loses only if the rule wins at
+    both; the classifier reads the flow as well as the rule if neither interval excludes 0
+    or the classifier wins at both."""
+    if not own["movers"]:
+        return f"This run has no mover {_cell_words(own)}."
+    parts = []
+    for e, whose in ((at_rule, "the rule's"), (at_clf, "the classifier's")):
+        lo, hi = e["ci"]
+        parts.append(f"at {whose} false-alarm rate ({e['far']:.1f} % of still vehicles called "
+                     f"moving) the classifier recalls {e['classifier']:.1f} % and the rule "
+                     f"{e['rule']:.1f} % (rule minus classifier "
+                     f"{e['rule_minus_classifier']:+.1f} points, 95 % interval over scenes "
+                     f"{lo:+.1f} to {hi:+.1f})")
+    wins = [e["ci"][0] > 0 for e in (at_rule, at_clf)]
+    loses = [e["ci"][1] < 0 for e in (at_rule, at_clf)]
+    if all(wins):
+        end = ("the rule finds movers the classifier misses at either rate: the slow radial "
+               "motion is in the flow and the classifier loses part of it.")
+    elif any(wins):
+        end = ("the rule wins at one rate only: whether the classifier loses motion the flow "
+               "carries depends on the operating point.")
+    elif all(loses):
+        end = "the classifier finds more of them than the rule at either rate."
+    else:
+        end = ("at equal false-alarm rates these scenes do not tell the two apart (neither "
+               "interval excludes 0).")
+    small = f" ({own['scenes']} scenes: too few)" if own["scenes"] < MIN_SCENES else ""
+    return (f"Compared at equal false-alarm rates, the {own['movers']} movers "
+            f"{_cell_words(own)}{small}: " + "; ".join(parts) + "; " + end)

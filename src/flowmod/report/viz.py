@@ -468,6 +468,31 @@ def f1_by(tables: dict[str, pd.DataFrame], key: str, xlabel: str, min_n: int = 1
     return fig
 
 
+def cell_roc(scores: dict[str, np.ndarray], labels: np.ndarray, cell: np.ndarray,
+             points: dict[str, tuple[float, float]]) -> plt.Figure:
+    """ROC curves of several scores (N,) each: the share of all still vehicles (``labels``
+    0) called moving against the share of the movers of ``cell`` (N,) bool recalled, over
+    every threshold (``score > t``), in %; ``points``: named operating points (false-alarm
+    rate %, recall %), drawn on the curves."""
+    fig, ax = plt.subplots(figsize=(4.8, 4.2))
+    still = np.asarray(labels) == 0
+    for name, sc in scores.items():
+        sc = np.asarray(sc, float)
+        ts = np.concatenate([[np.inf], np.unique(sc[np.isfinite(sc)])[::-1], [-np.inf]])
+        fpr = [(sc[still] > t).mean() * 100 for t in ts]
+        tpr = [(sc[cell] > t).mean() * 100 if cell.any() else np.nan for t in ts]
+        ax.plot(fpr, tpr, lw=1.2, label=name, drawstyle="steps-post")
+    for k, (name, (x, y)) in enumerate(points.items()):
+        ax.plot([x], [y], "o^sv"[k % 4], color="k", ms=6, label=name)
+    ax.set_xlabel("still vehicles called moving (%)")
+    ax.set_ylabel("movers of the cell recalled (%)")
+    ax.set_xlim(0, 100)
+    ax.set_ylim(0, 101)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    return fig
+
+
 def forest(effects: pd.DataFrame, delta: float | None = None) -> plt.Figure:
     """Every paired effect of the book (rows of :func:`flowmod.chapters.ch13_answers.effects`:
     chapter, comparison, ``ΔF1 (points)``, ``low``, ``high``, verdict) as a point with its
