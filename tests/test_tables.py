@@ -352,3 +352,36 @@ def test_three_verdicts_in_the_chapters_tables_words_and_forest():
     marks = [(ln.get_marker(), ln.get_markerfacecolor() == "white") for ln in ax.get_lines()
              if ln.get_marker() in ("o", "s")]
     assert marks == [("o", False), ("s", True), ("o", True), ("o", False)]
+
+
+def test_an_interval_without_an_arms_training_noise_is_labelled_scenes_only():
+    """Issue 50 item 2: a comparison whose trained arm has one model a fold carries no
+    training noise in its interval: its table row, chapter 13's line and the forest plot
+    (a dashed bar) say "scenes only"; the oracle rule trains nothing, so its one model
+    does not count."""
+    from flowmod.chapters import ch13_answers as ch13
+    from flowmod.chapters.common import comparison_table
+    from flowmod.report import viz
+
+    row = {"detectable": 0.02, "per_seed": [0.0], "p_not_better": 0.0, "n_scenes": 29, "n": 90,
+           "delta_f1": 0.03, "ci": (0.01, 0.05)}
+    table = comparison_table({
+        "gt - dis": {**row, "training_seeds": [3, 3]},
+        "dis: log input - raw input": {**row, "training_seeds": [3, 1]},
+        "dis: classifier - oracle rule": {**row, "training_seeds": [3, 1]},
+        "fastflownet: classifier - oracle rule": {**row, "training_seeds": [1, 1]}})
+    assert table["interval counts"].tolist() == ["scenes and seeds", "scenes only",
+                                                 "scenes and seeds", "scenes only"]
+    eff = pd.DataFrame({"chapter": "07", "question": "q", "comparison": table["comparison"],
+                        "ΔF1 (points)": table["ΔF1 (points)"], "verdict": table["verdict"],
+                        "interval counts": table["interval counts"],
+                        "low": [p[0] for p in table.attrs["ci_points"]],
+                        "high": [p[1] for p in table.attrs["ci_points"]],
+                        "95% CI, scenes and seeds (points)": table[
+                            "95% CI, scenes and seeds (points)"],
+                        "Holm, all effects": "decided"})
+    lines = ch13.answers(eff).iloc[0, 1].split("<br>")
+    assert [ln.endswith("[scenes only]") for ln in lines] == [False, True, False, True]
+    ax = viz.forest(eff).axes[0]
+    styles = [c.get_linestyle()[0][1] is not None for c in ax.collections]  # dashed: a pattern
+    assert styles == [False, True, False, True]

@@ -30,7 +30,8 @@ QUESTIONS = {
 
 #: Columns of :func:`effects`.
 EFFECT_COLUMNS = ["chapter", "question", "comparison", "ΔF1 (points)", "low", "high",
-                  "95% CI, scenes and seeds (points)", "verdict", "p (two-sided)",
+                  "95% CI, scenes and seeds (points)", "interval counts", "verdict",
+                  "p (two-sided)",
                   "Holm, all effects", "scenes"]
 
 #: The family-wise error rate of :func:`holm` (two-sided, as the 95 % intervals).
@@ -59,6 +60,7 @@ def effects(params: Params) -> pd.DataFrame:
                          "low": lo, "high": hi,
                          "95% CI, scenes and seeds (points)": r[
                              "95% CI, scenes and seeds (points)"],
+                         "interval counts": r.get("interval counts", common.COUNTS_SEEDS),
                          "verdict": r["verdict"],
                          "p (two-sided)": two_sided(r["replicates with A <= B (%)"] / 100),
                          "scenes": r["scenes"]})
@@ -97,6 +99,8 @@ def answers(eff: pd.DataFrame) -> pd.DataFrame:
         parts = [f"{r['comparison']}: {r['ΔF1 (points)']:+.1f} "
                  f"({r['95% CI, scenes and seeds (points)']})"
                  + verdict_words(r["verdict"])
+                 + (" [scenes only]" if r.get("interval counts") == common.COUNTS_SCENES
+                    else "")
                  for _, r in g.iterrows()]
         out.append({"question": g["question"].iloc[0],
                     "answer (ΔF1 points, 95 % interval over scenes and seeds)": "<br>".join(parts),

@@ -112,13 +112,34 @@ def decided(verdict: str) -> bool:
     return verdict in ("A better", "B better")
 
 
+#: What an interval resamples when every trained arm has 2 or more training seeds a fold,
+#: and when one has a single model a fold (its training noise is then not in the interval).
+COUNTS_SEEDS, COUNTS_SCENES = "scenes and seeds", "scenes only"
+
+#: Comparison names whose second arm is the oracle rule: it trains nothing, so its one
+#: "seed" is no missing training noise.
+UNTRAINED_B = ": classifier - oracle rule"
+
+
+def interval_counts(name: str, row: dict[str, Any]) -> str:
+    """:data:`COUNTS_SEEDS` or :data:`COUNTS_SCENES` for a paired comparison ``row``
+    (:func:`flowmod.metrics.paired_comparison`: ``training_seeds`` of A and B) named
+    ``name``: scenes only when a trained arm has one model a fold."""
+    seeds = list(row.get("training_seeds", [1, 1]))
+    if name.endswith(UNTRAINED_B):
+        seeds = seeds[:1]
+    return COUNTS_SEEDS if min(seeds) >= 2 else COUNTS_SCENES
+
+
 def comparison_table(rows: dict[str, dict[str, Any]]) -> pd.DataFrame:
     """:func:`flowmod.metrics.comparison_table` with three verdicts: ``A better`` or ``B
     better`` (decided: the interval excludes 0), ``equivalent`` (inside +/-
-    :data:`SMALLEST_EFFECT`) or ``inconclusive`` (:func:`three_verdicts`)."""
+    :data:`SMALLEST_EFFECT`) or ``inconclusive`` (:func:`three_verdicts`); and what each
+    interval resamples (``interval counts``: :func:`interval_counts`)."""
     table = metrics.comparison_table(rows)
     table["verdict"] = [v if decided(v) else three_verdicts(ci, SMALLEST_EFFECT)
                         for v, ci in zip(table["verdict"], table.attrs["ci_points"], strict=True)]
+    table.insert(3, "interval counts", [interval_counts(k, r) for k, r in rows.items()])
     return table
 
 

@@ -499,8 +499,10 @@ def forest(effects: pd.DataFrame, delta: float | None = None) -> plt.Figure:
     95 % interval over scenes and training seeds; filled where the interval excludes 0
     (decided: ``A better``, ``B better``), a hollow square where it is ``equivalent``, a
     hollow circle otherwise; one colour per chapter; ``delta`` (points): the band of
-    equivalence, shaded."""
+    equivalence, shaded; a dashed bar where the interval counts scenes only (an arm with
+    one model a fold: column ``interval counts``)."""
     n = len(effects)
+    counts = effects["interval counts"] if "interval counts" in effects else None
     fig, ax = plt.subplots(figsize=(7.5, 0.3 * n + 1.2))
     chapters = sorted(effects["chapter"].unique())
     y = np.arange(n)[::-1]
@@ -510,8 +512,10 @@ def forest(effects: pd.DataFrame, delta: float | None = None) -> plt.Figure:
         c = f"C{chapters.index(ch)}"
         err = [[d - lo], [hi - d]] if np.isfinite([lo, hi]).all() else None
         filled = verdict in ("A better", "B better")
-        ax.errorbar([d], [yi], xerr=err, fmt="s" if verdict == "equivalent" else "o", ms=5,
-                    capsize=2, color=c, mfc=c if filled else "white")
+        bars = ax.errorbar([d], [yi], xerr=err, fmt="s" if verdict == "equivalent" else "o",
+                           ms=5, capsize=2, color=c, mfc=c if filled else "white")
+        if err is not None and counts is not None and counts.iloc[n - 1 - yi] == "scenes only":
+            bars[2][0].set_linestyle("--")
     if delta:
         ax.axvspan(-delta, delta, color="0.92", zorder=0)
     ax.axvline(0.0, color="0.4", lw=0.8, ls="--")
@@ -519,7 +523,8 @@ def forest(effects: pd.DataFrame, delta: float | None = None) -> plt.Figure:
                                                           effects["comparison"], strict=True)],
                   fontsize=7)
     ax.set_xlabel("ΔF1, A - B (points); bar: 95 % interval over scenes and training seeds; "
-                  "filled: decided" + ("; square: equivalent (shaded band)" if delta else ""),
+                  "filled: decided" + ("; square: equivalent (shaded band)" if delta else "")
+                  + ("; dashed: scenes only" if counts is not None else ""),
                   fontsize=8)
     fig.tight_layout()
     return fig
