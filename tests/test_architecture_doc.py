@@ -1,5 +1,6 @@
-"""The docs that check themselves (issue 51): ARCHITECTURE.md against the code. Quick: text
-and syntax trees only (and the pipeline's stage list), no data, no world.
+"""The docs that check themselves (issue 51): ARCHITECTURE.md against the code, and the
+README's size, tables, paragraphs and links. Quick: text and syntax trees only (and the
+pipeline's stage list), no data, no world.
 
 How ARCHITECTURE.md names a module (inline code, outside fenced blocks):
 
@@ -25,11 +26,18 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "src" / "flowmod"
 ARCH = ROOT / "ARCHITECTURE.md"
+README = ROOT / "README.md"
 
 #: Every module as its path under src/flowmod without ".py" (``world/truth``); packages'
 #: ``__init__`` are the packages themselves (named by their folder).
 MODULES = sorted(str(p.relative_to(PKG).with_suffix("")) for p in PKG.rglob("*.py")
                  if p.name != "__init__.py")
+#: The README's budget (issue 51): the first screen says what flowmod is, its two commands
+#: and their cost, and where to read on; the detail lives in docs/ and ARCHITECTURE.md.
+README_MAX_BYTES = 12 * 1024
+TABLE_CELL_MAX = 300
+PARAGRAPH_MAX = 1000
+
 PACKAGES = sorted(str(p.parent.relative_to(PKG)) for p in PKG.glob("*/__init__.py"))
 
 
@@ -174,3 +182,35 @@ def test_the_entry_points_are_the_modules_with_main():
 ])
 def test_the_reader_of_module_names(span, package, want):
     assert resolve(span, package) == want
+# -- README -----------------------------------------------------------------------------
+
+
+def test_the_readme_is_short():
+    size = README.stat().st_size
+    assert size <= README_MAX_BYTES, (
+        f"README.md is {size} bytes, over {README_MAX_BYTES}: move detail to docs/")
+
+
+def test_no_readme_table_cell_is_long():
+    long = [c.strip()[:60] for line in _text(README).splitlines()
+            if line.lstrip().startswith("|") for c in line.strip().strip("|").split("|")
+            if len(c.strip()) > TABLE_CELL_MAX]
+    assert not long, f"README.md table cells over {TABLE_CELL_MAX} characters: {long}"
+
+
+def test_no_readme_paragraph_is_long():
+    long = [p.strip()[:60] for p in re.split(r"\n\s*\n", _text(README))
+            if not p.lstrip().startswith("|") and len(" ".join(p.split())) > PARAGRAPH_MAX]
+    assert not long, f"README.md paragraphs over {PARAGRAPH_MAX} characters: {long}"
+
+
+def test_every_relative_link_of_the_docs_resolves():
+    docs = [README, ARCH, *sorted((ROOT / "docs").glob("*.md"))]
+    broken = []
+    for doc in docs:
+        for target in re.findall(r"\]\(([^)\s]+)\)", _text(doc)):
+            if re.match(r"[a-z]+:", target) or target.startswith("#"):
+                continue
+            if not (doc.parent / target.split("#")[0]).exists():
+                broken.append(f"{doc.relative_to(ROOT)}: {target}")
+    assert not broken, f"relative links to files that are not there: {broken}"
