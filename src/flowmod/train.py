@@ -629,18 +629,20 @@ def seed_index(node: dag.Node) -> int:
 def train_seed(b: dag.Build, train: tuple[Any, pd.DataFrame], val: tuple[Any, pd.DataFrame],
                progress: bool, what: str, record: Any | None = None, in_channels: int = 2,
                flip_negate: Sequence[int] = (0,), flow_channels: Sequence[int] = (0, 1),
-               input_mode: str | None = None) -> dict[str, Any]:
+               input_mode: str | None = None, width: int | None = None) -> dict[str, Any]:
     """Train the model of a training node (``b``: ``train``, ``xtrain`` or ``wtrain``) in its
     building folder, seed ``seed +`` :func:`part_seed_offset`, with the profile's Table 2
     settings (resumable); then
     keep what a published model needs: ``best.pt`` in float16 (no test decision changes, see
     the differences page), no ``last.pt`` (the resumable checkpoint, twice best.pt, is only
     needed while building). ``input_mode``: the flow scaling instead of the profile's
-    ``input_scaling``. Returns the manifest's training fields."""
+    ``input_scaling``; ``width``: the network's width instead of the profile's
+    ``model_width``. Returns the manifest's training fields."""
     q = b.params
     seed = q.seed + part_seed_offset(str(b.node.part))
     s = TrainSettings.of(q)
     s = s if input_mode is None else replace(s, input_mode=input_mode)
+    s = s if width is None else replace(s, width=width)
     work = b.start(fresh=q.force)
     h = train_model(*train, *val, work, s, seed=seed, record=record,
                     resume=True, progress=progress, desc=f"train {what} seed {seed}",
@@ -649,7 +651,7 @@ def train_seed(b: dag.Build, train: tuple[Any, pd.DataFrame], val: tuple[Any, pd
     half_weights(work / "best.pt")
     (work / "last.pt").unlink(missing_ok=True)
     return {"best_epoch": int(h.attrs["best_epoch"]), "best_f1": float(h.attrs["best_f1"]),
-            "seed": seed, "amp": q.amp, "input_scaling": s.input_mode}
+            "seed": seed, "amp": q.amp, "input_scaling": s.input_mode, "width": s.width}
 
 
 def recipe(b: dag.Build, method: str, part: str = "keyframe") -> dict[str, Any]:
