@@ -271,19 +271,18 @@ def test_a_failure_reason_that_holds_for_every_object_is_said_not_to_explain():
     """Chapter 08: the crop holding other objects held for 100 % of the demo's objects and
     100 % of its wrong predictions; the words say it explains nothing, a reason commoner
     among the errors gets its ratio, and no wrong prediction leaves the share undefined."""
-    from flowmod import evaluate
     from flowmod.chapters import ch08_generalisation as ch08
 
     tagged = pd.DataFrame({"wrong": [True, True, False, False, False],
                            "unclear_flow": [True, True, True, False, False],
                            "crowded": [True, True, True, True, True]})
-    shares = evaluate.failure_shares(tagged)
+    shares = ch08.failure_shares(tagged)
     words = ch08.failure_words(shares)
     assert "*other objects in the crop* holds for 100.0 % of the wrong predictions and " \
            "100.0 % of all objects: no commoner among the errors" in words
     assert "*remote or slow* holds for 100.0 % of the wrong predictions against 60.0 % of " \
            "all objects (1.7 times as common)" in words
-    none = evaluate.failure_shares(tagged.assign(wrong=False))
+    none = ch08.failure_shares(tagged.assign(wrong=False))
     assert none["wrong predictions (%)"].isna().all()
     assert ch08.failure_words(none).count("undefined") == 2
 
