@@ -107,6 +107,10 @@ def protocols(params: Params) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+#: How many test frames with their predictions the chapter shows (Figure 2).
+EXAMPLES = 4
+
+
 #: Chapter 07's distance bins (m): Table 1's band in 10 m steps.
 DISTANCE_BINS = [30, 40, 50, 60, 70.01]
 

@@ -19,6 +19,12 @@ from flowmod.params import Params
 DISTANCE_EDGES = (0, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100.01)
 #: Speed bins of the failure figure (m/s): either side of the paper's 2 m/s threshold.
 SPEED_EDGES = (0, 1, 2, 3, 5, 10, 40)
+#: Wrong predictions of each kind the failure figure shows, in one row.
+FAILURE_EXAMPLES = 3
+#: Columns of the failure figure: both kinds of wrong prediction in one row.
+FAILURE_COLUMNS = 2 * FAILURE_EXAMPLES
+#: The scene clip: width of each half of a frame (px) and frames per second.
+CLIP_WIDTH, CLIP_FPS = 640, 6
 
 
 def predictions(params: Params) -> dict[str, pd.DataFrame]:
@@ -168,7 +174,7 @@ def failure_shares(tagged: pd.DataFrame) -> pd.DataFrame:  # pragma: no mutate b
     return out.round(1)
 
 
-def failure_examples(tagged: pd.DataFrame, n: int = 3) -> pd.DataFrame:  # pragma: no mutate block
+def failure_examples(tagged: pd.DataFrame, n: int = FAILURE_EXAMPLES) -> pd.DataFrame:  # pragma: no mutate block
     """Up to ``n`` wrong predictions of each kind (remote or slow only, then crowded), with a
     ``title`` for the figure."""
     wrong = tagged[tagged["wrong"]]
