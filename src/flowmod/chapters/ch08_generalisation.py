@@ -15,9 +15,9 @@ from flowmod.evaluate import fold_of, seed_probs
 from flowmod.metrics import CI_COLUMN, ci_text, points, seed_summary, span
 from flowmod.params import Params
 
-#: Distance bins of the failure figure (m): Table 4's range in 10 m steps, and beyond it.
+#: Distance bins of the F1-by-distance figure (m): 10 m steps, Table 4's range and beyond.
 DISTANCE_EDGES = (0, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100.01)
-#: Speed bins of the failure figure (m/s): either side of the paper's 2 m/s threshold.
+#: Speed bins of the F1-by-speed figure (m/s): either side of the paper's 2 m/s threshold.
 SPEED_EDGES = (0, 1, 2, 3, 5, 10, 40)
 #: Wrong predictions of each kind the failure figure shows, in one row.
 FAILURE_EXAMPLES = 3
