@@ -1,6 +1,7 @@
 """The scoring of predictions tables (flowmod.evaluate): which objects a split is scored on,
-the seeds' scores, paired comparisons, the original protocol, Table 4, failure reasons.
-Hand-made tables; seconds."""
+the seeds' scores, paired comparisons, the original protocol; and chapter 08's analysis of
+them (flowmod.chapters.ch08_generalisation): Table 4, failure reasons. Hand-made tables;
+seconds."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ import pytest
 
 from flowmod import evaluate
 from flowmod import metrics as ev
+from flowmod.chapters import ch08_generalisation as ch08
+from flowmod.chapters import common
 
 
 def table(n_scenes: int = 4, per: int = 6, seed: int = 0) -> pd.DataFrame:
@@ -84,7 +87,7 @@ def test_original_protocol_thins_stills_batches_and_picks_the_best_epoch():
 
 def test_table4_scores_the_papers_range_and_beyond_apart():
     df = table()
-    t = evaluate.table4({"dis": df}, 50.0)
+    t = ch08.table4({"dis": df}, 50.0)
     inside = df[df["distance"] <= 50.0]
     row = t[(t["vehicles"] == "0-50 m (Table 4)")
             & (t["scored against"] == "paper rule (previous keyframe)")].iloc[0]
@@ -94,7 +97,7 @@ def test_table4_scores_the_papers_range_and_beyond_apart():
                                            round(100 * s["recall"], 1))
     assert set(t["vehicles"]) == {"0-50 m (Table 4)", "beyond 50 m"}
     assert len(t) == 4, "both labels for both ranges"
-    unknown = evaluate.table4({"dis": df.assign(true_label=-1)}, 50.0)
+    unknown = ch08.table4({"dis": df.assign(true_label=-1)}, 50.0)
     assert set(unknown["scored against"]) == {"paper rule (previous keyframe)"}
 
 
@@ -108,7 +111,7 @@ def test_table4_rows_format_each_ranges_seed_summary(tmp_path):
     far = df["distance"] > 50.0
     df.loc[far, "label"] = -1  # beyond the range: the paper's label unknown
     df.loc[far, "true_label"] = 0  # and every vehicle still
-    t = evaluate.table4({"dis": df}, 50.0)
+    t = ch08.table4({"dis": df}, 50.0)
     assert list(t["scored against"]) == ["paper rule (previous keyframe)",
                                          "true label at the frame", "true label at the frame"]
     assert list(t["vehicles"]) == ["0-50 m (Table 4)"] * 2 + ["beyond 50 m"]
@@ -159,11 +162,11 @@ def test_failure_reasons_tag_remote_slow_and_crowded():
         "label": [1, 0, 0], "prob": [0.2, 0.3, 0.9], "distance": [60.0, 20.0, 20.0],
         "speed": [5.0, 0.0, 2.5]})
     boxes = df[["pair_id", "instance_token", "xmin", "ymin", "xmax", "ymax"]]
-    t = evaluate.failure_reasons(df, boxes, speed_threshold=2.0, scale=3.0)
+    t = ch08.failure_reasons(df, boxes, speed_threshold=2.0, scale=3.0)
     assert t["wrong"].tolist() == [True, False, True]
     assert t["unclear_flow"].tolist() == [True, False, True]  # 60 m; 2.5 m/s is near 2
     assert t["crowded"].tolist() == [True, True, False]  # a's window holds b and back
-    shares = evaluate.failure_shares(t).set_index("reason")
+    shares = ch08.failure_shares(t).set_index("reason")
     assert shares.loc["remote or slow", "wrong predictions (%)"] == 100.0
     assert shares.loc["other objects in the crop", "all objects (%)"] == pytest.approx(66.7)
 
@@ -475,20 +478,20 @@ def test_the_geometric_baseline_reads_each_row_s_flow_samples(tmp_path, monkeypa
 
 
 def test_a_predictions_breakdown_scores_every_seed_by_scene(monkeypatch):
-    """evaluate.breakdown: metrics.breakdown of the table's labels and every seed's
+    """common.breakdown: metrics.breakdown of the table's labels and every seed's
     probabilities, scenes as the resampled unit, folds when the rows span several."""
     df = pd.DataFrame({"label": [0, 1, 1, 0, 1, 0], "scene": list("aabbcc"),
                        "category": ["car", "bus"] * 3, "fold": [0, 0, 1, 1, 0, 1],
                        "prob_s0": [0.1, 0.9, 0.8, 0.3, 0.2, 0.6],
                        "prob_s1": [0.2, 0.7, 0.6, 0.1, 0.9, 0.4]})
-    got = evaluate.breakdown(df, "category")
+    got = common.breakdown(df, "category")
     want = ev.breakdown(df, df["label"], df[["prob_s0", "prob_s1"]].to_numpy().T,
                         by="category", groups=df["scene"].to_numpy(), folds=df["fold"].to_numpy())
     pd.testing.assert_frame_equal(got, want)
     seen = {}
-    monkeypatch.setattr(evaluate, "metrics_breakdown",
+    monkeypatch.setattr(ev, "breakdown",
                         lambda *a, **k: seen.update(args=a, kw=k) or "table")
-    assert evaluate.breakdown(df, "distance", bins=[0, 50]) == "table"
+    assert common.breakdown(df, "distance", bins=[0, 50]) == "table"
     assert seen["kw"]["by"] == "distance" and seen["kw"]["bins"] == [0, 50]
     assert seen["kw"]["groups"].tolist() == list("aabbcc")
     assert seen["kw"]["folds"].tolist() == [0, 0, 1, 1, 0, 1]
@@ -601,14 +604,14 @@ def test_paired_and_table4_resample_by_fold_when_rows_span_several():
                                        folds=fold.to_numpy())
     assert got != ev.paired_comparison(a["label"].to_numpy(), evaluate.seed_probs(a),
                                        evaluate.seed_probs(b), a["scene"].to_numpy())
-    t = evaluate.table4({"dis": a.assign(distance=10.0)}, 50.0).iloc[0]
+    t = ch08.table4({"dis": a.assign(distance=10.0)}, 50.0).iloc[0]
     s = ev.seed_summary(a["label"], evaluate.seed_probs(a), a["scene"], folds=fold.to_numpy())
     assert t["F1 95% CI, scenes and seeds (%)"] == ev.ci_text(s["ci"], s["n_scenes"])
-    one = evaluate.table4({"dis": a.iloc[:1].assign(distance=10.0)}, 50.0)
+    one = ch08.table4({"dis": a.iloc[:1].assign(distance=10.0)}, 50.0)
     assert one["objects"].tolist() == [1, 1]  # a range of one object is scored
-    recall = evaluate.table4({"dis": a.assign(distance=10.0)}, 50.0)["R (%)"].iloc[0]
+    recall = ch08.table4({"dis": a.assign(distance=10.0)}, 50.0)["R (%)"].iloc[0]
     assert recall == round(recall, 1)
-    no_true = evaluate.table4({"dis": a.drop(columns="true_label").assign(distance=10.0)}, 50.0)
+    no_true = ch08.table4({"dis": a.drop(columns="true_label").assign(distance=10.0)}, 50.0)
     assert list(no_true["scored against"]) == ["paper rule (previous keyframe)"]
 
 

@@ -45,6 +45,7 @@ DEFINED: tuple[tuple[str, str], ...] = (
     (r"\bat most 0\.80\b", "the world's difficulty target (difficulty.TARGET_F1)"),
     (r"\bat 0\.5 a quarter\b", "flow_scale arithmetic: 0.5 x 0.5 of the pixels"),
     (r"\b10 m distance\b|\b0 to 100 m\b", "the distance bins of Table 4's breakdown"),
+    (r"^0-$", "the near end of Table 4's range in its rows' names (ch08_generalisation.table4)"),
     (r"\bPython 3\.\d+\+|\bJupyter Book \d\b", "versions of the tools, by name"),
     (r"\bat most 15 lines\b|\bat most 76 characters\b",
      "the notebook style the tests enforce (tests/test_notebooks.py)"),

@@ -271,19 +271,18 @@ def test_a_failure_reason_that_holds_for_every_object_is_said_not_to_explain():
     """Chapter 08: the crop holding other objects held for 100 % of the demo's objects and
     100 % of its wrong predictions; the words say it explains nothing, a reason commoner
     among the errors gets its ratio, and no wrong prediction leaves the share undefined."""
-    from flowmod import evaluate
     from flowmod.chapters import ch08_generalisation as ch08
 
     tagged = pd.DataFrame({"wrong": [True, True, False, False, False],
                            "unclear_flow": [True, True, True, False, False],
                            "crowded": [True, True, True, True, True]})
-    shares = evaluate.failure_shares(tagged)
+    shares = ch08.failure_shares(tagged)
     words = ch08.failure_words(shares)
     assert "*other objects in the crop* holds for 100.0 % of the wrong predictions and " \
            "100.0 % of all objects: no commoner among the errors" in words
     assert "*remote or slow* holds for 100.0 % of the wrong predictions against 60.0 % of " \
            "all objects (1.7 times as common)" in words
-    none = evaluate.failure_shares(tagged.assign(wrong=False))
+    none = ch08.failure_shares(tagged.assign(wrong=False))
     assert none["wrong predictions (%)"].isna().all()
     assert ch08.failure_words(none).count("undefined") == 2
 
@@ -385,3 +384,59 @@ def test_an_interval_without_an_arms_training_noise_is_labelled_scenes_only():
     ax = viz.forest(eff).axes[0]
     styles = [c.get_linestyle()[0][1] is not None for c in ax.collections]  # dashed: a pattern
     assert styles == [False, True, False, True]
+
+
+def test_chapter_04_s_numbers_are_the_keyframe_set_s_shares():
+    """Chapter 04's backend: the keyframe set's speeds by label, the moving share and the
+    agreements in percent (one and two decimals), the examples' titles."""
+    from flowmod.chapters import ch04_labeling as ch04
+
+    key = pd.DataFrame({"label": [1, 0, 0, 1], "true_label": [1, 0, 1, 1],
+                        "box_label": [1, -1, 1, 1], "speed": [3.0, 0.5, 1.9, 2.2],
+                        "distance": [40.0, 50.0, 60.0, 35.4]})
+    assert ch04.speeds(key)["moving"].tolist() == [3.0, 2.2]
+    assert ch04.speeds(key)["still"].tolist() == [0.5, 1.9]
+    assert ch04.moving_fraction(key) == 50.0
+    assert ch04.true_agreement(key) == 75.0
+    assert ch04.box_agreement(key) == round(100 * 2 / 3, 1)
+    assert ch04.near_titles(key.iloc[:1]) == ["3.00 m/s, 40 m"]
+    assert ch04.SPEED_BINS[0] == 0 and ch04.SPEED_BINS[-1] == 25.0
+
+
+def test_chapter_09_s_signal_is_read_by_distance_and_its_recalls_in_percent():
+    """Chapter 09's backend: the focal length and time gap of the keyframe pairs (us -> s)
+    feed the signal table, whose 50 m row gives the glued width change; recalls in %."""
+    from flowmod.chapters import ch09_blind_spots as ch09
+    from flowmod.extensions import blind_spots
+    from flowmod.params import load_profile
+
+    p = load_profile("smoke")
+    k = [1000.0, 0, 800, 0, 1000.0, 450, 0, 0, 1]
+    pairs = pd.DataFrame({"set": ["keyframe", "keyframe", "general"],
+                          "intrinsic": [k, k, [5.0] * 9], "timestamp_1": [0, 10, 0],
+                          "timestamp_2": [500_000, 500_010, 1]})
+    got = ch09.signal_table(p, pairs)
+    want = blind_spots.physical_signal(1000.0, 0.5, flow_scale=p.flow_scale)
+    pd.testing.assert_frame_equal(got, want)
+    assert ch09.radial_px(got) == round(float(want.iloc[1, 2]), 2)
+    blind = pd.DataFrame({"by": [blind_spots.RADIAL_SPEED] * 2, "bin": ["[2, 3)", "[5, 10)"],
+                          "recall": [0.25, 0.5], "n_moving": [4, 2]})
+    assert ch09.recall_numbers({"gt": blind, "dis": blind}, "dis") == {
+        "recall_slow_gt": 25.0, "recall_fast_gt": 50.0, "recall_slow_dis": 25.0,
+        "recall_fast_dis": 50.0, "headline_recall_slow": 25.0, "headline_recall_fast": 50.0}
+
+
+def test_the_small_backend_helpers_of_chapters_02_05_and_12():
+    from flowmod.chapters import ch02_filtering as ch02
+    from flowmod.chapters import ch05_preprocessing as ch05
+    from flowmod.chapters import ch12_self_trained_flow as ch12
+    from flowmod.flow import flow_to_color
+    from flowmod.params import load_profile
+
+    p = load_profile("smoke")
+    bins = ch02.distance_bins(p)
+    assert bins[0] == p.min_distance and bins[-1] >= p.max_distance
+    assert np.allclose(np.diff(bins), ch02.DISTANCE_BIN)
+    crop = np.random.default_rng(0).normal(size=(2, 4, 4)).astype(np.float32)
+    assert np.array_equal(ch05.crop_color(crop), flow_to_color(crop.transpose(1, 2, 0)))
+    assert ch12.shipped_steps(None) == 0 and ch12.shipped_steps({"steps": 7}) == 7

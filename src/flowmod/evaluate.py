@@ -1,6 +1,8 @@
 """The evaluation stages (chapters 07 and 08): each trained classifier scored on the test split
-and on the generalisation set, the geometric baseline, Table 3 and Table 4, failure reasons.
-Scores come from :mod:`flowmod.metrics`; predictions from :mod:`flowmod.model`."""
+and on the generalisation set, the geometric baseline, the scores of a predictions table.
+Scores come from :mod:`flowmod.metrics`; predictions from :mod:`flowmod.model`. Chapter 08's
+analysis of the generalisation predictions (Table 4, failure reasons) is its backend's
+(:mod:`flowmod.chapters.ch08_generalisation`)."""
 
 from __future__ import annotations
 
@@ -16,26 +18,20 @@ from flowmod.artefacts import atomic_path, write_json
 from flowmod.crops import (
     SplitReader,
     concat_arrays,
-    crop_windows,
     crops_reader,
     gather_fold,
     read_crops,
     read_samples,
 )
 from flowmod.metrics import (
-    CI_COLUMN,
     apply_threshold,
-    ci_text,
     fit_threshold,
     metrics,
     paired_comparison,
     paper_protocol_f1,
-    points,
     seed_summary,
-    span,
     thin_still,
 )
-from flowmod.metrics import breakdown as metrics_breakdown
 from flowmod.model import load_model, predict, resolve_device
 from flowmod.params import Params
 from flowmod.train import (
@@ -316,91 +312,3 @@ GENERALISE = dag.Stage(
     inputs=lambda n, p: (*_models(p, n.method), dag.Node("crops", n.method, "general"),
                          dag.Node("general")),
     build=build_generalise)
-
-
-def table4(preds: Mapping[str, pd.DataFrame], max_distance: float) -> pd.DataFrame:
-    """Table 4 per flow method (mean over training seeds, with their range): the paper's
-    range (distance <= ``max_distance``) scored against the paper's label (the previous
-    keyframe pair's eq.-1 label) and, where the data set knows it, the true label at the
-    frame; then the vehicles beyond that range, apart."""
-    rows = []
-    for m, df in preds.items():
-        for rng, d0 in ((f"0-{max_distance:g} m (Table 4)", df[df["distance"] <= max_distance]),
-                        (f"beyond {max_distance:g} m", df[df["distance"] > max_distance])):
-            for name, col in (("paper rule (previous keyframe)", "label"),
-                              ("true label at the frame", "true_label")):
-                if len(d0) == 0 or col not in d0 or (d0[col] < 0).all():
-                    continue
-                d = d0[d0[col] >= 0]
-                s = seed_summary(d[col].to_numpy(), seed_probs(d), d["scene"].to_numpy(),
-                                 folds=fold_of(d))
-                rows.append({"method": m, "vehicles": rng, "scored against": name,
-                             "objects": s["n"], "scenes": s["n_scenes"],
-                             "F1 (%)": round(100 * s["f1"], 1),
-                             f"{s['unit']} range (%)": span(s["f1_min"], s["f1_max"]),
-                             "P (%)": round(100 * s["precision"], 1),
-                             "R (%)": round(100 * s["recall"], 1),
-                             "seed SD (points)": points(s["seed_sd"]),
-                             "balanced accuracy (%)": points(s["balanced_accuracy"]),
-                             "always moving F1 (%)": points(s["always_moving_f1"]),
-                             CI_COLUMN: ci_text(s["ci"], s["n_scenes"])})
-    return pd.DataFrame(rows)
-
-
-def failure_reasons(df: pd.DataFrame, boxes: pd.DataFrame, threshold: float = 0.5,
-                    speed_threshold: float = 2.0, scale: float = 3.0) -> pd.DataFrame:  # pragma: no mutate block
-    """Tag each wrong prediction with the paper's two failure reasons.
-
-    ``unclear flow``: remote (> 50 m) or slow (speed within 1 m/s of the threshold);
-    ``other objects in the crop``: the box of any other annotated object of the frame (any
-    category, any visibility: ``boxes`` with pair_id, instance_token and the 2D box)
-    overlaps this object's crop window (the tripled square). Adds columns wrong,
-    unclear_flow, crowded.
-    """
-    out = df.copy()
-    out["wrong"] = (out["prob"] > threshold).astype(int) != out["label"]
-    out["unclear_flow"] = (out["distance"] > 50) | ((out["speed"] - speed_threshold).abs() < 1)
-    crowded = np.zeros(len(out), dtype=bool)
-    win = crop_windows(out[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float), scale)
-    by_pair = {pid: g for pid, g in boxes.groupby("pair_id")}
-    for i, (pid, inst) in enumerate(zip(out["pair_id"], out["instance_token"], strict=True)):
-        g = by_pair.get(pid)
-        if g is None:
-            continue
-        others = g.loc[g["instance_token"] != inst, ["xmin", "ymin", "xmax", "ymax"]].to_numpy()
-        x0, y0, n = win[i]
-        crowded[i] = bool(((others[:, 0] < x0 + n) & (others[:, 2] > x0)
-                           & (others[:, 1] < y0 + n) & (others[:, 3] > y0)).any())
-    out["crowded"] = crowded
-    return out
-
-
-def breakdown(df: pd.DataFrame, by: str, bins: Any = None) -> pd.DataFrame:
-    """:func:`flowmod.metrics.breakdown` of a predictions table: every training seed (F1 the
-    mean over seeds), with the scene-level interval and the object count of each group."""
-    return metrics_breakdown(df, df["label"], seed_probs(df), by=by, bins=bins,
-                             groups=df["scene"].to_numpy(), folds=fold_of(df))
-
-
-def failure_shares(tagged: pd.DataFrame) -> pd.DataFrame:  # pragma: no mutate block
-    """Share (%) of all objects and of wrong predictions with each failure reason."""
-    cols = ["unclear_flow", "crowded"]
-    names = {"unclear_flow": "remote or slow", "crowded": "other objects in the crop"}
-    out = pd.DataFrame({
-        "reason": [names[c] for c in cols],
-        "all objects (%)": [100 * float(tagged[c].mean()) for c in cols],
-        "wrong predictions (%)": [100 * float(tagged.loc[tagged["wrong"], c].mean())
-                                  if tagged["wrong"].any() else float("nan") for c in cols],
-    })
-    return out.round(1)
-
-
-def failure_examples(tagged: pd.DataFrame, n: int = 3) -> pd.DataFrame:  # pragma: no mutate block
-    """Up to ``n`` wrong predictions of each kind (remote or slow only, then crowded), with a
-    ``title`` for the figure."""
-    wrong = tagged[tagged["wrong"]]
-    out = pd.concat([wrong[wrong["unclear_flow"] & ~wrong["crowded"]].head(n),
-                     wrong[wrong["crowded"]].head(n)])
-    return out.assign(title=[("crowded" if c else "remote/slow") + f", {d:.0f} m, {s:.1f} m/s"
-                             for c, d, s in zip(out["crowded"], out["distance"], out["speed"],
-                                                strict=True)])

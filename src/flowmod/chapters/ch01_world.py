@@ -29,6 +29,11 @@ from flowmod.params import Params
 from flowmod.select import as_nuscenes
 from flowmod.world import gt_flow
 
+#: How many scenes the devkit's scene table shows.
+SCENES_SHOWN = 12
+#: Bins of the world's distance histogram (m): 0 to 100 m in 5 m steps.
+DISTANCE_BINS = np.arange(0, 105, 5)
+
 
 def difficulty(p: Params) -> dict[str, Any]:
     """The difficulty node's numbers (``difficulty.json``)."""

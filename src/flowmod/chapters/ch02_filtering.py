@@ -2,10 +2,21 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pandas as pd
 
 from flowmod.params import Params
 from flowmod.select import CAMERA, Selection
+
+#: Width (m) of the bins of the selected vehicles' distance histogram.
+DISTANCE_BIN = 2.5
+#: How many example frames of the selection the chapter shows.
+EXAMPLES = 4
+
+
+def distance_bins(params: Params) -> np.ndarray:
+    """Bins of the distance histogram (m): the selected band, in :data:`DISTANCE_BIN` steps."""
+    return np.arange(params.min_distance, params.max_distance + DISTANCE_BIN, DISTANCE_BIN)
 
 
 def table1(p: Params) -> pd.DataFrame:

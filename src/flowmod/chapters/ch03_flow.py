@@ -13,6 +13,9 @@ from flowmod.chapters import common
 from flowmod.flow import FlowReader, boxes_mask, epe, fl_all
 from flowmod.params import Params
 
+#: Random pairs of each set on which the accuracy table measures every method.
+ACCURACY_PAIRS = 12
+
 
 def run_summary(readers: Mapping[str, Mapping[str, FlowReader]]) -> pd.DataFrame:
     """One row per method and part: pairs, median estimation seconds per pair."""

@@ -12,8 +12,12 @@ from flowmod import pipeline
 from flowmod.chapters.common import flow_reader
 from flowmod.crops import IMAGE_SIZE, CropsError, crop_paths, part_splits, samples_path
 from flowmod.dag import Node
+from flowmod.flow import flow_to_color
 from flowmod.params import Params
 from flowmod.select import PARTS, Selection
+
+#: Crops of each class the gallery shows.
+GALLERY = 8
 
 
 def folders(p: Params) -> dict[str, dict[str, Path]]:
@@ -71,3 +75,9 @@ def median_mover(sel: Selection, among: Sequence[str] | None = None) -> tuple[pd
     width = (obj["xmax"] - obj["xmin"]).to_numpy()
     row = obj.iloc[int(np.argsort(width)[len(obj) // 2])]
     return row, sel.pairs.set_index("pair_id").loc[row.pair_id]
+
+
+def crop_color(crop: np.ndarray) -> np.ndarray:
+    """A (2, S, S) flow crop in the flow-colour code (S, S, 3)
+    (:func:`flowmod.flow.metrics.flow_to_color`, channels last)."""
+    return flow_to_color(np.moveaxis(crop, 0, -1))

@@ -10,6 +10,7 @@ import pandas as pd
 
 from flowmod import evaluate, pipeline
 from flowmod.chapters.common import (
+    breakdown,
     comparison_table,
     decided,
     difference_words,
@@ -106,19 +107,23 @@ def protocols(params: Params) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+#: How many test frames with their predictions the chapter shows (Figure 2).
+EXAMPLES = 4
+
+
 #: Chapter 07's distance bins (m): Table 1's band in 10 m steps.
 DISTANCE_BINS = [30, 40, 50, 60, 70.01]
 
 
 def by_distance(preds: dict[str, pd.DataFrame]) -> dict[str, pd.DataFrame]:
     """Per method, F1 per distance bin (:data:`DISTANCE_BINS`) with its interval over scenes
-    and seeds and the objects in each bin (:func:`flowmod.evaluate.breakdown`)."""
-    return {m: evaluate.breakdown(df, "distance", DISTANCE_BINS) for m, df in preds.items()}
+    and seeds and the objects in each bin (:func:`~flowmod.chapters.common.breakdown`)."""
+    return {m: breakdown(df, "distance", DISTANCE_BINS) for m, df in preds.items()}
 
 
 def by_category(preds: dict[str, pd.DataFrame]) -> pd.DataFrame:
     """F1 per vehicle category, one block of rows per method."""
-    return pd.concat({m: evaluate.breakdown(df, "category") for m, df in preds.items()},
+    return pd.concat({m: breakdown(df, "category") for m, df in preds.items()},
                      names=["method"]).reset_index(0)
 
 

@@ -1,14 +1,30 @@
-"""Chapter 08's backend: Table 4's numbers."""
+"""Chapter 08's backend: Table 4 and its numbers, F1 by distance and speed, the paper's two
+failure reasons and their examples (chapter 11 reads :func:`table4` for its models)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
-from flowmod.chapters.common import headline_method, results
-from flowmod.evaluate import failure_reasons, failure_shares, table4
+from flowmod.chapters.common import breakdown, headline_method, results
+from flowmod.crops import crop_windows
+from flowmod.evaluate import fold_of, seed_probs
+from flowmod.metrics import CI_COLUMN, ci_text, points, seed_summary, span
 from flowmod.params import Params
+
+#: Distance bins of the F1-by-distance figure (m): 10 m steps, Table 4's range and beyond.
+DISTANCE_EDGES = (0, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100.01)
+#: Speed bins of the F1-by-speed figure (m/s): either side of the paper's 2 m/s threshold.
+SPEED_EDGES = (0, 1, 2, 3, 5, 10, 40)
+#: Wrong predictions of each kind the failure figure shows, in one row.
+FAILURE_EXAMPLES = 3
+#: Columns of the failure figure: both kinds of wrong prediction in one row.
+FAILURE_COLUMNS = 2 * FAILURE_EXAMPLES
+#: The scene clip: width of each half of a frame (px) and frames per second.
+CLIP_WIDTH, CLIP_FPS = 640, 6
 
 
 def predictions(params: Params) -> dict[str, pd.DataFrame]:
@@ -16,9 +32,22 @@ def predictions(params: Params) -> dict[str, pd.DataFrame]:
     return {m: results(params, m, "general")[0] for m in params.flow_methods}
 
 
-def table(params: Params) -> pd.DataFrame:
-    """Table 4 of this build (:func:`flowmod.evaluate.table4`)."""
-    return table4(predictions(params), params.general_max_distance)
+def table(params: Params, preds: dict[str, pd.DataFrame] | None = None) -> pd.DataFrame:
+    """Table 4 of this build (:func:`table4` at ``general_max_distance``) of ``preds``
+    (default: :func:`predictions`)."""
+    return table4(predictions(params) if preds is None else preds,
+                  params.general_max_distance)
+
+
+def by_distance(preds: dict[str, pd.DataFrame]) -> dict[str, pd.DataFrame]:
+    """Per method, F1 per distance bin (:data:`DISTANCE_EDGES`) with its interval over
+    scenes and seeds and the objects in each bin (:func:`~flowmod.chapters.common.breakdown`)."""
+    return {m: breakdown(df, "distance", list(DISTANCE_EDGES)) for m, df in preds.items()}
+
+
+def by_speed(preds: dict[str, pd.DataFrame]) -> dict[str, pd.DataFrame]:
+    """Per method, F1 per speed bin (:data:`SPEED_EDGES`), as :func:`by_distance`."""
+    return {m: breakdown(df, "speed", list(SPEED_EDGES)) for m, df in preds.items()}
 
 
 def numbers(params: Params, table: pd.DataFrame) -> dict[str, Any]:
@@ -48,7 +77,7 @@ def numbers(params: Params, table: pd.DataFrame) -> dict[str, Any]:
 
 def failures(params: Params, preds: pd.DataFrame, boxes: pd.DataFrame
              ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """The paper's two failure reasons on ``preds`` (:func:`flowmod.evaluate.failure_reasons`
+    """The paper's two failure reasons on ``preds`` (:func:`failure_reasons`
     with the profile's threshold and crop scale): (each reason's share among all objects
     and among the wrong predictions, the tagged rows)."""
     tagged = failure_reasons(preds, boxes, speed_threshold=params.speed_threshold,
@@ -73,3 +102,84 @@ def failure_words(shares: pd.DataFrame) -> str:
             out.append(f"*{r['reason']}* holds for {w:.1f} % of the wrong predictions against "
                        f"{a:.1f} % of all objects ({w / a:.1f} times as common)")
     return "; ".join(out) + "."
+
+
+def table4(preds: Mapping[str, pd.DataFrame], max_distance: float) -> pd.DataFrame:
+    """Table 4 per flow method (mean over training seeds, with their range): the paper's
+    range (distance <= ``max_distance``) scored against the paper's label (the previous
+    keyframe pair's eq.-1 label) and, where the data set knows it, the true label at the
+    frame; then the vehicles beyond that range, apart."""
+    rows = []
+    for m, df in preds.items():
+        for rng, d0 in ((f"0-{max_distance:g} m (Table 4)", df[df["distance"] <= max_distance]),
+                        (f"beyond {max_distance:g} m", df[df["distance"] > max_distance])):
+            for name, col in (("paper rule (previous keyframe)", "label"),
+                              ("true label at the frame", "true_label")):
+                if len(d0) == 0 or col not in d0 or (d0[col] < 0).all():
+                    continue
+                d = d0[d0[col] >= 0]
+                s = seed_summary(d[col].to_numpy(), seed_probs(d), d["scene"].to_numpy(),
+                                 folds=fold_of(d))
+                rows.append({"method": m, "vehicles": rng, "scored against": name,
+                             "objects": s["n"], "scenes": s["n_scenes"],
+                             "F1 (%)": round(100 * s["f1"], 1),
+                             f"{s['unit']} range (%)": span(s["f1_min"], s["f1_max"]),
+                             "P (%)": round(100 * s["precision"], 1),
+                             "R (%)": round(100 * s["recall"], 1),
+                             "seed SD (points)": points(s["seed_sd"]),
+                             "balanced accuracy (%)": points(s["balanced_accuracy"]),
+                             "always moving F1 (%)": points(s["always_moving_f1"]),
+                             CI_COLUMN: ci_text(s["ci"], s["n_scenes"])})
+    return pd.DataFrame(rows)
+
+
+def failure_reasons(df: pd.DataFrame, boxes: pd.DataFrame, threshold: float = 0.5,
+                    speed_threshold: float = 2.0, scale: float = 3.0) -> pd.DataFrame:  # pragma: no mutate block
+    """Tag each wrong prediction with the paper's two failure reasons.
+
+    ``unclear flow``: remote (> 50 m) or slow (speed within 1 m/s of the threshold);
+    ``other objects in the crop``: the box of any other annotated object of the frame (any
+    category, any visibility: ``boxes`` with pair_id, instance_token and the 2D box)
+    overlaps this object's crop window (the tripled square). Adds columns wrong,
+    unclear_flow, crowded.
+    """
+    out = df.copy()
+    out["wrong"] = (out["prob"] > threshold).astype(int) != out["label"]
+    out["unclear_flow"] = (out["distance"] > 50) | ((out["speed"] - speed_threshold).abs() < 1)
+    crowded = np.zeros(len(out), dtype=bool)
+    win = crop_windows(out[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float), scale)
+    by_pair = {pid: g for pid, g in boxes.groupby("pair_id")}
+    for i, (pid, inst) in enumerate(zip(out["pair_id"], out["instance_token"], strict=True)):
+        g = by_pair.get(pid)
+        if g is None:
+            continue
+        others = g.loc[g["instance_token"] != inst, ["xmin", "ymin", "xmax", "ymax"]].to_numpy()
+        x0, y0, n = win[i]
+        crowded[i] = bool(((others[:, 0] < x0 + n) & (others[:, 2] > x0)
+                           & (others[:, 1] < y0 + n) & (others[:, 3] > y0)).any())
+    out["crowded"] = crowded
+    return out
+
+
+def failure_shares(tagged: pd.DataFrame) -> pd.DataFrame:  # pragma: no mutate block
+    """Share (%) of all objects and of wrong predictions with each failure reason."""
+    cols = ["unclear_flow", "crowded"]
+    names = {"unclear_flow": "remote or slow", "crowded": "other objects in the crop"}
+    out = pd.DataFrame({
+        "reason": [names[c] for c in cols],
+        "all objects (%)": [100 * float(tagged[c].mean()) for c in cols],
+        "wrong predictions (%)": [100 * float(tagged.loc[tagged["wrong"], c].mean())
+                                  if tagged["wrong"].any() else float("nan") for c in cols],
+    })
+    return out.round(1)
+
+
+def failure_examples(tagged: pd.DataFrame, n: int = FAILURE_EXAMPLES) -> pd.DataFrame:  # pragma: no mutate block
+    """Up to ``n`` wrong predictions of each kind (remote or slow only, then crowded), with a
+    ``title`` for the figure."""
+    wrong = tagged[tagged["wrong"]]
+    out = pd.concat([wrong[wrong["unclear_flow"] & ~wrong["crowded"]].head(n),
+                     wrong[wrong["crowded"]].head(n)])
+    return out.assign(title=[("crowded" if c else "remote/slow") + f", {d:.0f} m, {s:.1f} m/s"
+                             for c, d, s in zip(out["crowded"], out["distance"], out["speed"],
+                                                strict=True)])

@@ -10,9 +10,104 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from flowmod import world
+from flowmod.chapters import ch03_flow
+from flowmod.chapters.common import flow_readers, results
 from flowmod.evaluate import seed_probs
 from flowmod.extensions import blind_spots
 from flowmod.params import Params
+from flowmod.select import Selection
+
+#: The columns of the moving test vehicles' summary.
+MOTION_COLUMNS = ["distance", "speed", "radial_speed", "lateral_speed", "motion_angle"]
+#: Random keyframe pairs of the far boxes' flow error (chapter 03's measurement, fewer pairs).
+FLOW_ERROR_PAIRS = 8
+#: The distance (m) of the signal table's glued radial width change: the band's middle.
+SIGNAL_DISTANCE = 50.0
+
+
+def main_method(params: Params) -> str:
+    """The chapter's main method: the first flow method that is not ``gt`` (or ``gt``)."""
+    return next((m for m in params.flow_methods if m != "gt"), params.flow_methods[0])
+
+
+def shown_methods(params: Params) -> list[str]:
+    """The methods whose classifiers the chapter breaks down: ``gt`` and the main one."""
+    return [m for m in params.flow_methods if m in ("gt", main_method(params))]
+
+
+def test_geometry(params: Params, sel: Selection) -> dict[str, pd.DataFrame]:
+    """``{method: test predictions}`` of :func:`shown_methods`, each object with the geometry
+    of its motion (:func:`~flowmod.extensions.blind_spots.motion_geometry`)."""
+    return {m: blind_spots.motion_geometry(results(params, m)[0], sel.pairs)
+            for m in shown_methods(params)}
+
+
+def moving_summary(df: pd.DataFrame) -> pd.DataFrame:
+    """Count, mean, spread and quantiles of :data:`MOTION_COLUMNS` over the movers of
+    ``df``, one row per column."""
+    moving = df[df["label"] == 1]
+    return moving[MOTION_COLUMNS].describe().T.reset_index(names="moving vehicles")
+
+
+def blind_tables(preds: dict[str, pd.DataFrame]) -> dict[str, pd.DataFrame]:
+    """Per method, F1 and recall by angle, speed, distance and box width
+    (:func:`~flowmod.extensions.blind_spots.blind_spots`, scenes as the resampled unit)."""
+    return {m: blind_spots.blind_spots(df, seed_probs(df), df["scene"].to_numpy())
+            for m, df in preds.items()}
+
+
+def blind_table(blind: dict[str, pd.DataFrame]) -> pd.DataFrame:
+    """:func:`blind_tables` as one table, a ``method`` column first."""
+    return pd.concat(blind, names=["method"]).reset_index(level=0)
+
+
+def recall_numbers(blind: dict[str, pd.DataFrame], main: str) -> dict[str, float]:
+    """The glued recalls (%) of the slow (2-3 m/s) and fast radial movers of every method
+    (``recall_slow_<m>``, ``recall_fast_<m>``) and of the main one (``headline_recall_*``)."""
+    out = {}
+    for m, t in blind.items():
+        slow, fast = blind_spots.recall_slow_and_fast(t)
+        for key, value in (("slow", slow), ("fast", fast)):
+            out[f"recall_{key}_{m}"] = round(100 * float(value), 1)
+            if m == main:
+                out[f"headline_recall_{key}"] = round(100 * float(value), 1)
+    return out
+
+
+def speed_angle(df: pd.DataFrame, baseline: pd.DataFrame) -> pd.DataFrame:
+    """Recall by angle and speed of the classifier (mean over seeds) beside the oracle rule
+    (``baseline``: its published predictions), :func:`~flowmod.extensions.blind_spots.speed_angle_table`."""
+    return blind_spots.speed_angle_table(df, seed_probs(df),
+                                         blind_spots.rule_calls(df, baseline))
+
+
+def signal_table(params: Params, pairs: pd.DataFrame) -> pd.DataFrame:
+    """The image signal of a slow mover (:func:`~flowmod.extensions.blind_spots.physical_signal`)
+    at the keyframe pairs' median focal length (px) and time gap (s), and at ``flow_scale``."""
+    key = pairs[pairs["set"] == "keyframe"]
+    focal = float(np.median([k[0] for k in key["intrinsic"]]))  # f_x
+    dt = float(np.median(key["timestamp_2"] - key["timestamp_1"])) / 1e6  # us -> s
+    return blind_spots.physical_signal(focal, dt, flow_scale=params.flow_scale)
+
+
+def radial_px(signal: pd.DataFrame, distance: float = SIGNAL_DISTANCE) -> float:
+    """The radial mover's box width change (px, full resolution) at ``distance`` (m)."""
+    row = signal[signal["distance (m)"] == distance]
+    return round(float(row["radial: width change (px)"].iloc[0]), 2)
+
+
+def far_flow_error(params: Params, sel: Selection) -> pd.DataFrame | None:
+    """Each method's flow error inside the far boxes of :data:`FLOW_ERROR_PAIRS` random
+    keyframe pairs against the exact flow (chapter 03's
+    :func:`~flowmod.chapters.ch03_flow.accuracy_table`); None off the synthetic world."""
+    if not world.is_synthetic(params.dataroot_path, params.version):
+        return None
+    acc = ch03_flow.accuracy_table(params, sel.pairs, sel.objects, flow_readers(params),
+                                   n_pairs=FLOW_ERROR_PAIRS, seed=params.seed)
+    return acc.loc[acc["set"] == "keyframe",
+                   ["method", "EPE boxes (px)", "Fl-all boxes (%)"]]
+
 
 #: The cell chapter 09 answers on: movers within 30 degrees of the line of sight at 2-3 m/s.
 SLOW_RADIAL = {"angle": (0.0, blind_spots.RADIAL_MAX_ANGLE), "speed": (2.0, 3.0)}

@@ -8,12 +8,11 @@ import numpy as np
 import pandas as pd
 
 from flowmod import pipeline
-from flowmod.chapters import common
-from flowmod.chapters.common import comparison_table, results
+from flowmod.chapters import ch08_generalisation, common
+from flowmod.chapters.common import breakdown, comparison_table, results
 from flowmod.crops import part_splits
 from flowmod.dag import Node
-from flowmod.evaluate import breakdown, paired, scored, seed_probs
-from flowmod.evaluate import table4 as evaluate_table4
+from flowmod.evaluate import paired, scored, seed_probs
 from flowmod.metrics import CI_COLUMN, false_alarm_rate, metrics
 from flowmod.params import Params
 from flowmod.train import extension_parts
@@ -84,12 +83,12 @@ def label(params: Params, method: str, wide: bool) -> str:
 
 def table4(params: Params, done: list[str]) -> pd.DataFrame:
     """Table 4 of every method of ``wide_methods``, with a row per method of ``done``
-    trained on all distances beside the paper's (:func:`flowmod.evaluate.table4`: the
+    trained on all distances beside the paper's (:func:`flowmod.chapters.ch08_generalisation.table4`: the
     paper's range scored against the paper's label and the true one, and the vehicles beyond
     it apart)."""
     preds = {label(params, m, w): predictions(params, m, "general", w)
              for m in params.wide_methods for w in (False, True) if not w or m in done}
-    return evaluate_table4(preds, params.general_max_distance)
+    return ch08_generalisation.table4(preds, params.general_max_distance)
 
 
 def comparisons(params: Params, methods: list[str], split: str = "general") -> pd.DataFrame:
@@ -108,7 +107,7 @@ def comparisons(params: Params, methods: list[str], split: str = "general") -> p
 
 def by_distance(params: Params, methods: list[str]) -> dict[str, pd.DataFrame]:
     """F1 per distance bin (:data:`EDGES`) on the generalisation set of both classifiers of
-    every method (:func:`flowmod.evaluate.breakdown`), for one plot."""
+    every method (:func:`flowmod.chapters.common.breakdown`), for one plot."""
     return {label(params, m, w): breakdown(predictions(params, m, "general", w), "distance", list(EDGES))
             for m in methods for w in (False, True)}
 

@@ -445,3 +445,8 @@ def shipped_note(params: Params, m: dict[str, Any] | None) -> str:
                  f"computes flow at {params.flow_scale:g} (`flow_scale`), where they were "
                  "not validated.")
     return text
+
+
+def shipped_steps(manifest: dict[str, Any] | None) -> int:
+    """The training steps of the shipped weights (:func:`shipped_manifest`; 0 without them)."""
+    return manifest["steps"] if manifest else 0

@@ -36,6 +36,8 @@ EFFECT_COLUMNS = ["chapter", "question", "comparison", "ΔF1 (points)", "low", "
 
 #: The family-wise error rate of :func:`holm` (two-sided, as the 95 % intervals).
 HOLM_ALPHA = 0.05
+#: :data:`HOLM_ALPHA` in percent, as the book states it.
+HOLM_PERCENT = 100 * HOLM_ALPHA
 
 
 def _chapter_tables(params: Params) -> list[tuple[str, pd.DataFrame]]:

@@ -13,6 +13,7 @@ import pandas as pd
 from flowmod import metrics, pipeline
 from flowmod.crops import fold_crops, part_of, read_crops
 from flowmod.dag import Node
+from flowmod.evaluate import fold_of, seed_probs
 from flowmod.flow import FlowReader, flow_root
 from flowmod.metrics import ci_text, group_mean_bootstrap, interval
 from flowmod.params import Params
@@ -220,3 +221,11 @@ def epe_ci(values: Any, scenes: Any, seed: int) -> str:
         return "-"
     ci = interval(group_mean_bootstrap(values, scenes, seed=seed))
     return ci_text(ci, len(set(scenes)), fmt=".2f")
+
+
+def breakdown(df: pd.DataFrame, by: str, bins: Any = None) -> pd.DataFrame:
+    """:func:`flowmod.metrics.breakdown` of a predictions table: every training seed (F1 the
+    mean over seeds), with the scene-level interval and the object count of each group
+    (chapters 07, 08 and 11)."""
+    return metrics.breakdown(df, df["label"], seed_probs(df), by=by, bins=bins,
+                             groups=df["scene"].to_numpy(), folds=fold_of(df))
