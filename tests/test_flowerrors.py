@@ -227,3 +227,56 @@ def test_three_verdicts_needs_a_positive_delta(delta: float) -> None:
         three_verdicts((-0.1, 0.1), delta)
     with pytest.raises(ValueError):
         three_verdicts((0.5, 0.1), 1.0)
+
+
+# --- the experiment's plan (stages elevels, etrain, eevaluate) -------------------------------
+
+
+def test_the_experiment_plans_an_exact_arm_and_each_kind_at_each_target() -> None:
+    from flowmod import pipeline
+    from flowmod.params import load_profile
+
+    p = load_profile("demo")
+    arms = fe.arms(p)
+    assert arms[0] == (fe.EXACT, 0)
+    assert len(arms) == 1 + len(p.error_kinds) * len(p.error_targets)
+    keys = [fe.arm_key(*a) for a in arms]
+    assert len(set(keys)) == len(keys) and all(fe.parse_arm(k) == a for k, a in zip(keys, arms))
+    train = [n for n in pipeline.nodes(p) if n.stage == "etrain"]
+    assert len(train) == len(arms) * p.error_folds
+    reads = {str(n): {str(i) for i in pipeline.inputs(n, p)} for n in train}
+    assert reads["etrain[gt/exact/f0]"] == {"crops[gt/keyframe]"}
+    assert reads["etrain[gt/pull/1/f0]"] == {"crops[gt/keyframe]", "context[keyframe]",
+                                             "elevels[gt/pull]"}
+    assert reads["etrain[gt/ring/0/f0]"] == {"crops[gt/keyframe]", "elevels[gt/ring]"}
+    assert fe.arms(p.model_copy(update={"flow_methods": ["dis"]})) == []
+    assert fe.arms(p.model_copy(update={"error_kinds": []})) == []
+
+
+def test_an_arm_trains_with_the_seed_of_table_3_s_fold_model() -> None:
+    """The experiment's fold-k model has the same seed (initialisation and data order) as
+    Table 3's seed-0 model of fold k: arms differ from each other only in their input."""
+    from flowmod.params import load_profile
+    from flowmod.train import part_seed_offset, seed_parts
+
+    p = load_profile("demo")
+    for k, part in enumerate(fe.error_parts(p.model_copy(update={"error_folds": 3}))):
+        assert part_seed_offset(f"noise/1/{part}") == part_seed_offset(seed_parts(p)[3 * k])
+    assert fe.error_parts(p.model_copy(update={"folds": 1})) == ["s0"]
+
+
+@pytest.mark.parametrize("bad, words", [({"error_folds": 4}, "error_folds=4 must be <="),
+                                        ({"error_targets": [1.0, 0.0]}, "must be > 0 px")])
+def test_bad_experiment_settings_are_refused(bad: dict, words: str) -> None:
+    from flowmod.params import load_profile
+
+    with pytest.raises(Exception, match=words):
+        load_profile("demo", **bad)
+
+
+def test_each_split_draws_its_own_error_and_the_same_one_in_every_node() -> None:
+    a = fe._split_rng(0, "noise", 1, "f0").standard_normal(5)
+    assert np.array_equal(a, fe._split_rng(0, "noise", 1, "f0").standard_normal(5))
+    for other in [(1, "noise", 1, "f0"), (0, "ring", 1, "f0"), (0, "noise", 2, "f0"),
+                  (0, "noise", 1, "f1")]:
+        assert not np.array_equal(a, fe._split_rng(*other).standard_normal(5))

@@ -89,10 +89,12 @@ FILE_DEFAULTS: dict[str, Callable[[], Path | None]] = {}
 ROLES = ("input", "run", "location", "plan")
 
 _FLOW = ("flow", "crops")  # crops too: in crops mode it computes the flow itself
-_TRAIN = ("train", "xtrain", "wtrain")  # chapters 10 and 11 train with Table 2 too
+_TRAIN = ("train", "xtrain", "wtrain", "etrain")  # chapters 10, 11, 14 train with Table 2 too
+#: chapter 14's stages (the levels, the classifiers on degraded flow, their predictions)
+_ERRORS = ("elevels", "etrain", "eevaluate")
 #: every stage that splits scenes into train, validation and test
 _FOLDS = ("select", "general", "wide", "crops", "context", *_TRAIN, "evaluate", "generalise",
-          "xevaluate", "wgeneralise", "selfflow")
+          "xevaluate", "wgeneralise", "selfflow", "elevels", "eevaluate")
 
 
 class Params(BaseModel):
@@ -110,7 +112,7 @@ class Params(BaseModel):
     profile: str = _field("demo", role="run",
                           description="profile name; artefacts go to runs/<profile>/")
     seed: int = _field(0, ge=0, read_by=("world", "select", "flow", "train", "evaluate", "xtrain",
-                                "wtrain", "selfflow", "shipped"),
+                                "wtrain", "selfflow", "shipped", *_ERRORS),
                        description="master seed for every random choice")
     run_dir: str = _field("runs/demo", role="run",
                           description="stage artefacts (relative to the repo root)")
@@ -240,7 +242,7 @@ class Params(BaseModel):
     # --- crops and learning (Table 2) --------------------------------------------------
     crop_size: int = _field(40, ge=16, le=512, read_by=("crops", "context"),
                             description="px, side of the resized crop (224)")
-    crop_scale: float = _field(3.0, ge=1.0, le=10.0, read_by=("crops", "context"),
+    crop_scale: float = _field(3.0, ge=1.0, le=10.0, read_by=("crops", "context", *_ERRORS),
                                description="crop side / box side")
     epochs: int = _field(8, ge=1, le=500, read_by=_TRAIN, description="training epochs")
     batch_size: int = _field(32, ge=1, le=4096, read_by=_TRAIN,
@@ -368,6 +370,31 @@ class Params(BaseModel):
                                       description="chapter 12: steps between held-out "
                                                   "evaluations (0: at the end only)")
 
+    # --- beyond the paper (chapter 14): which flow errors decide motion detection -------------
+    error_kinds: list[Literal["noise", "resolution", "pull", "scale", "outliers", "ring"]] = (
+        _field(lambda: ["noise", "resolution", "pull", "scale", "outliers", "ring"],
+               role="plan",
+               description="chapter 14: the kinds of error put on the exact flow, one at a "
+                           "time, each training the classifier anew ([] = off; pull needs "
+                           "chapter 10's static-world flow, built for it)"))
+    error_targets: list[float] = _field(
+        lambda: [0.5, 1.0, 2.0], read_by=("elevels",), min_length=1,
+        description="chapter 14: px, the mean end-point errors every kind is set to reach "
+                    "(in the box; the ring kind around it), so the kinds meet at the same "
+                    "error")
+    error_calibration: int = _field(
+        400, ge=10, le=1_000_000, read_by=("elevels",),
+        description="chapter 14: objects (drawn with the seed) on which each kind's level "
+                    "is matched to the targets")
+    error_folds: int = _field(
+        1, ge=1, le=10, role="plan",
+        description="chapter 14: the first k folds train a classifier per arm (one seed a "
+                    "fold); their test scenes are scored")
+    error_width: int | None = _field(
+        None, ge=4, le=256, read_by=("etrain",),
+        description="chapter 14: the classifiers' width (None: model_width); the "
+                    "experiment's exact-flow arm is trained with it too")
+
     @model_validator(mode="after")
     def _cross_checks(self) -> Params:
         if self.min_distance >= self.max_distance:
@@ -424,6 +451,10 @@ class Params(BaseModel):
         if any(c <= 0 or c % 64 for c in self.selfflow_crop):
             raise ValueError(f"selfflow_crop={self.selfflow_crop}: both sides must be positive "
                              "multiples of 64 (FastFlowNet's pyramid)")
+        if self.error_folds > self.folds:
+            raise ValueError(f"error_folds={self.error_folds} must be <= folds={self.folds}")
+        if any(t <= 0 for t in self.error_targets):
+            raise ValueError(f"error_targets={self.error_targets}: every target must be > 0 px")
         if self.world_sweep_scenes > self.world_scenes:
             raise ValueError(
                 f"world_sweep_scenes={self.world_sweep_scenes} must be <= "

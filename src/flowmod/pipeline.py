@@ -24,14 +24,14 @@ from typing import Any
 import pandas as pd
 
 from flowmod import crops, dag, difficulty, evaluate, select, train
-from flowmod.extensions import context, inputs, selfflow, wide
+from flowmod.extensions import context, flowerrors, inputs, selfflow, wide
 from flowmod.flow import stage as flow_stage
 from flowmod.flow.store import valid_path
 from flowmod.lock import folder_lock
 from flowmod.params import Params
 from flowmod.world import source as world_source
 
-#: Every stage, in data order (chapter 01 to 12).
+#: Every stage, in data order (chapter 01 to 14).
 STAGES: tuple[dag.Stage, ...] = (
     world_source.STAGE,      # 01 the data
     difficulty.STAGE,        # 01 the naive exact-flow rule
@@ -50,6 +50,9 @@ STAGES: tuple[dag.Stage, ...] = (
     wide.WGENERALISE,        # 11 its predictions
     selfflow.SHIPPED_STAGE,  # 12 the shipped FastFlowNet weights, held out
     selfflow.STAGE,          # 12 FastFlowNet trained here
+    flowerrors.ELEVELS,      # 14 each kind of flow error's level at each target
+    flowerrors.ETRAIN,       # 14 a classifier on degraded exact flow
+    flowerrors.EEVALUATE,    # 14 its predictions and realised errors
 )
 #: The make target that turns each gate on.
 GATE_TARGETS = {"extension_build": "make extensions", "selfflow_build": "make selfflow"}

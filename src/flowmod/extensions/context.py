@@ -40,6 +40,7 @@ from flowmod.crops import (
     split_objects,
     static_crops,
 )
+from flowmod.params import Params
 from flowmod.progress import bar
 from flowmod.select import PARTS, frame_boxes_3d, objects_node, open_nuscenes
 
@@ -145,9 +146,14 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
     return {"rows": rows, "boxes": sum(len(v) for v in boxes.values())}
 
 
+def _pulled(p: Params) -> bool:
+    """Chapter 14 pulls the exact flow toward the still-world flow (its ``pull`` kind)."""
+    return "pull" in p.error_kinds and "gt" in p.flow_methods
+
+
 #: Chapter 10's static-world flow and image crops, one node per part (no flow method).
 STAGE = dag.Stage("context", 2, "10", "extensions/context/{part}",
                   "static-world flow and image crops of every object",
                   nodes=lambda p: ([dag.Node("context", None, part) for part in PARTS]
-                                   if p.extension_inputs else []),
+                                   if p.extension_inputs or _pulled(p) else []),
                   inputs=lambda n, p: (dag.Node("world"), objects_node(n.part)), build=build)

@@ -34,14 +34,30 @@ every other kind's in the box), so kinds can be compared at the same box end-poi
 
 from __future__ import annotations
 
+import json
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
-from flowmod.crops import crop_windows
+from flowmod import dag
+from flowmod.artefacts import write_json
+from flowmod.crops import (
+    BOX_COLUMNS,
+    SplitReader,
+    crop_windows,
+    crops_reader,
+    gather_fold,
+    read_crops,
+)
+from flowmod.evaluate import predict_splits, scored_rows, write_frames
+from flowmod.extensions.context import read_context
 from flowmod.geometry import window_lattice
+from flowmod.params import Params
+from flowmod.train import part_index, seed_parts, train_seed
 
 Seed = np.random.Generator | int
 
@@ -265,7 +281,7 @@ def _pull(b: CropBatch, alpha: float, seed: Seed) -> np.ndarray:
 KINDS: dict[str, Kind] = {
     "noise": Kind("sigma (px)", 0.0, 20.0, "box",
                   lambda b, v, r: white_noise(b.flow, v, r)),
-    "resolution": Kind("k (frame px)", 1.0, 32.0, "box",
+    "resolution": Kind("k (frame px)", 1.0, 64.0, "box",
                        lambda b, v, r: lost_resolution(b.flow, v, b.windows)),
     "pull": Kind("alpha", 0.0, 1.0, "box", _pull),
     "scale": Kind("s", 0.0, 1.0, "box", lambda b, v, r: scale_error(b.flow, v)),
@@ -367,3 +383,171 @@ def match_levels(batch: CropBatch, targets: Any, kinds: Any = None, seed: Seed =
                 levels.append(float("nan"))
         out[kind] = levels
     return out
+
+
+# --- the stages (chapter 14) --------------------------------------------------------------------
+
+#: The undegraded arm: the exact flow, trained and scored like every degraded arm.
+EXACT = "exact"
+
+
+def arms(p: Params) -> list[tuple[str, int]]:
+    """(kind, target index) of every arm of chapter 14: the exact flow (``(EXACT, 0)``), then
+    each kind of ``p.error_kinds`` at each of ``p.error_targets``; none when no kind is set
+    or the exact flow (``gt``, a generated world's) is not among the flow methods."""
+    if not p.error_kinds or "gt" not in p.flow_methods:
+        return []
+    return [(EXACT, 0)] + [(k, t) for k in p.error_kinds for t in range(len(p.error_targets))]
+
+
+def arm_key(kind: str, target: int) -> str:
+    """``exact`` or ``<kind>/<target index>``: an arm's part of its nodes' names."""
+    return EXACT if kind == EXACT else f"{kind}/{target}"
+
+
+def parse_arm(key: str) -> tuple[str, int]:
+    """(kind, target index) of an arm key (:func:`arm_key`)."""
+    kind, _, t = key.partition("/")
+    return kind, int(t or 0)
+
+
+def error_parts(p: Params | dag.StageParams) -> list[str]:
+    """The training parts of an arm: one seed a fold, the first ``error_folds`` folds
+    (``s0`` with the paper's single split)."""
+    return seed_parts(p, 1)[: p.error_folds]
+
+
+def _split_rng(seed: int, kind: str, target: int, split: str) -> np.random.Generator:
+    """The generator of one split's degradation: the same objects get the same error
+    whichever node (training or scoring) reads them."""
+    return np.random.default_rng([seed, zlib.crc32(f"{kind}/{target}/{split}".encode())])
+
+
+def _batch(crops_dir: Any, ctx_dir: Any, split: str, scale: float) -> tuple[CropBatch, pd.DataFrame]:
+    """The exact-flow crops of one stored split with their boxes and still-world flow."""
+    x, df = read_crops(crops_dir, split)
+    still, _, cdf = read_context(ctx_dir, split, "boxes") if ctx_dir is not None else (None, None, df)
+    if not df["ann_token"].reset_index(drop=True).equals(cdf["ann_token"].reset_index(drop=True)):
+        raise ValueError(f"{split} split: the exact-flow crops and chapter 10's context crops "
+                         "hold other objects; rebuild the context stage")
+    return crop_batch(x, df[list(BOX_COLUMNS)].to_numpy(np.float64), scale, still), df
+
+
+def degraded_reader(q: Any, crops_dir: Any, ctx_dir: Any, kind: str, target: int,
+                    level: float) -> SplitReader:
+    """A :data:`flowmod.crops.SplitReader` of the exact-flow crops with ``kind`` at ``level``
+    (the exact arm: unchanged), each split drawn from its own generator (:func:`_split_rng`)."""
+    def read(split: str) -> tuple[list[Any], pd.DataFrame]:
+        batch, df = _batch(crops_dir, ctx_dir if kind == "pull" else None, split, q.crop_scale)
+        if kind == EXACT:
+            return [batch.flow], df
+        return [degrade(kind, batch, level, _split_rng(q.seed, kind, target, split))], df
+    return read
+
+
+def _level(b: dag.Build, kind: str, target: int) -> float:
+    """The level of ``kind`` at target ``target`` that the ``elevels`` node matched."""
+    if kind == EXACT:
+        return 0.0
+    rec = json.loads((b.input_dir(dag.Node("elevels", "gt", kind)) / "levels.json").read_text())
+    return float(rec["levels"][target])
+
+
+def build_elevels(b: dag.Build, progress: bool) -> dict[str, Any]:
+    """Build one ``elevels[gt/<kind>]`` node: the kind's level at each target error
+    (``levels.json``), matched on ``error_calibration`` objects drawn with the seed from
+    every scored row; a target out of the kind's reach takes its largest level
+    (``reached`` False)."""
+    q, kind = b.params, str(b.node.part)
+    crops_dir = b.input_dir(dag.Node("crops", "gt", "keyframe"))
+    ctx = b.input_dir(dag.Node("context", None, "keyframe")) if kind == "pull" else None
+    [x], df = scored_rows(crops_reader(crops_dir), q.folds)
+    still = None
+    if ctx is not None:
+        [still], cdf = scored_rows(lambda s: ([read_context(ctx, s, "boxes")[0]],
+                                              read_context(ctx, s, "boxes")[2]), q.folds)
+    pick = np.sort(np.random.default_rng(q.seed).choice(
+        len(df), min(q.error_calibration, len(df)), replace=False))
+    batch = crop_batch(np.asarray(x)[pick], df[list(BOX_COLUMNS)].to_numpy(np.float64)[pick],
+                       q.crop_scale, None if still is None else np.asarray(still)[pick])
+    found = match_levels(batch, q.error_targets, [kind], seed=q.seed)[kind]
+    levels = [float(v) if np.isfinite(v) else KINDS[kind].hi for v in found]
+    write_json(b.start(fresh=True) / "levels.json",
+               {"kind": kind, "unit": KINDS[kind].level, "targets": list(q.error_targets),
+                "levels": levels, "reached": [bool(np.isfinite(v)) for v in found],
+                "realised": [realised_error(kind, batch, v, q.seed) for v in levels],
+                "objects": len(pick)})
+    return {"objects": len(pick), "levels": levels}
+
+
+def build_etrain(b: dag.Build, progress: bool) -> dict[str, Any]:
+    """Build one ``etrain[gt/<arm>/<part>]`` node: the classifier (Table 2, epoch chosen on
+    validation) trained on the exact flow degraded by the arm's kind at its level."""
+    q = b.params
+    key, _, part = str(b.node.part).rpartition("/")
+    kind, target = parse_arm(key)
+    level = _level(b, kind, target)
+    ctx = b.input_dir(dag.Node("context", None, "keyframe")) if kind == "pull" else None
+    read = degraded_reader(q, b.input_dir(dag.Node("crops", "gt", "keyframe")), ctx, kind,
+                           target, level)
+    fold = part_index(part)
+    train, val = (gather_fold(read, q.folds, fold, role) for role in ("train", "val"))
+    info = train_seed(b, (train[0][0], train[1]), (val[0][0], val[1]), progress,
+                      f"exact flow, {key}", width=q.error_width)
+    return {**info, "kind": kind, "level": level}
+
+
+def build_eevaluate(b: dag.Build, progress: bool) -> dict[str, Any]:
+    """Build one ``eevaluate[gt/<arm>]`` node: the arm's models on their folds' test rows
+    (``test.parquet``: ``prob`` by each row's fold) and the realised end-point error of
+    each scored object in its box and ring (``errors.parquet``: ``epe_box``, ``epe_ring``,
+    px) against the exact flow."""
+    q = b.params
+    kind, target = parse_arm(str(b.node.part))
+    level = _level(b, kind, target)
+    crops_dir = b.input_dir(dag.Node("crops", "gt", "keyframe"))
+    ctx = b.input_dir(dag.Node("context", None, "keyframe")) if kind == "pull" else None
+    read = degraded_reader(q, crops_dir, ctx, kind, target, level)
+    clean = degraded_reader(q, crops_dir, None, EXACT, 0, 0.0)
+    folds = range(len(error_parts(q)))
+    got = [gather_fold(read, q.folds, k, "test") for k in folds]
+    x = np.concatenate([np.asarray(a[0]) for a, _ in got])
+    df = pd.concat([d for _, d in got], ignore_index=True)
+    x0 = np.concatenate([np.asarray(gather_fold(clean, q.folds, k, "test")[0][0]) for k in folds])
+    box = box_masks(df[list(BOX_COLUMNS)].to_numpy(np.float64), x.shape[-1], q.crop_scale)
+    e = endpoint_errors(x, x0, box)
+    predict_splits(b, "etrain", f"gt/{b.node.part}", {"test": (x, df)})
+    errors = df[["ann_token", "fold"]].assign(epe_box=e["box"], epe_ring=e["ring"])
+    write_frames(b.dir, {"errors": errors}, {"arm": {"kind": kind, "target": target,
+                                                     "level": level}})
+    return {"n": len(df), "kind": kind, "level": level}
+
+
+def _needs(kind: str) -> tuple[dag.Node, ...]:
+    """What an arm's nodes read: the exact-flow crops, the still-world flow (the pull) and
+    the kind's levels (not the exact arm)."""
+    return (dag.Node("crops", "gt", "keyframe"),
+            *((dag.Node("context", None, "keyframe"),) if kind == "pull" else ()),
+            *((dag.Node("elevels", "gt", kind),) if kind != EXACT else ()))
+
+
+#: Chapter 14: each kind's level at each target error, matched on the exact flow's crops.
+ELEVELS = dag.Stage(
+    "elevels", 1, "13", "flowerrors/levels/{part}", "a kind of error's level at each target",
+    nodes=lambda p: [dag.Node("elevels", "gt", k) for k in p.error_kinds if arms(p)],
+    inputs=lambda n, p: _needs(str(n.part))[:-1],
+    build=build_elevels)
+#: Chapter 14: one classifier per arm and fold, trained on the degraded exact flow.
+ETRAIN = dag.Stage(
+    "etrain", 1, "13", "flowerrors/models/{key}", "a classifier on degraded exact flow",
+    nodes=lambda p: [dag.Node("etrain", "gt", f"{arm_key(*a)}/{k}") for a in arms(p)
+                     for k in error_parts(p)],
+    inputs=lambda n, p: _needs(parse_arm(str(n.part).rpartition("/")[0])[0]),
+    build=build_etrain)
+#: Chapter 14: an arm's models on their test rows, with the realised errors.
+EEVALUATE = dag.Stage(
+    "eevaluate", 1, "13", "flowerrors/metrics/{key}", "its predictions and realised errors",
+    nodes=lambda p: [dag.Node("eevaluate", "gt", arm_key(*a)) for a in arms(p)],
+    inputs=lambda n, p: (*(dag.Node("etrain", "gt", f"{n.part}/{k}") for k in error_parts(p)),
+                         *_needs(parse_arm(str(n.part))[0])),
+    build=build_eevaluate)
