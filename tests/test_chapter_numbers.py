@@ -27,7 +27,7 @@ from flowmod.chapters import ch07_evaluation as ch07
 from flowmod.chapters import ch10_inputs as ch10
 from flowmod.chapters import ch11_all_distances as ch11
 from flowmod.chapters import ch12_self_trained_flow as ch12
-from flowmod.chapters import ch13_answers as ch13
+from flowmod.chapters import ch14_answers as ch13
 from flowmod.dag import Node
 from flowmod.evaluate import score, write_frames
 from flowmod.extensions.inputs import chains
@@ -132,7 +132,7 @@ def _in_range(p: Params, df: pd.DataFrame, split: str) -> pd.DataFrame:
 
 def _assert_effects(got: pd.DataFrame, pairs: dict[str, tuple[pd.DataFrame, pd.DataFrame]]
                     ) -> None:
-    """``got`` (a comparison table, or chapter 13's effects) has one row per name of
+    """``got`` (a comparison table, or chapter 14's effects) has one row per name of
     ``pairs``, in order, each effect the F1 of A minus the F1 of B (points, to the 0.1
     shown) of the pair's two tables."""
     assert got["comparison"].tolist() == list(pairs)
@@ -333,7 +333,7 @@ def test_chapter06_calls_a_step_decided_only_when_its_interval_excludes_0():
 def test_a_paired_verdict_decides_only_when_its_interval_excludes_0():
     """The paired comparisons' verdict (chapters 07, 10-13) on the same intervals: A or B
     better by the interval's side of 0, undecided when it holds 0; chapter 07's words and
-    chapter 13's count follow it."""
+    chapter 14's count follow it."""
     want = {(0.4, 2.0): "A better", (-2.0, -0.4): "B better"}
     row = {"detectable": 0.02, "per_seed": [0.0], "p_not_better": 0.5, "n_scenes": 29,
            "n": 90}
@@ -354,7 +354,7 @@ def test_a_paired_verdict_decides_only_when_its_interval_excludes_0():
 
 
 def test_the_landing_page_names_its_build_and_says_when_intervals_are_wide():
-    """Chapter 13's scope sentence: the profile, the test scenes (the most any effect
+    """Chapter 14's scope sentence: the profile, the test scenes (the most any effect
     counts) and the seeds; the warning only below 60 scenes or 3 seeds."""
     eff = pd.DataFrame({"scenes": [31, 26]})
     few = ch13.scope_words(load_profile("classroom"), eff)

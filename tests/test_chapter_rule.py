@@ -109,7 +109,7 @@ def test_a_notebook_imports_its_own_backend_and_no_other(nb):
     assert own[0] in imported, f"{nb.name} never imports its backend {own[0]}"
     others = sorted(imported - {own[0]})
     assert not others, (f"{nb.name} imports other chapters' backends {others}: what it needs "
-                        f"of them goes through {own[0]} (ch13_answers's backend gathers the "
+                        f"of them goes through {own[0]} (ch14_answers's backend gathers the "
                         "others; its notebook does not)")
 
 
@@ -134,5 +134,5 @@ def test_the_rule_s_readers_see_what_they_should():
         (7, 14)]
     tree = ast.parse("from flowmod.chapters import ch03_flow as ch, common\n"
                      "from flowmod.chapters.ch08_generalisation import table4\n"
-                     "import flowmod.chapters.ch13_answers\nfrom flowmod import chapters\n")
-    assert backends_imported(tree) == {"ch03_flow", "ch08_generalisation", "ch13_answers"}
+                     "import flowmod.chapters.ch14_answers\nfrom flowmod import chapters\n")
+    assert backends_imported(tree) == {"ch03_flow", "ch08_generalisation", "ch14_answers"}

@@ -280,3 +280,77 @@ def test_each_split_draws_its_own_error_and_the_same_one_in_every_node() -> None
     for other in [(1, "noise", 1, "f0"), (0, "ring", 1, "f0"), (0, "noise", 2, "f0"),
                   (0, "noise", 1, "f1")]:
         assert not np.array_equal(a, fe._split_rng(*other).standard_normal(5))
+
+
+# --- chapter 13's reading of the real methods' errors --------------------------------------
+
+
+def test_the_error_profile_names_what_each_kind_makes(batch: fe.CropBatch) -> None:
+    from flowmod.chapters.ch13_flow_errors import error_profile
+
+    exact, still, box = batch.flow, batch.still, batch.box
+    clean = error_profile(exact, exact, still, box)
+    assert np.allclose(clean[["epe_box", "epe_ring", "scatter", "bias", "lost"]], 0.0)
+    noisy = error_profile(fe.white_noise(exact, 1.0, 3), exact, still, box)
+    assert noisy["scatter"].mean() == pytest.approx(RAYLEIGH_MEAN, rel=0.05)
+    assert noisy["bias"].mean() < 0.25
+    pulled = error_profile(fe.pull_to_still(exact, still, 0.5, box), exact, still, box)
+    movers = clean["motion"].to_numpy() >= 0.25
+    assert np.allclose(pulled["lost"][movers], 0.5 * clean["motion"][movers], rtol=1e-4)
+    assert np.allclose(pulled["lost"][~movers], 0.0)
+    assert pulled["scatter"].mean() < 0.5 * pulled["lost"][movers].mean()
+    scaled = error_profile(fe.scale_error(exact, 0.1), exact, still, box)
+    box_mean = (exact * box[:, None]).sum((2, 3)) / box.sum((1, 2))[:, None]
+    assert np.allclose(scaled["bias"], 0.1 * np.linalg.norm(box_mean, axis=1), rtol=1e-4)
+    ring = error_profile(fe.ring_noise(exact, 1.0, box, 3), exact, still, box)
+    assert np.allclose(ring["epe_box"], 0.0) and ring["epe_ring"].mean() > 1.0
+
+
+def test_the_cost_per_px_is_the_slope_through_the_origin() -> None:
+    from flowmod.chapters.ch13_flow_errors import slope_through_origin
+
+    err = np.array([0.5, 1.0, 2.0])
+    reps = np.stack([3.0 * err + d for d in (-0.5, 0.0, 0.5)], axis=1)
+    slope, lo, hi = slope_through_origin(err, 3.0 * err, np.repeat(reps, 40, axis=1))
+    assert slope == pytest.approx(3.0)
+    assert lo < 3.0 < hi and hi - lo == pytest.approx(2 * 0.5 * err.sum() / (err @ err), rel=0.05)
+    assert np.isnan(slope_through_origin(err, err, np.full((3, 4), np.nan))[1])
+
+
+def test_a_profile_is_priced_by_the_kinds_that_make_its_parts() -> None:
+    from flowmod.chapters.ch13_flow_errors import predictions
+
+    prof = pd.DataFrame({"method": ["a", "b"], "epe_box": [1.0, 2.0], "epe_ring": [1.0, 0.0],
+                         "scatter": [0.5, 1.0], "bias": [0.2, 0.0], "lost": [0.1, 0.3],
+                         "measured": [1.0, 2.0], "measured_lo": [0.0, 1.0],
+                         "measured_hi": [2.0, 3.0]})
+    cost = pd.DataFrame({"kind": ["noise", "pull", "scale", "ring"],
+                         "F1 points lost per px": [2.0, 10.0, 1.0, 0.5]})
+    pred = predictions(prof, cost)
+    assert pred["by end-point error"].tolist() == [2.0, 4.0]
+    assert pred["by profile"].tolist() == pytest.approx([1.0 + 1.0 + 0.2 + 0.5, 2.0 + 3.0])
+    assert pred["measured"].tolist() == [1.0, 2.0]
+    half = predictions(prof, cost[cost["kind"] != "ring"])
+    assert half["by profile"].isna().all()
+
+
+def test_orderings_count_the_pairs_they_get_right() -> None:
+    from flowmod.chapters.ch13_flow_errors import _pairs_agree
+
+    assert _pairs_agree(np.array([1, 2, 3.0]), np.array([10, 20, 30.0])) == (3, 3)
+    assert _pairs_agree(np.array([3, 2, 1.0]), np.array([10, 20, 30.0])) == (0, 3)
+    assert _pairs_agree(np.array([1, 3, 2.0]), np.array([10, 20, 30.0])) == (2, 3)
+
+
+def test_the_answer_names_the_dearest_and_the_cheapest_kind() -> None:
+    from flowmod.chapters.ch13_flow_errors import answer
+
+    cost = pd.DataFrame({"kind": ["pull", "noise"], "F1 points lost per px": [9.0, 1.0],
+                         "95% CI": ["7.0 to 11.0", "0.5 to 1.5"], "ci_lo": [7.0, 0.5],
+                         "ci_hi": [11.0, 1.5]})
+    words = answer(cost)
+    assert words.index("pulled toward") < words.index("white noise")
+    assert "intervals apart" in words
+    overlap = answer(cost.assign(ci_lo=[1.0, 0.5]))
+    assert "overlap" in overlap and "intervals apart" not in overlap
+    assert "too few" in answer(cost.iloc[:1])

@@ -251,11 +251,11 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
     assert len(errors) == p.selfflow_eval_pairs
     for name in ("selfflow_training.png", "pretrain_curves.png", "shipped_example.png"):
         assert (smoke_run["base"] / "runs" / "figures" / name).stat().st_size > 5000
-    # chapter 13: every paired effect of chapters 07, 10 and 11 once, and their forest plot
+    # chapter 14: every paired effect of chapters 07, 10 and 11 once, and their forest plot
     from flowmod.chapters import ch07_evaluation as ch07
-    from flowmod.chapters import ch13_answers as ch13
+    from flowmod.chapters import ch14_answers as ch13
 
-    g13 = glue_of(smoke_run, "13_answers")
+    g13 = glue_of(smoke_run, "14_answers")
     eff = ch13.effects(p)
     assert g13["n_effects"] == len(eff) == (len(ch07.comparisons(p)) + len(
         ch10.comparisons(p, "test", ch10.rows(p))) + len(ch11.comparisons(p, ["dis"], "general")))
@@ -264,6 +264,37 @@ def test_evaluation_and_generalisation_recorded(smoke_run):
     assert g13["n_equivalent"] == int((eff["verdict"] == "equivalent").sum())
     assert g13["smallest_effect"] == 2.0
     assert (smoke_run["base"] / "runs" / "figures" / "answers_forest.png").stat().st_size > 5000
+
+
+def test_flow_errors_recorded(smoke_run):
+    """Chapter 13: every arm built; each effect is the arm's F1 minus the exact arm's,
+    recomputed from the two prediction tables; each kind realises its target where it is
+    measured (the ring leaves the box exact); the glued answer is the costs' sentence."""
+    from flowmod.chapters import ch13_flow_errors as ch
+    from flowmod.extensions import flowerrors as fe
+    from flowmod.metrics import metrics
+
+    p = smoke_params(smoke_run)
+    g = glue_of(smoke_run, "13_flow_errors")
+    done = ch.built(p)
+    assert done == [fe.arm_key(*a) for a in fe.arms(p)] and len(done) == 4
+    eff = ch.effects(p, done)
+    ref = ch.arm_predictions(p, fe.EXACT)
+    for _, r in eff.iterrows():
+        d = ch.arm_predictions(p, fe.arm_key(r["kind"], r["target"]))
+        assert d["ann_token"].equals(ref["ann_token"])
+        f1 = metrics(d["label"], d["prob"])["f1"] - metrics(ref["label"], ref["prob"])["f1"]
+        assert r["delta"] == pytest.approx(100 * f1)
+        assert r["error (px)"] == pytest.approx(p.error_targets[r["target"]], rel=0.35)
+    ring = ch.arm_predictions(p, "ring/0")
+    assert ring["epe_box"].max() == 0.0 and ring["epe_ring"].mean() > 0.5
+    assert g["flowerrors_answer"] == ch.answer(ch.costs(p, eff))
+    from flowmod import pipeline
+    from flowmod.dag import Node
+
+    model = pipeline.recorded(p, Node("etrain", "gt", "exact/f0"))
+    assert model["width"] == (p.error_width or p.model_width) and model["kind"] == fe.EXACT
+    assert (smoke_run["base"] / "runs" / "figures" / "flow_error_curves.png").stat().st_size > 5000
 
 
 def test_book_builds_offline_with_warnings_as_errors(smoke_run, tmp_path):
@@ -275,7 +306,7 @@ def test_book_builds_offline_with_warnings_as_errors(smoke_run, tmp_path):
         assert f"{nb.stem}.html" in pages
     assert "reproduce.html" in pages
     assert "<video" in (out / "08_generalisation.html").read_text(), "the scene video is shown"
-    # the landing page opens with chapter 13's table and forest plot, pasted from it
+    # the landing page opens with chapter 14's table and forest plot, pasted from it
     landing = (out / "index.html").read_text()
     assert "answer (ΔF1 points, 95 % interval over scenes and seeds)" in landing
     assert re.search(r'<img[^>]+src="[^"]+\.png"', landing), "the forest plot is on the page"

@@ -166,10 +166,10 @@ def test_the_landing_page_quotes_decided_comparisons_as_decided():
 
 
 def test_the_answers_page_gathers_each_chapters_rows_and_draws_them_all(monkeypatch, tmp_path):
-    """Chapter 13 (the landing page's table and forest plot): every row of chapters 07, 10
+    """Chapter 14 (the landing page's table and forest plot): every row of chapters 07, 10
     and 11's comparison tables once, with its interval as numbers; one answer per question,
     counting only the decided rows as decided; a chapter not built contributes nothing."""
-    from flowmod.chapters import ch13_answers as ch13
+    from flowmod.chapters import ch14_answers as ch13
     from flowmod.params import load_profile
     from flowmod.report import viz
 
@@ -318,7 +318,7 @@ def test_three_verdicts_in_the_chapters_tables_words_and_forest():
     (inside +/- the smallest effect that matters, 2 points) or inconclusive; the chapters'
     tables, their words, the landing page's count and the forest plot say which."""
     from flowmod.chapters import ch07_evaluation as ch07
-    from flowmod.chapters import ch13_answers as ch13
+    from flowmod.chapters import ch14_answers as ch13
     from flowmod.chapters.common import SMALLEST_EFFECT, comparison_table
     from flowmod.report import viz
 
@@ -355,10 +355,10 @@ def test_three_verdicts_in_the_chapters_tables_words_and_forest():
 
 def test_an_interval_without_an_arms_training_noise_is_labelled_scenes_only():
     """Issue 50 item 2: a comparison whose trained arm has one model a fold carries no
-    training noise in its interval: its table row, chapter 13's line and the forest plot
+    training noise in its interval: its table row, chapter 14's line and the forest plot
     (a dashed bar) say "scenes only"; the oracle rule trains nothing, so its one model
     does not count."""
-    from flowmod.chapters import ch13_answers as ch13
+    from flowmod.chapters import ch14_answers as ch13
     from flowmod.chapters.common import comparison_table
     from flowmod.report import viz
 

@@ -494,7 +494,7 @@ def cell_roc(scores: dict[str, np.ndarray], labels: np.ndarray, cell: np.ndarray
 
 
 def forest(effects: pd.DataFrame, delta: float | None = None) -> plt.Figure:
-    """Every paired effect of the book (rows of :func:`flowmod.chapters.ch13_answers.effects`:
+    """Every paired effect of the book (rows of :func:`flowmod.chapters.ch14_answers.effects`:
     chapter, comparison, ``ΔF1 (points)``, ``low``, ``high``, verdict) as a point with its
     95 % interval over scenes and training seeds; filled where the interval excludes 0
     (decided: ``A better``, ``B better``), a hollow square where it is ``equivalent``, a
@@ -526,6 +526,38 @@ def forest(effects: pd.DataFrame, delta: float | None = None) -> plt.Figure:
                   "filled: decided" + ("; square: equivalent (shaded band)" if delta else "")
                   + ("; dashed: scenes only" if counts is not None else ""),
                   fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def error_curves(effects: pd.DataFrame, words: dict[str, str],
+                 methods: pd.DataFrame | None = None) -> plt.Figure:
+    """Chapter 14: ΔF1 (points, degraded arm minus the exact-flow arm) against the realised
+    end-point error (px, ``error (px)``: in the box; the ring kind's around it), one line
+    per kind (``kind``, named by ``words``) with 95 % interval bars (``ci_lo``, ``ci_hi``);
+    ``methods`` (``method``, ``epe_box``, ``measured`` = exact minus method, with
+    ``measured_lo``, ``measured_hi``): the real methods' Table 3 differences at their box
+    end-point errors, as black diamonds."""
+    fig, ax = plt.subplots(figsize=(7.5, 4.2))
+    for i, (kind, g) in enumerate(effects.groupby("kind", sort=False)):
+        x = np.r_[0.0, g["error (px)"].to_numpy(float)]
+        d = np.r_[0.0, g["ΔF1 (points)"].to_numpy(float)]
+        lo = np.r_[0.0, g["ci_lo"].to_numpy(float)]
+        hi = np.r_[0.0, g["ci_hi"].to_numpy(float)]
+        ax.errorbar(x + 0.012 * (i - 2.5), d, yerr=[d - lo, hi - d], marker="o", ms=4,
+                    capsize=2, color=f"C{i}", label=words.get(kind, kind))
+    if methods is not None and len(methods):
+        m = methods
+        ax.errorbar(m["epe_box"], -m["measured"], yerr=[m["measured_hi"] - m["measured"],
+                                                       m["measured"] - m["measured_lo"]],
+                    fmt="D", color="k", ms=5, capsize=2, label="real methods (Table 3)")
+        for _, r in m.iterrows():
+            ax.annotate(r["method"], (r["epe_box"], -r["measured"]), fontsize=7,
+                        xytext=(4, -10), textcoords="offset points")
+    ax.axhline(0.0, color="0.4", lw=0.8, ls="--")
+    ax.set_xlabel("realised mean end-point error (px; in the box, the ring kind around it)")
+    ax.set_ylabel("ΔF1 against the exact flow (points)")
+    ax.legend(fontsize=7, loc="lower left")
     fig.tight_layout()
     return fig
 

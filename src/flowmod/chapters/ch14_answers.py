@@ -1,4 +1,4 @@
-"""Chapter 13, the book's answers at a glance: every paired effect the chapters report on
+"""Chapter 14, the book's answers at a glance: every paired effect the chapters report on
 the test scenes or Table 4's set, one row each with its interval over scenes and training
 seeds and whether it decides (the landing page shows the table and its forest plot).
 
