@@ -349,8 +349,11 @@ def test_a_paired_verdict_decides_only_when_its_interval_excludes_0():
     eff = pd.DataFrame({"chapter": "07", "question": "q", "comparison": table["comparison"],
                         "ΔF1 (points)": table["ΔF1 (points)"], "verdict": table["verdict"],
                         "95% CI, scenes and seeds (points)": table[
-                            "95% CI, scenes and seeds (points)"], "Holm, all effects": "decided"})
-    assert ch13.answers(eff)["decided"].tolist() == [f"2 of {len(INTERVALS)}"]
+                            "95% CI, scenes and seeds (points)"], "Holm, all effects": "decided",
+                        "low": [lo for (lo, _), _ in INTERVALS],
+                        "high": [hi for (_, hi), _ in INTERVALS]})
+    assert (ch13.answers(eff)["verdict"] == "decided").sum() == 2
+    assert f"2 of {len(INTERVALS)} comparisons decided" in ch13.question_words(eff)["answer_07"]
 
 
 def test_the_landing_page_names_its_build_and_says_when_intervals_are_wide():

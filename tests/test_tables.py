@@ -192,11 +192,18 @@ def test_the_answers_page_gathers_each_chapters_rows_and_draws_them_all(monkeypa
     # p two-sided from the replicates' share (0 here): every effect decided after Holm too
     assert eff["p (two-sided)"].tolist() == [0.0, 0.0, 0.0]
     assert eff["Holm, all effects"].tolist() == ["decided"] * 3
-    table = ch13.answers(eff)
-    assert table["decided"].tolist() == ["1 of 2", "1 of 1"]
-    assert table["chapter"].tolist() == ["07", "11"]
-    assert table.iloc[0, 1] == ("gt - dis: +2.2 (0.2 to 4.4), decided<br>dis: classifier - "
-                                "oracle rule: +2.1 (-0.9 to 5.0)")  # one line per effect
+    table = ch13.answers(eff)  # one row per effect
+    assert table["chapter"].tolist() == ["07", "07", "11"]
+    assert table["ΔF1, 95 % interval (points)"].tolist() == [
+        "+2.2 (0.2 to 4.4)", "+2.1 (-0.9 to 5.0)", "-5.0 (-8.0 to -1.0)"]
+    assert table["verdict"].tolist() == ["decided", "inconclusive", "decided"]
+    assert (table.map(len) <= 300).all().all()
+    words = ch13.question_words(eff)
+    assert words["answer_07"].endswith(
+        "1 of 2 comparisons decided: gt over dis by 2.2 points (0.2 to 4.4). Equivalent: 0; "
+        "inconclusive: 1.")
+    assert "30-70 m over dis: all distances by 5.0 points" in words["answer_11"]
+    assert words["answer_10"].endswith("Not built in this run.")
     fig = viz.forest(eff)
     ax = fig.axes[0]
     assert [t.get_text() for t in ax.get_yticklabels()] == [
@@ -343,10 +350,12 @@ def test_three_verdicts_in_the_chapters_tables_words_and_forest():
                         "Holm, all effects": ["decided", "not decided", "not decided",
                                               "not decided"]})
     ans = ch13.answers(eff)
-    assert ans["Holm, all effects"].tolist() == ["1"]
-    assert ans["decided"].tolist() == ["2 of 4"]
-    lines = ans.iloc[0, 1].split("<br>")
-    assert [ln.rsplit(")", 1)[1] for ln in lines] == [", decided", ", equivalent", "", ", decided"]
+    assert ans["Holm"].tolist() == ["decided", "not decided", "not decided", "not decided"]
+    assert ans["verdict"].tolist() == ["decided", "equivalent", "inconclusive", "decided"]
+    assert "2 of 4 comparisons decided" in ch13.question_words(eff)["answer_07"]
+    assert ch13.question_words(eff)["answer_07"].endswith(
+        "decided: a over b by 3.0 points (1.0 to 5.0); h over g by 3.0 points (0.1 to 5.0). "
+        "Equivalent: 1; inconclusive: 1.")
     ax = viz.forest(eff, SMALLEST_EFFECT).axes[0]
     marks = [(ln.get_marker(), ln.get_markerfacecolor() == "white") for ln in ax.get_lines()
              if ln.get_marker() in ("o", "s")]
@@ -379,7 +388,7 @@ def test_an_interval_without_an_arms_training_noise_is_labelled_scenes_only():
                         "95% CI, scenes and seeds (points)": table[
                             "95% CI, scenes and seeds (points)"],
                         "Holm, all effects": "decided"})
-    lines = ch13.answers(eff).iloc[0, 1].split("<br>")
+    lines = ch13.answers(eff)["ΔF1, 95 % interval (points)"]
     assert [ln.endswith("[scenes only]") for ln in lines] == [False, True, False, True]
     ax = viz.forest(eff).axes[0]
     styles = [c.get_linestyle()[0][1] is not None for c in ax.collections]  # dashed: a pattern

@@ -14,7 +14,7 @@ from flowmod.chapters import ch07_evaluation as ch07
 from flowmod.chapters import ch10_inputs as ch10
 from flowmod.chapters import ch11_all_distances as ch11
 from flowmod.chapters import common
-from flowmod.chapters.common import decided, verdict_words
+from flowmod.chapters.common import decided
 from flowmod.params import Params
 
 #: The smallest effect that matters (F1 points), as every chapter's verdicts use it.
@@ -91,25 +91,57 @@ def holm(p: np.ndarray, alpha: float = HOLM_ALPHA) -> np.ndarray:
     return reject
 
 
+#: Each question in a few words (the landing page's table, one row per effect).
+SHORT = {"07": "Which flow? (Table 3)", "10": "Other inputs?", "11": "All distances?"}
+
+
 def answers(eff: pd.DataFrame) -> pd.DataFrame:
-    """The landing page's table: one row per question, its effects in words, one line each
-    (``name: +1.2 (-0.5 to 2.9), decided``, joined by HTML line breaks), the share decided,
-    how many stay decided after Holm's correction over all the book's effects, the
-    chapter."""
-    out = []
-    for chapter, g in eff.groupby("chapter", sort=True):
-        parts = [f"{r['comparison']}: {r['ΔF1 (points)']:+.1f} "
-                 f"({r['95% CI, scenes and seeds (points)']})"
-                 + verdict_words(r["verdict"])
-                 + (" [scenes only]" if r.get("interval counts") == common.COUNTS_SCENES
-                    else "")
-                 for _, r in g.iterrows()]
-        out.append({"question": g["question"].iloc[0],
-                    "answer (ΔF1 points, 95 % interval over scenes and seeds)": "<br>".join(parts),
-                    "decided": f"{int(g['verdict'].map(decided).sum())} of {len(g)}",
-                    "Holm, all effects": f"{int((g['Holm, all effects'] == 'decided').sum())}",
-                    "chapter": chapter})
-    return pd.DataFrame(out)
+    """The landing page's table: one row per effect, in the chapters' order: the question
+    in a few words (:data:`SHORT`), the comparison, its difference with its interval
+    (``[scenes only]`` where an arm was trained once a fold), the verdict, whether it
+    survives Holm's correction over all the book's effects, the chapter."""
+    rows = []
+    for _, r in eff.iterrows():
+        rows.append({
+            "question": SHORT.get(r["chapter"], r["question"]),
+            "comparison (A - B)": r["comparison"],
+            "ΔF1, 95 % interval (points)": f"{r['ΔF1 (points)']:+.1f} "
+            f"({r['95% CI, scenes and seeds (points)']})"
+            + (" [scenes only]" if r.get("interval counts") == common.COUNTS_SCENES else ""),
+            "verdict": "decided" if decided(r["verdict"]) else (
+                "equivalent" if r["verdict"] == "equivalent" else "inconclusive"),
+            "Holm": r["Holm, all effects"], "chapter": r["chapter"]})
+    return pd.DataFrame(rows)
+
+
+def _winner(r: pd.Series) -> str:
+    """A decided effect ``A - B`` (an :func:`effects` row) in words, the winner first:
+    ``A over B by 2.2 points (0.2 to 4.4)``, the interval turned with it."""
+    a, _, b = r["comparison"].partition(" - ")
+    d, lo, hi = r["ΔF1 (points)"], r["low"], r["high"]
+    if d < 0:
+        a, b, d, lo, hi = b, a, -d, -hi, -lo
+    return f"{a} over {b} by {d:.1f} points ({lo:.1f} to {hi:.1f})"
+
+
+def question_words(eff: pd.DataFrame) -> dict[str, str]:
+    """One sentence per question of :data:`QUESTIONS` (``answer_<chapter>``): how many of
+    its effects are decided, each decided one as ``A over B`` with its difference and
+    interval, how many are equivalent and inconclusive; a chapter not built says so."""
+    out = {}
+    for chapter, question in QUESTIONS.items():
+        g = eff[eff["chapter"] == chapter]
+        if g.empty:
+            out[f"answer_{chapter}"] = f"{question} Not built in this run."
+            continue
+        dec = g[g["verdict"].map(decided)]
+        wins = [_winner(r) for _, r in dec.iterrows()]
+        n_eq = int((g["verdict"] == "equivalent").sum())
+        words = (f"{question} {len(dec)} of {len(g)} comparisons decided"
+                 + (": " + "; ".join(wins) if wins else "")
+                 + f". Equivalent: {n_eq}; inconclusive: {len(g) - len(dec) - n_eq}.")
+        out[f"answer_{chapter}"] = words
+    return out
 
 
 #: Fewer test scenes than this, or fewer training seeds a fold than :data:`FEW_SEEDS`, and the
