@@ -241,7 +241,7 @@ def test_the_experiment_plans_an_exact_arm_and_each_kind_at_each_target() -> Non
     assert arms[0] == (fe.EXACT, 0)
     assert len(arms) == 1 + len(p.error_kinds) * len(p.error_targets)
     keys = [fe.arm_key(*a) for a in arms]
-    assert len(set(keys)) == len(keys) and all(fe.parse_arm(k) == a for k, a in zip(keys, arms))
+    assert len(set(keys)) == len(keys) and all(fe.parse_arm(k) == a for k, a in zip(keys, arms, strict=True))
     train = [n for n in pipeline.nodes(p) if n.stage == "etrain"]
     assert len(train) == len(arms) * p.error_folds
     reads = {str(n): {str(i) for i in pipeline.inputs(n, p)} for n in train}
@@ -342,15 +342,21 @@ def test_orderings_count_the_pairs_they_get_right() -> None:
     assert _pairs_agree(np.array([1, 3, 2.0]), np.array([10, 20, 30.0])) == (2, 3)
 
 
-def test_the_answer_names_the_dearest_and_the_cheapest_kind() -> None:
+def test_the_answer_names_the_kinds_that_cost_and_says_the_others_do_not() -> None:
     from flowmod.chapters.ch13_flow_errors import answer
 
-    cost = pd.DataFrame({"kind": ["pull", "noise"], "F1 points lost per px": [9.0, 1.0],
-                         "95% CI": ["7.0 to 11.0", "0.5 to 1.5"], "ci_lo": [7.0, 0.5],
-                         "ci_hi": [11.0, 1.5]})
+    cost = pd.DataFrame({"kind": ["pull", "ring", "noise"],
+                         "F1 points lost per px": [9.0, 1.0, -0.5],
+                         "95% CI": ["7.0 to 11.0", "-0.5 to 2.5", "-2.0 to 1.0"],
+                         "ci_lo": [7.0, -0.5, -2.0], "ci_hi": [11.0, 2.5, 1.0]})
     words = answer(cost)
-    assert words.index("pulled toward") < words.index("white noise")
-    assert "intervals apart" in words
-    overlap = answer(cost.assign(ci_lo=[1.0, 0.5]))
-    assert "overlap" in overlap and "intervals apart" not in overlap
-    assert "too few" in answer(cost.iloc[:1])
+    assert words.startswith("Per pixel of end-point error, only movers' motion pulled toward "
+                            "the still world (9.0, 7.0 to 11.0) costs")
+    assert "the other 2 kinds (white noise around the box only, white noise in the box)" in words
+    assert "(from -2.0 to 2.5)" in words and "erases a vehicle's own motion" in words
+    both = answer(cost.assign(ci_lo=[7.0, 0.5, -2.0]))
+    assert "; white noise around the box only (1.0, -0.5 to 2.5) costs" in both
+    assert "its kind, not its size" in both and "the other 1 kinds" in both
+    none = answer(cost.assign(ci_lo=[-1.0, -0.5, -2.0]))
+    assert none.startswith("No kind of error costs") and "between -2.0 and 11.0" in none
+    assert "Too few" in answer(cost.iloc[:1])
