@@ -252,13 +252,14 @@ def test_a_chapter_that_shows_what_is_built_reruns_when_more_is_built(smoke_buil
 
 def test_chapter10_tags_every_input_whose_static_world_reads_annotated_boxes():
     """Where an input's static-world flow takes its depth from the annotated 3D boxes the
-    table row says oracle; the deployed one says what a car has; inputs without it no tag."""
+    table row says oracle; the deployed one says what it idealises; inputs with images say
+    their recipe is the raw flow's, untuned for them; the raw flow no tag."""
     assert ch10.input_label("residual") == "residual [oracle: annotated-box depth]"
     assert ch10.input_label("flow+static") == "flow+static [oracle: annotated-box depth]"
-    assert ch10.input_label("residual-deployed") == ("residual-deployed [as a car could "
-                                                     "compute it]")
+    assert ch10.input_label("residual-deployed") == (
+        "residual-deployed [idealised: exact poses, flat ground, annotated 2D box]")
     assert [ch10.input_label(v) for v in ("flow", "images", "images+flow")] == [
-        "flow", "images", "images+flow"]
+        "flow", "images [untuned recipe]", "images+flow [untuned recipe]"]
 
 
 def test_chapter10_headline_asks_the_profiles_questions_in_order():

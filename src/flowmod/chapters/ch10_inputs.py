@@ -166,19 +166,24 @@ def built_note(params: Params, done: list[tuple[str | None, str]]) -> str:
 #: How a headline names the inputs whose static-world flow takes depth from the annotated
 #: 3D boxes: information a car does not have.
 ORACLE_NOTE = " (static world with annotated-box depth, an oracle a car does not have)"
-#: How a headline names the input whose static-world flow a car could compute.
-DEPLOYED_NOTE = (" (static world from the flat ground and the target's 2D box, as a car "
-                 "could compute it)")
+#: How a headline names the input whose static-world flow an idealised car computes.
+DEPLOYED_NOTE = (" (static world from exact ego poses, an exactly flat ground and the "
+                 "target's annotated 2D box: a car with perfect odometry and detector)")
 
 
 #: The tag a table row gives an input by its static-world depth (:func:`depth_note`).
-TAGS = {ORACLE_NOTE: " [oracle: annotated-box depth]", DEPLOYED_NOTE: " [as a car could compute it]"}
+TAGS = {ORACLE_NOTE: " [oracle: annotated-box depth]",
+        DEPLOYED_NOTE: " [idealised: exact poses, flat ground, annotated 2D box]"}
+#: The tag of the inputs with images: trained with the recipe chosen for the raw flow.
+UNTUNED = " [untuned recipe]"
 
 
 def input_label(variant: str) -> str:
     """An input's name in tables, tagged where its static-world flow reads annotated boxes
-    (an oracle) or what a car has: ``residual [oracle: annotated-box depth]``."""
-    return variant + TAGS.get(depth_note(variant), "")
+    (an oracle) or idealised measurements, and where it holds images (the raw flow's recipe,
+    untuned for them): ``residual [oracle: annotated-box depth]``."""
+    return variant + TAGS.get(depth_note(variant), "") + (UNTUNED if VARIANTS[variant].images
+                                                          else "")
 
 
 def depth_note(variant: str) -> str:
