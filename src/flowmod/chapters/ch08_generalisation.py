@@ -85,15 +85,24 @@ def failures(params: Params, preds: pd.DataFrame, boxes: pd.DataFrame
     return failure_shares(tagged), tagged
 
 
+#: A reason that holds for at least this share of all objects (%) cannot be told apart
+#: from the objects it does not hold for: too few are left to compare with.
+UNTESTABLE = 95.0
+
+
 def failure_words(shares: pd.DataFrame) -> str:
     """Whether each failure reason explains the wrong predictions: one that is no commoner
-    among them than among all objects (share ratio under 1.05) does not; an undefined share
-    (no wrong prediction) is said so."""
+    among them than among all objects (share ratio under 1.05) does not; one that holds for
+    nearly every object (:data:`UNTESTABLE`) cannot be tested here; an undefined share (no
+    wrong prediction) is said so."""
     out = []
     for _, r in shares.iterrows():
         a, w = r["all objects (%)"], r["wrong predictions (%)"]
         if pd.isna(w) or not a:
             out.append(f"*{r['reason']}*: undefined (no wrong prediction or no such object)")
+        elif a >= UNTESTABLE:
+            out.append(f"*{r['reason']}* holds for {a:.1f} % of all objects, so this world "
+                       "cannot test it: nearly every crop has it, right or wrong")
         elif w / a < 1.05:
             out.append(f"*{r['reason']}* holds for {w:.1f} % of the wrong predictions and "
                        f"{a:.1f} % of all objects: no commoner among the errors, so it does "
