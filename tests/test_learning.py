@@ -774,7 +774,7 @@ def test_the_stage_trainer_seeds_by_part_keeps_a_float16_best_and_no_last(data, 
     assert fresh == [False]
     assert info == {"best_epoch": int(hist["val_f1"].to_numpy().argmax()) + 1,
                     "best_f1": pytest.approx(hist["val_f1"].max()), "seed": 208,
-                    "amp": "off", "input_scaling": "log"}
+                    "amp": "off", "input_scaling": "log", "width": q.model_width}
     assert isinstance(info["best_epoch"], int) and isinstance(info["best_f1"], float)
     assert not (tmp_path / "last.pt").exists()
     state = _state(tmp_path / "best.pt")

@@ -308,7 +308,9 @@ def test_book_builds_offline_with_warnings_as_errors(smoke_run, tmp_path):
     assert "<video" in (out / "08_generalisation.html").read_text(), "the scene video is shown"
     # the landing page opens with chapter 14's table and forest plot, pasted from it
     landing = (out / "index.html").read_text()
-    assert "answer (ΔF1 points, 95 % interval over scenes and seeds)" in landing
+    assert "ΔF1, 95 % interval (points)" in landing and "comparison (A - B)" in landing
+    # one glued sentence per question above it, and chapter 13's answer in the numbers
+    assert "comparisons decided" in landing and "Per pixel of end-point error" in landing
     assert re.search(r'<img[^>]+src="[^"]+\.png"', landing), "the forest plot is on the page"
     reproduce = (out / "reproduce.html").read_text()
     assert smoke_run["record"]["commit"] in reproduce

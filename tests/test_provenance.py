@@ -30,7 +30,7 @@ pytestmark = pytest.mark.slow
 SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "profile": ("other", set(), ()),
     "seed": (1, {"world", "select", "flow", "train", "evaluate", "xtrain", "wtrain",
-                  "selfflow", "shipped"}, ()),
+                  "selfflow", "shipped", "elevels", "etrain", "eevaluate"}, ()),
     "device": ("cpu", set(), ()),
     "force": (True, set(), ()),
     "world_scenes": (5, {"world"}, ()),
@@ -62,18 +62,18 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "executor": ("ray", set(), ()),
     "ray_address": ("auto", set(), ()),
     "crop_size": (48, {"crops", "context"}, ()),
-    "crop_scale": (2.5, {"crops", "context"}, ()),
-    "epochs": (2, {"train", "xtrain", "wtrain"}, ()),
-    "batch_size": (4, {"train", "xtrain", "wtrain"}, ()),
-    "lr": (0.02, {"train", "xtrain", "wtrain"}, ()),
-    "momentum": (0.8, {"train", "xtrain", "wtrain"}, ()),
-    "weight_decay": (0.02, {"train", "xtrain", "wtrain"}, ()),
-    "step_size": (5, {"train", "xtrain", "wtrain"}, ()),
-    "gamma": (0.4, {"train", "xtrain", "wtrain"}, ()),
-    "hflip_p": (0.3, {"train", "xtrain", "wtrain"}, ()),
-    "model_width": (24, {"train", "xtrain", "wtrain"}, ()),
-    "amp": ("bf16", {"train", "xtrain", "wtrain"}, ()),
-    "input_scaling": ("raw", {"train", "xtrain", "wtrain"}, ()),
+    "crop_scale": (2.5, {"crops", "context", "elevels", "etrain", "eevaluate"}, ()),
+    "epochs": (2, {"train", "xtrain", "wtrain", "etrain"}, ()),
+    "batch_size": (4, {"train", "xtrain", "wtrain", "etrain"}, ()),
+    "lr": (0.02, {"train", "xtrain", "wtrain", "etrain"}, ()),
+    "momentum": (0.8, {"train", "xtrain", "wtrain", "etrain"}, ()),
+    "weight_decay": (0.02, {"train", "xtrain", "wtrain", "etrain"}, ()),
+    "step_size": (5, {"train", "xtrain", "wtrain", "etrain"}, ()),
+    "gamma": (0.4, {"train", "xtrain", "wtrain", "etrain"}, ()),
+    "hflip_p": (0.3, {"train", "xtrain", "wtrain", "etrain"}, ()),
+    "model_width": (24, {"train", "xtrain", "wtrain", "etrain"}, ()),
+    "amp": ("bf16", {"train", "xtrain", "wtrain", "etrain"}, ()),
+    "input_scaling": ("raw", {"train", "xtrain", "wtrain", "etrain"}, ()),
     "general_beyond_distance": (80.0, {"general"}, ()),
     "raft_iters": (12, {"flow", "crops"}, ("raft", "raft_small")),
     "num_workers": (1, set(), ()),
@@ -96,12 +96,16 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "selfflow_init": ("weights/other.pt", {"selfflow"}, ("finetune",)),
     "selfflow_window": ("crop", {"selfflow"}, ()),
     "selfflow_warmup": (7, {"selfflow"}, ("photometric",)),
+    "error_targets": ([1.5], {"elevels"}, ()),
+    "error_calibration": (50, {"elevels"}, ()),
+    "error_width": (8, {"etrain"}, ()),
 }
 #: Parameters whose change is not "some stages read another value" (checked on their own).
 SPECIAL = {"run_dir", "dataroot", "synthetic", "version", "flow_methods", "seeds", "folds",
            "extension_seeds",
            "extension_inputs",
-           "extension_methods", "wide_methods", "selfflow_modes", "raw_input_methods"}
+           "extension_methods", "wide_methods", "selfflow_modes", "raw_input_methods",
+           "error_kinds", "error_folds"}
 
 
 def downstream(p: Params, start: set[dag.Node]) -> set[dag.Node]:
@@ -228,7 +232,7 @@ def test_status_explains_in_one_line(finished):
     # the dis chain of chapters 03-08 (12 nodes: two folds x two seeds and the two raw-input
     # models), chapter 10's dis residual (3 nodes) and chapter 11's dis chain (flow, crops,
     # two models, predictions); chapter 12's nodes do not read the dis flow
-    assert text.splitlines()[-1] == ("27 of 47 up to date; 20 to build (make run, or python "
+    assert text.splitlines()[-1] == ("38 of 58 up to date; 20 to build (make run, or python "
                                      "-m flowmod.runner)")
     quiet = pipeline.format_status(p.model_copy(update={"extension_build": False}))
     assert quiet.splitlines()[-1].endswith(
@@ -315,7 +319,8 @@ def test_reruns_recompute_exactly_what_changed_and_match_a_fresh_run(finished, t
     assert stale and all("will be restored" in s.why for s in stale)
     rebuilt = rerun(back)
     assert {n.stage for n in rebuilt} == {"train", "evaluate", "generalise", "xtrain",
-                                          "xevaluate", "wtrain", "wgeneralise"}
+                                          "xevaluate", "wtrain", "wgeneralise", "etrain",
+                                          "eevaluate"}
     for n in rebuilt:
         assert pipeline.recorded(back, n)["written"] == before_last[n], f"{n} restored, not retrained"
     # the flow of an earlier option comes back from the pool, no pair computed again

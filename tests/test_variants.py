@@ -111,8 +111,12 @@ def test_extension_parameters_are_checked():
         load_profile("smoke", extension_inputs=["residual", "residual"])
     with pytest.raises(ProfileError, match="extension_inputs"):
         load_profile("smoke", extension_inputs=["optical"])
-    p = load_profile("smoke", extension_inputs=[])
+    p = load_profile("smoke", extension_inputs=[], error_kinds=["noise"])
     assert not [n for n in pipeline.nodes(p) if pipeline.GRAPH.stage(n).chapter == "10"]
+    # chapter 13's pull reads the still-world flow: its context nodes stay, nothing else
+    pulled = load_profile("smoke", extension_inputs=[], error_kinds=["pull"])
+    assert {n.stage for n in pipeline.nodes(pulled)
+            if pipeline.GRAPH.stage(n).chapter == "10"} == {"context"}
     # without inputs, any methods are fine: nothing of chapter 10 exists
     load_profile("smoke", extension_inputs=[], extension_methods=["farneback"])
 
@@ -207,7 +211,8 @@ def test_chapter10_scores_are_those_of_its_predictions(smoke_built):
     table = ch10.table(p, rows)
     assert len(table) == len(rows) == 5
     assert table["input"].tolist() == ["flow", "residual [oracle: annotated-box depth]", "flow",
-                                       "residual [oracle: annotated-box depth]", "images"]
+                                       "residual [oracle: annotated-box depth]",
+                                       "images [untuned recipe]"]
     for (m, v), r in zip(rows, table.to_dict("records"), strict=True):
         d = ch10.predictions(p, m, v, "test")
         f1 = np.mean([metrics.seed_summary(d["label"].to_numpy(), pr[None],
@@ -216,7 +221,7 @@ def test_chapter10_scores_are_those_of_its_predictions(smoke_built):
         assert r["F1 (%)"] == round(100 * f1, 1)
         assert r["channels"] == inputs.VARIANTS[v].channels
     comp = ch10.comparisons(p, "general", rows)
-    assert len(comp) == 3 and comp["comparison"].iloc[-1] == "images - gt: flow"
+    assert len(comp) == 3 and comp["comparison"].iloc[-1] == "images [untuned recipe] - gt: flow"
     # the test split's objects are those of Table 3
     xd = ch10.predictions(p, "dis", "residual", "test")
     assert xd["ann_token"].equals(ch10.predictions(p, "dis", "flow", "test")["ann_token"])
@@ -272,7 +277,7 @@ def test_chapter10_headline_asks_the_profiles_questions_in_order():
     paired = pd.DataFrame({
         "comparison": ["gt: residual [oracle: annotated-box depth] - gt: flow",
                        "dis: residual [oracle: annotated-box depth] - dis: flow",
-                       "images - gt: flow"],
+                       "images [untuned recipe] - gt: flow"],
         "ΔF1 (points)": [9.0, -1.0, 5.0],
         "95% CI, scenes and seeds (points)": ["2.0 to 15.0", "-3.0 to 1.0", "1.0 to 9.0"]})
     assert ch10.headline(p, paired) == (

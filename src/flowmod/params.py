@@ -391,7 +391,7 @@ class Params(BaseModel):
         description="chapter 14: the first k folds train a classifier per arm (one seed a "
                     "fold); their test scenes are scored")
     error_width: int | None = _field(
-        None, ge=4, le=256, read_by=("etrain",),
+        16, ge=4, le=256, read_by=("etrain",),
         description="chapter 14: the classifiers' width (None: model_width); the "
                     "experiment's exact-flow arm is trained with it too")
 
