@@ -90,7 +90,7 @@ ROLES = ("input", "run", "location", "plan")
 
 _FLOW = ("flow", "crops")  # crops too: in crops mode it computes the flow itself
 _TRAIN = ("train", "xtrain", "wtrain", "etrain")  # chapters 10, 11, 14 train with Table 2 too
-#: chapter 14's stages (the levels, the classifiers on degraded flow, their predictions)
+#: chapter 13's stages (the levels, the classifiers on degraded flow, their predictions)
 _ERRORS = ("elevels", "etrain", "eevaluate")
 #: every stage that splits scenes into train, validation and test
 _FOLDS = ("select", "general", "wide", "crops", "context", *_TRAIN, "evaluate", "generalise",
@@ -370,29 +370,29 @@ class Params(BaseModel):
                                       description="chapter 12: steps between held-out "
                                                   "evaluations (0: at the end only)")
 
-    # --- beyond the paper (chapter 14): which flow errors decide motion detection -------------
+    # --- beyond the paper (chapter 13): which flow errors decide motion detection -------------
     error_kinds: list[Literal["noise", "resolution", "pull", "scale", "outliers", "ring"]] = (
         _field(lambda: ["noise", "resolution", "pull", "scale", "outliers", "ring"],
                role="plan",
-               description="chapter 14: the kinds of error put on the exact flow, one at a "
+               description="chapter 13: the kinds of error put on the exact flow, one at a "
                            "time, each training the classifier anew ([] = off; pull needs "
                            "chapter 10's static-world flow, built for it)"))
     error_targets: list[float] = _field(
         lambda: [0.5, 1.0, 2.0], read_by=("elevels",), min_length=1,
-        description="chapter 14: px, the mean end-point errors every kind is set to reach "
+        description="chapter 13: px, the mean end-point errors every kind is set to reach "
                     "(in the box; the ring kind around it), so the kinds meet at the same "
                     "error")
     error_calibration: int = _field(
         400, ge=10, le=1_000_000, read_by=("elevels",),
-        description="chapter 14: objects (drawn with the seed) on which each kind's level "
+        description="chapter 13: objects (drawn with the seed) on which each kind's level "
                     "is matched to the targets")
     error_folds: int = _field(
         1, ge=1, le=10, role="plan",
-        description="chapter 14: the first k folds train a classifier per arm (one seed a "
+        description="chapter 13: the first k folds train a classifier per arm (one seed a "
                     "fold); their test scenes are scored")
     error_width: int | None = _field(
         16, ge=4, le=256, read_by=("etrain",),
-        description="chapter 14: the classifiers' width (None: model_width); the "
+        description="chapter 13: the classifiers' width (None: model_width); the "
                     "experiment's exact-flow arm is trained with it too")
 
     @model_validator(mode="after")

@@ -1,4 +1,4 @@
-"""Chapter 14's backend: which flow errors decide motion detection.
+"""Chapter 13's backend: which flow errors decide motion detection.
 
 The experiment (stages ``elevels``, ``etrain``, ``eevaluate``,
 :mod:`flowmod.extensions.flowerrors`): the exact flow degraded by one kind of error at a

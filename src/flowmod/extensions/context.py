@@ -147,7 +147,7 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
 
 
 def _pulled(p: Params) -> bool:
-    """Chapter 14 pulls the exact flow toward the still-world flow (its ``pull`` kind)."""
+    """Chapter 13 pulls the exact flow toward the still-world flow (its ``pull`` kind)."""
     return "pull" in p.error_kinds and "gt" in p.flow_methods
 
 

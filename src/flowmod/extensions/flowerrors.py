@@ -385,14 +385,14 @@ def match_levels(batch: CropBatch, targets: Any, kinds: Any = None, seed: Seed =
     return out
 
 
-# --- the stages (chapter 14) --------------------------------------------------------------------
+# --- the stages (chapter 13) --------------------------------------------------------------------
 
 #: The undegraded arm: the exact flow, trained and scored like every degraded arm.
 EXACT = "exact"
 
 
 def arms(p: Params) -> list[tuple[str, int]]:
-    """(kind, target index) of every arm of chapter 14: the exact flow (``(EXACT, 0)``), then
+    """(kind, target index) of every arm of chapter 13: the exact flow (``(EXACT, 0)``), then
     each kind of ``p.error_kinds`` at each of ``p.error_targets``; none when no kind is set
     or the exact flow (``gt``, a generated world's) is not among the flow methods."""
     if not p.error_kinds or "gt" not in p.flow_methods:
@@ -531,20 +531,20 @@ def _needs(kind: str) -> tuple[dag.Node, ...]:
             *((dag.Node("elevels", "gt", kind),) if kind != EXACT else ()))
 
 
-#: Chapter 14: each kind's level at each target error, matched on the exact flow's crops.
+#: Chapter 13: each kind's level at each target error, matched on the exact flow's crops.
 ELEVELS = dag.Stage(
     "elevels", 1, "13", "flowerrors/levels/{part}", "a kind of error's level at each target",
     nodes=lambda p: [dag.Node("elevels", "gt", k) for k in p.error_kinds if arms(p)],
     inputs=lambda n, p: _needs(str(n.part))[:-1],
     build=build_elevels)
-#: Chapter 14: one classifier per arm and fold, trained on the degraded exact flow.
+#: Chapter 13: one classifier per arm and fold, trained on the degraded exact flow.
 ETRAIN = dag.Stage(
     "etrain", 1, "13", "flowerrors/models/{key}", "a classifier on degraded exact flow",
     nodes=lambda p: [dag.Node("etrain", "gt", f"{arm_key(*a)}/{k}") for a in arms(p)
                      for k in error_parts(p)],
     inputs=lambda n, p: _needs(parse_arm(str(n.part).rpartition("/")[0])[0]),
     build=build_etrain)
-#: Chapter 14: an arm's models on their test rows, with the realised errors.
+#: Chapter 13: an arm's models on their test rows, with the realised errors.
 EEVALUATE = dag.Stage(
     "eevaluate", 1, "13", "flowerrors/metrics/{key}", "its predictions and realised errors",
     nodes=lambda p: [dag.Node("eevaluate", "gt", arm_key(*a)) for a in arms(p)],

@@ -532,7 +532,7 @@ def forest(effects: pd.DataFrame, delta: float | None = None) -> plt.Figure:
 
 def error_curves(effects: pd.DataFrame, words: dict[str, str],
                  methods: pd.DataFrame | None = None) -> plt.Figure:
-    """Chapter 14: ΔF1 (points, degraded arm minus the exact-flow arm) against the realised
+    """Chapter 13: ΔF1 (points, degraded arm minus the exact-flow arm) against the realised
     end-point error (px, ``error (px)``: in the box; the ring kind's around it), one line
     per kind (``kind``, named by ``words``) with 95 % interval bars (``ci_lo``, ``ci_hi``);
     ``methods`` (``method``, ``epe_box``, ``measured`` = exact minus method, with
