@@ -24,7 +24,7 @@ LAB_KERNELS ?= $(VENV)
 
 RUN_SET    := $(if $(DATAROOT),--set dataroot=$(DATAROOT)) $(foreach s,$(SET),--set $(s))
 
-.PHONY: help env data run status gc book extensions selfflow test bench lint clean browser weights lab mutation flownet
+.PHONY: help env data run status gc book extensions selfflow test bench lint clean browser weights lab mutation flownet replicate
 
 help:  ## list the targets
 	@echo "flowmod: optical-flow motion detection, reproduced"
@@ -101,6 +101,9 @@ lab: env  ## JupyterLab on notebooks/ with the venv's kernel: run a chapter cell
 
 mutation: env  ## mutation testing of the modules whose numbers reach the book, one at a time (mutmut; PART=k runs part k, each within 45 min, PART=plan lists them; MODULES="flowmod.train ..." runs those; not part of make test)
 	$(PY) benchmarks/mutation.py $(if $(PART),--part $(PART)) $(MODULES)
+
+replicate: env  ## the whole study again on a world drawn with another master seed (REPLICATE_SEED=), its effects beside the book's in benchmarks/replication.json, which chapter 14 shows (demo: about the cold book's time again; resumable)
+	$(PY) -m flowmod.replicate --profile $(PROFILE) $(if $(REPLICATE_SEED),--seed $(REPLICATE_SEED)) $(RUN_SET)
 
 flownet: env  ## train the shipped FastFlowNet weights from scratch (weights/fastflownet_synth; hours on 2 CPU cores, resumable; FROM_SHIPPED=1 trains only the phases the published file lacks)
 	$(PY) -m flowmod.flow.pretrain $(if $(STEPS),--steps $(STEPS)) $(if $(FROM_SHIPPED),--from-shipped)

@@ -7,6 +7,10 @@ Reads what chapters 07, 10 and 11 read (their published predictions); computes n
 
 from __future__ import annotations
 
+import json
+import math
+from typing import Any
+
 import numpy as np
 import pandas as pd
 
@@ -16,6 +20,7 @@ from flowmod.chapters import ch11_all_distances as ch11
 from flowmod.chapters import common
 from flowmod.chapters.common import decided
 from flowmod.params import Params
+from flowmod.paths import repo_root
 
 #: The smallest effect that matters (F1 points), as every chapter's verdicts use it.
 SMALLEST_EFFECT = common.SMALLEST_EFFECT
@@ -160,4 +165,96 @@ def scope_words(params: Params, eff: pd.DataFrame) -> str:
     if scenes < FEW_SCENES or params.seeds < FEW_SEEDS:
         words += (" With this few, the intervals are wide and a point estimate can move by"
                   " several points in a rebuild on another world; read the intervals.")
+    return words
+
+
+# --- the replication on a world no choice has read (benchmarks/replication.json) -------------
+
+#: The dated record of the replication (written by ``make replicate``: :mod:`flowmod.replicate`).
+REPLICATION_RECORD = "benchmarks/replication.json"
+
+#: What :func:`replication` says of an effect the book decided, and of one it did not.
+REPLICATED, SAME_SIGN, REVERSED, OTHER_SIGN = (
+    "replicated", "same sign, not decided", "reversed", "other sign, not decided")
+NOT_DECIDED = "not decided in the book"
+
+
+def replication_record() -> dict[str, Any] | None:
+    """The committed record of ``make replicate`` (date, commit, profile, the two seeds, and
+    each effect and Table 3 row in both worlds), or None where none is committed."""
+    f = repo_root() / REPLICATION_RECORD
+    return json.loads(f.read_text()) if f.is_file() else None
+
+
+def _excludes_zero(lo: float, hi: float) -> int:
+    """+1 when the interval (lo, hi) lies above 0, -1 below, 0 when it holds 0 or is
+    undefined."""
+    return 1 if lo > 0 else -1 if hi < 0 else 0
+
+
+def replication(book: dict[str, float], again: dict[str, float]) -> str:
+    """Whether an effect replicates: ``book`` and ``again`` are its estimate and interval
+    (``delta``, ``low``, ``high``) in the book's world and in the replication's. An effect
+    the book decided (interval excludes 0) is :data:`REPLICATED` when the replication's
+    interval excludes 0 on the same side, :data:`REVERSED` when on the other side, else
+    :data:`SAME_SIGN` or :data:`OTHER_SIGN` by its estimate's sign (an undefined estimate:
+    other sign); one the book did not decide is :data:`NOT_DECIDED`."""
+    side = _excludes_zero(book["low"], book["high"])
+    if side == 0:
+        return NOT_DECIDED
+    again_side = _excludes_zero(again["low"], again["high"])
+    if again_side:
+        return REPLICATED if again_side == side else REVERSED
+    return SAME_SIGN if side * again["delta"] > 0 else OTHER_SIGN
+
+
+def _estimate(r: dict[str, float], unit: str) -> str:
+    if not all(math.isfinite(r[k]) for k in ("delta", "low", "high")):
+        return "undefined"
+    return f"{r['delta']:+.1f} ({r['low']:.1f} to {r['high']:.1f}){unit}"
+
+
+def replication_table(record: dict[str, Any]) -> pd.DataFrame:
+    """One row per effect of the record: chapter, comparison, the estimate with its 95 %
+    interval in the book's world and in the replication's (F1 points, or F1 points per px
+    for chapter 13's costs), and :func:`replication`."""
+    rows = []
+    for e in record["effects"]:
+        unit = " /px" if e["chapter"] == "13" else ""
+        rows.append({"chapter": e["chapter"], "comparison": e["comparison"],
+                     f"book, seed {record['book_seed']}": _estimate(e["book"], unit),
+                     f"replication, seed {record['replicate_seed']}":
+                         _estimate(e["replicate"], unit),
+                     "replicates?": replication(e["book"], e["replicate"])})
+    return pd.DataFrame(rows)
+
+
+def table3_replication(record: dict[str, Any]) -> pd.DataFrame:
+    """Table 3's F1 (%) with its 95 % interval per row in the two worlds of the record."""
+    return pd.DataFrame([{"method": r["method"],
+                          f"book, seed {record['book_seed']}": r["book"],
+                          f"replication, seed {record['replicate_seed']}": r["replicate"]}
+                         for r in record["table3"]])
+
+
+def replication_words(record: dict[str, Any] | None, params: Params) -> str:
+    """What the record says in one paragraph: when and at which commit it ran, on which
+    profile and seeds, how many of the effects the book decided replicate, keep their sign
+    undecided, or reverse; and whether this build is the record's profile."""
+    if record is None:
+        return ("No replication is recorded yet (`make replicate` writes "
+                f"`{REPLICATION_RECORD}`): read a decided row as this world's answer only.")
+    verdicts = [replication(e["book"], e["replicate"]) for e in record["effects"]]
+    decided_n = sum(v != NOT_DECIDED for v in verdicts)
+    words = (f"`make replicate` ran the whole study again on a world drawn with master seed "
+             f"{record['replicate_seed']} instead of {record['book_seed']} ({record['profile']}"
+             f" profile, {record['date']}, commit {record['commit']}; no choice of the study "
+             f"ever read that world). Of the {decided_n} effects the book's world decided, "
+             f"{verdicts.count(REPLICATED)} replicated (decided again, same side), "
+             f"{verdicts.count(SAME_SIGN)} kept their sign without deciding, "
+             f"{verdicts.count(OTHER_SIGN)} turned sign without deciding and "
+             f"{verdicts.count(REVERSED)} reversed.")
+    if params.profile != record["profile"]:
+        words += (f" This build is the {params.profile} profile, so its own rows above are not"
+                  " the record's book column.")
     return words
