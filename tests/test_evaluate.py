@@ -117,7 +117,8 @@ def test_table4_rows_format_each_ranges_seed_summary(tmp_path):
     assert list(t["vehicles"]) == ["0-50 m (Table 4)"] * 2 + ["beyond 50 m"]
     assert list(t.columns) == ["method", "vehicles", "scored against", "objects", "scenes",
                                "F1 (%)", "seed range (%)", "P (%)", "R (%)",
-                               "seed SD (points)", "balanced accuracy (%)",
+                               ev.POOLED_SD_COLUMN, ev.RETRAIN_SD_COLUMN,
+                               "balanced accuracy (%)",
                                "always moving F1 (%)", "F1 95% CI, scenes and seeds (%)"]
     for row, d, col in ((t.iloc[0], df[~far], "label"), (t.iloc[1], df[~far].iloc[3:], "true_label"),
                         (t.iloc[2], df[far], "true_label")):
@@ -128,7 +129,8 @@ def test_table4_rows_format_each_ranges_seed_summary(tmp_path):
             assert row[name] == want or (np.isnan(want) and np.isnan(row[name])), name
         assert row["seed range (%)"] == ev.span(s["f1_min"], s["f1_max"])
         assert row["F1 95% CI, scenes and seeds (%)"] == ev.ci_text(s["ci"], s["n_scenes"])
-        assert row["seed SD (points)"] == ev.points(s["seed_sd"])
+        assert row[ev.POOLED_SD_COLUMN] == ev.points(s["seed_sd"])
+        assert row[ev.RETRAIN_SD_COLUMN] == ev.points(s["retrain_sd"])
         assert row["always moving F1 (%)"] == ev.points(ev.always_moving_f1(d[col]))
     assert np.isnan(t.iloc[2]["F1 (%)"]) and t.iloc[2]["F1 95% CI, scenes and seeds (%)"] == "-", \
         "all still: F1 undefined"

@@ -646,13 +646,45 @@ def test_breakdown_intervals_resample_within_folds_and_errors_name_the_problem()
         ev.breakdown(df, y, p, by="speed")
 
 
-def test_table3_shows_the_seed_sd_in_points():
+def test_table3_shows_both_seed_spreads_in_points():
     from flowmod import metrics as ev
 
-    row = {"method": "dis", "f1": 0.8, "precision": 0.7, "recall": 0.9, "seed_sd": 0.0123}
-    assert ev.table3([row])["seed SD (points)"].tolist() == ["1.2"]
-    assert ev.table3([{k: v for k, v in row.items() if k != "seed_sd"}])[
-        "seed SD (points)"].tolist() == ["-"]
+    row = {"method": "dis", "f1": 0.8, "precision": 0.7, "recall": 0.9, "seed_sd": 0.0123,
+           "retrain_sd": 0.0345}
+    t = ev.table3([row])
+    assert t[ev.POOLED_SD_COLUMN].tolist() == ["1.2"]
+    assert t[ev.RETRAIN_SD_COLUMN].tolist() == ["3.5"]
+    bare = ev.table3([{k: v for k, v in row.items() if k not in ("seed_sd", "retrain_sd")}])
+    assert bare[ev.POOLED_SD_COLUMN].tolist() == ["-"]
+    assert bare[ev.RETRAIN_SD_COLUMN].tolist() == ["-"]
+
+
+def test_one_retraining_s_sd_is_the_within_fold_seed_sd_pooled_over_folds():
+    """Fold 0's two seeds score F1 1 and 2/3, fold 1's 1 and 0: the retraining SD pools the
+    two folds' variances; the pooled-F1 SD (over seeds of all objects) is another number;
+    without folds both are the seeds' SD on all objects."""
+    from flowmod import metrics as ev
+
+    y = np.array([1, 1, 0, 0, 1, 0])
+    folds = np.array([0, 0, 0, 0, 1, 1])
+    probs = np.array([[0.9, 0.9, 0.1, 0.1, 0.9, 0.1],
+                      [0.9, 0.1, 0.1, 0.1, 0.1, 0.1]])
+    f0 = [ev.metrics(y[:4], p[:4])["f1"] for p in probs]
+    f1 = [ev.metrics(y[4:], p[4:])["f1"] for p in probs]
+    assert f0 == [1.0, pytest.approx(2 / 3)] and f1 == [1.0, 0.0]
+    want = np.sqrt((np.var(f0, ddof=1) + np.var(f1, ddof=1)) / 2)
+    assert ev.retrain_sd(y, probs, folds) == pytest.approx(want)
+    s = ev.seed_summary(y, probs, np.arange(6), folds=folds, n=10)
+    assert s["retrain_sd"] == pytest.approx(want)
+    pooled = [ev.metrics(y, p)["f1"] for p in probs]
+    assert s["seed_sd"] == pytest.approx(np.std(pooled, ddof=1)) and s["seed_sd"] < want
+    assert ev.retrain_sd(y, probs, None) == pytest.approx(np.std(pooled, ddof=1))
+    assert np.isnan(ev.retrain_sd(y, probs[:1], folds))  # one seed: nothing to spread
+    # a fold without movers (F1 undefined) is left out of the pool
+    y2 = np.array([1, 1, 0, 0, 0, 0])
+    only0 = ev.retrain_sd(y2, probs, folds)
+    assert only0 == pytest.approx(np.std([ev.metrics(y2[:4], p[:4])["f1"] for p in probs],
+                                         ddof=1))
 
 
 def test_metric_errors_name_what_disagrees():

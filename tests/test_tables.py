@@ -26,7 +26,8 @@ def test_table3_every_cell():
     want = pd.DataFrame({
         "Method": ["dis", "one seed", "bare"],
         "F1 (%)": [81.2, 50.0, 12.5],
-        "seed SD (points)": ["-", "-", "-"],
+        "seed SD of the pooled F1 (points)": ["-", "-", "-"],
+        "one retraining's SD (points)": ["-", "-", "-"],
         "seed range (%)": ["75.1-84.7", "", ""],
         "seeds": [3, 1, ""],
         "training seeds": ["", "", ""],

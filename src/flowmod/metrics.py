@@ -294,6 +294,34 @@ def seed_sd(values: Any) -> float:
     return float(v.std(ddof=1)) if v.size > 1 else float("nan")
 
 
+def retrain_sd(y: np.ndarray, probs: np.ndarray, folds: np.ndarray | None,
+               threshold: float = 0.5) -> float:
+    """What one retraining moves an F1 (a fraction): the seeds' standard deviation (ddof 1)
+    of the F1 of each fold's objects by that fold's models, pooled over the folds (the root
+    of the mean variance; folds without two defined F1 left out); without ``folds``, of the
+    F1 on all objects. probs: (S, N); NaN with fewer than two seeds."""
+    if folds is None:
+        return seed_sd([metrics(y, p, threshold)["f1"] for p in probs])
+    var = [seed_sd([metrics(y[folds == k], p[folds == k], threshold)["f1"] for p in probs]) ** 2
+           for k in np.unique(folds)]
+    var = [v for v in var if not np.isnan(v)]
+    return float(np.sqrt(np.mean(var))) if var else float("nan")
+
+
+#: The two spreads over training seeds a table shows (percentage points): of the F1 pooled
+#: over every object (what :func:`seed_summary` averages; with folds, a seed's models of
+#: every fold together), and of one retraining (:func:`retrain_sd`).
+POOLED_SD_COLUMN, RETRAIN_SD_COLUMN = ("seed SD of the pooled F1 (points)",
+                                       "one retraining's SD (points)")
+
+
+def sd_cells(r: Mapping[str, Any]) -> dict[str, str]:
+    """A table's two seed-spread cells (:data:`POOLED_SD_COLUMN`, :data:`RETRAIN_SD_COLUMN`)
+    from a :func:`seed_summary` (``seed_sd``, ``retrain_sd``); "-" where undefined."""
+    return {POOLED_SD_COLUMN: points(r.get("seed_sd", float("nan"))),
+            RETRAIN_SD_COLUMN: points(r.get("retrain_sd", float("nan")))}
+
+
 def always_moving_f1(y_true: Any) -> float:
     """The chance reference: F1 of calling every object moving, 2P / (2P + N) for P movers
     and N still objects (its recall is 1, its precision the share of movers); NaN without
@@ -315,7 +343,8 @@ def seed_summary(y_true: Any, y_prob: Any, groups: Any, instances: Any = None, n
                  seed: int = 0, threshold: float = 0.5, level: float = 0.95,
                  folds: Any = None) -> dict[str, Any]:
     """Scores of S models (training seeds) on the same objects: per-seed precision, recall
-    and F1; their mean, min and max, the seeds' standard deviation (``seed_sd``); the
+    and F1; their mean, min and max, the seeds' standard deviation (``seed_sd``) and what
+    one retraining moves (``retrain_sd``: :func:`retrain_sd`); the
     interval of the mean F1 over scenes and seeds (:func:`scene_bootstrap`); the chance
     reference (:func:`always_moving_f1`) and the balanced accuracy; and what the interval
     resamples: number of scenes, objects and (if given) vehicle instances.
@@ -334,6 +363,8 @@ def seed_summary(y_true: Any, y_prob: Any, groups: Any, instances: Any = None, n
         "training_seeds": len(probs),
         "f1": float(np.mean([m["f1"] for m in pooled])),
         "seed_sd": seed_sd([m["f1"] for m in pooled]),
+        "retrain_sd": retrain_sd(y, probs, None if folds is None else np.asarray(folds),
+                                 threshold),
         "f1_min": float(defined.min()) if defined.size else float("nan"),
         "f1_max": float(defined.max()) if defined.size else float("nan"),
         "precision": float(np.mean([m["precision"] for m in pooled])),
@@ -472,10 +503,12 @@ def ci_text(ci: Any, n_scenes: Any, sep: str = "-", fmt: str | None = None) -> s
 def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
     """The paper's Table 3 from per-method results (:func:`seed_summary` dicts, or any dict
     with f1, precision, recall and optionally f1_min/f1_max, seeds, training_seeds, seed_sd,
+    retrain_sd,
     ci, balanced_accuracy, always_moving_f1, n, n_scenes, n_instances; a mapping method ->
     such a dict also works).
 
-    Columns: Method, F1 (%) (mean over training seeds), seed SD (points; "-" for one seed),
+    Columns: Method, F1 (%) (mean over training seeds), the two seed spreads (points;
+    :func:`sd_cells`, "-" for one seed),
     seed range (%) (of F1), seeds, P (%) and R (%) (precision and recall, means over
     seeds), balanced accuracy (%) (prevalence-free), always moving F1 (%) (the chance
     reference), F1 95% CI (%) (whole test scenes and training seeds resampled), scenes,
@@ -493,7 +526,7 @@ def table3(rows: Iterable[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]]) 
         out.append({
             "Method": r["method"],
             "F1 (%)": round(100 * float(r["f1"]), 1),
-            "seed SD (points)": points(r.get("seed_sd", float("nan"))),
+            **sd_cells(r),
             f"{unit} range (%)": (span(lo, hi)
                                   if lo is not None and r.get("seeds", 1) > 1 else ""),
             f"{unit}s": r.get("seeds", ""),

@@ -12,7 +12,7 @@ import pandas as pd
 from flowmod.chapters.common import breakdown, headline_method, results
 from flowmod.crops import crop_windows
 from flowmod.evaluate import fold_of, seed_probs
-from flowmod.metrics import CI_COLUMN, ci_text, points, seed_summary, span
+from flowmod.metrics import CI_COLUMN, ci_text, points, sd_cells, seed_summary, span
 from flowmod.params import Params
 
 #: Distance bins of the F1-by-distance figure (m): 10 m steps, Table 4's range and beyond.
@@ -135,7 +135,7 @@ def table4(preds: Mapping[str, pd.DataFrame], max_distance: float) -> pd.DataFra
                              f"{s['unit']} range (%)": span(s["f1_min"], s["f1_max"]),
                              "P (%)": round(100 * s["precision"], 1),
                              "R (%)": round(100 * s["recall"], 1),
-                             "seed SD (points)": points(s["seed_sd"]),
+                             **sd_cells(s),
                              "balanced accuracy (%)": points(s["balanced_accuracy"]),
                              "always moving F1 (%)": points(s["always_moving_f1"]),
                              CI_COLUMN: ci_text(s["ci"], s["n_scenes"])})

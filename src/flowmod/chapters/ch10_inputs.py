@@ -15,7 +15,7 @@ from flowmod.dag import Node
 from flowmod.evaluate import fold_of, paired, scored, seed_probs
 from flowmod.extensions.context import read_context
 from flowmod.extensions.inputs import VARIANTS, chains
-from flowmod.metrics import ci_text, points, seed_summary, span
+from flowmod.metrics import ci_text, sd_cells, seed_summary, span
 from flowmod.params import Params
 from flowmod.select import SPLITS
 from flowmod.train import extension_parts
@@ -62,7 +62,7 @@ def table(params: Params, rows_of: list[tuple[str | None, str]] | None = None,
                     "channels": VARIANTS[v].channels,
                      "F1 (%)": round(100 * s["f1"], 1),
                      f"{s['unit']}s (%)": span(s["f1_min"], s["f1_max"]),
-                     "seed SD (points)": points(s["seed_sd"]),
+                     **sd_cells(s),
                      "95% CI, scenes and seeds (%)": ci_text(s["ci"], s["n_scenes"]),
                      "P (%)": round(100 * s["precision"], 1),
                      "R (%)": round(100 * s["recall"], 1)})
