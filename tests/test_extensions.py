@@ -176,3 +176,34 @@ def test_the_rules_score_is_its_margin_over_its_folds_threshold():
     assert got.tolist() == pytest.approx([-0.2, 0.8, 2.3])
     one = ch09.rule_margin(df, base, {"threshold_m_s": 0.5})  # one split: one threshold
     assert one.tolist() == pytest.approx([0.0, 0.5, 2.5])
+
+
+def test_chapter_09_s_recall_intervals_resample_scenes_of_the_radial_movers_in_the_bin():
+    """Two seeds; slow radial movers in three scenes with hit shares 1, 0.5 and 0 (a
+    crossing slow mover and a slow mover at 3 m/s are not in the bin): the interval spans
+    the scene means and holds the table's recall; fast movers all found: a point."""
+    from flowmod.chapters import ch09_blind_spots as ch09
+
+    df = pd.DataFrame({
+        "label": [1, 1, 1, 1, 1, 1, 0, 1, 1],
+        "speed": [2.5, 2.5, 2.5, 2.9, 2.5, 3.0, 0.0, 8.0, 12.0],
+        "motion_angle": [5.0, 5.0, 5.0, 10.0, 80.0, 5.0, 0.0, 5.0, 5.0],
+        "scene": ["a", "a", "b", "c", "c", "c", "c", "a", "b"],
+        "prob_s0": [0.9, 0.9, 0.9, 0.1, 0.9, 0.9, 0.1, 0.9, 0.9],
+        "prob_s1": [0.9, 0.9, 0.1, 0.1, 0.9, 0.9, 0.1, 0.9, 0.9],
+        "distance": 50.0, "box_width_px": 30.0})
+    df["prob"] = df[["prob_s0", "prob_s1"]].mean(axis=1)
+    lo, hi, n = ch09.recall_interval(df, ch09.SLOW, seed=1)
+    assert n == 3  # scenes a, b, c hold the four slow radial movers
+    # scene means: a 1.0 (two movers), b 0.5, c 0.0; resampling whole scenes
+    assert 0.0 <= lo < 0.625 < hi <= 1.0  # the pooled recall (1 + 1 + 0.5 + 0) / 4
+    t = blind_spots.blind_spots(df, np.stack([df["prob_s0"], df["prob_s1"]]),
+                                df["scene"].to_numpy())
+    slow, fast = blind_spots.recall_slow_and_fast(t)
+    assert slow == pytest.approx(0.625) and fast == 1.0
+    assert ch09.recall_interval(df, ch09.FAST)[:2] == (1.0, 1.0)
+    assert ch09.recall_interval(df, (3.0, 5.0)) == (1.0, 1.0, 1)  # [lo, hi): 3.0 is here
+    assert ch09.recall_interval(df, (2.0, 2.9))[2] == 2  # and 2.9 is not
+    words = ch09.recall_intervals(df)
+    assert words["headline_recall_fast_ci"] == "100.0-100.0 (2 scenes: too few)"
+    assert set(words) == {"headline_recall_slow_ci", "headline_recall_fast_ci"}

@@ -454,3 +454,12 @@ def test_the_small_backend_helpers_of_chapters_02_05_and_12():
     crop = np.random.default_rng(0).normal(size=(2, 4, 4)).astype(np.float32)
     assert np.array_equal(ch05.crop_color(crop), flow_to_color(crop.transpose(1, 2, 0)))
     assert ch12.shipped_steps(None) == 0 and ch12.shipped_steps({"steps": 7}) == 7
+
+
+def test_the_protocol_gap_is_each_model_s_original_minus_clean_f1():
+    from flowmod.chapters import ch07_evaluation as ch07
+
+    rec = {"per_seed_original": [0.9, 0.8, 0.95], "per_seed_clean": [0.85, 0.82, 0.7]}
+    assert ch07.protocol_gaps(rec) == pytest.approx([0.05, -0.02, 0.25])
+    with pytest.raises(ValueError):  # a model without its other score is an error
+        ch07.protocol_gaps({"per_seed_original": [0.9], "per_seed_clean": []})

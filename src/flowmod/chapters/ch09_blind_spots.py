@@ -15,6 +15,7 @@ from flowmod.chapters import ch03_flow
 from flowmod.chapters.common import flow_readers, results
 from flowmod.evaluate import seed_probs
 from flowmod.extensions import blind_spots
+from flowmod.metrics import ci_text, group_mean_bootstrap, interval
 from flowmod.params import Params
 from flowmod.select import Selection
 
@@ -72,6 +73,37 @@ def recall_numbers(blind: dict[str, pd.DataFrame], main: str) -> dict[str, float
             out[f"recall_{key}_{m}"] = round(100 * float(value), 1)
             if m == main:
                 out[f"headline_recall_{key}"] = round(100 * float(value), 1)
+    return out
+
+
+#: The speeds (m/s) of the slow and the fast radial movers, as
+#: :func:`~flowmod.extensions.blind_spots.recall_slow_and_fast` bins them.
+SLOW, FAST = (2.0, 3.0), (5.0, 40.0)
+
+
+def recall_interval(df: pd.DataFrame, speeds: tuple[float, float], seed: int = 0
+                    ) -> tuple[float, float, int]:
+    """(lo, hi) 95 % interval over scenes of the recall (a fraction) of the radial movers
+    of ``df`` (motion within ``RADIAL_MAX_ANGLE`` of the line of sight) with speed in
+    [lo, hi) m/s, each mover's hit the share of the training seeds that call it moving
+    (whole scenes resampled, the seeds' calls kept as they are), and the scenes it
+    resamples; NaN without such a mover."""
+    k = ((df["label"] == 1) & (df["motion_angle"] < blind_spots.RADIAL_MAX_ANGLE)
+         & (df["speed"] >= speeds[0]) & (df["speed"] < speeds[1])).to_numpy()
+    hits = (seed_probs(df)[:, k] > 0.5).mean(axis=0)
+    scenes = df["scene"].to_numpy()[k]
+    lo, hi = interval(group_mean_bootstrap(hits, scenes, seed=seed))
+    return lo, hi, int(len(np.unique(scenes)))
+
+
+def recall_intervals(df: pd.DataFrame, seed: int = 0) -> dict[str, str]:
+    """The glued intervals of the main method's slow and fast radial recalls
+    (``headline_recall_slow_ci``, ``headline_recall_fast_ci``: "lo-hi" %, over scenes,
+    flagged where too few)."""
+    out = {}
+    for key, speeds in (("slow", SLOW), ("fast", FAST)):
+        lo, hi, n = recall_interval(df, speeds, seed)
+        out[f"headline_recall_{key}_ci"] = ci_text((lo, hi), n)
     return out
 
 
