@@ -463,3 +463,25 @@ def test_the_protocol_gap_is_each_model_s_original_minus_clean_f1():
     assert ch07.protocol_gaps(rec) == pytest.approx([0.05, -0.02, 0.25])
     with pytest.raises(ValueError):  # a model without its other score is an error
         ch07.protocol_gaps({"per_seed_original": [0.9], "per_seed_clean": []})
+
+
+def test_f1_by_flags_few_scenes_and_shows_the_still_groups_false_alarms():
+    """A group without a mover (F1 NaN) gets a cross at its still vehicles' false-alarm rate
+    (1 - accuracy); a group over fewer than MIN_SCENES scenes is flagged in its tick."""
+    from flowmod import metrics
+    from flowmod.report import viz
+
+    t = pd.DataFrame({"speed_bin": ["[0, 2)", "[2, 5)"], "n": [40, 30], "n_moving": [0, 30],
+                      "precision": [np.nan, 1.0], "recall": [np.nan, 0.8],
+                      "f1": [np.nan, 0.89], "accuracy": [0.75, 0.8], "ci_lo": [np.nan, 0.8],
+                      "ci_hi": [np.nan, 0.95], "scenes": [metrics.MIN_SCENES, 3]})
+    fig = viz.f1_by({"dis": t, "gt": t}, "speed_bin", "speed (m/s)")
+    ax = fig.axes[0]
+    ticks = [x.get_text() for x in ax.get_xticklabels()]
+    assert ticks == [f"[0, 2)\nn=40\n{metrics.MIN_SCENES} sc.", "[2, 5)\nn=30\n3 sc. (too few)"]
+    crosses = [ln for ln in ax.get_lines() if ln.get_marker() == "x"]
+    assert len(crosses) == 2 and all(ln.get_ydata()[0] == pytest.approx(0.25) for ln in crosses)
+    labels = ax.get_legend_handles_labels()[1]
+    assert sorted(labels) == ["dis", "gt", "still vehicles called moving (no mover in the group)"]
+    assert ax.get_ylabel() == "F1 (dots); false alarms (crosses)"
+    assert viz.figure_problems(fig) == []

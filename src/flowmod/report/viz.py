@@ -18,7 +18,7 @@ from matplotlib.patches import FancyArrowPatch, FancyBboxPatch, Rectangle
 from flowmod.artefacts import atomic_path
 from flowmod.crops import crop_image
 from flowmod.flow import flow_to_color
-from flowmod.metrics import metrics, pr_curve
+from flowmod.metrics import MIN_SCENES, metrics, pr_curve
 from flowmod.report.draw import draw_boxes, label_colors
 from flowmod.report.video import side_by_side
 
@@ -438,13 +438,28 @@ def confusion_and_pr(results: dict[str, pd.DataFrame], threshold: float = 0.5) -
     return fig
 
 
+def _bin_ticks(t: pd.DataFrame, key: str) -> list[str]:
+    """Tick labels of :func:`f1_by`: the group, its objects and, where the table counts
+    them, its scenes, flagged "too few" below :data:`flowmod.metrics.MIN_SCENES`."""
+    labels = []
+    for i, (k, n) in enumerate(zip(t[key].astype(str), t["n"], strict=True)):
+        text = f"{k}\nn={n}"
+        if "scenes" in t:
+            sc = int(t["scenes"].iloc[i])
+            text += f"\n{sc} sc." + (" (too few)" if sc < MIN_SCENES else "")
+        labels.append(text)
+    return labels
+
+
 def f1_by(tables: dict[str, pd.DataFrame], key: str, xlabel: str, min_n: int = 10,
           metric: str = "f1") -> plt.Figure:
     """F1 per group (e.g. distance bin) for each method, from :func:`metrics.breakdown`:
     the scene-level 95 % interval as error bars (when the table has one) and the number of
-    objects under each point; groups with fewer than ``min_n`` objects are drawn hollow and
-    grey, so an almost empty bin is not read as a failure."""
-    fig, ax = plt.subplots(figsize=(7.5, 3.6))
+    objects (and scenes, flagged when too few) under each group; groups with fewer than
+    ``min_n`` objects are drawn hollow and grey, so an almost empty bin is not read as a
+    failure. A group without a mover, where F1 and recall are undefined, shows instead the
+    share of its still vehicles called moving (a cross)."""
+    fig, ax = plt.subplots(figsize=(7.5, 3.8))
     names = list(tables)
     width = 0.12
     for j, (name, t) in enumerate(tables.items()):
@@ -458,10 +473,18 @@ def f1_by(tables: dict[str, pd.DataFrame], key: str, xlabel: str, min_n: int = 1
         else:
             ax.plot(x[ok], f1[ok], "o", ms=4, color=f"C{j}", label=name)
         ax.plot(x[~ok], f1[~ok], "o", ms=4, mfc="none", color="0.6")
+        still = (t["n_moving"].to_numpy() == 0) if "n_moving" in t else np.zeros(len(t), bool)
+        if still.any() and "accuracy" in t:
+            ax.plot(x[still], 1 - t["accuracy"].to_numpy()[still], "x", ms=6,
+                    color=f"C{j}" if ok[still].all() else "0.6",
+                    label="still vehicles called moving (no mover in the group)"
+                    if j == 0 else None)
     first = next(iter(tables.values()))
-    ax.set_xticks(np.arange(len(first)), [
-        f"{k}\nn={n}" for k, n in zip(first[key].astype(str), first["n"], strict=True)])
-    ax.set(xlabel=xlabel, ylabel=metric if metric != "f1" else "F1", ylim=(-0.02, 1.05))
+    ax.set_xticks(np.arange(len(first)), _bin_ticks(first, key))
+    ylabel = metric if metric != "f1" else "F1"
+    if any(ln.get_marker() == "x" for ln in ax.get_lines()):
+        ylabel += " (dots); false alarms (crosses)"
+    ax.set(xlabel=xlabel, ylabel=ylabel, ylim=(-0.02, 1.05))
     ax.legend(fontsize=7, title=f"hollow grey: fewer than {min_n} objects", title_fontsize=7)
     ax.tick_params(axis="x", labelsize=7)
     fig.tight_layout()
