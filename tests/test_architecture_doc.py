@@ -38,7 +38,7 @@ README_MAX_BYTES = 12 * 1024
 TABLE_CELL_MAX = 300
 PARAGRAPH_MAX = 1000
 
-PACKAGES = sorted(str(p.parent.relative_to(PKG)) for p in PKG.glob("*/__init__.py"))
+PACKAGES = sorted(str(p.parent.relative_to(PKG)) for p in PKG.rglob("*/__init__.py"))
 
 
 def _text(path: Path) -> str:
@@ -85,7 +85,7 @@ def resolve(span: str, package: str | None = None) -> tuple[str | None, bool]:
     parts = s.split(".")
     if not all(p.isidentifier() for p in parts):
         return None, False
-    names = {m.split("/")[-1] for m in MODULES} | set(PACKAGES)
+    names = {m.split("/")[-1] for m in MODULES + PACKAGES} | set(PACKAGES)
     if not claims and parts[0] not in names:
         return None, False  # an attribute, a parameter, a variable: not a module's name
     if not claims and len(parts) == 1 and package is None and s not in PACKAGES:
