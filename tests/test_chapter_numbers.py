@@ -108,7 +108,8 @@ def study(tmp_path_factory) -> tuple[Params, dict[Node, dict[str, pd.DataFrame]]
         if node.stage == "evaluate":
             scores = {("scores" if k == "test" else k): score(df, seed=p.seed)
                       for k, df in frames.items()}
-            scores["original"] = {"clean": 0.5, "original": 0.6, "original_minus_clean": 0.1}
+            scores["original"] = {"clean": 0.5, "original": 0.6, "original_minus_clean": 0.1,
+                                  "per_seed_clean": [0.5], "per_seed_original": [0.6]}
         _publish(p, node, frames, scores)
     return p, tables
 
