@@ -23,6 +23,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from flowmod.codedigest import code_id
+from flowmod.flowweights import SHIPPED_FASTFLOWNET
 from flowmod.paths import repo_root
 
 #: Table 1 of the paper: the seven target vehicle categories (official nuScenes names).
@@ -215,7 +216,7 @@ class Params(BaseModel):
                                             file=True,
                                             description="path to RAFT-small weights")
     fastflownet_weights: str | None = _field(
-        "weights/fastflownet_synth/weights.pt", read_by=_FLOW, methods=("fastflownet",),
+        SHIPPED_FASTFLOWNET, read_by=_FLOW, methods=("fastflownet",),
         file=True, description="path to FastFlowNet weights (default: the study's own, "
                                "pretrained on a synthetic world; null: an official "
                                "checkpoint from the torch hub cache)")
@@ -328,7 +329,7 @@ class Params(BaseModel):
                     "world only) and/or finetune (photometric, from selfflow_init, on the "
                     "test scenes' frames); [] = off")
     selfflow_init: str = _field(
-        "weights/fastflownet_synth/weights.pt", read_by=("selfflow",), methods=("finetune",),
+        SHIPPED_FASTFLOWNET, read_by=("selfflow",), methods=("finetune",),
         file=True, description="chapter 12: the FastFlowNet weights the finetune mode starts "
                                "from (default: the shipped ones)")
     selfflow_build: bool = _field(
@@ -360,7 +361,7 @@ class Params(BaseModel):
                                  description="chapter 12: training pairs (keyframe pairs of "
                                              "the train and val scenes, drawn with the seed)")
     shipped_weights: str = _field(
-        "weights/fastflownet_synth/weights.pt", read_by=("shipped",), file=True,
+        SHIPPED_FASTFLOWNET, read_by=("shipped",), file=True,
         description="chapter 12: the FastFlowNet weights it scores on held-out pairs of this "
                     "book's world (default: the shipped ones)")
     selfflow_eval_pairs: int = _field(16, ge=1, le=10_000, read_by=("selfflow", "shipped"),

@@ -21,11 +21,13 @@ import urllib.error
 from pathlib import Path
 
 from flowmod.flow import architectures as nets
-from flowmod.flow.networks import WEIGHTS_PARAM, cache_files
+from flowmod.flow.networks import cache_files
+from flowmod.flowweights import CATALOG, WEIGHTS_PARAM
 
-#: The checkpoints downloaded for RAFT: the KITTI fine-tuned large model (the paper's choice of
-#: KITTI weights) and the small model's only published weights.
-RAFT_WEIGHTS = (("raft_large", "C_T_SKHT_K_V1"), ("raft_small", "C_T_V2"))
+#: The checkpoints downloaded (architecture, torchvision enum member): the catalog's entries
+#: with a download, RAFT's KITTI fine-tuned large model (the paper's choice of KITTI weights)
+#: and the small model's only published weights.
+RAFT_WEIGHTS = tuple((w.torchvision_arch, w.download) for w in CATALOG.values() if w.download)
 
 
 def status() -> list[tuple[str, str, bool]]:

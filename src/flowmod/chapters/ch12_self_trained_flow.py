@@ -28,6 +28,7 @@ from flowmod.flow.selftrain import (
     held_out,
     heldout_pairs,
 )
+from flowmod.flowweights import FASTFLOWNET_SYNTH
 from flowmod.metrics import (
     ci_text,
     group_mean_bootstrap,
@@ -35,7 +36,6 @@ from flowmod.metrics import (
     verdict,
 )
 from flowmod.params import Params
-from flowmod.paths import repo_root
 
 
 def built(params: Params) -> list[str]:
@@ -173,16 +173,14 @@ def built_note(params: Params, done: list[str]) -> str:
 
 def shipped_manifest() -> dict[str, Any] | None:
     """The manifest of the shipped FastFlowNet weights, or None where they are missing."""
-    f = repo_root() / WEIGHTS_DIR / "manifest.json"
-    return json.loads(f.read_text()) if f.is_file() else None
+    return FASTFLOWNET_SYNTH.manifest()
 
 
 def uses_shipped(params: Params) -> bool:
     """Whether this profile's ``fastflownet`` flow method runs the shipped weights."""
     given = params.fastflownet_weights
     return ("fastflownet" in params.flow_methods and given is not None
-            and params.path(given).resolve() == (repo_root() / WEIGHTS_DIR / "weights.pt"
-                                                  ).resolve())
+            and FASTFLOWNET_SYNTH.is_shipped(params.path(given)))
 
 
 def phase_text(p: dict[str, Any], scale_before: float) -> str:

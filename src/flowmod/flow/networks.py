@@ -24,6 +24,7 @@ from flowmod.flow.registry import (
     resize_flow,
     resize_image,
 )
+from flowmod.flowweights import CATALOG, WEIGHTS_PARAM
 from flowmod.params import FILE_DEFAULTS
 
 if TYPE_CHECKING:
@@ -302,19 +303,15 @@ def estimator_options(params: Params, method: str) -> dict[str, Any]:
     return opts
 
 
-#: The parameter that names each network's weight file.
-WEIGHTS_PARAM = {"raft": "raft_weights", "raft_small": "raft_small_weights",
-                 "fastflownet": "fastflownet_weights"}
 
 
 def cache_files(method: str) -> list[Path]:
-    """The files ``method`` looks for in ``$TORCH_HOME/hub/checkpoints/``, preferred first."""
-    fn = _nets()
-    if method == "fastflownet":
-        names = list(fn.FFN_CHECKPOINT_NAMES)
-    else:
-        names = [f for _, f in fn.torchvision_weight_files(
-            "raft_large" if method == "raft" else "raft_small")]
+    """The files ``method`` looks for in ``$TORCH_HOME/hub/checkpoints/``, preferred first
+    (its :data:`flowmod.flowweights.CATALOG` entry's names, or torchvision's for its
+    architecture)."""
+    fn, entry = _nets(), CATALOG[method]
+    names = list(entry.cache_names) or [
+        f for _, f in fn.torchvision_weight_files(entry.torchvision_arch)]
     return [fn.hub_checkpoint_dir() / n for n in names]
 
 

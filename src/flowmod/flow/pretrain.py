@@ -63,6 +63,7 @@ from flowmod.flow.architectures import FFN_DIV_FLOW, FastFlowNet, fastflownet_in
 from flowmod.flow.estimators import GTFlow
 from flowmod.flow.registry import read_image, resize_flow
 from flowmod.flow.selftrain import HeldOut, baselines, held_out, score_model
+from flowmod.flowweights import FASTFLOWNET_SYNTH
 from flowmod.params import Params, load_profile, validate
 from flowmod.paths import repo_root
 from flowmod.progress import bar
@@ -77,7 +78,7 @@ from flowmod.world import agent_boxes, world_fingerprint
 from flowmod.world import ensure_world as ensure_world_data
 
 #: Where the shipped weights live (relative to the repository root).
-WEIGHTS_DIR = "weights/fastflownet_synth"
+WEIGHTS_DIR = FASTFLOWNET_SYNTH.shipped or ""
 #: Decoder levels of :meth:`FastFlowNet.levels`, finest first.
 LEVELS = (2, 3, 4, 5, 6)
 #: Steps between resumable checkpoints.

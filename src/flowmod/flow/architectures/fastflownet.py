@@ -11,6 +11,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from flowmod.flowweights import FASTFLOWNET_SYNTH
+
 #: The 53 of the 81 (dy-major) displacements of radius 4 that FastFlowNet keeps.
 FFN_CORR_INDEX: tuple[int, ...] = (
     0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 21, 22, 23, 24, 26, 28, 29, 30, 31, 32, 33, 34,
@@ -25,14 +27,9 @@ FFN_DIV_SIZE = 64
 #: Scale of the upsampled flow (units px/20 at 1/4 resolution) into pixels of levels 5..2.
 _FFN_WARP_SCALE = {5: 0.625, 4: 1.25, 3: 2.5, 2: 5.0}
 
-#: Official checkpoint file names, in the order they are looked for (KITTI first: the paper's).
-FFN_CHECKPOINT_NAMES = (
-    "fastflownet_ft_kitti.pth",
-    "fastflownet_ft_mix.pth",
-    "fastflownet_ft_sintel.pth",
-    "fastflownet_things3d.pth",
-    "fastflownet_chairs.pth",
-)
+#: Official checkpoint file names, in the order they are looked for (KITTI first: the
+#: paper's): the weights catalog's.
+FFN_CHECKPOINT_NAMES = FASTFLOWNET_SYNTH.cache_names
 
 
 def correlation(
