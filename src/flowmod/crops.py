@@ -42,7 +42,7 @@ from flowmod.flow.store import npy_ok, roundtrip
 from flowmod.geometry import GRID, box_samples
 from flowmod.params import Params
 from flowmod.progress import bar
-from flowmod.select import PARTS, WIDE, fold_roles, objects_node
+from flowmod.select import PARTS, WIDE, fold_roles, objects_node, read_table
 
 #: The nuScenes CAM_FRONT image size (width, height) in which object boxes are given.
 IMAGE_SIZE = (1600, 900)
@@ -542,6 +542,21 @@ def crops_pool(q: StageParams | Params, method: str) -> Path:  # pragma: no muta
 POOL_KEYS = "pool_keys.parquet"
 
 
+def unreferenced_pools(p: Params, variants: bool) -> list[Path]:
+    """The crops stage's garbage: crops mode's pool folders of other options than ``p``'s
+    (another geometry, flow option or dtype; the nodes themselves keep their arrays; with
+    ``flow_store: pairs`` no pool is read). A method with a build in progress keeps its
+    folders. ``variants``: no difference (a kept variant holds its own arrays)."""
+    out: list[Path] = []
+    for root in sorted((p.run_path / "crops").glob("*/pool")):
+        m = root.parent.name
+        if any(root.parent.glob(".*.building-*")):
+            continue
+        keep = crops_pool(p, m) if p.flow_store == "crops" and m in p.flow_methods else None
+        out += [d for d in sorted(root.iterdir()) if d.is_dir() and d != keep]
+    return out
+
+
 def pool_table(folder: Path, files: Mapping[str, str], writer: PairCrops,
                pool: Path) -> pd.DataFrame:  # pragma: no mutate block
     """Per pair of a crops node built in crops mode: its per-pair file (relative to the
@@ -745,7 +760,7 @@ def part_of(split: str) -> str:
 def part_objects(folder: Path, part: str) -> pd.DataFrame:
     """The objects of a selection node's folder (``select`` for the keyframe part,
     ``general``), each with its split (``general`` for the generalisation set)."""
-    objects = pd.read_parquet(Path(folder) / "objects.parquet")
+    objects = read_table(folder, "objects")
     if part == "general":
         objects = objects.assign(split="general")
     if not len(objects):
@@ -762,7 +777,7 @@ def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:  # pragma: no muta
     load, items, files, computed = None, None, {}, None
     work = b.start(fresh=q.force)
     if q.flow_store == "crops":
-        pairs = pd.read_parquet(b.input_dir(objects_node(part)) / "pairs.parquet")
+        pairs = read_table(b.input_dir(objects_node(part)), "pairs")
         # a pair of the same boxes may be in another part's node too (never restored from
         # a node whose files are not what it published)
         sources = [d for other in CROP_PARTS
@@ -802,4 +817,6 @@ def _nodes(p: Params) -> list[dag.Node]:
 #: The crops stage (chapter 05; chapter 11's part with extension_build).
 STAGE = dag.Stage("crops", 4, "05", "crops/{method}/{part}", "flow crops around every object",
                   nodes=_nodes, inputs=_inputs, build=build,
-                  parts={WIDE: ("11", "extension_build")})
+                  parts={WIDE: ("11", "extension_build")},
+                  outputs=("{split}.npy", "{split}.parquet", "{split}.samples.npy", POOL_KEYS),
+                  garbage=unreferenced_pools)

@@ -121,7 +121,8 @@ class Stage:
     ``build(b, progress)``: builds one node (:data:`BuildFn`); ``gate``: the run parameter
     without which its nodes are not built (None: always); ``parts``: parts whose nodes
     belong to another chapter, ``{part: (chapter, gate)}``; ``source``: set for the data
-    (no build function, no run folder).
+    (no build function, no run folder); ``outputs``: the files a node publishes;
+    ``garbage``: its cache files nothing reads any more.
     """
 
     name: str
@@ -139,6 +140,14 @@ class Stage:
     gate: str | None = None
     parts: Mapping[str, tuple[str, str | None]] = field(default_factory=dict)
     source: Source | None = None
+    #: The files a node publishes in its folder besides its manifest (``{split}`` stands for
+    #: a family of names): the stage's outputs, declared with it. Only the stage's own
+    #: module names them; every other reader goes through that module's reader functions.
+    outputs: tuple[str, ...] = ()
+    #: The stage's per-pair cache files (outside its nodes' folders) that no node of a
+    #: parameter set can read any more, ``garbage(p, variants)``; with ``variants``, also
+    #: those only kept earlier results read. ``make gc`` asks every stage.
+    garbage: Callable[[Params, bool], list[Path]] | None = None
 
     def chapters(self) -> set[str]:
         """Every chapter that builds some node of this stage."""

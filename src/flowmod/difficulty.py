@@ -9,9 +9,11 @@ visibility '4', selected by :mod:`flowmod.select`). The stage scores it on
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from collections.abc import Iterable, Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -194,12 +196,21 @@ def naive_rule_report(
     return out
 
 
+#: The difficulty node's one file: the naive rule's numbers.
+REPORT = "difficulty.json"
+
+
+def read_report(folder: Path) -> dict[str, Any]:
+    """The naive rule's numbers of a published ``difficulty`` node."""
+    return json.loads((Path(folder) / REPORT).read_text())
+
+
 def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:
-    """Build the ``difficulty`` node: ``difficulty.json`` (the rule's numbers)."""
+    """Build the ``difficulty`` node: :data:`REPORT` (the rule's numbers)."""
     q = b.params
     report = naive_rule_report(q.dataroot_path, q.version, speed_threshold=q.speed_threshold,
                                max_pairs=DIFFICULTY_PAIRS, n_jobs=q.n_jobs)
-    write_json(b.start(fresh=True) / "difficulty.json",
+    write_json(b.start(fresh=True) / REPORT,
                {k: v for k, v in report.items() if k != "table"})
     return {}
 
@@ -210,4 +221,5 @@ def _nodes(p: Params) -> list[dag.Node]:
 
 #: The difficulty stage: the naive exact-flow rule on a generated world.
 STAGE = dag.Stage("difficulty", 2, "01", "difficulty", "the naive exact-flow rule on the world",
-                  nodes=_nodes, inputs=lambda n, p: (dag.Node("world"),), build=build)
+                  nodes=_nodes, inputs=lambda n, p: (dag.Node("world"),), build=build,
+                  outputs=(REPORT,))

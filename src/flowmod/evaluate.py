@@ -6,6 +6,7 @@ analysis of the generalisation predictions (Table 4, failure reasons) is its bac
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -34,9 +35,11 @@ from flowmod.metrics import (
 )
 from flowmod.model import load_model, predict, resolve_device
 from flowmod.params import Params
+from flowmod.select import read_table
 from flowmod.train import (
     EPOCH_PROBS,
     RAW,
+    model_file,
     part_index,
     part_seed,
     raw_nodes,
@@ -62,7 +65,7 @@ def models_of(b: dag.Build, stage: str, method: str) -> list[tuple[str, Path, st
             if "/" in part:  # a model of a longer key (train[dis/raw/f0] for "dis")
                 continue
             amp = rec.get("amp", "off")
-            out.append((part, b.input_dir(dag.Node(stage, method, part)) / "best.pt",
+            out.append((part, model_file(b.input_dir(dag.Node(stage, method, part))),
                         None if amp in (None, "off") else amp))
     return sorted(out)
 
@@ -234,6 +237,19 @@ def write_frames(folder: Path, frames: Mapping[str, pd.DataFrame],
         write_json(folder / f"{name}.json", s)
 
 
+def read_frame(folder: Path, name: str) -> pd.DataFrame:
+    """One predictions table (``<name>.parquet``) of a scoring node: ``test``, ``raw``,
+    ``baseline``, ``general``... (:func:`write_frames`' one reader)."""
+    return pd.read_parquet(Path(folder) / f"{name}.parquet")
+
+
+def read_scores(folder: Path, name: str) -> dict[str, Any]:
+    """One score record (``<name>.json``) of a scoring node (``scores`` for the test
+    predictions, ``original`` for the original protocol); {} where it has none."""
+    f = Path(folder) / f"{name}.json"
+    return json.loads(f.read_text()) if f.is_file() else {}
+
+
 def predict_splits(b: dag.Build, stage: str, key: str,
                    splits: Mapping[str, tuple[Any, pd.DataFrame]],
                    in_channels: int | None = 2) -> dict[str, pd.DataFrame]:  # pragma: no mutate block
@@ -267,7 +283,7 @@ def build_evaluate(b: dag.Build, progress: bool) -> dict[str, Any]:  # pragma: n
         scores["raw"] = {"split": "test", "input_scaling": "raw",
                          **score(frames["raw"], seed=q.seed)}
     frames["baseline"], scores["baseline"] = geometric_baseline(
-        pd.read_parquet(b.input_dir(dag.Node("select")) / "pairs.parquet"), crops_dir,
+        read_table(b.input_dir(dag.Node("select")), "pairs"), crops_dir,
         seed=q.seed, folds=q.folds)
     models = models_of(b, "train", m)
     replayed = [(p, path) for p, path, _ in models if records_test(p)]
@@ -304,11 +320,13 @@ EVALUATE = dag.Stage(
     nodes=lambda p: [dag.Node("evaluate", m) for m in p.flow_methods],
     inputs=lambda n, p: (*_evaluated_models(p, n.method),
                          dag.Node("crops", n.method, "keyframe"), dag.Node("select")),
-    build=build_evaluate)
+    build=build_evaluate,
+    outputs=("test.parquet", "scores.json", "raw.parquet", "raw.json", "baseline.parquet",
+             "baseline.json", "original.json"))
 #: Chapter 08: the classifiers on the generalisation set.
 GENERALISE = dag.Stage(
     "generalise", 3, "08", "metrics/{method}/general", "generalisation predictions",
     nodes=lambda p: [dag.Node("generalise", m) for m in p.flow_methods],
     inputs=lambda n, p: (*_models(p, n.method), dag.Node("crops", n.method, "general"),
                          dag.Node("general")),
-    build=build_generalise)
+    build=build_generalise, outputs=("general.parquet",))

@@ -17,6 +17,9 @@ from typing import Any
 
 from flowmod.paths import repo_root
 
+#: The files of a shipped weights folder: the float16 state_dict and its manifest.
+WEIGHTS_NAME, MANIFEST_NAME = "weights.pt", "manifest.json"
+
 
 @dataclass(frozen=True)
 class FlowWeights:
@@ -37,13 +40,13 @@ class FlowWeights:
     @property
     def shipped_file(self) -> str | None:
         """The shipped ``weights.pt`` relative to the repository (the parameter's default)."""
-        return None if self.shipped is None else f"{self.shipped}/weights.pt"
+        return None if self.shipped is None else f"{self.shipped}/{WEIGHTS_NAME}"
 
     def manifest(self) -> dict[str, Any] | None:
         """The shipped weights' manifest, or None where nothing is shipped or it is missing."""
         if self.shipped is None:
             return None
-        f = repo_root() / self.shipped / "manifest.json"
+        f = repo_root() / self.shipped / MANIFEST_NAME
         return json.loads(f.read_text()) if f.is_file() else None
 
     def is_shipped(self, path: str | Path) -> bool:

@@ -26,7 +26,6 @@ import pandas as pd
 from flowmod import crops, dag, difficulty, evaluate, select, train
 from flowmod.extensions import context, flowerrors, inputs, selfflow, wide
 from flowmod.flow import stage as flow_stage
-from flowmod.flow.store import valid_path
 from flowmod.lock import folder_lock
 from flowmod.params import Params
 from flowmod.world import source as world_source
@@ -159,61 +158,36 @@ def format_status(p: Params) -> str:
 
 # --- garbage ------------------------------------------------------------------------------------
 
-def _unreferenced_flow(p: Params, variants: bool) -> list[Path]:
-    """Flow pool files listed by no flow index (published or kept variant; with
-    ``variants``, the files only kept variants list count as unreferenced)."""
-    out: list[Path] = []
-    for method_dir in sorted((p.run_path / "flow").glob("*")):
-        pool = method_dir / "pool"
-        if not pool.is_dir() or any(method_dir.glob(".*.building-*")):
-            continue
-        keep: set[Path] = set()
-        for index in method_dir.glob("*/index.parquet"):  # published and .variant- folders
-            if variants and ".variant-" in index.parent.name:
-                continue
-            for f in pd.read_parquet(index, columns=["file"])["file"]:
-                keep |= {pool / f, valid_path(pool / f)}
-        out += [f for f in sorted(pool.rglob("*.npy")) if f not in keep]
-    return out
-
-
 def unreferenced(p: Params, variants: bool = False, worlds: bool = False) -> list[Path]:
-    """Files of the run folder's per-pair caches that no node of ``p`` can read any more:
-    flow pool files listed by no flow index (published or kept variant) and crops pool
-    folders of other options than ``p``'s (another geometry, flow option or dtype; the
-    crops nodes themselves keep their arrays; in ``flow_store: pairs`` no crops pool is
-    read). ``variants``: also every kept variant (``.variant-`` folder: an earlier result
+    """Files of the run folder's per-pair caches that no node of ``p`` can read any more, as
+    each stage names them (:attr:`flowmod.dag.Stage.garbage`: flow pool files listed by no
+    flow index, crops pool folders of other options than ``p``'s). ``variants``: also every kept variant (``.variant-`` folder: an earlier result
     that switching back would restore), and the flow files only they listed. A method with
     a build in progress (a ``.building-`` folder) keeps its files: they are its resume
     point. ``worlds``: also the generated worlds under the dataroot other than ``p``'s."""
     out: list[Path] = sorted(p.run_path.rglob(".*.variant-*")) if variants else []
     out += world_source.other_worlds(p) if worlds else []
-    out += _unreferenced_flow(p, variants)
-    for pool_root in sorted((p.run_path / "crops").glob("*/pool")):
-        m = pool_root.parent.name
-        if any(pool_root.parent.glob(".*.building-*")):
-            continue
-        keep = (crops.crops_pool(p, m) if p.flow_store == "crops" and m in p.flow_methods
-                else None)
-        out += [d for d in sorted(pool_root.iterdir()) if d.is_dir() and d != keep]
+    for stage in STAGES:  # each stage knows its own caches
+        out += stage.garbage(p, variants) if stage.garbage else []
     return out
 
 
 def collect_garbage(p: Params, dry_run: bool = False, variants: bool = False,
                     worlds: bool = False) -> tuple[int, int]:
     """Remove :func:`unreferenced` files and folders (``dry_run``: only count them); then
-    option folders left without flow files. Returns (items, bytes)."""
+    the stages' option folders left without a cache file. Returns (items, bytes)."""
     items = unreferenced(p, variants, worlds)
     size = sum(f.stat().st_size for i in items
                for f in ([i] if i.is_file() else list(i.rglob("*"))) if f.is_file())
     if not dry_run:
+        caches = {i.parent for s in STAGES if s.garbage for i in s.garbage(p, variants)}
         others = set(world_source.other_worlds(p))
         for i in items:
             if i in others:
                 world_source.remove_world(i)  # not while a run generates it
             else:
                 shutil.rmtree(i) if i.is_dir() else i.unlink()
-        for folder in (p.run_path / "flow").glob("*/pool/*"):
-            if folder.is_dir() and not any(folder.glob("*.npy")):
+        for folder in caches - {p.run_path}:  # an option folder left without a cache array
+            if folder.is_dir() and not any(folder.rglob("*.npy")):
                 shutil.rmtree(folder)
     return len(items), size

@@ -684,6 +684,13 @@ def select(p: Params, progress: bool = True) -> Selection:
                      pd.concat([sel.objects, go], ignore_index=True), sel.scenes)
 
 
+def read_table(folder: Path, name: str) -> pd.DataFrame:
+    """One table (``pairs``, ``objects``, ``scenes``, ``boxes``) of a selection node's folder
+    (``select``, ``general``, ``wide``): the one reader of the files :func:`write_tables`
+    writes."""
+    return pd.read_parquet(Path(folder) / f"{name}.parquet")
+
+
 def write_tables(d: Path, frames: dict[str, pd.DataFrame]) -> None:
     """Write ``{name: table}`` as ``<d>/<name>.parquet`` (each atomically)."""
     for key, df in frames.items():
@@ -705,7 +712,7 @@ def build_general(b: dag.Build, progress: bool) -> Mapping[str, Any]:
     """Build the ``general`` node: the generalisation set (``pairs``, ``objects`` and the
     ``boxes`` of every annotated object in frame 1)."""
     q = b.params
-    scenes = pd.read_parquet(b.input_dir(dag.Node("select")) / "scenes.parquet")
+    scenes = read_table(b.input_dir(dag.Node("select")), "scenes")
     gp, go, gb = select_general(q, scenes, open_nuscenes(q.dataroot_path, q.version), progress)
     write_tables(b.start(fresh=True), {"pairs": gp, "objects": go, "boxes": gb})
     return {"rows": len(go), "pairs": len(gp)}
@@ -728,13 +735,15 @@ def objects_node(part: str | None) -> dag.Node:
 #: The keyframe set and the scene split (chapter 02).
 SELECT = dag.Stage("select", 3, "02", "select", "Table-1 keyframe pairs and objects, scene split",
                    nodes=lambda p: [dag.Node("select")],
-                   inputs=lambda n, p: (dag.Node("world"),), build=build_select)
+                   inputs=lambda n, p: (dag.Node("world"),), build=build_select,
+                   outputs=("pairs.parquet", "objects.parquet", "scenes.parquet"))
 #: The generalisation set (chapter 02).
 GENERAL = dag.Stage("general", 3, "02", "general",
                     "generalisation pairs and objects (held-out scenes)",
                     nodes=lambda p: [dag.Node("general")],
                     inputs=lambda n, p: (dag.Node("world"), dag.Node("select")),
-                    build=build_general)
+                    build=build_general,
+                    outputs=("pairs.parquet", "objects.parquet", "boxes.parquet"))
 
 
 def read_selection(select_dir: Path, general_dir: Path) -> Selection:
@@ -742,8 +751,8 @@ def read_selection(select_dir: Path, general_dir: Path) -> Selection:
     ``select`` and ``general`` nodes."""
     frames = {}
     for name, d in (("select", select_dir), ("general", general_dir)):
-        frames[name] = {k: pd.read_parquet(f) for k in ("pairs", "objects", "scenes", "boxes")
-                        if (f := Path(d) / f"{k}.parquet").is_file()}
+        frames[name] = {k: read_table(d, k) for k in ("pairs", "objects", "scenes", "boxes")
+                        if (Path(d) / f"{k}.parquet").is_file()}
     key, gen = frames["select"], frames["general"]
     return Selection(pd.concat([key["pairs"], gen["pairs"]], ignore_index=True),
                      pd.concat([key["objects"], gen["objects"]], ignore_index=True),

@@ -54,6 +54,22 @@ CHECKPOINT_FORMAT = "flowmod-train-2"
 #: Probabilities of the ``record`` crops after every epoch, (epochs, N) float32, never scored
 #: during training (chapter 07 uses them to show what the original protocol would report).
 EPOCH_PROBS = "epoch_probs.npy"
+#: A trained classifier's published weights (float16 state_dict of its best validation epoch).
+MODEL_FILE = "best.pt"
+#: What a training node publishes: the weights, its history per epoch, and (for a seed the
+#: original protocol replays) every epoch's probabilities on the test rows.
+MODEL_OUTPUTS = (MODEL_FILE, "history.csv", EPOCH_PROBS)
+
+
+def read_history(folder: Path) -> pd.DataFrame:
+    """A published training node's history: one row per epoch (losses, validation F1,
+    learning rate, seconds)."""
+    return pd.read_csv(Path(folder) / "history.csv")
+
+
+def model_file(folder: Path) -> Path:
+    """The published weights of a ``train`` (or ``xtrain``, ``wtrain``, ``etrain``) node."""
+    return Path(folder) / MODEL_FILE
 
 
 class TrainingError(ValueError):
@@ -550,7 +566,7 @@ def _end_epoch(run: _Run, epoch: int, train_loss: float, lr_now: float, t0: floa
         _append_probs(out / EPOCH_PROBS, epoch, sigmoid(z_rec))
     if m["f1"] > run.best_f1:  # strict: ties keep the earlier epoch
         run.best_f1, run.best_epoch = m["f1"], epoch
-        save_checkpoint(run.model.state_dict(), out / "best.pt")
+        save_checkpoint(run.model.state_dict(), model_file(out))
     run.epoch = epoch
 
 
@@ -648,7 +664,7 @@ def train_seed(b: dag.Build, train: tuple[Any, pd.DataFrame], val: tuple[Any, pd
                     resume=True, progress=progress, desc=f"train {what} seed {seed}",
                     in_channels=in_channels, flip_negate=flip_negate,
                     flow_channels=flow_channels)
-    half_weights(work / "best.pt")
+    half_weights(model_file(work))
     (work / "last.pt").unlink(missing_ok=True)
     return {"best_epoch": int(h.attrs["best_epoch"]), "best_f1": float(h.attrs["best_f1"]),
             "seed": seed, "amp": q.amp, "input_scaling": s.input_mode, "width": s.width}
@@ -712,4 +728,5 @@ def train_nodes(p: Params) -> list[dag.Node]:
 #: The training stage (chapter 06): the classifier of one training seed.
 STAGE = dag.Stage("train", 4, "06", "models/{method}/{part}", "the classifier of one training seed",
                   nodes=train_nodes,
-                  inputs=lambda n, p: (dag.Node("crops", n.method, "keyframe"),), build=build)
+                  inputs=lambda n, p: (dag.Node("crops", n.method, "keyframe"),), build=build,
+                  outputs=MODEL_OUTPUTS)

@@ -21,9 +21,9 @@ import pandas as pd
 from matplotlib.patches import Rectangle
 from PIL import Image
 
-from flowmod.chapters.common import read_json
+from flowmod import pipeline
 from flowmod.dag import Node
-from flowmod.difficulty import usable
+from flowmod.difficulty import read_report, usable
 from flowmod.flow import flow_to_color
 from flowmod.params import Params
 from flowmod.select import as_nuscenes
@@ -36,8 +36,8 @@ DISTANCE_BINS = np.arange(0, 105, 5)
 
 
 def difficulty(p: Params) -> dict[str, Any]:
-    """The difficulty node's numbers (``difficulty.json``)."""
-    return read_json(p, Node("difficulty"), "difficulty.json")
+    """The difficulty node's numbers (:func:`flowmod.difficulty.read_report`)."""
+    return read_report(pipeline.published(p, Node("difficulty")))
 
 
 def annotation_table(

@@ -12,7 +12,7 @@ from flowmod import pipeline
 from flowmod.dag import Node
 from flowmod.params import Params
 from flowmod.paths import repo_root
-from flowmod.train import seed_parts
+from flowmod.train import read_history, seed_parts
 
 
 def history(p: Params, method: str, part: str = "s0") -> pd.DataFrame:
@@ -20,7 +20,7 @@ def history(p: Params, method: str, part: str = "s0") -> pd.DataFrame:
     best_f1, seed)."""
     node = Node("train", method, part)
     rec = pipeline.recorded(p, node) or {}
-    df = pd.read_csv(pipeline.published(p, node) / "history.csv")
+    df = read_history(pipeline.published(p, node))
     df.attrs.update(best_epoch=rec.get("best_epoch"), best_f1=rec.get("best_f1"),
                     seed=rec.get("seed"))
     return df

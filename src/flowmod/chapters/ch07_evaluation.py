@@ -15,13 +15,12 @@ from flowmod.chapters.common import (
     decided,
     difference_words,
     headline_method,
-    read_json,
     results,
     verdict_words,
 )
 from flowmod.crops import crop_windows
 from flowmod.dag import Node
-from flowmod.evaluate import paired, scored_crops, seed_probs
+from flowmod.evaluate import paired, read_scores, scored_crops, seed_probs
 from flowmod.metrics import group_mean_bootstrap, interval, protocol_comparison
 from flowmod.metrics import table3 as metrics_table3
 from flowmod.params import Params
@@ -30,7 +29,7 @@ from flowmod.params import Params
 def original_vs_clean(params: Params, method: str) -> dict[str, Any]:
     """The published original-protocol comparison of ``method``
     (:func:`flowmod.evaluate.original_protocol`)."""
-    return read_json(params, Node("evaluate", method), "original.json")
+    return read_scores(pipeline.published(params, Node("evaluate", method)), "original")
 
 
 def table3(params: Params) -> pd.DataFrame:

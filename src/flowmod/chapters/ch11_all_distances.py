@@ -15,6 +15,7 @@ from flowmod.dag import Node
 from flowmod.evaluate import paired, scored, seed_probs
 from flowmod.metrics import CI_COLUMN, false_alarm_rate, metrics
 from flowmod.params import Params
+from flowmod.select import read_table
 from flowmod.train import extension_parts
 
 #: Distance bins of the chapter's breakdowns (m): Table 4's range and beyond it.
@@ -52,7 +53,7 @@ def near_counts(params: Params) -> dict[str, float]:
         return {f"wide_near_{k}": float("nan") for k in keys}
     out = {}
     for name, node in (("train", "wide"), ("general", "general")):
-        obj = pd.read_parquet(pipeline.published(params, Node(node)) / "objects.parquet")
+        obj = read_table(pipeline.published(params, Node(node)), "objects")
         near = obj[(obj["distance"] < params.min_distance)
                    & (obj["distance"] <= params.general_max_distance)]
         out[f"wide_near_{name}"] = float(len(near))

@@ -7,7 +7,6 @@ stage trains in the book (``selfflow_modes``), read from their published nodes."
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +17,12 @@ from flowmod import pipeline, world
 from flowmod.chapters import common
 from flowmod.dag import Node
 from flowmod.evaluate import paired, scored
+from flowmod.extensions.selfflow import (
+    read_selfflow,
+    read_shipped,
+    read_shipped_example,
+    selfflow_weights,
+)
 from flowmod.flow.estimators import DISFlow
 from flowmod.flow.networks import FastFlowNetFlow
 from flowmod.flow.pretrain import WEIGHTS_DIR
@@ -36,6 +41,7 @@ from flowmod.metrics import (
     verdict,
 )
 from flowmod.params import Params
+from flowmod.select import read_table
 
 
 def built(params: Params) -> list[str]:
@@ -47,13 +53,12 @@ def built(params: Params) -> list[str]:
 def results(params: Params, mode: str) -> tuple[pd.DataFrame, dict[str, Any]]:
     """The published history and ``eval.json`` of ``selfflow[<mode>]``."""
     folder = pipeline.published(params, Node("selfflow", None, mode))
-    return (pd.read_csv(folder / "history.csv"),
-            json.loads((folder / "eval.json").read_text()))
+    return read_selfflow(folder)
 
 
 def weights_path(params: Params, mode: str) -> Path:
     """The published FastFlowNet checkpoint of ``mode`` (a ``fastflownet_weights`` value)."""
-    return pipeline.published(params, Node("selfflow", None, mode)) / "weights.pt"
+    return selfflow_weights(pipeline.published(params, Node("selfflow", None, mode)))
 
 
 def epe_table(params: Params, done: list[str]) -> pd.DataFrame:
@@ -142,11 +147,11 @@ def example(params: Params, done: list[str], k: int = 0
     DIS and each trained network at full size, and the valid mask, for
     :func:`flowmod.report.viz.flow_figure`."""
     sel = pipeline.published(params, Node("select"))
-    pairs = pd.read_parquet(sel / "pairs.parquet")
+    pairs = read_table(sel, "pairs")
     test = heldout_pairs(pairs, params.selfflow_eval_pairs, params.seed,
                          params.folds).iloc[[k]]
     synthetic = world.is_synthetic(params.dataroot_path, params.version)
-    h = held_out(test, pd.read_parquet(sel / "objects.parquet"), params.dataroot_path,
+    h = held_out(test, read_table(sel, "objects"), params.dataroot_path,
                  params.version, synthetic)
     flows = {"exact": h.gt[0]} if h.gt else {}
     flows[f"dis ({DIS_PRESET})"] = DISFlow(DIS_PRESET, scale=params.flow_scale).estimate(
@@ -280,7 +285,7 @@ def held_out_check(params: Params) -> tuple[pd.DataFrame | None, pd.DataFrame | 
     per pair where the node was built; per held-out pair its scene and each method's EPE in
     the boxes, px, one column per method); (None, None) on data without exact flow."""
     folder = pipeline.published(params, Node("shipped"))
-    raw, long = (pd.read_parquet(folder / f"{k}.parquet") for k in ("world", "pairs"))
+    raw, long = read_shipped(folder)
     if raw.empty:
         return None, None
     rows = []
@@ -305,9 +310,8 @@ def shipped_example(params: Params) -> tuple[np.ndarray, dict[str, np.ndarray], 
     shipped flows at full size, the exact flow's valid mask), for
     :func:`flowmod.report.viz.flow_figure`."""
     folder = pipeline.published(params, Node("shipped"))
-    with np.load(folder / "example.npz") as z:
-        arrays = {k: z[k] for k in z.files}
-    path = pd.read_parquet(folder / "pairs.parquet")["path_1"].iloc[0]
+    arrays = read_shipped_example(folder)
+    path = read_shipped(folder)[1]["path_1"].iloc[0]
     flows = {"exact": arrays["exact"], f"dis ({DIS_PRESET})": arrays[f"dis ({DIS_PRESET})"],
              SHIPPED: arrays[SHIPPED]}
     return (read_image(params.dataroot_path / path),

@@ -10,7 +10,6 @@ curves (:func:`predictions`) and set against their Table 3 differences.
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
 import numpy as np
@@ -22,7 +21,15 @@ from flowmod.crops import BOX_COLUMNS, read_crops
 from flowmod.dag import Node
 from flowmod.evaluate import paired, seed_probs
 from flowmod.extensions.context import read_context
-from flowmod.extensions.flowerrors import EXACT, KINDS, arm_key, arms, box_masks
+from flowmod.extensions.flowerrors import (
+    EXACT,
+    KINDS,
+    arm_key,
+    arms,
+    box_masks,
+    read_arm,
+    read_levels,
+)
 from flowmod.metrics import interval, scene_bootstrap
 from flowmod.params import Params
 
@@ -50,18 +57,12 @@ def built(p: Params) -> list[str]:
 def arm_predictions(p: Params, key: str) -> pd.DataFrame:
     """One arm's test predictions (``prob``) with each object's realised end-point error
     in its box and ring (``epe_box``, ``epe_ring``, px)."""
-    folder = pipeline.published(p, Node("eevaluate", "gt", key))
-    df = pd.read_parquet(folder / "test.parquet")
-    err = pd.read_parquet(folder / "errors.parquet")
-    if not df["ann_token"].equals(err["ann_token"]):
-        raise ValueError(f"{folder}: predictions and realised errors hold other objects")
-    return df.assign(epe_box=err["epe_box"].to_numpy(), epe_ring=err["epe_ring"].to_numpy())
+    return read_arm(pipeline.published(p, Node("eevaluate", "gt", key)))
 
 
 def _level(p: Params, kind: str) -> dict[str, Any]:
     """The ``levels.json`` of a kind's ``elevels`` node."""
-    folder = pipeline.published(p, Node("elevels", "gt", kind))
-    return json.loads((folder / "levels.json").read_text())
+    return read_levels(pipeline.published(p, Node("elevels", "gt", kind)))
 
 
 def _region(kind: str) -> str:

@@ -3,7 +3,6 @@ crops, the classifiers' predictions and scores, and the line that says what a ga
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -13,11 +12,12 @@ import pandas as pd
 from flowmod import metrics, pipeline
 from flowmod.crops import fold_crops, part_of, read_crops
 from flowmod.dag import Node
-from flowmod.evaluate import fold_of, seed_probs
+from flowmod.evaluate import fold_of, read_frame, read_scores, seed_probs
 from flowmod.flow import FlowReader, flow_root
 from flowmod.metrics import ci_text, group_mean_bootstrap, interval
 from flowmod.params import Params
 from flowmod.select import PARTS, SPLITS, Selection, read_selection
+from flowmod.train import model_file
 
 
 def selection(p: Params) -> Selection:
@@ -59,20 +59,13 @@ def results(p: Params, method: str, name: str = "test") -> tuple[pd.DataFrame, d
     empty)."""
     node = Node("generalise" if name == "general" else "evaluate", method)
     folder = pipeline.published(p, node)
-    preds = pd.read_parquet(folder / f"{name}.parquet")
-    js = folder / ("scores.json" if name == "test" else f"{name}.json")
-    return preds, (json.loads(js.read_text()) if js.is_file() else {})
-
-
-def read_json(p: Params, node: Node, name: str) -> dict[str, Any]:
-    """A JSON file of a published node."""
-    return json.loads((pipeline.published(p, node) / name).read_text())
+    return read_frame(folder, name), read_scores(folder, "scores" if name == "test" else name)
 
 
 def model_path(p: Params, method: str, part: str = "s0") -> Path:
     """The published ``best.pt`` of one training seed of ``method`` (state_dict of the best
     validation epoch, float16 weights)."""
-    return pipeline.published(p, Node("train", method, part)) / "best.pt"
+    return model_file(pipeline.published(p, Node("train", method, part)))
 
 
 def built_note(what: str, done: list[str], planned: int, others: str, flag: str) -> str:

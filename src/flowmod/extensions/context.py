@@ -42,7 +42,7 @@ from flowmod.crops import (
 )
 from flowmod.params import Params
 from flowmod.progress import bar
-from flowmod.select import PARTS, frame_boxes_3d, objects_node, open_nuscenes
+from flowmod.select import PARTS, frame_boxes_3d, objects_node, open_nuscenes, read_table
 
 #: Files of one split: static-world flow crops (annotated-box depth; deployable depth),
 #: image crops, index.
@@ -134,7 +134,7 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
     q, part = b.params, b.node.part
     sel = b.input_dir(objects_node(part))
     objects = part_objects(sel, part)
-    pairs = pd.read_parquet(sel / "pairs.parquet")
+    pairs = read_table(sel, "pairs")
     pairs = pairs[pairs["pair_id"].isin(set(objects["pair_id"]))]
     nusc = open_nuscenes(q.dataroot_path, q.version)
     boxes = {str(r.pair_id): frame_boxes_3d(nusc, r.sd_token_1)
@@ -156,4 +156,6 @@ STAGE = dag.Stage("context", 2, "10", "extensions/context/{part}",
                   "static-world flow and image crops of every object",
                   nodes=lambda p: ([dag.Node("context", None, part) for part in PARTS]
                                    if p.extension_inputs or _pulled(p) else []),
-                  inputs=lambda n, p: (dag.Node("world"), objects_node(n.part)), build=build)
+                  inputs=lambda n, p: (dag.Node("world"), objects_node(n.part)), build=build,
+                  outputs=("{split}.parquet", "{split}.static.npy", "{split}.deployed.npy",
+                           "{split}.images.npy"))

@@ -38,6 +38,7 @@ import json
 import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -53,11 +54,11 @@ from flowmod.crops import (
     gather_fold,
     read_crops,
 )
-from flowmod.evaluate import predict_splits, scored_rows, write_frames
+from flowmod.evaluate import predict_splits, read_frame, scored_rows, write_frames
 from flowmod.extensions.context import read_context
 from flowmod.geometry import window_lattice
 from flowmod.params import Params
-from flowmod.train import part_index, seed_parts, train_seed
+from flowmod.train import MODEL_OUTPUTS, part_index, seed_parts, train_seed
 
 Seed = np.random.Generator | int
 
@@ -445,12 +446,30 @@ def degraded_reader(q: Any, crops_dir: Any, ctx_dir: Any, kind: str, target: int
     return read
 
 
+#: An ``elevels`` node's one file: a kind's levels at the targets.
+LEVELS_FILE = "levels.json"
+
+
+def read_levels(folder: Path) -> dict[str, Any]:
+    """A published ``elevels`` node's record: kind, unit, targets, the matched levels,
+    whether each was reached, the errors they realised, the objects matched on."""
+    return json.loads((Path(folder) / LEVELS_FILE).read_text())
+
+
+def read_arm(folder: Path) -> pd.DataFrame:
+    """A published ``eevaluate`` node's test predictions (``prob``) with each object's
+    realised end-point error in its box and ring (``epe_box``, ``epe_ring``, px)."""
+    df, err = read_frame(folder, "test"), read_frame(folder, "errors")
+    if not df["ann_token"].equals(err["ann_token"]):
+        raise ValueError(f"{folder}: predictions and realised errors hold other objects")
+    return df.assign(epe_box=err["epe_box"].to_numpy(), epe_ring=err["epe_ring"].to_numpy())
+
+
 def _level(b: dag.Build, kind: str, target: int) -> float:
     """The level of ``kind`` at target ``target`` that the ``elevels`` node matched."""
     if kind == EXACT:
         return 0.0
-    rec = json.loads((b.input_dir(dag.Node("elevels", "gt", kind)) / "levels.json").read_text())
-    return float(rec["levels"][target])
+    return float(read_levels(b.input_dir(dag.Node("elevels", "gt", kind)))["levels"][target])
 
 
 def build_elevels(b: dag.Build, progress: bool) -> dict[str, Any]:
@@ -472,7 +491,7 @@ def build_elevels(b: dag.Build, progress: bool) -> dict[str, Any]:
                        q.crop_scale, None if still is None else np.asarray(still)[pick])
     found = match_levels(batch, q.error_targets, [kind], seed=q.seed)[kind]
     levels = [float(v) if np.isfinite(v) else KINDS[kind].hi for v in found]
-    write_json(b.start(fresh=True) / "levels.json",
+    write_json(b.start(fresh=True) / LEVELS_FILE,
                {"kind": kind, "unit": KINDS[kind].level, "targets": list(q.error_targets),
                 "levels": levels, "reached": [bool(np.isfinite(v)) for v in found],
                 "realised": [realised_error(kind, batch, v, q.seed) for v in levels],
@@ -536,18 +555,18 @@ ELEVELS = dag.Stage(
     "elevels", 1, "13", "flowerrors/levels/{part}", "a kind of error's level at each target",
     nodes=lambda p: [dag.Node("elevels", "gt", k) for k in p.error_kinds if arms(p)],
     inputs=lambda n, p: _needs(str(n.part))[:-1],
-    build=build_elevels)
+    build=build_elevels, outputs=(LEVELS_FILE,))
 #: Chapter 13: one classifier per arm and fold, trained on the degraded exact flow.
 ETRAIN = dag.Stage(
     "etrain", 1, "13", "flowerrors/models/{key}", "a classifier on degraded exact flow",
     nodes=lambda p: [dag.Node("etrain", "gt", f"{arm_key(*a)}/{k}") for a in arms(p)
                      for k in error_parts(p)],
     inputs=lambda n, p: _needs(parse_arm(str(n.part).rpartition("/")[0])[0]),
-    build=build_etrain)
+    build=build_etrain, outputs=MODEL_OUTPUTS)
 #: Chapter 13: an arm's models on their test rows, with the realised errors.
 EEVALUATE = dag.Stage(
     "eevaluate", 1, "13", "flowerrors/metrics/{key}", "its predictions and realised errors",
     nodes=lambda p: [dag.Node("eevaluate", "gt", arm_key(*a)) for a in arms(p)],
     inputs=lambda n, p: (*(dag.Node("etrain", "gt", f"{n.part}/{k}") for k in error_parts(p)),
                          *_needs(parse_arm(str(n.part))[0])),
-    build=build_eevaluate)
+    build=build_eevaluate, outputs=("test.parquet", "errors.parquet", "arm.json"))

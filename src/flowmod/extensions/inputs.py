@@ -39,7 +39,7 @@ from flowmod.evaluate import predict_splits, scored_rows
 from flowmod.extensions.context import read_context
 from flowmod.params import Params
 from flowmod.select import PARTS
-from flowmod.train import extension_parts, seed_index, train_seed
+from flowmod.train import MODEL_OUTPUTS, extension_parts, seed_index, train_seed
 
 
 @dataclass(frozen=True)
@@ -243,9 +243,10 @@ XTRAIN = dag.Stage(
     "xtrain", 1, "10", "extensions/models/{key}", "a classifier on another input",
     nodes=lambda p: [dag.Node("xtrain", m, f"{v}/{k}") for m, v in chains(p)
                      for k in extension_parts(p)],
-    inputs=_xtrain_inputs, build=build_xtrain, gate="extension_build")
+    inputs=_xtrain_inputs, build=build_xtrain, gate="extension_build", outputs=MODEL_OUTPUTS)
 #: Chapter 10: a chain's seeds on the test split and the generalisation set.
 XEVALUATE = dag.Stage(
     "xevaluate", 1, "10", "extensions/metrics/{key}", "its test and generalisation predictions",
     nodes=lambda p: [dag.Node("xevaluate", m, v) for m, v in chains(p)],
-    inputs=_xevaluate_inputs, build=build_xevaluate, gate="extension_build")
+    inputs=_xevaluate_inputs, build=build_xevaluate, gate="extension_build",
+    outputs=("test.parquet", "general.parquet"))

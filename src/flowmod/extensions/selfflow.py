@@ -9,7 +9,9 @@ chapter's tables are in :mod:`flowmod.chapters.ch12_self_trained_flow`.
 from __future__ import annotations
 
 import functools
+import json
 import shutil
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -36,6 +38,7 @@ from flowmod.flow.selftrain import (
     train_flow,
     validation_pairs,
 )
+from flowmod.select import read_table
 
 
 def build(b: dag.Build, progress: bool) -> dict[str, Any]:
@@ -53,7 +56,7 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
             f"selfflow_modes has 'supervised', but {root} ({q.version}) is not a generated "
             "world: there is no exact flow to supervise with; use selfflow_modes=[photometric]")
     sel = b.input_dir(dag.Node("select"))
-    pairs = pd.read_parquet(sel / "pairs.parquet")
+    pairs = read_table(sel, "pairs")
     role = "test" if mode == "finetune" else "train"
     train = sample_pairs(fold0_pairs(pairs, q.folds, role), q.selfflow_pairs, (q.seed, 0))
     val = validation_pairs(pairs, q.selfflow_eval_pairs, q.seed, q.folds)
@@ -68,7 +71,7 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
                 if mode == "supervised" else None)
     data = FramePairs([(root / r.path_1, root / r.path_2) for r in train.itertuples()],
                       q.flow_scale, gt_files)
-    objects = pd.read_parquet(sel / "objects.parquet")
+    objects = read_table(sel, "objects")
     val_data = held_out(val, objects, root, q.version, synthetic)
     model, hist = train_flow(
         data, mode, work, iters=q.selfflow_iters, batch=q.selfflow_batch, lr=q.selfflow_lr,
@@ -78,12 +81,12 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
         desc=f"train fastflownet ({mode})", device=q.device, init=init,
         window=q.selfflow_window,
         warmup=q.selfflow_warmup if mode == "photometric" else 0)
-    save_checkpoint({k: v.cpu() for k, v in model.state_dict().items()}, work / "weights.pt")
-    with atomic_path(work / "history.csv") as tmp:
+    save_checkpoint({k: v.cpu() for k, v in model.state_dict().items()}, work / WEIGHTS)
+    with atomic_path(work / HISTORY) as tmp:
         hist.to_csv(tmp, index=False)
     test_data = held_out(test, objects, root, q.version, synthetic)  # read once, at the end
     final = {k[len("val_"):]: v for k, v in hist.iloc[-1].items() if k.startswith("val_")}
-    write_json(work / "eval.json", {
+    write_json(work / EVALUATION, {
         "mode": mode, "steps": int(hist["step"].iloc[-1]),
         "seconds_per_step": float(hist["seconds"].median()),
         "train_pairs": len(train), "train_scenes": sorted(train["scene"].unique()),
@@ -127,9 +130,9 @@ def build_shipped(b: dag.Build, progress: bool) -> dict[str, Any]:
         _write_shipped(work, pd.DataFrame(), pd.DataFrame(), {})
         return {"pairs": 0, "exact_flow": False}
     sel = b.input_dir(dag.Node("select"))
-    pairs = pd.read_parquet(sel / "pairs.parquet")
+    pairs = read_table(sel, "pairs")
     pick = sample_pairs(pairs[pairs["set"] == "keyframe"], q.selfflow_eval_pairs, (q.seed, 12))
-    data = held_out(pick, pd.read_parquet(sel / "objects.parquet"), q.dataroot_path,
+    data = held_out(pick, read_table(sel, "objects"), q.dataroot_path,
                     q.version, synthetic=True)
     ests = {**reference_estimators(q.flow_scale),
             SHIPPED: FastFlowNetFlow(weights, device=q.device, scale=q.flow_scale).estimate}
@@ -157,13 +160,42 @@ def _keep_first(est: Any, flows: dict[str, np.ndarray], name: str) -> Any:
     return run
 
 
+#: A ``selfflow`` node's files: the trained weights, the training history, the evaluation.
+WEIGHTS, HISTORY, EVALUATION = "weights.pt", "history.csv", "eval.json"
+#: The ``shipped`` node's files: its table, the per-pair errors and one pair's flows.
+SHIPPED_TABLE, SHIPPED_PAIRS, SHIPPED_EXAMPLE = "world.parquet", "pairs.parquet", "example.npz"
+
+
+def read_selfflow(folder: Path) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """A published ``selfflow`` node's training history and evaluation record."""
+    return (pd.read_csv(Path(folder) / HISTORY),
+            json.loads((Path(folder) / EVALUATION).read_text()))
+
+
+def selfflow_weights(folder: Path) -> Path:
+    """A published ``selfflow`` node's FastFlowNet weights (a ``fastflownet_weights`` value)."""
+    return Path(folder) / WEIGHTS
+
+
+def read_shipped(folder: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The published ``shipped`` node's table (one row per method) and per-pair errors."""
+    return (pd.read_parquet(Path(folder) / SHIPPED_TABLE),
+            pd.read_parquet(Path(folder) / SHIPPED_PAIRS))
+
+
+def read_shipped_example(folder: Path) -> dict[str, np.ndarray]:
+    """The published ``shipped`` node's example pair: each method's flow and the valid mask."""
+    with np.load(Path(folder) / SHIPPED_EXAMPLE) as z:
+        return {k: z[k] for k in z.files}
+
+
 def _write_shipped(folder: Any, table: pd.DataFrame, boxes: pd.DataFrame,
                    arrays: dict[str, np.ndarray]) -> None:
     """The ``shipped`` node's files, each written atomically."""
-    for name, df in (("world", table), ("pairs", boxes)):
-        with atomic_path(folder / f"{name}.parquet") as tmp:
+    for name, df in ((SHIPPED_TABLE, table), (SHIPPED_PAIRS, boxes)):
+        with atomic_path(folder / name) as tmp:
             df.to_parquet(tmp, index=False)
-    with atomic_path(folder / "example.npz") as tmp, open(tmp, "wb") as fh:
+    with atomic_path(folder / SHIPPED_EXAMPLE) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **{k: (v if v.dtype == bool else v.astype(np.float16))
                         for k, v in arrays.items()})
 
@@ -173,10 +205,11 @@ SHIPPED_STAGE = dag.Stage(
     "shipped", 2, "12", "selfflow/shipped",
     "the shipped FastFlowNet weights and the reference methods on held-out pairs",
     nodes=lambda p: [dag.Node("shipped")],
-    inputs=lambda n, p: (dag.Node("world"), dag.Node("select")), build=build_shipped)
+    inputs=lambda n, p: (dag.Node("world"), dag.Node("select")), build=build_shipped,
+    outputs=(SHIPPED_TABLE, SHIPPED_PAIRS, SHIPPED_EXAMPLE))
 #: Chapter 12: FastFlowNet trained from scratch (with ``selfflow_build``).
 STAGE = dag.Stage("selfflow", 2, "12", "selfflow/{part}",
                   "FastFlowNet trained from scratch, validation and test end-point error",
                   nodes=lambda p: [dag.Node("selfflow", None, mode) for mode in p.selfflow_modes],
                   inputs=lambda n, p: (dag.Node("world"), dag.Node("select")), build=build,
-                  gate="selfflow_build")
+                  gate="selfflow_build", outputs=(WEIGHTS, HISTORY, EVALUATION))

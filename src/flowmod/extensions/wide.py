@@ -26,19 +26,17 @@ from __future__ import annotations
 
 from typing import Any
 
-import pandas as pd
-
 from flowmod import dag
 from flowmod.crops import fold_crops
 from flowmod.evaluate import predict_splits, scored_crops
-from flowmod.select import PARTS, WIDE, open_nuscenes, select_wide, write_tables
-from flowmod.train import extension_parts, recipe, seed_index, train_seed
+from flowmod.select import PARTS, WIDE, open_nuscenes, read_table, select_wide, write_tables
+from flowmod.train import MODEL_OUTPUTS, extension_parts, recipe, seed_index, train_seed
 
 # --- the stages --------------------------------------------------------------------------------
 
 def build_wide(b: dag.Build, progress: bool) -> dict[str, Any]:
     """Build the ``wide`` node: chapter 11's training selection (``pairs``, ``objects``)."""
-    scenes = pd.read_parquet(b.input_dir(dag.Node("select")) / "scenes.parquet")
+    scenes = read_table(b.input_dir(dag.Node("select")), "scenes")
     q = b.params
     pairs, objects = select_wide(q, scenes, open_nuscenes(q.dataroot_path, q.version), progress)
     write_tables(b.start(fresh=True), {"pairs": pairs, "objects": objects})
@@ -72,14 +70,15 @@ WIDE_STAGE = dag.Stage(
     "wide", 1, "11", "extensions/wide/select",
     "training pairs and objects at every distance, sweeps too",
     nodes=lambda p: [dag.Node("wide")] if p.wide_methods else [],
-    inputs=lambda n, p: (dag.Node("world"), dag.Node("select")), build=build_wide)
+    inputs=lambda n, p: (dag.Node("world"), dag.Node("select")), build=build_wide,
+    outputs=("pairs.parquet", "objects.parquet"))
 #: Chapter 11: one fold's (or seed's) classifier trained on all distances (extension_build).
 WTRAIN = dag.Stage(
     "wtrain", 1, "11", "extensions/wide/models/{method}/{part}",
     "a classifier trained on all distances",
     nodes=lambda p: [dag.Node("wtrain", m, k) for m in p.wide_methods for k in extension_parts(p)],
     inputs=lambda n, p: (dag.Node("crops", n.method, WIDE),), build=build_wtrain,
-    gate="extension_build")
+    gate="extension_build", outputs=MODEL_OUTPUTS)
 #: Chapter 11: its seeds on the generalisation set and the keyframe test split.
 WGENERALISE = dag.Stage(
     "wgeneralise", 1, "11", "extensions/wide/metrics/{method}",
@@ -88,4 +87,4 @@ WGENERALISE = dag.Stage(
     inputs=lambda n, p: (*(dag.Node("wtrain", n.method, k) for k in extension_parts(p)),
                          *(dag.Node("crops", n.method, part) for part in PARTS),
                          dag.Node("general")),
-    build=build_wgeneralise, gate="extension_build")
+    build=build_wgeneralise, gate="extension_build", outputs=("general.parquet", "test.parquet"))

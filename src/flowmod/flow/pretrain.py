@@ -63,7 +63,7 @@ from flowmod.flow.architectures import FFN_DIV_FLOW, FastFlowNet, fastflownet_in
 from flowmod.flow.estimators import GTFlow
 from flowmod.flow.registry import read_image, resize_flow
 from flowmod.flow.selftrain import HeldOut, baselines, held_out, score_model
-from flowmod.flowweights import FASTFLOWNET_SYNTH
+from flowmod.flowweights import FASTFLOWNET_SYNTH, MANIFEST_NAME, WEIGHTS_NAME
 from flowmod.params import Params, load_profile, validate
 from flowmod.paths import repo_root
 from flowmod.progress import bar
@@ -589,8 +589,8 @@ def shipped_phases(schedule: Sequence[Recipe], out: Path) -> tuple[int, dict[str
     """How many leading phases of ``schedule`` the published weights in ``out`` hold (their
     manifest's schedule; keys it lacks at their defaults), and that manifest."""
     try:
-        m = json.loads((out / "manifest.json").read_text())
-        ok = m["sha256"] == file_digest(out / "weights.pt")
+        m = json.loads((out / MANIFEST_NAME).read_text())
+        ok = m["sha256"] == file_digest(out / WEIGHTS_NAME)
     except (OSError, ValueError, KeyError) as e:
         raise PretrainError(f"no readable published weights in {out} ({e}): train from "
                             "scratch, without --from-shipped") from None
@@ -616,9 +616,9 @@ def publish(schedule: Sequence[Recipe], work: Path, out: Path, world_fp: str,
     model = FastFlowNet()
     model.load_state_dict(phase_result(state))
     out.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out / "weights.pt") as tmp:
+    with atomic_path(out / WEIGHTS_NAME) as tmp:
         torch.save(half_state(model), tmp)
-    final = score_model(load_half(out / "weights.pt"), heldout, last.scale)
+    final = score_model(load_half(out / WEIGHTS_NAME), heldout, last.scale)
     start = before["validation"]["curve"] if n else [{"step": 0, **{
         f"val_{k}": v for k, v in score_model(initial_model(first), heldout,
                                                 first.scale).items()}}]
@@ -643,14 +643,14 @@ def publish(schedule: Sequence[Recipe], work: Path, out: Path, world_fp: str,
         "where": {"machine": platform.machine(), "processor": platform.processor(),
                   "torch": torch.__version__, "threads": first.threads,
                   "device": "cpu", "python": platform.python_version()},
-        "sha256": file_digest(out / "weights.pt"),
+        "sha256": file_digest(out / WEIGHTS_NAME),
         "format": "float16 state_dict; load with torch.load(weights_only=True)",
     }
     if n:
         manifest["continued_from"] = {"phases": n, "sha256": before["sha256"],
                                       "where": before.get("continued_from", {}).get(
                                           "where", before["where"])}
-    write_json(out / "manifest.json", manifest)
+    write_json(out / MANIFEST_NAME, manifest)
     return manifest
 
 
@@ -755,17 +755,17 @@ def main(argv: list[str] | None = None) -> int:
             raise PretrainError(f"the weights in {args.out} were trained on another world "
                                 "than the recipe's: train from scratch, without --from-shipped")
         if not args.publish_only:
-            init = load_half(args.out / "weights.pt").state_dict() if prior[0] else None
+            init = load_half(args.out / WEIGHTS_NAME).state_dict() if prior[0] else None
             run_schedule(SCHEDULE, data, args.work, args.steps, heldout, start=(prior[0], init))
         m = publish(SCHEDULE, args.work, args.out, world_fp, heldout, time.time() - t0, prior)
         print(f"[pretrain] published {args.out}/weights.pt: step {m['steps']}, validation EPE "
               f"in far boxes {m['validation']['final_float16']['epe_boxes']:.2f} px", flush=True)
     smoke = load_profile("smoke", n_jobs=2)
     ensure_world_data(smoke)
-    manifest = json.loads((args.out / "manifest.json").read_text())
-    manifest["check"] = smoke_check(recipe, args.out / "weights.pt", smoke, args.work / "check",
+    manifest = json.loads((args.out / MANIFEST_NAME).read_text())
+    manifest["check"] = smoke_check(recipe, args.out / WEIGHTS_NAME, smoke, args.work / "check",
                                     SCHEDULE[-1].scale)
-    write_json(args.out / "manifest.json", manifest)
+    write_json(args.out / MANIFEST_NAME, manifest)
     print(f"[pretrain] smoke-world check: {manifest['check']}", flush=True)
     return 0
 

@@ -58,9 +58,10 @@ from flowmod.flow.store import (
     npy_header,
     npy_ok,
     store_flow,
+    valid_path,
 )
 from flowmod.progress import bar
-from flowmod.select import PARTS, WIDE, objects_node
+from flowmod.select import PARTS, WIDE, objects_node, read_table
 
 if TYPE_CHECKING:
     from flowmod.params import Params
@@ -517,14 +518,37 @@ def kept_pairs(pairs: pd.DataFrame, objects: pd.DataFrame, part: str, n: int,
     return pairs[pairs["pair_id"].isin(shown | set(drawn))]
 
 
+#: A flow node's one file: per pair its file in the method's pool.
+INDEX = "index.parquet"
+
+
+def unreferenced_pool(p: Params, variants: bool) -> list[Path]:
+    """The flow stage's garbage: pool files listed by no flow index (published or kept
+    variant; with ``variants``, the files only kept variants list count as unreferenced).
+    A method with a build in progress keeps its files: they are its resume point."""
+    out: list[Path] = []
+    for method_dir in sorted((p.run_path / "flow").glob("*")):
+        pool = method_dir / "pool"
+        if not pool.is_dir() or any(method_dir.glob(".*.building-*")):
+            continue
+        keep: set[Path] = set()
+        for index in method_dir.glob(f"*/{INDEX}"):  # published and .variant- folders
+            if variants and ".variant-" in index.parent.name:
+                continue
+            for f in pd.read_parquet(index, columns=["file"])["file"]:
+                keep |= {pool / f, valid_path(pool / f)}
+        out += [f for f in sorted(pool.rglob("*.npy")) if f not in keep]
+    return out
+
+
 def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:
     """Build one ``flow[<method>/<part>]`` node: the flow of the part's pairs (in crops mode
     only those :func:`kept_pairs` keeps), from the pool where possible; ``index.parquet``."""
     q, method, part = b.params, b.node.method, b.node.part
-    pairs_file = b.input_dir(objects_node(part)) / "pairs.parquet"
-    pairs = pd.read_parquet(pairs_file)
+    sel = b.input_dir(objects_node(part))
+    pairs = read_table(sel, "pairs")
     if q.flow_store == "crops":  # the crops stage computes the rest itself
-        objects = pd.read_parquet(pairs_file.with_name("objects.parquet"))
+        objects = read_table(sel, "objects")
         pairs = kept_pairs(pairs, objects, part, q.flow_keep_pairs, q.seed,
                            clip=method == q.clip_method)
     idx = compute_flow(
@@ -534,7 +558,7 @@ def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:
         store_scale=q.flow_scale, label=f"flow {method}/{part}",
         executor=q.executor, ray_address=q.ray_address,
         **estimator_options(q, method))
-    with atomic_path(b.start(fresh=True) / "index.parquet") as tmp:
+    with atomic_path(b.start(fresh=True) / INDEX) as tmp:
         idx.drop(columns="computed").to_parquet(tmp, index=False)
     b.cached(flow_root(q) / method / "pool" / f for f in idx["file"])
     return {"pairs": len(idx), "computed": int(idx["computed"].sum()),
@@ -565,7 +589,8 @@ def _nodes(p: Params) -> list[dag.Node]:
 #: The flow stage (chapter 03; chapter 11's part with extension_build).
 STAGE = dag.Stage("flow", 2, "03", "flow/{method}/{part}", "optical flow of every pair",
                   nodes=_nodes, inputs=lambda n, p: (dag.Node("world"), objects_node(n.part)),
-                  build=build, parts={WIDE: ("11", "extension_build")})
+                  build=build, parts={WIDE: ("11", "extension_build")},
+                  outputs=(INDEX,), garbage=unreferenced_pool)
 
 
 class FlowReader:
@@ -576,7 +601,7 @@ class FlowReader:
         """``folder``: the published ``flow[<method>/<part>]`` node; ``pool``: the method's
         pool of per-pair files (:func:`flow_root` / method / pool)."""
         self.method, self.part = method, part
-        self.index = pd.read_parquet(folder / "index.parquet")
+        self.index = pd.read_parquet(folder / INDEX)
         rec = read_manifest(folder / "manifest.json") or {}
         self.store_scale = float(rec.get("store_scale", 1.0))
         self.pool = pool
