@@ -18,8 +18,8 @@ from flowmod.params import Params
 from flowmod.select import read_table
 from flowmod.train import extension_parts
 
-#: Distance bins of the chapter's breakdowns (m): Table 4's range and beyond it.
-EDGES = (0, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100.01)
+#: Distance bins of the chapter's breakdowns (m): chapter 08's, Table 4's range and beyond.
+EDGES = ch08_generalisation.DISTANCE_EDGES
 
 
 def built(params: Params) -> list[str]:
