@@ -50,14 +50,6 @@ def test_box_masks_cover_the_middle_of_the_window() -> None:
     assert m[9:20, 9:20].all() and m.sum() == 11 * 11
 
 
-def test_box_masks_follow_chapter_07() -> None:
-    from flowmod.chapters.ch07_evaluation import box_masks
-
-    boxes = _boxes(50, np.random.default_rng(1))
-    df = pd.DataFrame(boxes, columns=["xmin", "ymin", "xmax", "ymax"])
-    assert np.array_equal(fe.box_masks(boxes, S, SCALE), box_masks(df, S, SCALE))
-
-
 def test_noise_reaches_sigma_times_rayleigh_mean(batch: fe.CropBatch) -> None:
     e = fe.endpoint_errors(fe.white_noise(batch.flow, 0.8, 0), batch.flow, batch.box)
     assert e["box_mean"] == pytest.approx(0.8 * RAYLEIGH_MEAN, rel=0.03)

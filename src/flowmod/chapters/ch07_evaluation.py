@@ -18,9 +18,9 @@ from flowmod.chapters.common import (
     results,
     verdict_words,
 )
-from flowmod.crops import crop_windows
 from flowmod.dag import Node
 from flowmod.evaluate import paired, read_scores, scored_crops, seed_probs
+from flowmod.extensions import flowerrors
 from flowmod.metrics import group_mean_bootstrap, interval, protocol_comparison
 from flowmod.metrics import table3 as metrics_table3
 from flowmod.params import Params
@@ -199,16 +199,9 @@ def bootstrap_draws() -> int:
 
 def box_masks(df: pd.DataFrame, size: int, scale: float) -> np.ndarray:
     """(N, S, S) bool: the pixels of each object's crop (the paper's window, ``scale`` times
-    the box's longer side, resized to S x S) that lie inside its 2D box."""
-    boxes = df[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float)
-    win = crop_windows(boxes, scale).astype(float)
-    lo = (boxes[:, :2] - win[:, :2]) / win[:, 2:3] * size
-    hi = (boxes[:, 2:] + 1 - win[:, :2]) / win[:, 2:3] * size
-    a, b = np.clip(np.floor(lo), 0, size).astype(int), np.clip(np.ceil(hi), 0, size).astype(int)
-    mask = np.zeros((len(df), size, size), bool)
-    for i, (c0, r0, c1, r1) in enumerate(np.hstack([a, b])):
-        mask[i, r0:r1, c0:c1] = True
-    return mask
+    the box's longer side, resized to S x S) that lie inside its 2D box, for the objects
+    of ``df`` (:func:`flowmod.extensions.flowerrors.box_masks`, the one definition)."""
+    return flowerrors.box_masks(df[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float), size, scale)
 
 
 def crop_errors(params: Params, method: str, reference: str = "gt") -> pd.DataFrame:

@@ -91,8 +91,8 @@ def box_masks(boxes: np.ndarray, size: int, scale: float) -> np.ndarray:
     """(N, S, S) bool: the pixels of each crop (``scale`` x the box's longer side about its
     centre, resized to S = ``size``) that the 2D box covers, partly or wholly.
 
-    boxes: (N, 4) xmin, ymin, xmax, ymax frame px. The convention of chapter 07's crop
-    errors (:func:`flowmod.chapters.ch07_evaluation.box_masks`), so errors measured here
+    boxes: (N, 4) xmin, ymin, xmax, ymax frame px. Chapter 07's crop errors use the same
+    masks (:func:`flowmod.chapters.ch07_evaluation.box_masks`), so errors measured here
     are comparable with its box and around-the-box medians."""
     b = np.asarray(boxes, np.float64).reshape(-1, 4)
     win = crop_windows(b, scale).astype(np.float64)
