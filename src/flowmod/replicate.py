@@ -21,6 +21,7 @@ from flowmod.chapters import ch13_flow_errors as ch13
 from flowmod.chapters import ch14_answers as ch14
 from flowmod.environment import git_commit
 from flowmod.lock import FolderBusy
+from flowmod.metrics import CI_COLUMN
 from flowmod.params import Params, ProfileError, parse_overrides
 from flowmod.paths import repo_root
 from flowmod.runner import os_error_line, resolve_profile
@@ -60,7 +61,7 @@ def effect_summaries(p: Params) -> dict[tuple[str, str], dict[str, float]]:
 def table3_rows(p: Params) -> dict[str, str]:
     """Table 3 of a built run: method -> ``F1 (low-high)`` (%)."""
     t = ch07.table3(p)
-    return {r["Method"]: f"{r['F1 (%)']:.1f} ({r['F1 95% CI (%)']})" for _, r in t.iterrows()}
+    return {r["Method"]: f"{r['F1 (%)']:.1f} ({r[CI_COLUMN]})" for _, r in t.iterrows()}
 
 
 def record(book: Params, again: Params) -> dict[str, Any]:
