@@ -144,6 +144,16 @@ def tiny_nusc(tiny_world):
     return NuScenes(version=version, dataroot=str(root), verbose=False)
 
 
+@pytest.fixture(scope="session")
+def handmade_study(tmp_path_factory):
+    """The demo profile on a run folder of hand-made published predictions (quick: no
+    world, no training; :func:`handmade.make_study`): ``(params, {node: {table name:
+    predictions}})``. Read-only: tests must not change its files."""
+    from handmade import make_study
+
+    return make_study(tmp_path_factory.mktemp("hand_made"))
+
+
 @pytest.fixture
 def call_main(capsys):
     """``call(main, *args)``: a CLI's ``main(argv)`` run in the test process, its exit code
