@@ -161,33 +161,41 @@ def format_status(p: Params) -> str:
 def unreferenced(p: Params, variants: bool = False, worlds: bool = False) -> list[Path]:
     """Files of the run folder's per-pair caches that no node of ``p`` can read any more, as
     each stage names them (:attr:`flowmod.dag.Stage.garbage`: flow pool files listed by no
-    flow index, crops pool folders of other options than ``p``'s). ``variants``: also every kept variant (``.variant-`` folder: an earlier result
-    that switching back would restore), and the flow files only they listed. A method with
-    a build in progress (a ``.building-`` folder) keeps its files: they are its resume
-    point. ``worlds``: also the generated worlds under the dataroot other than ``p``'s."""
+    flow index, crops pool folders of other options than ``p``'s). ``variants``: also every
+    kept variant (``.variant-`` folder: an earlier result that switching back would
+    restore), and the flow files only they listed. A method with a build in progress (a
+    ``.building-`` folder) keeps its files: they are its resume point. ``worlds``: also the
+    generated worlds under the dataroot other than ``p``'s."""
+    return _kept_aside(p, variants, worlds) + _stage_garbage(p, variants)
+
+
+def _kept_aside(p: Params, variants: bool, worlds: bool) -> list[Path]:
+    """The kept variants (``variants``) and the other generated worlds (``worlds``)."""
     out: list[Path] = sorted(p.run_path.rglob(".*.variant-*")) if variants else []
-    out += world_source.other_worlds(p) if worlds else []
-    for stage in STAGES:  # each stage knows its own caches
-        out += stage.garbage(p, variants) if stage.garbage else []
-    return out
+    return out + (world_source.other_worlds(p) if worlds else [])
+
+
+def _stage_garbage(p: Params, variants: bool) -> list[Path]:
+    """What each stage names as its own caches' garbage (:attr:`flowmod.dag.Stage.garbage`)."""
+    return [i for stage in STAGES if stage.garbage for i in stage.garbage(p, variants)]
 
 
 def collect_garbage(p: Params, dry_run: bool = False, variants: bool = False,
                     worlds: bool = False) -> tuple[int, int]:
     """Remove :func:`unreferenced` files and folders (``dry_run``: only count them); then
     the stages' option folders left without a cache file. Returns (items, bytes)."""
-    items = unreferenced(p, variants, worlds)
+    cached = _stage_garbage(p, variants)  # asked once: the same list unreferenced() gives
+    items = _kept_aside(p, variants, worlds) + cached
     size = sum(f.stat().st_size for i in items
                for f in ([i] if i.is_file() else list(i.rglob("*"))) if f.is_file())
     if not dry_run:
-        caches = {i.parent for s in STAGES if s.garbage for i in s.garbage(p, variants)}
         others = set(world_source.other_worlds(p))
         for i in items:
             if i in others:
                 world_source.remove_world(i)  # not while a run generates it
             else:
                 shutil.rmtree(i) if i.is_dir() else i.unlink()
-        for folder in caches - {p.run_path}:  # an option folder left without a cache array
+        for folder in {i.parent for i in cached} - {p.run_path}:  # left without a cache array
             if folder.is_dir() and not any(folder.rglob("*.npy")):
                 shutil.rmtree(folder)
     return len(items), size
