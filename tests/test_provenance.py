@@ -29,8 +29,8 @@ pytestmark = pytest.mark.slow
 #: the test below fails if the two disagree or if the status does not follow them.
 SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "profile": ("other", set(), ()),
-    "seed": (1, {"world", "select", "flow", "train", "evaluate", "xtrain", "wtrain",
-                  "selfflow", "shipped", "elevels", "etrain", "eevaluate"}, ()),
+    "seed": (1, {"world", "select", "flowcheck", "flow", "train", "evaluate", "xtrain",
+                  "wtrain", "selfflow", "shipped", "elevels", "etrain", "eevaluate"}, ()),
     "device": ("cpu", set(), ()),
     "force": (True, set(), ()),
     "world_scenes": (5, {"world"}, ()),
@@ -39,8 +39,8 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "world_vehicles": (17, {"world"}, ()),
     "world_near_movers": (1, {"world"}, ()),
     "categories": (["vehicle.car", "vehicle.truck"], {"select", "general", "wide"}, ()),
-    "min_distance": (25.0, {"select"}, ()),
-    "max_distance": (65.0, {"select"}, ()),
+    "min_distance": (25.0, {"select", "flowcheck"}, ()),
+    "max_distance": (65.0, {"select", "flowcheck"}, ()),
     "distance_mode": ("camera", {"select", "general", "wide"}, ()),
     "visibility_tokens": (["3", "4"], {"select", "general", "wide"}, ()),
     "exclude_descriptions": (["night"], {"select"}, ()),
@@ -176,10 +176,10 @@ def test_special_parameters(finished, tmp_path):
     more = finished.model_copy(update={"flow_methods": [*finished.flow_methods, "farneback"]})
     assert not_up_to_date(more) == {n for n in pipeline.nodes(more) if n.method == "farneback"}
     # another number of folds: a new split, so everything from the selection on is stale
-    # (the world and chapter 01's check on it are not), and a third model per chain exists
+    # (the world and chapter 01's nodes on it are not), and a third model per chain exists
     three = finished.model_copy(update={"folds": 3})
     assert not_up_to_date(three) == set(pipeline.nodes(three)) - {
-        dag.Node("world"), dag.Node("difficulty")}
+        dag.Node("world"), dag.Node("difficulty"), dag.Node("example")}
     assert dag.Node("train", "dis", "f2s1") in pipeline.nodes(three)  # two seeds a fold
     assert dag.Node("xtrain", "dis", "residual/f2") in pipeline.nodes(three)  # one (extension)
     assert dag.Node("train", "dis", "s0") in pipeline.nodes(

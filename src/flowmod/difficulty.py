@@ -1,4 +1,9 @@
-"""The difficulty stage (chapter 01): how hard the motion task is on a generated world.
+"""Chapter 01's stages on a generated world: how hard the motion task is, and an example.
+
+The ``example`` stage keeps the exact flow of chapter 01's example pair (the middle scene's
+first two keyframes, the frames the chapter shows through the devkit): ``example.npz``.
+
+The ``difficulty`` stage: how hard the motion task is on a generated world.
 
 :func:`naive_rule_report` scores a trivial rule, "mean exact-flow magnitude inside the 2D box
 > t" (best t), against the speed label, raw and with the surrounding background flow
@@ -21,7 +26,7 @@ import pandas as pd
 from joblib import Parallel, delayed
 
 from flowmod import dag, select
-from flowmod.artefacts import write_json
+from flowmod.artefacts import atomic_path, write_json
 from flowmod.params import TABLE1_CATEGORIES, Params, validate
 from flowmod.select import description_items
 from flowmod.world import gt_flow, is_generated_world, true_velocity
@@ -223,3 +228,47 @@ def _nodes(p: Params) -> list[dag.Node]:
 STAGE = dag.Stage("difficulty", 2, "01", "difficulty", "the naive exact-flow rule on the world",
                   nodes=_nodes, inputs=lambda n, p: (dag.Node("world"),), build=build,
                   outputs=(REPORT,))
+
+
+#: The example node's one file: the example pair's sample_data tokens, its exact flow
+#: (float16, px) and valid mask.
+EXAMPLE = "example.npz"
+
+
+def example_tokens(dataroot: str | os.PathLike[str], version: str) -> tuple[str, str]:
+    """The CAM_FRONT sample_data tokens of the middle scene's first two keyframes (the
+    devkit's scene order: ``scene.json``'s)."""
+    tables = Path(dataroot) / version
+    scenes = json.loads((tables / "scene.json").read_text())
+    samples = {r["token"]: r for r in json.loads((tables / "sample.json").read_text())}
+    first = samples[scenes[len(scenes) // 2]["first_sample_token"]]
+    keys = {r["sample_token"]: r["token"]
+            for r in json.loads((tables / "sample_data.json").read_text()) if r["is_key_frame"]}
+    return keys[first["token"]], keys[first["next"]]
+
+
+def read_example(folder: Path) -> tuple[tuple[str, str], np.ndarray, np.ndarray]:
+    """A published ``example`` node: ((sd_token_1, sd_token_2), flow (H, W, 2) float32 px,
+    valid (H, W) bool)."""
+    with np.load(Path(folder) / EXAMPLE) as z:
+        return (str(z["tokens"][0]), str(z["tokens"][1])), z["flow"].astype(np.float32), z["valid"]
+
+
+def build_example(b: dag.Build, progress: bool) -> Mapping[str, Any]:
+    """Build the ``example`` node: :data:`EXAMPLE`."""
+    q = b.params
+    tokens = example_tokens(q.dataroot_path, q.version)
+    flow, valid = gt_flow(q.dataroot_path, q.version, *tokens)
+    with atomic_path(b.start(fresh=True) / EXAMPLE) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, tokens=np.array(tokens), flow=flow.astype(np.float16), valid=valid)
+    return {}
+
+
+def _example_nodes(p: Params) -> list[dag.Node]:
+    return [dag.Node("example")] if is_generated_world(p) else []
+
+
+#: The example stage: the exact flow of chapter 01's example pair (generated worlds only).
+EXAMPLE_STAGE = dag.Stage("example", 1, "01", "example",
+                          "the exact flow of chapter 01's example pair", nodes=_example_nodes, inputs=lambda n, p: (dag.Node("world"),),
+                          build=build_example, outputs=(EXAMPLE,))

@@ -112,8 +112,9 @@ class Params(BaseModel):
     # --- run ---------------------------------------------------------------------------
     profile: str = _field("demo", role="run",
                           description="profile name; artefacts go to runs/<profile>/")
-    seed: int = _field(0, ge=0, read_by=("world", "select", "flow", "train", "evaluate", "xtrain",
-                                "wtrain", "selfflow", "shipped", *_ERRORS),
+    seed: int = _field(0, ge=0, read_by=("world", "select", "flowcheck", "flow", "train",
+                                "evaluate", "xtrain", "wtrain", "selfflow", "shipped",
+                                *_ERRORS),
                        description="master seed for every random choice")
     run_dir: str = _field("runs/demo", role="run",
                           description="stage artefacts (relative to the repo root)")
@@ -147,9 +148,9 @@ class Params(BaseModel):
     categories: list[str] = _field(lambda: list(TABLE1_CATEGORIES),
                                    read_by=("select", "general", "wide"),
                                    description="target categories (Table 1)")
-    min_distance: float = _field(30.0, ge=0.0, read_by=("select",),
+    min_distance: float = _field(30.0, ge=0.0, read_by=("select", "flowcheck"),
                                  description="m, nearest target vehicle")
-    max_distance: float = _field(70.0, gt=0.0, read_by=("select",),
+    max_distance: float = _field(70.0, gt=0.0, read_by=("select", "flowcheck"),
                                  description="m, farthest target vehicle")
     distance_mode: Literal["ego", "camera"] = _field(
         "ego", read_by=("select", "general", "wide"),

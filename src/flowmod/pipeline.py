@@ -25,6 +25,7 @@ import pandas as pd
 
 from flowmod import crops, dag, difficulty, evaluate, select, train
 from flowmod.extensions import context, flowerrors, inputs, selfflow, wide
+from flowmod.flow import accuracy
 from flowmod.flow import stage as flow_stage
 from flowmod.lock import folder_lock
 from flowmod.params import Params
@@ -34,9 +35,11 @@ from flowmod.world import source as world_source
 STAGES: tuple[dag.Stage, ...] = (
     world_source.STAGE,      # 01 the data
     difficulty.STAGE,        # 01 the naive exact-flow rule
+    difficulty.EXAMPLE_STAGE,  # 01 the exact flow of the example pair
     select.SELECT,           # 02 Table-1 keyframe pairs, scene split
     select.GENERAL,          # 02 generalisation pairs
     flow_stage.STAGE,        # 03 optical flow (chapter 11's part too)
+    accuracy.STAGE,          # 03 each flow method against the exact flow
     crops.STAGE,             # 05 flow crops (chapter 11's part too)
     train.STAGE,             # 06 one classifier per seed
     evaluate.EVALUATE,       # 07 test split, baseline, scores

@@ -2,7 +2,7 @@
 
 * :func:`annotation_table` / :func:`counts_table`: annotations in view by category, distance,
   speed and label;
-* :func:`gt_flow_figure`: a frame pair with its exact flow (synthetic worlds);
+* :func:`gt_flow_figure`: the example pair with its exact flow (the ``example`` node);
 * :func:`devkit_counts` / :func:`devkit_frames`: what the official devkit loads and draws;
 * :func:`difficulty`: the published numbers of the difficulty stage
   (:mod:`flowmod.difficulty`).
@@ -18,16 +18,14 @@ from typing import Any
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
-from matplotlib.patches import Rectangle
 from PIL import Image
 
 from flowmod import pipeline
 from flowmod.dag import Node
-from flowmod.difficulty import read_report, usable
+from flowmod.difficulty import read_example, read_report, usable
 from flowmod.flow import flow_to_color
 from flowmod.params import Params
 from flowmod.select import as_nuscenes
-from flowmod.world import gt_flow
 
 #: How many scenes the devkit's scene table shows.
 SCENES_SHOWN = 12
@@ -111,47 +109,21 @@ def counts_table(
     return t.sort_values("total", ascending=False)
 
 
-def gt_flow_figure(
-    dataroot: str | os.PathLike[str],
-    version: str,
-    sd_token_1: str,
-    sd_token_2: str,
-    boxes: pd.DataFrame | None = None,
-):
-    """A 2x2 matplotlib figure: frame 1, frame 2, GT flow (colour), valid mask.
-
-    ``boxes``: optional rows with xmin, ymin, xmax, ymax (px) and label to draw on frame 1.
-    """
-    sd = {
-        r["token"]: r
-        for r in json.loads((Path(dataroot) / version / "sample_data.json").read_text())
-    }
-    flow, valid = gt_flow(dataroot, version, sd_token_1, sd_token_2)
+def gt_flow_figure(p: Params):
+    """A 2x2 matplotlib figure of the ``example`` node (:mod:`flowmod.difficulty`): frame 1,
+    frame 2, their exact flow (colour) and its valid mask."""
+    tokens, flow, valid = read_example(pipeline.published(p, Node("example")))
+    sd = {r["token"]: r for r in json.loads(
+        (p.dataroot_path / p.version / "sample_data.json").read_text())}
     fig, axes = plt.subplots(2, 2, figsize=(12, 7))
-    for ax, tok, title in (
-        (axes[0, 0], sd_token_1, "frame 1"),
-        (axes[0, 1], sd_token_2, "frame 2"),
-    ):
-        ax.imshow(Image.open(Path(dataroot) / sd[tok]["filename"]))
+    for ax, tok, title in ((axes[0, 0], tokens[0], "frame 1"), (axes[0, 1], tokens[1], "frame 2")):
+        ax.imshow(Image.open(p.dataroot_path / sd[tok]["filename"]))
         ax.set_title(f"{title}  t = {sd[tok]['timestamp']} us")
     axes[1, 0].imshow(flow_to_color(flow))
     mag = np.linalg.norm(flow, axis=2)
     axes[1, 0].set_title(f"GT flow (max |flow| {mag[valid].max() if valid.any() else 0:.1f} px)")
     axes[1, 1].imshow(valid, cmap="gray")
     axes[1, 1].set_title(f"valid ({100 * valid.mean():.1f} %)")
-    if boxes is not None:
-        for _, b in boxes.iterrows():
-            col = "red" if b.get("label", 0) == 1 else "deepskyblue"
-            axes[0, 0].add_patch(
-                Rectangle(
-                    (b["xmin"], b["ymin"]),
-                    b["xmax"] - b["xmin"],
-                    b["ymax"] - b["ymin"],
-                    fill=False,
-                    color=col,
-                    lw=1.5,
-                )
-            )
     for ax in axes.ravel():
         ax.axis("off")
     fig.tight_layout()

@@ -8,13 +8,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from flowmod import world
+from flowmod import pipeline
 from flowmod.chapters import common
-from flowmod.flow import FlowReader, boxes_mask, epe, fl_all
+from flowmod.dag import Node
+from flowmod.flow import FlowReader
+from flowmod.flow.accuracy import read_accuracy
 from flowmod.params import Params
-
-#: Random pairs of each set on which the accuracy table measures every method.
-ACCURACY_PAIRS = 12
 
 
 def run_summary(readers: Mapping[str, Mapping[str, FlowReader]]) -> pd.DataFrame:
@@ -25,51 +24,39 @@ def run_summary(readers: Mapping[str, Mapping[str, FlowReader]]) -> pd.DataFrame
         for m, parts in readers.items() for part, r in parts.items()])
 
 
-def accuracy_table(params: Params, pairs: pd.DataFrame, objects: pd.DataFrame,
-                   readers: Mapping[str, Mapping[str, FlowReader]], n_pairs: int = 20,
-                   seed: int = 0) -> pd.DataFrame:
+def accuracy_rows(params: Params) -> pd.DataFrame:
+    """The published ``flowcheck`` node's rows (:mod:`flowmod.flow.accuracy`: per pair and
+    method, against the exact flow)."""
+    return read_accuracy(pipeline.published(params, Node("flowcheck")))
+
+
+def accuracy_table(params: Params, rows: pd.DataFrame,
+                   readers: Mapping[str, Mapping[str, FlowReader]]) -> pd.DataFrame:
     """EPE / Fl-all against the world's exact flow, overall and inside far (keyframe set,
-    min-max distance) and near (generalisation set, < min_distance) vehicle boxes, with the
-    median seconds per pair; on ``n_pairs`` random pairs of each set whose flow every reader
-    stores (synthetic world only).
-    ``readers``: ``{method: {part: FlowReader}}``."""
-    rng = np.random.default_rng(seed)
-    rows = []
+    min-max distance) and near (generalisation set, < min_distance) vehicle boxes (means
+    over the ``flowcheck`` node's pairs, ``rows``; boxes: over the pairs with a valid pixel in
+    one, with a scene-level interval), and the median seconds per pair of every stored pair
+    (``readers``: ``{method: {part: FlowReader}}``)."""
+    out = []
     for kind, dmin, dmax in (("keyframe", params.min_distance, params.max_distance),
                              ("general", 0.0, params.min_distance)):
-        ids = pairs.loc[pairs["set"] == kind, "pair_id"].to_numpy()
-        ids = np.array([i for i in ids if all(i in parts[kind] for parts in readers.values())])
-        if len(ids) == 0:
-            continue
-        pick = rng.choice(ids, size=min(n_pairs, len(ids)), replace=False)
-        sub = pairs.set_index("pair_id").loc[pick]
-        gts = {pid: world.gt_flow(params.dataroot_path, params.version, r.sd_token_1,
-                                  r.sd_token_2) for pid, r in sub.iterrows()}
         for method, parts in readers.items():
-            reader = parts[kind]
-            acc: dict[str, list[float]] = {"epe": [], "fl": [], "epe_box": [], "fl_box": [],
-                                           "scene": []}
-            for pid, (gt, valid) in gts.items():
-                est = reader.load(pid)
-                obj = objects[(objects["pair_id"] == pid) & objects["distance"].between(dmin, dmax)]
-                mask = boxes_mask(obj[["xmin", "ymin", "xmax", "ymax"]].to_numpy(), gt.shape)
-                acc["epe"].append(epe(est, gt, valid))
-                acc["fl"].append(fl_all(est, gt, valid))
-                if (mask & valid).any():
-                    acc["epe_box"].append(epe(est, gt, valid, mask))
-                    acc["fl_box"].append(fl_all(est, gt, valid, mask))
-                    acc["scene"].append(sub.loc[pid, "scene"])
-            secs = reader.index["seconds"]
-            rows.append({
+            mine = rows[(rows["set"] == kind) & (rows["method"] == method)]
+            if mine.empty:
+                continue
+            box = mine.dropna(subset=["epe_box"])
+            secs = parts[kind].index["seconds"]
+            out.append({
                 "set": kind, "vehicles": f"{dmin:g}-{dmax:g} m", "method": method,
-                "EPE all (px)": np.mean(acc["epe"]), "Fl-all (%)": np.mean(acc["fl"]),
-                "EPE boxes (px)": np.mean(acc["epe_box"]) if acc["epe_box"] else np.nan,
-                "EPE boxes 95% CI, scenes (px)": common.epe_ci(acc["epe_box"], acc["scene"], seed),
-                "Fl-all boxes (%)": np.mean(acc["fl_box"]) if acc["fl_box"] else np.nan,
+                "EPE all (px)": mine["epe"].mean(), "Fl-all (%)": mine["fl"].mean(),
+                "EPE boxes (px)": box["epe_box"].mean() if len(box) else np.nan,
+                "EPE boxes 95% CI, scenes (px)": common.epe_ci(box["epe_box"], box["scene"],
+                                                               params.seed),
+                "Fl-all boxes (%)": box["fl_box"].mean() if len(box) else np.nan,
                 "s / pair": float(np.nanmedian(secs)) if secs.notna().any() else np.nan,
-                "pairs": len(gts),
+                "pairs": int(mine["pair_id"].nunique()),
             })
-    return pd.DataFrame(rows)
+    return pd.DataFrame(out)
 
 
 def box_flow_magnitude(objects: pd.DataFrame, load: Any, inner: float = 0.6) -> np.ndarray:

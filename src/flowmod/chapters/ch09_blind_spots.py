@@ -10,19 +10,18 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from flowmod import world
-from flowmod.chapters import ch03_flow
-from flowmod.chapters.common import flow_readers, results
+from flowmod import pipeline, world
+from flowmod.chapters.common import results
+from flowmod.dag import Node
 from flowmod.evaluate import seed_probs
 from flowmod.extensions import blind_spots
+from flowmod.flow.accuracy import read_accuracy
 from flowmod.metrics import ci_text, group_mean_bootstrap, interval
 from flowmod.params import Params
 from flowmod.select import Selection
 
 #: The columns of the moving test vehicles' summary.
 MOTION_COLUMNS = ["distance", "speed", "radial_speed", "lateral_speed", "motion_angle"]
-#: Random keyframe pairs of the far boxes' flow error (chapter 03's measurement, fewer pairs).
-FLOW_ERROR_PAIRS = 8
 #: The distance (m) of the signal table's glued radial width change: the band's middle.
 SIGNAL_DISTANCE = 50.0
 
@@ -129,16 +128,21 @@ def radial_px(signal: pd.DataFrame, distance: float = SIGNAL_DISTANCE) -> float:
     return round(float(row["radial: width change (px)"].iloc[0]), 2)
 
 
-def far_flow_error(params: Params, sel: Selection) -> pd.DataFrame | None:
-    """Each method's flow error inside the far boxes of :data:`FLOW_ERROR_PAIRS` random
-    keyframe pairs against the exact flow (chapter 03's
-    :func:`~flowmod.chapters.ch03_flow.accuracy_table`); None off the synthetic world."""
+def far_flow_error(params: Params) -> pd.DataFrame | None:
+    """:func:`far_box_error` of chapter 03's ``flowcheck`` node (:mod:`flowmod.flow.accuracy`);
+    None off the synthetic world."""
     if not world.is_synthetic(params.dataroot_path, params.version):
         return None
-    acc = ch03_flow.accuracy_table(params, sel.pairs, sel.objects, flow_readers(params),
-                                   n_pairs=FLOW_ERROR_PAIRS, seed=params.seed)
-    return acc.loc[acc["set"] == "keyframe",
-                   ["method", "EPE boxes (px)", "Fl-all boxes (%)"]]
+    return far_box_error(read_accuracy(pipeline.published(params, Node("flowcheck"))))
+
+
+def far_box_error(rows: pd.DataFrame) -> pd.DataFrame:
+    """Each method's mean end-point error (px) and Fl-all (%) inside the far boxes of the
+    keyframe pairs of ``rows`` (the ``flowcheck`` node's) that have a valid pixel in one, in
+    the methods' order."""
+    far = rows[rows["set"] == "keyframe"].dropna(subset=["epe_box"])
+    out = far.groupby("method", sort=False)[["epe_box", "fl_box"]].mean().reset_index()
+    return out.rename(columns={"epe_box": "EPE boxes (px)", "fl_box": "Fl-all boxes (%)"})
 
 
 #: The cell chapter 09 answers on: movers within 30 degrees of the line of sight at 2-3 m/s.

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from flowmod import pipeline, world
+from flowmod import pipeline
 from flowmod.chapters import common
 from flowmod.dag import Node
 from flowmod.evaluate import paired, scored
@@ -23,15 +23,11 @@ from flowmod.extensions.selfflow import (
     read_shipped_example,
     selfflow_weights,
 )
-from flowmod.flow.estimators import DISFlow
-from flowmod.flow.networks import FastFlowNetFlow
 from flowmod.flow.pretrain import WEIGHTS_DIR
 from flowmod.flow.registry import read_image
 from flowmod.flow.selftrain import (
     DIS_PRESET,
     SHIPPED,
-    held_out,
-    heldout_pairs,
 )
 from flowmod.flowweights import FASTFLOWNET_SYNTH
 from flowmod.metrics import (
@@ -41,7 +37,6 @@ from flowmod.metrics import (
     verdict,
 )
 from flowmod.params import Params
-from flowmod.select import read_table
 
 
 def built(params: Params) -> list[str]:
@@ -139,27 +134,6 @@ def headline(params: Params, done: list[str]) -> str:
             f"error of {' and '.join(parts)} against DIS's "
             f"{base[f'dis ({DIS_PRESET})']['epe']:.1f} px and the zero flow's "
             f"{base['zero flow']['epe']:.1f} px")
-
-
-def example(params: Params, done: list[str], k: int = 0
-            ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None]:
-    """Held-out pair ``k``: frame 1 (BGR), the flows of the exact flow (where there is one),
-    DIS and each trained network at full size, and the valid mask, for
-    :func:`flowmod.report.viz.flow_figure`."""
-    sel = pipeline.published(params, Node("select"))
-    pairs = read_table(sel, "pairs")
-    test = heldout_pairs(pairs, params.selfflow_eval_pairs, params.seed,
-                         params.folds).iloc[[k]]
-    synthetic = world.is_synthetic(params.dataroot_path, params.version)
-    h = held_out(test, read_table(sel, "objects"), params.dataroot_path,
-                 params.version, synthetic)
-    flows = {"exact": h.gt[0]} if h.gt else {}
-    flows[f"dis ({DIS_PRESET})"] = DISFlow(DIS_PRESET, scale=params.flow_scale).estimate(
-        h.img1[0], h.img2[0])
-    for mode in done:
-        est = FastFlowNetFlow(weights_path(params, mode), device="cpu", scale=params.flow_scale)
-        flows[f"fastflownet ({mode})"] = est.estimate(h.img1[0], h.img2[0])
-    return h.img1[0], flows, (h.valid[0] if h.valid else None)
 
 
 def built_note(params: Params, done: list[str]) -> str:

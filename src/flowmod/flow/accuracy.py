@@ -1,0 +1,109 @@
+"""The flowcheck stage (chapter 03): every flow method against the world's exact flow.
+
+On :data:`ACCURACY_PAIRS` random pairs of each set (keyframe pairs: the far vehicles of Table
+1; generalisation pairs: the near vehicles, nearer than ``min_distance``) whose flow every
+method stores, one row per pair and method: the end-point error and Fl-all over the frame
+and inside the set's vehicle boxes (``accuracy.parquet``). Chapter 03 aggregates the rows
+into its accuracy table, chapter 09 reads the far boxes' error. Built on a generated world
+only (real nuScenes has no exact flow).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from flowmod import dag
+from flowmod.artefacts import atomic_path
+from flowmod.flow.metrics import boxes_mask, epe, fl_all
+from flowmod.flow.stage import FlowReader, flow_root
+from flowmod.params import Params
+from flowmod.progress import bar
+from flowmod.select import PARTS, objects_node, read_selection
+from flowmod.world import gt_flow, is_generated_world
+
+#: Random pairs of each set on which every method is measured.
+ACCURACY_PAIRS = 12
+#: The node's one file: one row per pair and method.
+ACCURACY = "accuracy.parquet"
+#: Its columns (px for end-point errors, % for Fl-all; NaN where no pixel of a box is valid).
+COLUMNS = ("set", "pair_id", "scene", "method", "epe", "fl", "epe_box", "fl_box")
+
+
+def read_accuracy(folder: Path) -> pd.DataFrame:
+    """The rows of a published ``flowcheck`` node (:data:`COLUMNS`)."""
+    return pd.read_parquet(Path(folder) / ACCURACY)
+
+
+def pick_pairs(pairs: pd.DataFrame, kind: str, stored: list[set[str]], n: int,
+               rng: np.random.Generator) -> list[str]:
+    """``n`` pair ids of set ``kind`` drawn with ``rng`` (without replacement) among those
+    every method stores (``stored``: each method's stored pair ids); none drawn when no
+    pair qualifies."""
+    ids = [i for i in pairs.loc[pairs["set"] == kind, "pair_id"]
+           if all(i in s for s in stored)]
+    if not ids:
+        return []
+    return [str(i) for i in rng.choice(ids, size=min(n, len(ids)), replace=False)]
+
+
+def pair_rows(pid: str, flows: Mapping[str, np.ndarray], gt: np.ndarray, valid: np.ndarray,
+              boxes: np.ndarray) -> list[dict[str, Any]]:
+    """One pair's rows, per method of ``flows`` (each (H, W, 2) px): errors against ``gt``
+    over the ``valid`` pixels and inside ``boxes`` ((N, 4) xmin, ymin, xmax, ymax px)."""
+    mask = boxes_mask(boxes, gt.shape)
+    inside = bool((mask & valid).any())
+    return [{"pair_id": pid, "method": m, "epe": epe(f, gt, valid), "fl": fl_all(f, gt, valid),
+             "epe_box": epe(f, gt, valid, mask) if inside else np.nan,
+             "fl_box": fl_all(f, gt, valid, mask) if inside else np.nan}
+            for m, f in flows.items()]
+
+
+def _readers(b: dag.Build, kind: str) -> dict[str, FlowReader]:
+    q = b.params
+    return {m: FlowReader(b.input_dir(dag.Node("flow", m, kind)), flow_root(q.all) / m / "pool",
+                          m, kind) for m in q.flow_methods}
+
+
+def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:
+    """Build the ``flowcheck`` node: :data:`ACCURACY` (:data:`COLUMNS`)."""
+    q = b.params
+    sel = read_selection(b.input_dir(dag.Node("select")), b.input_dir(dag.Node("general")))
+    rows, rng = [], np.random.default_rng(q.seed)  # one stream: keyframe pairs, then general
+    for kind, dmin, dmax in (("keyframe", q.min_distance, q.max_distance),
+                             ("general", 0.0, q.min_distance)):
+        readers = _readers(b, kind)
+        ids = pick_pairs(sel.pairs, kind, [set(r.pair_ids) for r in readers.values()],
+                         ACCURACY_PAIRS, rng)
+        pairs = sel.pairs.set_index("pair_id")
+        near = sel.objects[sel.objects["distance"].between(dmin, dmax)]
+        for pid in bar(ids, desc=f"flow accuracy ({kind})", disable=not progress):
+            r = pairs.loc[pid]
+            gt, valid = gt_flow(q.dataroot_path, q.version, r.sd_token_1, r.sd_token_2)
+            boxes = near.loc[near["pair_id"] == pid, ["xmin", "ymin", "xmax", "ymax"]]
+            rows += [{"set": kind, "scene": r.scene, **row} for row in pair_rows(
+                pid, {m: rd.load(pid) for m, rd in readers.items()}, gt, valid,
+                boxes.to_numpy())]
+    table = pd.DataFrame(rows, columns=list(COLUMNS))
+    with atomic_path(b.start(fresh=True) / ACCURACY) as tmp:
+        table.to_parquet(tmp, index=False)
+    return {"pairs": int(table["pair_id"].nunique())}
+
+
+def _nodes(p: Params) -> list[dag.Node]:
+    return [dag.Node("flowcheck")] if is_generated_world(p) else []
+
+
+def _inputs(n: dag.Node, p: Params) -> tuple[dag.Node, ...]:
+    flows = tuple(dag.Node("flow", m, part) for m in p.flow_methods for part in PARTS)
+    return (dag.Node("world"), objects_node("keyframe"), objects_node("general"), *flows)
+
+
+#: The flowcheck stage: each flow method against the exact flow (generated worlds only).
+STAGE = dag.Stage("flowcheck", 1, "03", "flowcheck",
+                  "every flow method against the exact flow on random pairs",
+                  nodes=_nodes, inputs=_inputs, build=build, outputs=(ACCURACY,))
