@@ -1,7 +1,7 @@
 """The flowcheck stage (chapter 03): every flow method against the world's exact flow.
 
 On :data:`ACCURACY_PAIRS` random pairs of each set (keyframe pairs: the far vehicles of Table
-1; generalisation pairs: the near vehicles, nearer than ``min_distance``) whose flow every
+1; generalisation pairs: the near vehicles, up to ``min_distance``) whose flow every
 method stores, one row per pair and method: the end-point error and Fl-all over the frame
 and inside the set's vehicle boxes (``accuracy.parquet``). Chapter 03 aggregates the rows
 into its accuracy table, chapter 09 reads the far boxes' error. Built on a generated world
@@ -63,32 +63,43 @@ def pair_rows(pid: str, flows: Mapping[str, np.ndarray], gt: np.ndarray, valid: 
             for m, f in flows.items()]
 
 
-def _readers(b: dag.Build, kind: str) -> dict[str, FlowReader]:
-    q = b.params
-    return {m: FlowReader(b.input_dir(dag.Node("flow", m, kind)), flow_root(q.all) / m / "pool",
-                          m, kind) for m in q.flow_methods}
+def measure(dataroot: str | Path, version: str, pairs: pd.DataFrame, objects: pd.DataFrame,
+            readers: Mapping[str, Mapping[str, FlowReader]], *, min_distance: float,
+            max_distance: float, n_pairs: int, seed: int, progress: bool = False
+            ) -> pd.DataFrame:
+    """:data:`COLUMNS` rows: per set (keyframe pairs: the vehicles from ``min_distance`` to
+    ``max_distance``; generalisation pairs: from 0 to ``min_distance``, both ends included)
+    ``n_pairs`` pairs drawn with ``seed`` (:func:`pick_pairs`, one stream: the keyframe set's
+    draw, then the general set's), each method's flow against the world's exact flow
+    (:func:`pair_rows`). ``readers``: ``{method: {part: FlowReader}}``."""
+    rows, rng = [], np.random.default_rng(seed)
+    by_id = pairs.set_index("pair_id")
+    for kind, dmin, dmax in (("keyframe", min_distance, max_distance),
+                             ("general", 0.0, min_distance)):
+        mine = {m: parts[kind] for m, parts in readers.items()}
+        ids = pick_pairs(pairs, kind, [set(r.pair_ids) for r in mine.values()], n_pairs, rng)
+        near = objects[objects["distance"].between(dmin, dmax)]
+        for pid in bar(ids, desc=f"flow accuracy ({kind})", disable=not progress):
+            r = by_id.loc[pid]
+            gt, valid = gt_flow(dataroot, version, r.sd_token_1, r.sd_token_2)
+            boxes = near.loc[near["pair_id"] == pid, ["xmin", "ymin", "xmax", "ymax"]]
+            rows += [{"set": kind, "scene": r.scene, **row} for row in pair_rows(
+                pid, {m: rd.load(pid) for m, rd in mine.items()}, gt, valid,
+                boxes.to_numpy(float))]
+    return pd.DataFrame(rows, columns=list(COLUMNS))
 
 
 def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:
-    """Build the ``flowcheck`` node: :data:`ACCURACY` (:data:`COLUMNS`)."""
+    """Build the ``flowcheck`` node: :data:`ACCURACY` (:data:`COLUMNS`, :func:`measure` on
+    :data:`ACCURACY_PAIRS` pairs of each set)."""
     q = b.params
     sel = read_selection(b.input_dir(dag.Node("select")), b.input_dir(dag.Node("general")))
-    rows, rng = [], np.random.default_rng(q.seed)  # one stream: keyframe pairs, then general
-    for kind, dmin, dmax in (("keyframe", q.min_distance, q.max_distance),
-                             ("general", 0.0, q.min_distance)):
-        readers = _readers(b, kind)
-        ids = pick_pairs(sel.pairs, kind, [set(r.pair_ids) for r in readers.values()],
-                         ACCURACY_PAIRS, rng)
-        pairs = sel.pairs.set_index("pair_id")
-        near = sel.objects[sel.objects["distance"].between(dmin, dmax)]
-        for pid in bar(ids, desc=f"flow accuracy ({kind})", disable=not progress):
-            r = pairs.loc[pid]
-            gt, valid = gt_flow(q.dataroot_path, q.version, r.sd_token_1, r.sd_token_2)
-            boxes = near.loc[near["pair_id"] == pid, ["xmin", "ymin", "xmax", "ymax"]]
-            rows += [{"set": kind, "scene": r.scene, **row} for row in pair_rows(
-                pid, {m: rd.load(pid) for m, rd in readers.items()}, gt, valid,
-                boxes.to_numpy())]
-    table = pd.DataFrame(rows, columns=list(COLUMNS))
+    readers = {m: {kind: FlowReader(b.input_dir(dag.Node("flow", m, kind)),
+                                    flow_root(q.all) / m / "pool", m, kind) for kind in PARTS}
+               for m in q.flow_methods}
+    table = measure(q.dataroot_path, q.version, sel.pairs, sel.objects, readers,
+                    min_distance=q.min_distance, max_distance=q.max_distance,
+                    n_pairs=ACCURACY_PAIRS, seed=q.seed, progress=progress)
     with atomic_path(b.start(fresh=True) / ACCURACY) as tmp:
         table.to_parquet(tmp, index=False)
     return {"pairs": int(table["pair_id"].nunique())}
