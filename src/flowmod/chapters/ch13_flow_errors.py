@@ -44,8 +44,6 @@ KIND_WORDS = {
 }
 #: Movers whose exact box-mean motion is below this (px) give no direction to resolve along.
 MIN_MOTION = 0.25
-#: The smallest number of test scenes whose interval the chapter reads without a flag.
-FEW_SCENES = 10
 
 
 def built(p: Params) -> list[str]:
