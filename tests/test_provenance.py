@@ -174,7 +174,8 @@ def test_special_parameters(finished, tmp_path):
     assert not_up_to_date(fresh) == nodes - {dag.Node("world")}
     # one more flow method: its chain is missing, nothing else changes
     more = finished.model_copy(update={"flow_methods": [*finished.flow_methods, "farneback"]})
-    assert not_up_to_date(more) == {n for n in pipeline.nodes(more) if n.method == "farneback"}
+    assert not_up_to_date(more) == {n for n in pipeline.nodes(more) if n.method == "farneback"
+                                    } | {dag.Node("flowcheck")}  # which scores every method
     # another number of folds: a new split, so everything from the selection on is stale
     # (the world and chapter 01's nodes on it are not), and a third model per chain exists
     three = finished.model_copy(update={"folds": 3})
@@ -230,9 +231,10 @@ def test_status_explains_in_one_line(finished):
     assert "input flow[dis/keyframe] is stale" in next(
         ln for ln in text.splitlines() if "crops[dis/keyframe]" in ln)
     # the dis chain of chapters 03-08 (12 nodes: two folds x two seeds and the two raw-input
-    # models), chapter 10's dis residual (3 nodes) and chapter 11's dis chain (flow, crops,
-    # two models, predictions); chapter 12's nodes do not read the dis flow
-    assert text.splitlines()[-1] == ("38 of 58 up to date; 20 to build (make run, or python "
+    # models), chapter 10's dis residual (3 nodes), chapter 11's dis chain (flow, crops,
+    # two models, predictions) and chapter 03's flowcheck (every method against the exact
+    # flow); chapter 12's nodes do not read the dis flow
+    assert text.splitlines()[-1] == ("39 of 60 up to date; 21 to build (make run, or python "
                                      "-m flowmod.runner)")
     quiet = pipeline.format_status(p.model_copy(update={"extension_build": False}))
     assert quiet.splitlines()[-1].endswith(
