@@ -479,7 +479,7 @@ def test_gc_removes_only_what_no_node_reads(finished, tmp_path):
                                         "xevaluate", "wtrain", "wgeneralise", "flow"}
     assert {n for n in stale if n.stage == "flow"} == {dag.Node("flow", "dis", select.WIDE)}
     n, _ = pipeline.collect_garbage(fast, variants=True)
-    variants = 2  # the dis flow nodes' medium results
+    variants = 3  # the dis flow nodes' medium results, and flowcheck's (it reads them)
     assert n == 2 + variants + n_medium
     assert not stray.exists() and not other_crops.exists()
     assert {f for f in medium if f.exists()} == files[select.WIDE], "what a node reads stays"
