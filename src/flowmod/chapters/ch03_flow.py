@@ -12,7 +12,7 @@ from flowmod import pipeline
 from flowmod.chapters import common
 from flowmod.dag import Node
 from flowmod.flow import FlowReader
-from flowmod.flow.accuracy import read_accuracy
+from flowmod.flow.accuracy import bands, read_accuracy
 from flowmod.params import Params
 
 
@@ -33,13 +33,12 @@ def accuracy_rows(params: Params) -> pd.DataFrame:
 def accuracy_table(params: Params, rows: pd.DataFrame,
                    readers: Mapping[str, Mapping[str, FlowReader]]) -> pd.DataFrame:
     """EPE / Fl-all against the world's exact flow, overall and inside far (keyframe set,
-    min-max distance) and near (generalisation set, < min_distance) vehicle boxes (means
+    min-max distance) and near (generalisation set, up to min_distance) vehicle boxes (means
     over the ``flowcheck`` node's pairs, ``rows``; boxes: over the pairs with a valid pixel in
     one, with a scene-level interval), and the median seconds per pair of every stored pair
     (``readers``: ``{method: {part: FlowReader}}``)."""
     out = []
-    for kind, dmin, dmax in (("keyframe", params.min_distance, params.max_distance),
-                             ("general", 0.0, params.min_distance)):
+    for kind, dmin, dmax in bands(params.min_distance, params.max_distance):
         for method, parts in readers.items():
             mine = rows[(rows["set"] == kind) & (rows["method"] == method)]
             if mine.empty:

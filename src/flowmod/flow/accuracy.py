@@ -39,6 +39,12 @@ def read_accuracy(folder: Path) -> pd.DataFrame:
     return pd.read_parquet(Path(folder) / ACCURACY)
 
 
+def bands(min_distance: float, max_distance: float) -> tuple[tuple[str, float, float], ...]:
+    """(set, nearest, farthest m) of the vehicles whose boxes each set is scored in: the
+    keyframe set's far band, the generalisation set's near vehicles (both ends included)."""
+    return (("keyframe", min_distance, max_distance), ("general", 0.0, min_distance))
+
+
 def pick_pairs(pairs: pd.DataFrame, kind: str, stored: list[set[str]], n: int,
                rng: np.random.Generator) -> list[str]:
     """``n`` pair ids of set ``kind`` drawn with ``rng`` (without replacement) among those
@@ -74,8 +80,7 @@ def measure(dataroot: str | Path, version: str, pairs: pd.DataFrame, objects: pd
     (:func:`pair_rows`). ``readers``: ``{method: {part: FlowReader}}``."""
     rows, rng = [], np.random.default_rng(seed)
     by_id = pairs.set_index("pair_id")
-    for kind, dmin, dmax in (("keyframe", min_distance, max_distance),
-                             ("general", 0.0, min_distance)):
+    for kind, dmin, dmax in bands(min_distance, max_distance):
         mine = {m: parts[kind] for m, parts in readers.items()}
         ids = pick_pairs(pairs, kind, [set(r.pair_ids) for r in mine.values()], n_pairs, rng)
         near = objects[objects["distance"].between(dmin, dmax)]
