@@ -195,3 +195,77 @@ def test_the_runners_library_digest_ignores_docstrings_not_code(tmp_path, monkey
     f.write_text(f.read_text() + "\nEXTRA = 1\n")
     codedigest.forget()
     assert runner.code_digest() != base
+
+
+def _copy_package(tmp_path, monkeypatch):
+    """A scratch copy of the package (no ``__pycache__``) as :data:`PACKAGE_ROOT`."""
+    import shutil
+
+    copy = tmp_path / "flowmod"
+    shutil.copytree(codedigest.PACKAGE_ROOT, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    monkeypatch.setattr(codedigest, "PACKAGE_ROOT", copy)
+    codedigest.forget()
+    return copy
+
+
+def test_a_later_process_reads_the_kept_digests_of_the_same_code(tmp_path, monkeypatch):
+    """The digests are kept in the package's ``__pycache__`` under a key of every source
+    file's bytes: a later process (here: after :func:`forget`) takes them from there, and
+    any edit of any file makes them unread (another key)."""
+    copy = _copy_package(tmp_path, monkeypatch)
+    first = codedigest.digests("flowmod.crops", copy)
+    sources = codedigest.source_digests()
+    kept_file = copy / "__pycache__" / codedigest.CACHE_NAME
+    kept = json.loads(kept_file.read_text())
+    assert kept["key"] == codedigest.package_key(copy)
+    assert kept["modules"]["flowmod.crops"] == [list(x) for x in first.items()]
+    assert kept["sources"] == sources and len(sources) == len(list(copy.rglob("*.py")))
+    assert oct(kept_file.stat().st_mode & 0o777) == "0o644"
+    # what is kept is what a later process reads: a planted value shows it
+    kept["modules"]["flowmod.crops"] = [["crops.py", "planted"]]
+    kept["sources"]["crops.py"] = "planted"
+    kept_file.write_text(json.dumps(kept))
+    codedigest.forget()
+    assert codedigest.digests("flowmod.crops", copy) == {"crops.py": "planted"}
+    assert codedigest.source_digests()["crops.py"] == "planted"
+    # an edit anywhere (a file no stage reads) gives another key: computed again
+    (copy / "report" / "viz.py").write_text((copy / "report" / "viz.py").read_text() + "\n")
+    codedigest.forget()
+    assert codedigest.package_key(copy) != kept["key"]
+    assert codedigest.digests("flowmod.crops", copy) == first
+    assert codedigest.source_digests() == sources
+
+
+@pytest.mark.parametrize("content", ["not json", "[1, 2]", '{"key": "x"}', ""])
+def test_a_damaged_kept_file_is_computed_again_and_replaced(tmp_path, monkeypatch, content):
+    copy = _copy_package(tmp_path, monkeypatch)
+    fresh = codedigest.digests("flowmod.select", copy)
+    kept_file = copy / "__pycache__" / codedigest.CACHE_NAME
+    kept_file.write_text(content)
+    codedigest.forget()
+    assert codedigest.digests("flowmod.select", copy) == fresh
+    assert json.loads(kept_file.read_text())["modules"]["flowmod.select"] == [
+        list(x) for x in fresh.items()]
+
+
+def test_a_package_folder_that_cannot_be_written_costs_only_time(tmp_path, monkeypatch):
+    copy = _copy_package(tmp_path, monkeypatch)
+    fresh = codedigest.digests("flowmod.select", copy)
+    (copy / "__pycache__" / codedigest.CACHE_NAME).unlink()
+    (copy / "__pycache__").rmdir()
+    (copy / "__pycache__").write_text("a file where the folder should be")
+    codedigest.forget()
+    assert codedigest.digests("flowmod.select", copy) == fresh
+    assert codedigest.source_digests()["select.py"] == codedigest.source_digest(copy / "select.py")
+    assert sorted(p.name for p in copy.iterdir() if p.name.startswith(".")) == []
+
+
+def test_a_kept_file_that_cannot_be_replaced_leaves_no_temporary_file(tmp_path, monkeypatch):
+    copy = _copy_package(tmp_path, monkeypatch)
+    fresh = codedigest.digests("flowmod.select", copy)
+    kept_file = copy / "__pycache__" / codedigest.CACHE_NAME
+    kept_file.unlink()
+    (kept_file / "inside").mkdir(parents=True)  # a folder in its place: the rename fails
+    codedigest.forget()
+    assert codedigest.digests("flowmod.select", copy) == fresh
+    assert sorted(p.name for p in (copy / "__pycache__").iterdir()) == [codedigest.CACHE_NAME]

@@ -18,6 +18,9 @@ from __future__ import annotations
 
 import ast
 import hashlib
+import json
+import os
+import tempfile
 from functools import cache
 from pathlib import Path
 
@@ -195,8 +198,13 @@ def relative_name(path: Path, root: Path = PACKAGE_ROOT) -> str:
 
 @cache
 def _digests(module: str, root: Path) -> tuple[tuple[str, str], ...]:
+    kept = _stored(root)["modules"].get(module)
+    if kept is not None:
+        return tuple((str(f), str(d)) for f, d in kept)
     files = [module_file(m, root) for m in closure(module, root)]
-    return tuple((relative_name(f, root), source_digest(f)) for f in files if f is not None)
+    out = tuple((relative_name(f, root), source_digest(f)) for f in files if f is not None)
+    _store(root, "modules", {module: [list(x) for x in out]})
+    return out
 
 
 def digests(module: str, root: Path = PACKAGE_ROOT) -> dict[str, str]:
@@ -216,7 +224,7 @@ def forget() -> None:
     """Drop what this process has read and computed (for a process that edits sources and
     reads them again, such as a test: a running stage runs the code it imported, so the
     digests are otherwise read once per process)."""
-    for fn in (_tree, imports, source_digest, _digests):
+    for fn in (_tree, imports, source_digest, _digests, package_key, _stored):
         fn.cache_clear()
 
 
@@ -224,3 +232,71 @@ def changed(old: dict[str, str], new: dict[str, str]) -> list[str]:
     """The files whose digest differs between two :func:`digests` records (added, removed
     or edited), sorted."""
     return sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+
+
+# --------------------------------------------------------------------------------------------
+# the results kept between processes
+# --------------------------------------------------------------------------------------------
+# Reading the syntax trees takes one to three seconds, and every process that asks whether a
+# node is current (each notebook's kernel, each CLI) asked again. The results are kept in
+# one file in the package's ``__pycache__``, under a key that hashes every source file's
+# bytes: any edit of any file makes another key, so a kept result is always that of the
+# code on disk. A file that cannot be read or written only costs the time.
+
+#: The file that keeps the results, inside the package's ``__pycache__`` folder.
+CACHE_NAME = "flowmod-codedigest.json"
+
+
+@cache
+def package_key(root: Path = PACKAGE_ROOT) -> str:
+    """16 hex digits of sha256 over every ``*.py`` file under ``root`` (its path relative
+    to ``root`` and its bytes): the key of the kept results."""
+    h = hashlib.sha256()
+    for f in sorted(root.rglob("*.py")):
+        h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+@cache
+def _stored(root: Path) -> dict:
+    """The kept results of the code under ``root`` now: ``{"key", "sources": {file:
+    digest}, "modules": {module: [[file, digest], ...]}}`` (empty where none are kept)."""
+    empty = {"key": package_key(root), "sources": {}, "modules": {}}
+    try:
+        kept = json.loads((root / "__pycache__" / CACHE_NAME).read_text())
+    except (OSError, ValueError):
+        return empty
+    ok = (isinstance(kept, dict) and kept.get("key") == empty["key"]
+          and isinstance(kept.get("sources"), dict) and isinstance(kept.get("modules"), dict))
+    return kept if ok else empty
+
+
+def _store(root: Path, kind: str, values: dict[str, object]) -> None:
+    """Keep ``values`` under ``kind`` (in memory, and in the file: a temporary file, then a
+    rename; where the folder cannot be written, in memory only)."""
+    kept = _stored(root)
+    kept[kind].update(values)
+    folder = root / "__pycache__"
+    tmp = None
+    try:
+        folder.mkdir(exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".codedigest.", suffix=".tmp", dir=folder)
+        with os.fdopen(fd, "w") as out:
+            json.dump(kept, out, sort_keys=True)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, folder / CACHE_NAME)
+    except OSError:
+        if tmp is not None and os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def source_digests(root: Path | None = None) -> dict[str, str]:
+    """``{file relative to the package: digest}`` (:func:`source_digest`) of every ``*.py``
+    under ``root`` (default :data:`PACKAGE_ROOT`), sorted by file."""
+    root = PACKAGE_ROOT if root is None else root
+    files = {relative_name(f, root): f for f in sorted(root.rglob("*.py"))}
+    kept = _stored(root)["sources"]
+    missing = {n: source_digest(f) for n, f in files.items() if n not in kept}
+    if missing:
+        _store(root, "sources", missing)
+    return {n: str(kept[n]) for n in files}

@@ -157,9 +157,7 @@ def code_digest() -> str:
     """Fingerprint of the library's code (every ``src/flowmod/**/*.py``, each by
     :func:`flowmod.codedigest.source_digest`: a docstring or comment edit re-executes
     nothing)."""
-    pkg = codedigest.PACKAGE_ROOT
-    return fingerprint([(codedigest.relative_name(f, pkg), codedigest.source_digest(f))
-                        for f in sorted(pkg.rglob("*.py"))])
+    return fingerprint(list(codedigest.source_digests().items()))
 
 
 #: Committed records that chapters show (dated benchmark runs), by chapter: their content
