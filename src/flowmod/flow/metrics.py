@@ -45,8 +45,8 @@ def endpoint_error(flow: np.ndarray, gt: np.ndarray) -> np.ndarray:
     check_flow(gt, "gt")
     if flow.shape != gt.shape:
         raise ValueError(f"flow {flow.shape} and gt {gt.shape} differ in shape")
-    d = flow.astype(np.float32) - gt.astype(np.float32)
-    return np.sqrt((d**2).sum(axis=2))
+    d = np.square(flow.astype(np.float32) - gt.astype(np.float32))
+    return np.sqrt(d[..., 0] + d[..., 1])  # bit for bit the sum over the last axis, faster
 
 
 def _select(
@@ -83,7 +83,8 @@ def fl_all(
     """KITTI Fl-all in percent (0-100): share of selected pixels whose end-point error is
     > 3 px AND > 5 % of the true flow magnitude; NaN if no pixel is selected."""
     err = endpoint_error(flow, gt)
-    mag = np.sqrt((gt.astype(np.float32) ** 2).sum(axis=2))
+    g = np.square(gt.astype(np.float32))
+    mag = np.sqrt(g[..., 0] + g[..., 1])
     outlier = (err > 3.0) & (err > 0.05 * mag)
     sel = _select(flow.shape, valid, mask)
     return float(100.0 * outlier[sel].mean()) if sel.any() else float("nan")
