@@ -590,6 +590,21 @@ def test_error_explanation_compares_two_flows_errors_and_accuracy_by_thirds(stud
         assert (worse == 0.5).any() and want[k][4] != f"{100 * lo:.1f}-{100 * hi:.1f}"
 
 
+def test_error_explanation_pairs_predictions_with_crops_by_object(tmp_path):
+    """The classifiers' accuracy by thirds reads each object's own prediction: a test table
+    written in another row order gives the same explanation, and one that lacks an object
+    of the crops is an error naming the method, not a shifted row."""
+    p = _write_study(tmp_path)
+    want = _explanation_want()
+    node = Node("evaluate", "dis")
+    table = pipeline.node_dir(p, node) / "test.parquet"
+    pd.read_parquet(table).iloc[::-1].to_parquet(table, index=False)
+    assert ch07.error_explanation(p, "fastflownet", "dis").to_numpy().tolist() == want
+    pd.read_parquet(table).iloc[1:].to_parquet(table, index=False)
+    with pytest.raises(ValueError, match="^dis's test predictions lack 1 of the objects"):
+        ch07.error_explanation(p, "fastflownet", "dis")
+
+
 def test_network_pair_is_the_first_network_beside_dis_and_the_exact_flow():
     """(first network, dis) only with gt and dis in the profile."""
     def pair(methods):

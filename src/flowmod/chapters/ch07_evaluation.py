@@ -222,11 +222,18 @@ def crop_errors(params: Params, method: str, reference: str = "gt") -> pd.DataFr
         epe_box=box, epe_around=around).reset_index(drop=True)
 
 
-def _right(params: Params, method: str) -> np.ndarray:
+def _right(params: Params, method: str, objects: pd.Series) -> np.ndarray:
     """(N,) whether the seed-mean probability of ``method``'s classifiers is on the right
-    side of 0.5 for each object of Table 3."""
+    side of 0.5 for each object of ``objects`` (ann_tokens of Table 3's objects, in the
+    order wanted); ValueError if one has no prediction."""
     df = results(params, method, "test")[0]
-    return (seed_probs(df).mean(axis=0) > 0.5).astype(int) == df["label"].to_numpy()
+    right = pd.Series((seed_probs(df).mean(axis=0) > 0.5).astype(int)
+                      == df["label"].to_numpy(), index=df["ann_token"].to_numpy())
+    missing = ~objects.isin(right.index)
+    if missing.any():
+        raise ValueError(f"{method}'s test predictions lack {int(missing.sum())} of the "
+                         "objects its crops hold")
+    return right.loc[objects.to_numpy()].to_numpy()
 
 
 def error_explanation(params: Params, a: str, b: str) -> pd.DataFrame:
@@ -245,7 +252,7 @@ def error_explanation(params: Params, a: str, b: str) -> pd.DataFrame:
                      b: round(float(eb[col].median()), 2),
                      f"objects where {a} errs more (%)": round(100 * float(worse.mean()), 1),
                      "95% CI over scenes (%)": f"{100 * lo:.1f}-{100 * hi:.1f}"})
-    ra, rb = _right(params, a), _right(params, b)
+    ra, rb = _right(params, a, ea["ann_token"]), _right(params, b, ea["ann_token"])
     edges = np.quantile(ea["epe_around"], [0, 1 / 3, 2 / 3, 1])
     third = np.clip(np.searchsorted(edges, ea["epe_around"], side="right") - 1, 0, 2)
     for k in range(3):
