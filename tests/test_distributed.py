@@ -13,7 +13,8 @@ import flowmod.flow as fl
 from flowmod.flow import distributed
 
 #: The paper's chain (chapters 01-08): the extension chapters add nothing these tests check.
-CORE_CHAPTERS = ["01", "02", "03", "05", "06", "07", "08"]
+#: The chapters that compute flow and cut crops (and what they read).
+FLOW_CHAPTERS = ["01", "02", "03", "05"]
 
 
 @pytest.fixture(scope="module")
@@ -94,17 +95,21 @@ def test_unknown_executor_is_refused(tmp_path):
 
 
 @pytest.mark.slow
-def test_smoke_study_on_ray_gives_the_local_metrics(smoke_built, ray_cluster, tmp_path):
-    """The whole smoke study with executor: ray (and crops mode, the default of the demo and
-    paper profiles: the crops stage computes every pair's flow on the cluster) in a fresh run
-    folder: every kept flow file, every crop and every metric equals the local build's."""
+def test_smoke_study_on_ray_gives_the_local_flow_and_crops(smoke_built, ray_cluster, tmp_path):
+    """The smoke study's flow and crops chapters with executor: ray (and crops mode, the
+    default of the demo and paper profiles: the crops stage computes every pair's flow on
+    the cluster) in a fresh run folder: every kept flow file and every crop equals the local
+    build's. The executor decides only where flow is computed; the classifiers read crops,
+    so their metrics follow (test_crops.py checks them in crops mode)."""
     from flowmod import crops, pipeline, select
     from flowmod.chapters import common
 
     local = smoke_built
     p = local.model_copy(update={"executor": "ray", "ray_address": "local", "n_jobs": 2,
                                  "flow_store": "crops", "run_dir": str(tmp_path / "runs")})
-    pipeline.build(p, chapters=CORE_CHAPTERS)
+    pipeline.build(p, chapters=FLOW_CHAPTERS)
+    built = {n.stage for n in pipeline.nodes(p) if pipeline.recorded(p, n) is not None}
+    assert {"flow", "crops"} <= built and "train" not in built
     for m in p.flow_methods:
         for part in select.PARTS:
             a, b = common.flow_reader(local, m, part), common.flow_reader(p, m, part)
@@ -112,14 +117,7 @@ def test_smoke_study_on_ray_gives_the_local_metrics(smoke_built, ray_cluster, tm
             for pid in b.pair_ids:
                 assert a.path(pid).read_bytes() == b.path(pid).read_bytes(), (m, part, pid)
             for split in crops.part_splits(part, p.folds):
-                xa, _ = common.open_crops(local, m, split)
-                xb, _ = common.open_crops(p, m, split)
+                xa, ia = common.open_crops(local, m, split)
+                xb, ib = common.open_crops(p, m, split)
                 np.testing.assert_array_equal(xa, xb)
-    for node in pipeline.nodes(p):
-        if node.stage in ("evaluate", "generalise"):
-            fa, fb = pipeline.published(local, node), pipeline.published(p, node)
-            tables = sorted(f.name for f in fa.glob("*.parquet"))
-            assert tables, node
-            for name in tables:
-                pd.testing.assert_frame_equal(pd.read_parquet(fa / name),
-                                              pd.read_parquet(fb / name))
+                pd.testing.assert_frame_equal(ia, ib)
