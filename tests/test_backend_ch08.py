@@ -168,6 +168,10 @@ def test_numbers_are_table4s_f1_per_method_and_label_and_the_headlines():
                    "headline_general_chance": 66.7,
                    "beyond_f1_gt": 94.8, "beyond_f1_dis": 91.7}
     assert type(got["n_general"]) is int and type(got["headline_general_chance"]) is float
+    # rows in another order (beyond the range first) give the same numbers: a row is read
+    # for what it is, never overwritten by a later one of the other range
+    far_first = table.iloc[[2, 3, 6, 7, 0, 1, 4, 5]].reset_index(drop=True)
+    assert ch08.numbers(load_profile("demo"), far_first) == got
 
 
 def test_numbers_without_the_headline_methods_paper_row_are_undefined():
