@@ -207,10 +207,10 @@ def test_ablation_words_say_the_choice_its_means_and_the_record():
     raw = 100 * np.mean([v for (_, _, md), vs in ABLATION.items() if md == "raw" for v in vs])
     log = 100 * np.mean([v for (_, _, md), vs in ABLATION.items() if md == "log" for v in vs])
     base = (f"The rule (highest mean) chose **log**: mean validation F1 {log:.1f} % against "
-            f"{raw:.1f} % for the raw flow, over 2 folds x 2 seed(s) of gt, dis (run of "
+            f"{raw:.1f} % for the raw flow, over 2 folds x 2 seeds of gt, dis (run of "
             "2026-12-04, commit abc1234; no test row read).")
     assert base == ("The rule (highest mean) chose **log**: mean validation F1 79.8 % against "
-                    "63.9 % for the raw flow, over 2 folds x 2 seed(s) of gt, dis (run of "
+                    "63.9 % for the raw flow, over 2 folds x 2 seeds of gt, dis (run of "
                     "2026-12-04, commit abc1234; no test row read).")
     assert ch06.ablation_words(rec, load_profile("demo")) == base
     other = load_profile("demo", input_scaling="raw", raw_input_methods=[])
@@ -226,7 +226,7 @@ def test_ablation_words_without_a_raw_mode_say_nan():
             for mode, v in (("clip", 0.5), ("log", 0.7)) for s in (0, 1)]
     words = ch06.ablation_words(_record(rows, choice="clip"), load_profile("demo"))
     assert words.startswith("The rule (highest mean) chose **clip**: mean validation F1 "
-                            "75.0 % against nan % for the raw flow, over 1 folds x 2 seed(s) "
+                            "75.0 % against nan % for the raw flow, over 1 fold x 2 seeds "
                             "of dis (run of")
 
 
@@ -286,9 +286,10 @@ def test_steps_words_are_the_annotated_steps_glued():
         "not decided); flip (none): -3.1 points (-5.5 to -0.7, decided).")
 
 
-def test_steps_words_of_a_record_without_annotated_steps_has_no_units():
-    """No step scored against the annotated labels: 0 units and no step named."""
+def test_steps_words_of_a_record_without_annotated_steps_say_so():
+    """No step scored against the annotated labels: one sentence that says so (not an empty
+    list of steps)."""
     rec = {"date": "2026-12-05", "commit": "def5678", "effects": EFFECTS[1:2]}
     assert ch06.steps_words(rec) == (
-        "Against the recipe, on validation rows only (0 paired (method, fold, seed) units "
-        "each; run of 2026-12-05, commit def5678): .")
+        "The record of 2026-12-05 (commit def5678) holds no step scored against the "
+        "annotated labels.")

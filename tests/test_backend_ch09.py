@@ -395,7 +395,7 @@ def test_slow_radial_compares_the_classifier_and_the_rule_at_own_and_matched_rat
         "vehicles moving and the classifier 20.0 %, so these two recalls are not comparable.")
     words = got["matched_words"]
     assert words.startswith(
-        f"Compared at equal false-alarm rates, the 6 movers {CELL_WORDS} (4 scenes: too "
+        f"Compared at equal false-alarm rates on dis flow, the 6 movers {CELL_WORDS} (4 scenes: too "
         "few): at the rule's false-alarm rate (10.0 % of still vehicles called moving) the "
         "classifier recalls 50.0 % and the rule 66.7 % (rule minus classifier +16.7 points, "
         "95 % interval over scenes ")

@@ -156,7 +156,7 @@ def test_a_rule_and_a_classifier_are_compared_at_one_false_alarm_rate():
     assert at_clf["classifier"] == pytest.approx(80.0)
     at_rule = blind_spots.matched_effect(df, clf, rule, (0, 30), (2, 3), far_rule, n=200)
     words = blind_spots.matched_words(own, at_rule, at_clf, "dis")
-    assert words.startswith("Compared at equal false-alarm rates, the 60 movers at 2-3 m/s")
+    assert words.startswith("Compared at equal false-alarm rates on dis flow, the 60 movers at 2-3 m/s")
     assert words.endswith("these scenes do not tell the two apart (neither interval excludes 0).")
     # a rule that finds more at one rate than a classifier shifted to miss the slow movers
     worse = np.where(labels == 1, clf - 0.25, clf)

@@ -101,6 +101,11 @@ def ablation_table(record: dict[str, Any]) -> pd.DataFrame:
     return out.rename_axis(index=["method", "fold"]).reset_index()
 
 
+def _count(n: int, noun: str) -> str:
+    """``1 fold``, ``3 folds``."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
 def ablation_words(record: dict[str, Any], params: Params) -> str:
     """What the record decided and whether this run follows it."""
     df = pd.DataFrame(record["rows"])
@@ -108,7 +113,7 @@ def ablation_words(record: dict[str, Any], params: Params) -> str:
     best, raw = by.idxmax(), by.get("raw", float("nan"))
     text = (f"The rule ({record['rule']}) chose **{record['choice']}**: mean validation F1 "
             f"{100 * by[best]:.1f} % against {100 * raw:.1f} % for the raw flow, over "
-            f"{df['fold'].nunique()} folds x {df['seed'].nunique()} seed(s) of "
+            f"{_count(df['fold'].nunique(), 'fold')} x {_count(df['seed'].nunique(), 'seed')} of "
             f"{', '.join(dict.fromkeys(df['method']))} (run of {record['date']}, commit "
             f"{record['commit']}; no test row read).")
     if params.input_scaling != record["choice"]:
@@ -152,7 +157,10 @@ def steps_words(record: dict[str, Any]) -> str:
         sign = "decided" if r["low"] > 0 or r["high"] < 0 else "not decided"
         parts.append(f"{r['step']} ({r['variant']}): {r['effect (points)']:+.1f} points "
                      f"({r['low']:+.1f} to {r['high']:+.1f}, {sign})")
-    units = int(df["units"].max()) if len(df) else 0
+    if not parts:
+        return (f"The record of {record['date']} (commit {record['commit']}) holds no step "
+                "scored against the annotated labels.")
+    units = int(df["units"].max())
     return (f"Against the recipe, on validation rows only ({units} paired (method, fold, "
             f"seed) units each; run of {record['date']}, commit {record['commit']}): "
             + "; ".join(parts) + ".")

@@ -321,5 +321,5 @@ def matched_words(own: dict[str, Any], at_rule: dict[str, Any], at_clf: dict[str
         end = ("at equal false-alarm rates these scenes do not tell the two apart (neither "
                "interval excludes 0).")
     small = f" ({own['scenes']} scenes: too few)" if own["scenes"] < MIN_SCENES else ""
-    return (f"Compared at equal false-alarm rates, the {own['movers']} movers "
-            f"{_cell_words(own)}{small}: " + "; ".join(parts) + "; " + end)
+    return (f"Compared at equal false-alarm rates on {method} flow, the {own['movers']} "
+            f"movers {_cell_words(own)}{small}: " + "; ".join(parts) + "; " + end)
