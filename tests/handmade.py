@@ -54,7 +54,7 @@ def _predicted(obj: pd.DataFrame, error: float, seeds: int, rng: np.random.Gener
     return obj.assign(**cols)
 
 
-def _publish(p: Params, node: Node, frames: dict[str, pd.DataFrame],
+def publish(p: Params, node: Node, frames: dict[str, pd.DataFrame],
              scores: dict[str, dict] | None = None) -> None:
     """What a built node leaves in its published folder: its tables, scores, manifest."""
     folder = pipeline.GRAPH.node_dir(p, node)
@@ -96,5 +96,5 @@ def make_study(root: Path) -> tuple[Params, dict[Node, dict[str, pd.DataFrame]]]
                       for k, df in frames.items()}
             scores["original"] = {"clean": 0.5, "original": 0.6, "original_minus_clean": 0.1,
                                   "per_seed_clean": [0.5], "per_seed_original": [0.6]}
-        _publish(p, node, frames, scores)
+        publish(p, node, frames, scores)
     return p, tables

@@ -16,13 +16,11 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from handmade import publish
 from sklearn.metrics import recall_score
 
-from flowmod import pipeline
-from flowmod.artefacts import write_manifest
 from flowmod.chapters import ch09_blind_spots as ch09
 from flowmod.dag import Node
-from flowmod.evaluate import write_frames
 from flowmod.extensions import blind_spots
 from flowmod.params import load_profile
 from flowmod.select import Selection
@@ -73,14 +71,6 @@ def test_shown_methods_are_gt_and_the_main_method_in_profile_order():
     assert ch09.shown_methods(_params(["gt"])) == ["gt"]
 
 
-def _publish(p, node, frames):
-    """What a built node leaves in its published folder: its tables and a manifest."""
-    folder = pipeline.GRAPH.node_dir(p, node)
-    folder.mkdir(parents=True)
-    write_frames(folder, frames, {})
-    write_manifest(folder / "manifest.json", {"fingerprint": f"hand-made {node}"})
-
-
 def test_test_geometry_adds_the_motion_geometry_to_each_shown_method_s_predictions(tmp_path):
     """``{method: predictions}`` for ``gt`` and the main method only (a third method is not
     published: reading it would fail), each its own method's published test predictions
@@ -97,7 +87,7 @@ def test_test_geometry_adds_the_motion_geometry_to_each_shown_method_s_predictio
     own = {"gt": base.assign(vx=[0.0, 3.0], vy=[2.0, 0.0], prob=[0.9, 0.8]),
            "dis": base.assign(vx=[3.0, 4.0], vy=[4.0, -3.0], prob=[0.4, 0.3])}
     for m, df in own.items():
-        _publish(p, Node("evaluate", m), {"test": df})
+        publish(p, Node("evaluate", m), {"test": df})
     got = ch09.test_geometry(p, Selection(pairs, pd.DataFrame(), pd.DataFrame()))
     assert list(got) == ["gt", "dis"]
     # gt: o1 seen straight ahead (sight (0, 1)) moving along it; o2 ahead of a camera at

@@ -15,13 +15,13 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from handmade import publish
 from sklearn.metrics import f1_score, precision_score, recall_score
 
 from flowmod import pipeline
 from flowmod.artefacts import write_manifest
 from flowmod.chapters import ch10_inputs as ch10
 from flowmod.dag import Node
-from flowmod.evaluate import write_frames
 from flowmod.params import load_profile
 
 #: The table's columns, in order.
@@ -221,22 +221,14 @@ def test_comparisons_of_the_built_rows_skip_the_raw_flows_on_the_test_split(
     assert other[col].tolist() != got[col].tolist()
 
 
-def _publish(p, node, frames):
-    """What a built node leaves in its published folder: its tables and a manifest."""
-    folder = pipeline.GRAPH.node_dir(p, node)
-    folder.mkdir(parents=True)
-    write_frames(folder, frames, {})
-    write_manifest(folder / "manifest.json", {"fingerprint": f"hand-made {node}"})
-
-
 def test_a_comparison_of_tables_of_other_objects_names_both_chains(tmp_path):
     """An input's predictions and its raw flow's on different objects cannot be paired: the
     error names the two chains."""
     p = _demo(extension_methods=["dis"], run_dir=str(tmp_path / "runs"))
     rows = pd.DataFrame({"ann_token": ["a", "b"], "label": [1, 0], "scene": ["s", "t"],
                          "fold": [0, 1], "prob": [0.9, 0.1], "distance": [40.0, 50.0]})
-    _publish(p, Node("evaluate", "dis"), {"test": rows})
-    _publish(p, Node("xevaluate", "dis", "residual"),
+    publish(p, Node("evaluate", "dis"), {"test": rows})
+    publish(p, Node("xevaluate", "dis", "residual"),
              {"test": rows.assign(ann_token=["a", "c"])})
     with pytest.raises(ValueError, match=r"^dis/residual and dis/flow were scored on "
                                          "different objects$"):
