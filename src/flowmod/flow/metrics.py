@@ -39,14 +39,20 @@ def flow_to_color(flow: np.ndarray, max_flow: float | None = None, bgr: bool = F
 # --------------------------------------------------------------------------------------------
 
 
+def _magnitude(v: np.ndarray) -> np.ndarray:
+    """(H, W) float32 length of the (H, W, 2) vectors ``v``: the two planes squared and
+    added, bit for bit numpy's sum over the last axis (which is slow on a 2-long axis)."""
+    sq = np.square(v.astype(np.float32))
+    return np.sqrt(sq[..., 0] + sq[..., 1])
+
+
 def endpoint_error(flow: np.ndarray, gt: np.ndarray) -> np.ndarray:
     """Per-pixel end-point error (H, W) float32, pixels."""
     check_flow(flow)
     check_flow(gt, "gt")
     if flow.shape != gt.shape:
         raise ValueError(f"flow {flow.shape} and gt {gt.shape} differ in shape")
-    d = np.square(flow.astype(np.float32) - gt.astype(np.float32))
-    return np.sqrt(d[..., 0] + d[..., 1])  # bit for bit the sum over the last axis, faster
+    return _magnitude(flow.astype(np.float32) - gt.astype(np.float32))
 
 
 def _select(
@@ -83,8 +89,7 @@ def fl_all(
     """KITTI Fl-all in percent (0-100): share of selected pixels whose end-point error is
     > 3 px AND > 5 % of the true flow magnitude; NaN if no pixel is selected."""
     err = endpoint_error(flow, gt)
-    g = np.square(gt.astype(np.float32))
-    mag = np.sqrt(g[..., 0] + g[..., 1])
+    mag = _magnitude(gt)
     outlier = (err > 3.0) & (err > 0.05 * mag)
     sel = _select(flow.shape, valid, mask)
     return float(100.0 * outlier[sel].mean()) if sel.any() else float("nan")
