@@ -241,8 +241,8 @@ def test_each_fold_s_rows_are_scored_by_its_own_seed_models(monkeypatch):
     prob_s<j>, never another fold's (which trained on it). Stub models: a model's
     'probability' is its part's code."""
     code = {"f0s0": 0.01, "f0s1": 0.02, "f1s0": 0.11, "f1s1": 0.12, "f2s0": 0.21, "f2s1": 0.22}
-    monkeypatch.setattr(evaluate, "load_model", lambda path, dev, ch: path)
-    monkeypatch.setattr(evaluate, "predict",
+    monkeypatch.setattr("flowmod.model.load_model", lambda path, dev, ch: path)
+    monkeypatch.setattr("flowmod.model.predict",
                         lambda model, x, **kw: np.full(len(x), code[model]))
     df = pd.DataFrame({"fold": [2, 0, 1, 0, 2], "label": [1, 0, 1, 0, 1]})
     models = [(part, part, None) for part in sorted(code)]
@@ -643,8 +643,8 @@ def test_the_baseline_seeds_its_interval_and_indexes_pooled_folds_afresh(tmp_pat
 
 def test_two_folds_are_cross_validation(monkeypatch):
     """folds=2 is cross-validation too: each row by its own fold's model."""
-    monkeypatch.setattr(evaluate, "load_model", lambda path, dev, ch: path)
-    monkeypatch.setattr(evaluate, "predict", lambda model, x, **kw: np.full(len(x), model))
+    monkeypatch.setattr("flowmod.model.load_model", lambda path, dev, ch: path)
+    monkeypatch.setattr("flowmod.model.predict", lambda model, x, **kw: np.full(len(x), model))
     df = pd.DataFrame({"fold": [1, 0, 1]})
     out = evaluate.predict_models([("f0", 0.2, None), ("f1", 0.7, None)], np.zeros((3, 2, 4, 4)),
                                   df, "cpu", folds=2)

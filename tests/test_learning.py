@@ -376,17 +376,16 @@ def test_training_on_the_cpu_runs_in_float32_and_shows_its_progress(data, tmp_pa
                                                                     monkeypatch) -> None:
     """Without mixed precision the forward pass is float32 (autocast off on the CPU); with
     ``progress`` the epoch bar shows the loss, the validation F1 and the best epoch."""
-    import flowmod.train as tr
 
     seen: list[torch.dtype] = []
-    build = tr.motion_resnet18
+    build = motion_resnet18
 
     def hooked(*a, **k):
         model = build(*a, **k)
         model.conv1.register_forward_hook(lambda m, i, o: seen.append(o.dtype))
         return model
 
-    monkeypatch.setattr(tr, "motion_resnet18", hooked)
+    monkeypatch.setattr("flowmod.model.motion_resnet18", hooked)
     tx, tdf, vx, vdf = data
     kw = {**KW, "epochs": 1}
     del kw["progress"]  # shown by default
@@ -550,7 +549,6 @@ def test_training_batches_are_flipped_with_u_negated(data, tmp_path, monkeypatch
     """Inside the training loop: each batch the model sees is the plan's crops, and exactly
     the planned ones mirrored with u negated (the original flipped without negating u); an
     input of other channels negates the channels it names (chapter 10)."""
-    import flowmod.train as tr
 
     tx, tdf, vx, vdf = data
     if channels == 3:
@@ -564,7 +562,7 @@ def test_training_batches_are_flipped_with_u_negated(data, tmp_path, monkeypatch
             lambda mod, args: seen.append(args[0].detach().clone()) if mod.training else None)
         return model
 
-    monkeypatch.setattr(tr, "motion_resnet18", recording_model)
+    monkeypatch.setattr("flowmod.model.motion_resnet18", recording_model)
     train_model(tx, tdf, vx, vdf, tmp_path, **{**KW, "epochs": 1, "hflip_p": 0.5},
                 in_channels=channels, flip_negate=negate)
     batches, flips = epoch_plan(len(tx), KW["batch_size"], 0.5, KW["seed"], 1)
@@ -921,7 +919,7 @@ def test_a_new_run_has_the_settings_optimiser_and_schedule(monkeypatch) -> None:
     import flowmod.train as tr
 
     built = []
-    monkeypatch.setattr(tr, "motion_resnet18",
+    monkeypatch.setattr("flowmod.model.motion_resnet18",
                         lambda *a: built.append(a) or motion_resnet18(*a))
     s = tr.TrainSettings(lr=0.02, momentum=0.8, weight_decay=0.003, step_size=4, gamma=0.3,
                          width=8, input_mode="log")

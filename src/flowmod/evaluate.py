@@ -24,6 +24,7 @@ from flowmod.crops import (
     read_crops,
     read_samples,
 )
+from flowmod.environment import resolve_device
 from flowmod.metrics import (
     apply_threshold,
     fit_threshold,
@@ -33,7 +34,6 @@ from flowmod.metrics import (
     seed_summary,
     thin_still,
 )
-from flowmod.model import load_model, predict, resolve_device
 from flowmod.params import Params
 from flowmod.select import read_table
 from flowmod.train import (
@@ -81,6 +81,8 @@ def predict_models(models: list[tuple[str, Any, str | None]], x: Any, df: pd.Dat
     predicted by the models of its fold (``df.fold``), which never saw it: ``prob`` alone
     with one model a fold; with several training seeds a fold (parts ``f<k>s<j>``),
     ``prob_s<j>`` by the seed-j models and ``prob`` = ``prob_s0``."""
+    from flowmod.model import load_model, predict  # torch: only where models predict
+
     if folds > 1:
         return df.assign(**_fold_probs(models, x, df, device, in_channels))
     probs = {}
@@ -94,6 +96,8 @@ def _fold_probs(models: list[tuple[str, Any, str | None]], x: Any, df: pd.DataFr
                 device: Any, in_channels: int | None) -> dict[str, np.ndarray]:
     """Cross-validation: per training seed j, every row's probability by its fold's seed-j
     model (``prob`` with one seed a fold, else ``prob_s<j>`` and ``prob``)."""
+    from flowmod.model import load_model, predict
+
     fold = df["fold"].to_numpy()
     seeds = sorted({part_seed(part) for part, _, _ in models})
     out = {j: np.full(len(df), np.nan) for j in seeds}

@@ -30,22 +30,24 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
-import torch
-from torch import nn
-from torch.utils.data import DataLoader, Dataset
 
 from flowmod import dag
 from flowmod.artefacts import atomic_path, read_manifest, save_checkpoint
 from flowmod.crops import fold_crops, hflip
 from flowmod.dag import StageParams
+from flowmod.environment import resolve_device
 from flowmod.metrics import metrics, sigmoid
-from flowmod.model import motion_resnet18, predict_logits, resolve_device
 from flowmod.params import Params
 from flowmod.progress import bar as tqdm
+
+if TYPE_CHECKING:  # torch is imported where a model is trained: the stage's declaration,
+    # its parts and recipes (which every chapter and the runner read) never load it
+    import torch
+    from torch import nn
 
 HISTORY_COLUMNS = [
     "epoch", "train_loss", "val_loss", "val_f1", "val_precision", "val_recall", "lr", "seconds",
@@ -120,12 +122,14 @@ def check_split(
     return y.astype(np.float32)
 
 
-class CropDataset(Dataset):
+class CropDataset:
     """Batches of crops: ``ds[indices] -> (x (B, C, S, S), y (B,) float32)``, x in the
     crops' stored dtype (float16 for memmaps: half the bytes to move; the training loop
     converts on the device).
 
     A memmap is re-opened by file name in DataLoader workers instead of being pickled whole.
+    A map-style dataset as DataLoader reads one (``__len__``, ``__getitem__``), without
+    ``torch.utils.data.Dataset`` as its base, so that defining it imports no torch.
     """
 
     def __init__(self, x: Any, y: np.ndarray) -> None:
@@ -136,6 +140,7 @@ class CropDataset(Dataset):
         return len(self.y)
 
     def __getitem__(self, idx: Sequence[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        import torch
         idx = np.asarray(idx)
         xb = torch.from_numpy(np.ascontiguousarray(self.x[idx]))
         return xb, torch.from_numpy(self.y[idx])
@@ -167,6 +172,7 @@ class ResidentCrops:
     numpy gather from memory (torch's float16 ``index_select`` on the CPU is ~50x slower)."""
 
     def __init__(self, x: Any, y: np.ndarray, dev: torch.device) -> None:
+        import torch
         self.host = np.array(x)  # a copy in memory, off the memmap
         self.x = None if dev.type == "cpu" else torch.from_numpy(self.host).to(dev)
         self.y = torch.from_numpy(np.asarray(y, dtype=np.float32)).to(dev)
@@ -177,6 +183,7 @@ class ResidentCrops:
 
     def batches(self, plan: Sequence[np.ndarray]) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
         """(x (B, C, S, S) float32, y (B,)) on the device, per index array of ``plan``."""
+        import torch
         for idx in plan:
             i = torch.from_numpy(np.asarray(idx, dtype=np.int64)).to(self.dev)
             if self.x is None:
@@ -200,6 +207,7 @@ class StreamedCrops:
                      ) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
         """The host's share: (x (B, C, S, S) as stored, y (B,)) per index array of ``plan``,
         pinned on CUDA."""
+        from torch.utils.data import DataLoader
         yield from DataLoader(self.ds, batch_size=None, sampler=plan, num_workers=self.workers,
                               pin_memory=self.dev.type == "cuda")
 
@@ -215,6 +223,7 @@ def crop_source(x: Any, y: np.ndarray, dev: torch.device, workers: int = 0,
     """Where training batches come from: the whole array (a numpy array or memmap) on the
     device when it fits (``resident_bytes``; on CUDA also a quarter of the free memory), else
     streamed (also any other array-like, such as chapter 10's inputs built per batch)."""
+    import torch
     if not isinstance(x, np.ndarray):  # an array-like that assembles its crops per batch
         return StreamedCrops(x, y, dev, workers)
     nbytes = int(x.nbytes)
@@ -234,6 +243,7 @@ def epoch_plan(
     Returns (batches: list of sorted index arrays, flips: (n,) bool aligned with the
     concatenated batches). A trailing batch of one object is dropped (BatchNorm needs >= 2).
     """
+    import torch
     g = torch.Generator().manual_seed(int(seed) * 1_000_003 + int(epoch))
     perm = torch.randperm(n, generator=g).numpy()
     flips = (torch.rand(n, generator=g) < hflip_p).numpy()
@@ -249,6 +259,7 @@ def epoch_plan(
 
 @contextlib.contextmanager
 def _deterministic(dev: torch.device) -> Iterator[None]:
+    import torch
     prev = torch.are_deterministic_algorithms_enabled()
     prev_warn = torch.is_deterministic_algorithms_warn_only_enabled()
     prev_bench = torch.backends.cudnn.benchmark
@@ -264,6 +275,7 @@ def _deterministic(dev: torch.device) -> Iterator[None]:
 
 
 def _resolve_amp(amp: str | None, dev: torch.device) -> str | None:
+    import torch
     if amp == "auto":
         if dev.type != "cuda":
             return None
@@ -284,6 +296,7 @@ def _bce_with_logits(z: np.ndarray, y: np.ndarray) -> float:
 def half_weights(path: Path) -> None:
     """Rewrite the state_dict at ``path`` with its floating-point tensors in float16 (integer
     buffers as they are); :func:`flowmod.model.load_model` loads it back into float32."""
+    import torch
     state = torch.load(path, map_location="cpu", weights_only=True)
     save_checkpoint({k: v.half() if v.is_floating_point() else v for k, v in state.items()}, path)
 
@@ -367,6 +380,9 @@ class _Run:
 
 def _new_run(s: TrainSettings, channels: int, seed: int, dev: torch.device,
              amp_mode: str | None, flow_channels: Sequence[int]) -> _Run:
+    import torch
+
+    from flowmod.model import motion_resnet18
     torch.manual_seed(seed)
     model = motion_resnet18(channels, s.width, s.input_mode, flow_channels)
     model = model.to(dev, memory_format=torch.channels_last)
@@ -379,6 +395,7 @@ def _new_run(s: TrainSettings, channels: int, seed: int, dev: torch.device,
 
 def _resume(run: _Run, last_path: Path, config: dict[str, Any], dev: torch.device) -> None:
     """Continue ``run`` from the checkpoint at ``last_path`` (made with ``config``)."""
+    import torch
     ck = torch.load(last_path, map_location="cpu", weights_only=True)
     if ck.get("format") != CHECKPOINT_FORMAT:
         raise TrainingError(f"{last_path}: not a flowmod training checkpoint")
@@ -401,6 +418,7 @@ def _resume(run: _Run, last_path: Path, config: dict[str, Any], dev: torch.devic
 
 
 def _checkpoint(run: _Run, path: Path, config: dict[str, Any], dev: torch.device) -> None:
+    import torch
     save_checkpoint({
         "format": CHECKPOINT_FORMAT, "epoch": run.epoch, "config": config,
         "model": run.model.state_dict(), "optimizer": run.opt.state_dict(),
@@ -417,6 +435,8 @@ def _train_epoch(run: _Run, ds: ResidentCrops | StreamedCrops, s: TrainSettings,
                  desc: str, progress: bool) -> float:
     """One epoch of SGD over ``ds`` in the order and with the flips of :func:`epoch_plan`;
     returns the mean training loss."""
+    import torch
+    from torch import nn
     batches, flips = epoch_plan(len(ds), s.batch_size, s.hflip_p, seed, epoch)
     run.model.train()
     loss_fn = nn.BCEWithLogitsLoss()
@@ -512,6 +532,7 @@ def train_model(
     Returns the history (columns :data:`HISTORY_COLUMNS`; ``attrs`` best_epoch, best_f1),
     also written to ``out_dir/history.csv``. Weights: ``best.pt``, ``last.pt``.
     """
+    import torch
     s = replace(settings or TrainSettings(), **overrides)
     channels = int(in_channels)
     y_tr, y_va = _check_inputs(train_x, train_df, val_x, val_df, s, label_col, channels)
@@ -552,6 +573,7 @@ def _end_epoch(run: _Run, epoch: int, train_loss: float, lr_now: float, t0: floa
                dev: torch.device, amp_mode: str | None) -> None:
     """Validate, step the schedule, record the epoch (and ``record``'s probabilities) and
     keep the weights if the validation F1 is the best so far (ties keep the earlier)."""
+    from flowmod.model import predict_logits
     z = predict_logits(run.model, val_x, batch_size=s.eval_batch_size, device=dev, amp=amp_mode)
     m = metrics(y_va, sigmoid(z))
     run.sched.step()

@@ -23,13 +23,10 @@ from flowmod.extensions.selfflow import (
     read_shipped_example,
     selfflow_weights,
 )
-from flowmod.flow.pretrain import WEIGHTS_DIR
 from flowmod.flow.registry import read_image
-from flowmod.flow.selftrain import (
-    DIS_PRESET,
-    SHIPPED,
-)
 from flowmod.flowweights import FASTFLOWNET_SYNTH
+from flowmod.flowweights import SHIPPED_DIS_PRESET as DIS_PRESET
+from flowmod.flowweights import SHIPPED_ROW as SHIPPED
 from flowmod.metrics import (
     ci_text,
     group_mean_bootstrap,
@@ -37,6 +34,9 @@ from flowmod.metrics import (
     verdict,
 )
 from flowmod.params import Params
+
+#: Where the shipped weights live (relative to the repository root).
+WEIGHTS_DIR = FASTFLOWNET_SYNTH.shipped or ""
 
 
 def built(params: Params) -> list[str]:

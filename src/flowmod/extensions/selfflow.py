@@ -20,24 +20,6 @@ import pandas as pd
 from flowmod import dag, world
 from flowmod.artefacts import atomic_path, save_checkpoint, write_json
 from flowmod.flow.networks import FastFlowNetFlow
-from flowmod.flow.selftrain import (
-    DIS_PRESET,
-    SHIPPED,
-    FramePairs,
-    SelfFlowError,
-    baselines,
-    cache_gt,
-    fold0_pairs,
-    held_out,
-    heldout_pairs,
-    mean_metrics,
-    pair_metrics,
-    reference_estimators,
-    sample_pairs,
-    score_model,
-    train_flow,
-    validation_pairs,
-)
 from flowmod.select import read_table
 
 
@@ -48,6 +30,20 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
     validation-scene pairs, and scored once on test-scene pairs at the end: ``weights.pt``
     (a FastFlowNet state_dict), ``history.csv`` and ``eval.json`` (the network's and the
     baselines' metrics on the validation and on the test pairs)."""
+    from flowmod.flow.selftrain import (  # torch: imported where the network trains
+        FramePairs,
+        SelfFlowError,
+        baselines,
+        cache_gt,
+        fold0_pairs,
+        held_out,
+        heldout_pairs,
+        sample_pairs,
+        score_model,
+        train_flow,
+        validation_pairs,
+    )
+
     q, mode = b.params, str(b.node.part)
     root = q.dataroot_path
     synthetic = world.is_synthetic(root, q.version)
@@ -102,6 +98,8 @@ def build(b: dag.Build, progress: bool) -> dict[str, Any]:
 
 def init_weights(q: Any) -> Any:
     """The file ``selfflow_init`` names (the finetune mode's start), or one clear line."""
+    from flowmod.flow.selftrain import SelfFlowError
+
     path = q.path(q.selfflow_init)
     if not path.is_file():
         raise SelfFlowError(f"selfflow_init={q.selfflow_init}: no such file ({path}); "
@@ -120,6 +118,17 @@ def build_shipped(b: dag.Build, progress: bool) -> dict[str, Any]:
     scene, first frame, EPE over the frame and in the boxes, px) and ``example.npz`` (the
     first pair's exact, DIS and network flow, float16, and its valid mask); empty tables
     on data without exact flow (real nuScenes: nothing to measure against)."""
+    from flowmod.flow.selftrain import (
+        DIS_PRESET,
+        SHIPPED,
+        SelfFlowError,
+        held_out,
+        mean_metrics,
+        pair_metrics,
+        reference_estimators,
+        sample_pairs,
+    )
+
     q = b.params
     weights = q.path(q.shipped_weights)
     if not weights.is_file():

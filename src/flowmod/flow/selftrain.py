@@ -50,6 +50,7 @@ from flowmod.flow.estimators import DISFlow, FarnebackFlow, GTFlow
 from flowmod.flow.metrics import flow_metrics
 from flowmod.flow.networks import FastFlowNetFlow
 from flowmod.flow.registry import read_image, resize_flow
+from flowmod.flowweights import SHIPPED_DIS_PRESET, SHIPPED_ROW
 from flowmod.progress import bar
 from flowmod.select import fold_roles
 
@@ -63,10 +64,9 @@ CHECKPOINT_EVERY = 25
 #: input's own resolution (the flow upsampled, as UFlow and SMURF warp) and three coarser
 #: ones, which widen the reach of the census window.
 PHOTOMETRIC_SCALES = (1.0, 0.5, 0.25, 0.125)
-#: The DIS preset of the baseline (the CPU default of chapter 03).
-DIS_PRESET = "medium"
-#: The shipped weights' row name in chapter 12's tables.
-SHIPPED = "fastflownet (shipped)"
+#: The DIS preset of the baseline, and the shipped weights' row name in chapter 12's tables
+#: (declared in :mod:`flowmod.flowweights`, which chapter 12 reads without torch).
+DIS_PRESET, SHIPPED = SHIPPED_DIS_PRESET, SHIPPED_ROW
 
 
 class SelfFlowError(ValueError):
