@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -246,6 +247,47 @@ def dataclass_replace(stage: dag.Stage, **kw: Any) -> dag.Stage:
     from dataclasses import replace
 
     return replace(stage, **kw)
+
+
+def test_stale_nodes_of_parallel_stages_go_to_at_once_in_runs_that_read_no_other(tmp_path):
+    """With ``at_once``, each run of consecutive nodes of parallel stages, none reading
+    another of the run, goes to it when two or more are stale (only the stale ones);
+    everything else is built here, in data order."""
+    g0 = graph(tmp_path)
+    g = dag.Graph([dataclass_replace(s, parallel=s.name in ("train", "xtrain"))
+                   for s in g0.stages.values()], g0.gate_targets)
+    p = validate({"run_dir": str(tmp_path / "runs"), "dataroot": str(tmp_path / "data"),
+                  "seeds": 3, "folds": 1, "synthetic": False, "extension_build": True})
+    CALLS.clear()
+    batches: list[list[str]] = []
+
+    def at_once(todo: list[dag.Node]) -> None:
+        batches.append([str(n) for n in todo])
+        for n in reversed(todo):  # any order: none reads another
+            g.build_node(p, n)
+
+    g.build(p, at_once=at_once)
+    # xtrain reads train[s0], so it starts a run of its own (alone: built here)
+    assert batches == [["train[s0]", "train[s1]", "train[s2]"]]
+    assert CALLS == ["select", "train[s2]", "train[s1]", "train[s0]", "xtrain"]
+    assert set(states(g, p).values()) == {"up to date"}
+    batches.clear()
+    g.build(p, at_once=at_once)
+    assert batches == [], "nothing stale: nothing to build at once"
+    for k in (0, 2):
+        shutil.rmtree(g.node_dir(p, dag.Node("train", None, f"s{k}")))
+    CALLS.clear()
+    g.build(p, at_once=at_once)
+    assert batches == [["train[s0]", "train[s2]"]], "only the stale ones"
+    assert CALLS == ["train[s2]", "train[s0]"], "their fingerprints are as before: xtrain stays"
+    shutil.rmtree(g.node_dir(p, dag.Node("train", None, "s1")))
+    CALLS.clear()
+    batches.clear()
+    g.build(p, at_once=at_once)
+    assert batches == [] and CALLS == ["train[s1]"], "one stale node is built here"
+    CALLS.clear()
+    g.build(p.model_copy(update={"epochs": 3}))
+    assert CALLS == ["train[s0]", "train[s1]", "train[s2]", "xtrain"], "no at_once: in order"
 
 
 def test_a_stage_reading_an_undeclared_parameter_fails(toy, tmp_path):

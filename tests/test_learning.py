@@ -197,6 +197,35 @@ def test_same_seed_is_bit_identical(data, run_a, tmp_path) -> None:
     assert (out_a / "best.pt").read_bytes() == (tmp_path / "best.pt").read_bytes()
 
 
+def test_on_the_cpu_a_model_trains_on_one_thread_whatever_the_caller_s_count(
+        data, run_a, tmp_path, monkeypatch) -> None:
+    """Training runs on CPU_THREADS (1) torch thread and gives the caller its count back, so
+    a process on two threads trains the same bytes as one on one thread (and as a worker of
+    a parallel build)."""
+    import flowmod.train as tr
+
+    assert tr.CPU_THREADS == 1
+    tx, tdf, vx, vdf = data
+    seen: list[int] = []
+    build = motion_resnet18
+
+    def hooked(*a, **k):
+        model = build(*a, **k)
+        model.register_forward_pre_hook(lambda m, i: seen.append(torch.get_num_threads()))
+        return model
+
+    monkeypatch.setattr("flowmod.model.motion_resnet18", hooked)
+    torch.set_num_threads(2)
+    try:
+        train_model(tx, tdf, vx, vdf, tmp_path, **KW)
+        after = torch.get_num_threads()
+    finally:
+        torch.set_num_threads(1)
+    assert after == 2, "the caller's thread count is restored"
+    assert seen and set(seen) == {1}
+    assert (run_a[0] / "best.pt").read_bytes() == (tmp_path / "best.pt").read_bytes()
+
+
 def test_equal_tensors_save_to_equal_bytes(tmp_path) -> None:
     """``save_checkpoint``, the package's one writer of .pt files: the same state_dict
     saved twice (under other names, in other folders) gives the same bytes, and loads with

@@ -315,10 +315,15 @@ def test_reruns_recompute_exactly_what_changed_and_match_a_fresh_run(finished, t
     rec = pipeline.recorded(p, dag.Node("train", "dis", "f0s0"))
     assert rec["inputs"]["crops[dis/keyframe]"] == pipeline.recorded(
         p, dag.Node("crops", "dis", "keyframe"))["fingerprint"]
-    # the same parameters from scratch (same world) give the same numbers
-    scratch = p.model_copy(update={"run_dir": str(tmp_path / "scratch")})
+    # the same parameters from scratch (same world) give the same numbers, also with the
+    # classifiers trained two at a time in worker processes (n_jobs is a run setting)
+    scratch = p.model_copy(update={"run_dir": str(tmp_path / "scratch"), "n_jobs": 2})
     pipeline.build(scratch, chapters=["01", "02", "03", "05", "06", "07", "08"])  # scores'
     assert scores(scratch) == scores(p)
+    models = [n for n in pipeline.nodes(p, ["06"]) if n.stage == "train"]
+    assert len(models) > 2 and all(
+        (pipeline.node_dir(scratch, n) / "best.pt").read_bytes()
+        == (pipeline.node_dir(p, n) / "best.pt").read_bytes() for n in models)
     # switching a parameter back restores the kept variants: nothing is computed again
     back = p.model_copy(update={"epochs": 2})
     stale = [s for s in pipeline.status(back) if s.state != "up to date"]

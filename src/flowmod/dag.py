@@ -57,6 +57,11 @@ from flowmod.params import FILE_DEFAULTS, Params
 KEEP_VARIANTS = 2
 
 
+#: What builds several stale nodes at once (:meth:`Graph.build`): given the nodes, it
+#: returns when every one is published, or raises the first failure.
+AtOnce = Callable[[list["Node"]], None]
+
+
 class MissingInput(RuntimeError):
     """A stage's input has not been built; the message names it and the chapter to run."""
 
@@ -148,6 +153,10 @@ class Stage:
     #: parameter set can read any more, ``garbage(p, variants)``; with ``variants``, also
     #: those only kept earlier results read. ``make gc`` asks every stage.
     garbage: Callable[[Params, bool], list[Path]] | None = None
+    #: Its nodes never read one another and their results do not depend on what runs beside
+    #: them, so the driver may build ``n_jobs`` of them at once in worker processes
+    #: (:meth:`Graph.build`'s ``at_once``): the stages that train a classifier on one thread.
+    parallel: bool = False
 
     def chapters(self) -> set[str]:
         """Every chapter that builds some node of this stage."""
@@ -613,16 +622,39 @@ class Graph:
         return b.final
 
     def build(self, p: Params, chapters: Iterable[str] | None = None,
-              progress: bool = False) -> list[Node]:  # pragma: no mutate block
+              progress: bool = False, at_once: AtOnce | None = None
+              ) -> list[Node]:  # pragma: no mutate block
         """Build the stale nodes of ``chapters`` (default: all) in data order; a gated node
-        only when its gate is on. Returns the nodes considered."""
-        done = []
-        for node in self.nodes(p, chapters):
-            gate = self.gate(node)
-            if gate is None or getattr(p, gate):
-                self.build_node(p, node, progress)
-                done.append(node)
+        only when its gate is on. Returns the nodes considered.
+
+        ``at_once``: builds several stale nodes at once (:func:`flowmod.pipeline.build`'s
+        worker processes). It is given each run of consecutive nodes of
+        :attr:`Stage.parallel` stages of which none reads another and at least two are
+        stale; every other node is built here, one after the other."""
+        done = [n for n in self.nodes(p, chapters)
+                if self.gate(n) is None or getattr(p, self.gate(n))]
+        for batch in self._batches(p, done, at_once is not None):
+            stale = [n for n in batch if not self.begin(p, n).up_to_date] if len(batch) > 1 \
+                else batch
+            if at_once is not None and len(stale) > 1:
+                at_once(stale)
+            else:
+                for node in stale:
+                    self.build_node(p, node, progress)
         return done
+
+    def _batches(self, p: Params, nodes: list[Node], parallel: bool) -> list[list[Node]]:
+        """``nodes`` cut into runs that may build at once (with ``parallel``: consecutive
+        nodes of parallel stages, none an input of another); every other node alone."""
+        out: list[list[Node]] = []
+        for n in nodes:
+            last = out[-1] if out else []
+            if (parallel and last and self.stage(n).parallel and self.stage(last[0]).parallel
+                    and not set(self.inputs(n, p)) & set(last)):
+                last.append(n)
+            else:
+                out.append([n])
+        return out
 
     # -- reading --
     def current(self, p: Params, node: Node) -> bool:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import platform
 import subprocess
+from collections.abc import Iterator
+from contextlib import contextmanager
 from importlib import metadata
 from typing import TYPE_CHECKING, Any
 
@@ -60,6 +62,20 @@ def resolve_device(device: Any = "auto") -> torch.device:
         raise RuntimeError(f"device={device!r} was asked for but no CUDA device is visible; "
                            "use 'auto'")
     return dev
+
+
+@contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """Run the block on ``n`` torch threads, then restore the caller's count (a process-wide
+    setting: left changed, it alters every later float reduction in the process)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def device_info(device: str = "auto") -> dict[str, object]:

@@ -232,7 +232,10 @@ class Params(BaseModel):
         None, read_by=("flow",),
         description="the flow method of chapter 08's clip (crops mode keeps the clip's flow "
                     "for it only); default: the first of flow_methods that is not gt")
-    n_jobs: int = _field(2, ge=1, le=64, role="run", description="parallel CPU workers")
+    n_jobs: int = _field(2, ge=1, le=64, role="run",
+                         description="parallel CPU workers: the world's scenes, the CPU flow "
+                                     "methods' pairs, classifiers trained at once (one "
+                                     "thread each; the same bytes as one at a time)")
     executor: Literal["local", "ray"] = _field(
         "local", role="run",
         description="where flow is computed: local processes, or a Ray cluster")

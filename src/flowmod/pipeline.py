@@ -29,6 +29,7 @@ from flowmod.flow import accuracy
 from flowmod.flow import stage as flow_stage
 from flowmod.lock import folder_lock
 from flowmod.params import Params
+from flowmod.progress import bar as progress_bar
 from flowmod.world import source as world_source
 
 #: Every stage, in data order (chapter 01 to 14).
@@ -122,7 +123,56 @@ def build(p: Params, chapters: Iterable[str] | None = None, progress: bool = Fal
     if unknown:
         raise ValueError(f"no stages in chapter(s) {sorted(unknown)}; known: {list(CHAPTERS)}")
     with folder_lock(p.run_path, "pipeline.build"):  # one build per run folder at a time
-        return GRAPH.build(p, wanted, progress)
+        return GRAPH.build(p, wanted, progress, at_once=_at_once(p, progress))
+
+
+def _at_once(p: Params, progress: bool) -> dag.AtOnce | None:
+    """How :meth:`flowmod.dag.Graph.build` builds stale nodes of a parallel stage (the
+    classifiers): in ``n_jobs`` worker processes, each training on one thread
+    (:data:`flowmod.train.CPU_THREADS`, so the weights are those of a build one after the
+    other); None with one job. On CUDA they are built one after the other."""
+    if p.n_jobs < 2:
+        return None
+
+    def run(todo: list[dag.Node]) -> None:
+        from flowmod.environment import resolve_device  # torch: only when models train
+
+        if resolve_device(p.device).type != "cpu":
+            for node in todo:
+                GRAPH.build_node(p, node, progress)
+        else:
+            _build_in_workers(p, todo, progress)
+    return run
+
+
+def _build_in_workers(p: Params, todo: list[dag.Node], progress: bool) -> None:
+    """Build ``todo`` in ``min(n_jobs, len(todo))`` worker processes (joblib's, as the flow
+    and the world use: a script that calls :func:`build` needs no ``__main__`` guard), one
+    bar here for all. The first failure is raised as its worker raised it and stops the
+    others; each node publishes on its own and an unfinished one resumes from its last
+    epoch, so nothing finished is lost."""
+    from joblib import Parallel, delayed  # only a parallel build needs it
+    from joblib.externals.loky.process_executor import TerminatedWorkerError
+
+    jobs = min(p.n_jobs, len(todo))
+    bar = progress_bar(total=len(todo), unit="node", disable=not progress,
+                       desc=f"{todo[0].stage}: {len(todo)} nodes, {jobs} at a time")
+    try:
+        for _ in Parallel(n_jobs=jobs, return_as="generator_unordered")(
+                delayed(_build_one)(p, node) for node in todo):
+            bar.update()
+    except TerminatedWorkerError as e:
+        raise RuntimeError(
+            f"a worker process building {todo[0].stage} nodes died (out of memory, or "
+            "killed); the nodes it finished are kept: rerun, or set n_jobs=1 (--set "
+            "n_jobs=1) to build them one at a time") from e
+    finally:
+        bar.close()
+
+
+def _build_one(p: Params, node: dag.Node) -> None:
+    """One node, in a worker process (:func:`_build_in_workers`)."""
+    GRAPH.build_node(p, node, progress=False)
 
 
 # --- status -------------------------------------------------------------------------------------

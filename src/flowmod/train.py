@@ -9,9 +9,11 @@ thinning (that happens upstream, if at all).
 
 Determinism: the model is initialised after ``torch.manual_seed(seed)``; each epoch's order
 and flips come from a ``torch.Generator`` seeded with (seed, epoch), so a run resumed from
-``last.pt`` draws exactly what an uninterrupted run draws. On CPU the same seed (and the
-same ``torch.get_num_threads()``) gives bit-identical weights and history (except
-``seconds``). On CUDA, deterministic algorithms are
+``last.pt`` draws exactly what an uninterrupted run draws. On CPU a model trains on
+:data:`CPU_THREADS` torch thread (the caller's count is restored after), so the same seed
+gives bit-identical weights and history (except ``seconds``) whatever the machine's core
+count and whether other nodes train beside it (the driver trains ``n_jobs`` nodes at once,
+:attr:`flowmod.dag.Stage.parallel`). On CUDA, deterministic algorithms are
 requested (warn-only) and autocast (bf16, else fp16 with a GradScaler) is on by default, so
 results are close but not guaranteed bit-identical.
 
@@ -39,7 +41,7 @@ from flowmod import dag
 from flowmod.artefacts import atomic_path, read_manifest, save_checkpoint
 from flowmod.crops import fold_crops, hflip
 from flowmod.dag import StageParams
-from flowmod.environment import resolve_device
+from flowmod.environment import resolve_device, torch_threads
 from flowmod.metrics import metrics, sigmoid
 from flowmod.params import Params
 from flowmod.progress import bar as tqdm
@@ -56,6 +58,11 @@ CHECKPOINT_FORMAT = "flowmod-train-2"
 #: Probabilities of the ``record`` crops after every epoch, (epochs, N) float32, never scored
 #: during training (chapter 07 uses them to show what the original protocol would report).
 EPOCH_PROBS = "epoch_probs.npy"
+#: Torch threads a model trains on, on the CPU: one, so that its float reductions (and so its
+#: weights) do not depend on the cores, and several models can train at once, one a core (two
+#: 1-thread processes train 1.3-1.5x as fast as one on two threads:
+#: ``benchmarks/bench_train_parallel.py``).
+CPU_THREADS = 1
 #: A trained classifier's published weights (float16 state_dict of its best validation epoch).
 MODEL_FILE = "best.pt"
 #: What a training node publishes: the weights, its history per epoch, and (for a seed the
@@ -272,6 +279,11 @@ def _deterministic(dev: torch.device) -> Iterator[None]:
     finally:
         torch.use_deterministic_algorithms(prev, warn_only=prev_warn)
         torch.backends.cudnn.benchmark = prev_bench
+
+
+def _threads(dev: torch.device) -> contextlib.AbstractContextManager[None]:
+    """Train on :data:`CPU_THREADS` threads on the CPU; on CUDA leave the count alone."""
+    return torch_threads(CPU_THREADS) if dev.type == "cpu" else contextlib.nullcontext()
 
 
 def _resolve_amp(amp: str | None, dev: torch.device) -> str | None:
@@ -543,7 +555,7 @@ def train_model(
     out.mkdir(parents=True, exist_ok=True)
     config = _config(s, seed, amp_mode, train_x, y_tr, y_va, channels, flip_negate,
                      flow_channels)
-    with _deterministic(dev):
+    with _deterministic(dev), _threads(dev):
         run = _new_run(s, channels, seed, dev, amp_mode, flow_channels)
         if resume and (out / "last.pt").is_file():
             _resume(run, out / "last.pt", config, dev)
@@ -751,4 +763,4 @@ def train_nodes(p: Params) -> list[dag.Node]:
 STAGE = dag.Stage("train", 4, "06", "models/{method}/{part}", "the classifier of one training seed",
                   nodes=train_nodes,
                   inputs=lambda n, p: (dag.Node("crops", n.method, "keyframe"),), build=build,
-                  outputs=MODEL_OUTPUTS)
+                  outputs=MODEL_OUTPUTS, parallel=True)

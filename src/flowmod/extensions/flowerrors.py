@@ -562,7 +562,7 @@ ETRAIN = dag.Stage(
     nodes=lambda p: [dag.Node("etrain", "gt", f"{arm_key(*a)}/{k}") for a in arms(p)
                      for k in error_parts(p)],
     inputs=lambda n, p: _needs(parse_arm(str(n.part).rpartition("/")[0])[0]),
-    build=build_etrain, outputs=MODEL_OUTPUTS)
+    build=build_etrain, outputs=MODEL_OUTPUTS, parallel=True)
 #: Chapter 13: an arm's models on their test rows, with the realised errors.
 EEVALUATE = dag.Stage(
     "eevaluate", 1, "13", "flowerrors/metrics/{key}", "its predictions and realised errors",

@@ -243,7 +243,8 @@ XTRAIN = dag.Stage(
     "xtrain", 1, "10", "extensions/models/{key}", "a classifier on another input",
     nodes=lambda p: [dag.Node("xtrain", m, f"{v}/{k}") for m, v in chains(p)
                      for k in extension_parts(p)],
-    inputs=_xtrain_inputs, build=build_xtrain, gate="extension_build", outputs=MODEL_OUTPUTS)
+    inputs=_xtrain_inputs, build=build_xtrain, gate="extension_build", outputs=MODEL_OUTPUTS,
+    parallel=True)
 #: Chapter 10: a chain's seeds on the test split and the generalisation set.
 XEVALUATE = dag.Stage(
     "xevaluate", 1, "10", "extensions/metrics/{key}", "its test and generalisation predictions",

@@ -78,7 +78,7 @@ WTRAIN = dag.Stage(
     "a classifier trained on all distances",
     nodes=lambda p: [dag.Node("wtrain", m, k) for m in p.wide_methods for k in extension_parts(p)],
     inputs=lambda n, p: (dag.Node("crops", n.method, WIDE),), build=build_wtrain,
-    gate="extension_build", outputs=MODEL_OUTPUTS)
+    gate="extension_build", outputs=MODEL_OUTPUTS, parallel=True)
 #: Chapter 11: its seeds on the generalisation set and the keyframe test split.
 WGENERALISE = dag.Stage(
     "wgeneralise", 1, "11", "extensions/wide/metrics/{method}",

@@ -44,8 +44,7 @@ import json
 import platform
 import shutil
 import time
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -59,6 +58,7 @@ from torch import Tensor
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from flowmod.artefacts import atomic_path, file_digest, fingerprint, write_json
+from flowmod.environment import torch_threads
 from flowmod.flow.architectures import FFN_DIV_FLOW, FastFlowNet, fastflownet_inputs
 from flowmod.flow.estimators import GTFlow
 from flowmod.flow.registry import read_image, resize_flow
@@ -486,17 +486,6 @@ def train(recipe: Recipe, data: PairCache, work: Path, steps: int, heldout: Held
     with torch_threads(recipe.threads):
         return _train(recipe, data, work, steps, heldout, progress, init, desc)
 
-
-@contextmanager
-def torch_threads(n: int) -> Iterator[None]:
-    """Run the block on ``n`` torch threads, then restore the caller's count (a process-wide
-    setting: left changed, it alters every later float reduction in the process)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def _train(recipe: Recipe, data: PairCache, work: Path, steps: int, heldout: HeldOut | None,
