@@ -428,9 +428,18 @@ def test_numbers_say_how_cross_validated_scores_were_pooled(tmp_path):
     assert got["scored_by"].endswith("the mean of 1 training seeds a fold")
 
 
-def test_bootstrap_draws_is_the_intervals_replicate_count():
-    """Every interval of the book draws 2000 replicates."""
+def test_bootstrap_draws_is_the_intervals_replicate_count(monkeypatch):
+    """Every interval of the book draws 2000 replicates; paired comparisons that drew
+    another number would make the methods section wrong, so that is an error."""
     assert ch07.bootstrap_draws() == 2000
+
+    def other(y_true, prob_a, prob_b, groups, n=1999, seed=0):
+        return {}
+
+    monkeypatch.setattr("flowmod.metrics.paired_comparison", other)
+    with pytest.raises(ValueError, match="^the paired comparisons and Table 3 bootstrap "
+                                         "different replicates$"):
+        ch07.bootstrap_draws()
 
 
 # --- breakdowns -----------------------------------------------------------------------------
@@ -603,6 +612,29 @@ def test_error_explanation_pairs_predictions_with_crops_by_object(tmp_path):
     pd.read_parquet(table).iloc[1:].to_parquet(table, index=False)
     with pytest.raises(ValueError, match="^dis's test predictions lack 1 of the objects"):
         ch07.error_explanation(p, "fastflownet", "dis")
+
+
+def test_error_explanation_thirds_put_an_edge_value_above_it_and_round_to_a_tenth(
+        monkeypatch):
+    """Thirds of A's error around the box by its quantiles: an object whose error equals an
+    inner edge counts in the third above it; accuracies are rounded to 0.1 %, medians to
+    0.01 px."""
+    err = {"x": pd.DataFrame({"ann_token": list("abcdefg"), "scene": list("pqrspqr"),
+                              "epe_box": [0.111, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7],
+                              "epe_around": [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0]}),
+           "y": pd.DataFrame({"ann_token": list("abcdefg"), "scene": list("pqrspqr"),
+                              "epe_box": [0.0] * 7, "epe_around": [9.0] * 7})}
+    right = {"x": np.array([1, 0, 1, 1, 1, 0, 0]), "y": np.array([0, 0, 0, 1, 0, 1, 1])}
+    monkeypatch.setattr(ch07, "crop_errors", lambda p, m: err[m])
+    monkeypatch.setattr(ch07, "_right", lambda p, m, tokens: right[m])
+    got = ch07.error_explanation(load_profile("smoke"), "x", "y")
+    # edges 0, 2, 4, 6 px: thirds {0, 1}, {2, 3}, {4, 5, 6} (2 and 4 go up)
+    assert got["quantity"].tolist()[2:] == [
+        "classifier accuracy (%), x's error around the box 0.0-2.0 px (2 objects)",
+        "classifier accuracy (%), x's error around the box 2.0-4.0 px (2 objects)",
+        "classifier accuracy (%), x's error around the box 4.0-6.0 px (3 objects)"]
+    assert got["x"].tolist() == [0.4, 3.0, 50.0, 100.0, 33.3]
+    assert got["y"].tolist() == [0.0, 9.0, 0.0, 50.0, 66.7]
 
 
 def test_network_pair_is_the_first_network_beside_dis_and_the_exact_flow():
