@@ -301,6 +301,30 @@ def test_far_flow_error_is_none_off_a_synthetic_world(tmp_path):
     assert ch09.far_flow_error(p) is None
 
 
+def test_far_flow_error_reads_the_flowcheck_node_s_far_boxes_in_the_methods_order(
+        tmp_path, monkeypatch):
+    """On a generated world: each method's mean EPE and Fl-all inside the far boxes of the
+    published flowcheck rows, keyframe pairs with a valid box pixel only (a missing whole-
+    frame error does not drop a row), methods in the order the rows give them."""
+    p = _params(["gt", "dis"], run_dir=str(tmp_path / "r"))
+    nan = float("nan")
+    rows = pd.DataFrame({
+        "set": ["keyframe"] * 6 + ["general"],
+        "pair_id": ["a", "a", "a", "b", "b", "b", "c"],
+        "scene": ["s0"] * 7,
+        "method": ["gt", "farneback", "dis", "gt", "farneback", "dis", "dis"],
+        "epe": [0.1, 2.0, nan, 0.2, 3.0, 1.0, 9.0],
+        "fl": [0.0, 5.0, nan, 0.0, 6.0, 2.0, 90.0],
+        "epe_box": [0.0, 1.0, 3.0, 0.5, nan, 1.0, 9.0],
+        "fl_box": [0.0, 10.0, 30.0, 1.0, nan, 20.0, 90.0]})
+    publish(p, Node("flowcheck"), {"accuracy": rows})
+    monkeypatch.setattr(ch09.world, "is_synthetic", lambda root, version: True)
+    got = ch09.far_flow_error(p)
+    assert got.columns.tolist() == ["method", "EPE boxes (px)", "Fl-all boxes (%)"]
+    assert got.to_numpy().tolist() == [["gt", 0.25, 0.5], ["farneback", 1.0, 10.0],
+                                       ["dis", 2.0, 25.0]]
+
+
 def test_rule_margin_falls_back_on_the_single_threshold_when_none_per_fold():
     """An empty per-fold list (a run without folds) means the one ``threshold_m_s``; rows
     are matched by token."""
