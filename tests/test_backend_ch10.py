@@ -53,12 +53,15 @@ def _demo(**kw):
     return load_profile("demo", **{"extension_methods": ["gt", "dis"], **kw})
 
 
-def _built_on_dis_and_images(monkeypatch, seen=None):
+def _built_on_dis_and_images(monkeypatch, seen=None, asked=None):
     """Say that the ``xevaluate`` nodes of dis and of the images alone are built (hand-made
-    nodes have no fingerprints to say it), recording the nodes asked about."""
+    nodes have no fingerprints to say it), recording the nodes asked about (and with which
+    parameters)."""
     def built(params, node):
         if seen is not None:
             seen.append(node)
+        if asked is not None:
+            asked.append(params)
         return node.stage == "xevaluate" and (node.method == "dis" or node.part == "images")
 
     monkeypatch.setattr(pipeline, "built", built)
@@ -71,10 +74,12 @@ def test_built_keeps_the_chains_whose_evaluation_is_built_in_chain_order(monkeyp
     """The built chains, in :func:`~flowmod.extensions.inputs.chains`' order (input by
     input), each asked about by its ``xevaluate`` node."""
     seen: list[Node] = []
-    _built_on_dis_and_images(monkeypatch, seen)
+    asked: list = []
+    _built_on_dis_and_images(monkeypatch, seen, asked)
     p = _demo()
     assert ch10.built(p) == [("dis", "residual"), ("dis", "residual-deployed"),
                              (None, "images"), ("dis", "images+flow")]
+    assert asked and all(a is p for a in asked), "each node is asked about with the run's"
     assert seen == [Node("xevaluate", m, v) for m, v in (
         ("gt", "residual"), ("dis", "residual"), ("gt", "residual-deployed"),
         ("dis", "residual-deployed"), (None, "images"), ("gt", "images+flow"),
@@ -162,6 +167,10 @@ def test_table_scores_each_chain_on_its_own_test_predictions(study):
               tables[Node("xevaluate", None, "images")]["test"],
               tables[Node("evaluate", "gt")]["test"]]
     _check_table(ch10.table(p, chains), chains, frames)
+    # the test split is scored whole: Table 4's range filters the generalisation set only
+    near = p.model_copy(update={"general_max_distance": 40.0})
+    assert all((f["distance"] > 40.0).any() for f in frames)
+    _check_table(ch10.table(near, chains), chains, frames)
 
 
 def test_table_on_the_general_split_scores_within_table_4_s_range(study):
@@ -219,6 +228,9 @@ def test_comparisons_of_the_built_rows_skip_the_raw_flows_on_the_test_split(
     col = "95% CI, scenes and seeds (points)"
     other = ch10.comparisons(p.model_copy(update={"seed": 5}))
     assert other[col].tolist() != got[col].tolist()
+    # the test split is compared whole, whatever Table 4's range
+    near = ch10.comparisons(p.model_copy(update={"general_max_distance": 40.0}))
+    pd.testing.assert_frame_equal(near, got)
 
 
 def test_a_comparison_of_tables_of_other_objects_names_both_chains(tmp_path):
@@ -362,6 +374,11 @@ def test_static_explains_takes_medians_in_the_box_s_square_per_class():
     none = ch10.static_explains(flow[:2], static[:2], np.array([0, 0]))
     assert none["objects"].tolist() == [2, 0]
     assert none.iloc[1, 2:].isna().all() and not none.iloc[0, 2:].isna().any()
+    # crops as stored (float16) with flow past 256 px: squared, float16 overflows, so the
+    # magnitudes are taken in float32
+    fast = ch10.static_explains((flow * 100).astype(np.float16),
+                                (static * 100).astype(np.float16), np.array([0, 0, 1]))
+    assert fast.iloc[0, 2:].tolist() == pytest.approx([750.0, 550.0, 0.7], rel=1e-6)
     odd = ch10.static_explains(flow[:, :, :5, :5], static[:, :, :5, :5], np.array([0, 0, 1]))
     # s = 5: the square is rows and columns 1 to 3, which reaches the border of 100 px
     assert odd.iloc[0, 2] > 50.0
@@ -439,4 +456,6 @@ def test_headline_without_rows_says_how_to_build_or_that_the_profile_has_none():
     assert ch10.headline(_demo(extension_methods=["dis"], extension_inputs=["residual"]),
                          empty) == "not built in this run (make extensions trains them: 3 models)"
     assert ch10.headline(_demo(extension_inputs=[]), empty) == (
+        "not part of this profile (extension_inputs is empty)")
+    assert ch10.headline(_demo(extension_inputs=[], extension_methods=[]), empty) == (
         "not part of this profile (extension_inputs is empty)")
