@@ -228,12 +228,38 @@ def test_as_table_lists_a_mapping_in_order_with_floats_to_three_decimals():
     assert t["is"].tolist() == [0.123, 7, "naive", 2.001]
 
 
-def test_devkit_frames_render_the_middle_scene_s_first_two_keyframes(tiny_nusc, tmp_path):
+def test_gt_flow_figure_of_an_example_without_valid_pixels_says_0_px(tmp_path, monkeypatch):
+    """An example pair with no valid pixel (no exact flow anywhere): the flow's title gives 0
+    px as its largest magnitude and the mask 0 %."""
+    root = tmp_path / "data"
+    (root / "v").mkdir(parents=True)
+    for name in ("a.jpg", "b.jpg"):
+        Image.new("RGB", (6, 4)).save(root / name)
+    (root / "v" / "sample_data.json").write_text(json.dumps([
+        {"token": "t1", "filename": "a.jpg", "timestamp": 1},
+        {"token": "t2", "filename": "b.jpg", "timestamp": 2}]))
+    p = load_profile("smoke", dataroot=str(root), version="v", synthetic=False,
+                     run_dir=str(tmp_path / "runs"))
+    flow = np.full((4, 6, 2), 3.0, np.float32)
+    monkeypatch.setattr(ch01, "read_example",
+                        lambda folder: (("t1", "t2"), flow, np.zeros((4, 6), bool)))
+    monkeypatch.setattr(ch01.pipeline, "published", lambda params, node: tmp_path)
+    fig = ch01.gt_flow_figure(p)
+    assert [ax.get_title() for ax in fig.axes][2:] == ["GT flow (max |flow| 0.0 px)",
+                                                        "valid (0.0 %)"]
+    plt.close(fig)
+
+
+def test_devkit_frames_render_the_middle_scene_s_first_two_keyframes(tiny_nusc, tmp_path,
+                                                                      monkeypatch):
     """The middle scene's first sample and the devkit's renders of it and the next keyframe,
     saved as devkit_0.png and devkit_1.png, returned as BGR images; none of its figures left
-    open."""
+    open, none shown (in a notebook a shown figure would be an output of its own)."""
     open_before = set(plt.get_fignums())  # another test's figures, if any
+    shown: list = []
+    monkeypatch.setattr(plt, "show", lambda *a, **k: shown.append(a))
     first, images = ch01.devkit_frames(tiny_nusc, tmp_path)
+    assert shown == []
     scene = tiny_nusc.scene[len(tiny_nusc.scene) // 2]
     assert len(tiny_nusc.scene) == 5 and scene["name"] == "synth-0002"
     assert first == tiny_nusc.get("sample", scene["first_sample_token"])
