@@ -134,6 +134,36 @@ def test_chapter03_aggregates_the_node_s_rows_per_set_and_method():
     assert got["EPE boxes 95% CI, scenes (px)"].str.contains("too few").all()
 
 
+def test_chapter03_table_skips_a_method_without_rows_and_reads_the_profile_s_seed():
+    """A method of the readers without rows in a set is left out of it (the methods after
+    it are not); a pair whose whole-frame Fl-all is missing still counts in the boxes' mean;
+    the boxes' interval over scenes draws with the profile's seed."""
+    from flowmod.chapters import common
+
+    boxes = [0.0, 0.3, 1.7, 0.2, 5.0, 0.9]
+    rows = pd.DataFrame([("keyframe", f"k{i}", f"s{i}", "dis", 1.0 + i,
+                          np.nan if i == 0 else 10.0, e, 5.0 * i) for i, e in enumerate(boxes)],
+                        columns=list(accuracy.COLUMNS))
+    readers = {m: {part: SimpleNamespace(index=pd.DataFrame({"seconds": [1.0]}))
+                   for part in ("keyframe", "general")} for m in ("farneback", "dis")}
+    p = load_profile("demo", seed=3)
+    got = ch03_flow.accuracy_table(p, rows, readers)
+    assert got["method"].tolist() == ["dis"] and got["set"].tolist() == ["keyframe"]
+    assert got["EPE boxes (px)"].tolist() == pytest.approx([sum(boxes) / 6], rel=1e-12)
+    ci = got["EPE boxes 95% CI, scenes (px)"].iloc[0]
+    assert ci == common.epe_ci(boxes, rows["scene"], 3) == "0.27-2.83 (6 scenes: too few)"
+    assert ci != common.epe_ci(boxes, rows["scene"], 1)
+
+
+def test_chapter03_reads_the_published_flowcheck_rows(tmp_path):
+    """accuracy_rows: the rows of the published ``flowcheck`` node, as written."""
+    from handmade import publish
+
+    p = load_profile("demo", run_dir=str(tmp_path / "runs"))
+    publish(p, dag.Node("flowcheck"), {"accuracy": ROWS})
+    pd.testing.assert_frame_equal(ch03_flow.accuracy_rows(p), ROWS)
+
+
 def test_chapter09_reads_the_far_boxes_error_of_the_node_s_keyframe_pairs():
     """Chapter 09's table: per method, the mean over the far pairs with a valid box pixel."""
     got = ch09_blind_spots.far_box_error(ROWS)
