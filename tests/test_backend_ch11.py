@@ -74,6 +74,7 @@ def test_built_lists_the_wide_methods_whose_predictions_are_current(monkeypatch)
     asked = []
 
     def fake(params, node):
+        assert params is p, "each node is asked about with the run's parameters"
         asked.append(node)
         return node in ready
 
@@ -86,7 +87,8 @@ def test_built_lists_the_wide_methods_whose_predictions_are_current(monkeypatch)
     assert ch11.built(p) == ["gt", "dis"]
     ready = set()
     assert ch11.built(p) == []
-    assert ch11.built(load_profile("demo", wide_methods=[])) == []
+    p = load_profile("demo", wide_methods=[])
+    assert ch11.built(p) == []
 
 
 # --- the training sets ----------------------------------------------------------------------
@@ -225,6 +227,45 @@ def test_comparisons_pair_on_table4_s_range_by_default_with_the_run_s_seed(study
     assert row["95% CI, scenes and seeds (points)"] == (
         f"{100 * lo:.1f} to {100 * hi:.1f} (9 scenes: too few)")
     assert ch11.comparisons(p, []).empty
+
+
+
+def test_comparisons_on_the_test_split_take_every_object_with_the_seed_given(study):
+    """On the test split both classifiers are compared on every test object, whatever
+    Table 4's range; the interval is the paired bootstrap drawn with ``params.seed`` (not
+    the default 0)."""
+    p, tables = study
+    p5 = p.model_copy(update={"seed": 5})
+    t = ch11.comparisons(p5, ["dis"], "test")
+    ab = _tables(p, tables, "test")
+    row = t.iloc[0]
+    assert row["objects"] == len(ab[True]) == len(tables[Node("evaluate", "dis")]["test"])
+    assert row["ΔF1 (points)"] == pytest.approx(_f1(ab[True]) - _f1(ab[False]), abs=SHOWN)
+    want = metrics.paired_comparison(ab[True]["label"].to_numpy(), np.array(_probs(ab[True])),
+                                     np.array(_probs(ab[False])), ab[True]["scene"].to_numpy(),
+                                     seed=5, folds=ab[True]["fold"].to_numpy())
+    lo, hi = want["ci"]
+    assert row["95% CI, scenes and seeds (points)"].startswith(
+        f"{100 * lo:.1f} to {100 * hi:.1f} ")
+    near = ch11.comparisons(p5.model_copy(update={"general_max_distance": 40.0}), ["dis"],
+                            "test")
+    pd.testing.assert_frame_equal(near, t)
+
+
+def test_comparisons_of_tables_of_other_objects_name_the_method(study, monkeypatch):
+    """Two classifiers' predictions of different objects cannot be paired: one error that
+    names the method's two classifiers."""
+    p, tables = study
+    real = ch11.predictions
+
+    def shifted(params, method, split, wide):
+        df = real(params, method, split, wide)
+        return df.iloc[1:] if wide else df
+
+    monkeypatch.setattr(ch11, "predictions", shifted)
+    with pytest.raises(ValueError, match=r"^dis: the two classifiers were scored on "
+                                         "different objects$"):
+        ch11.comparisons(p, ["dis"])
 
 
 def _bin_f1(y: np.ndarray, probs: list[np.ndarray]) -> float:
