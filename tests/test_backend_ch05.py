@@ -11,6 +11,8 @@ here from the files' own sizes. Complements tests/test_tables.py (crop_color).
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -41,7 +43,11 @@ def _node(folder, fingerprint: str):
 def published(tmp_path_factory):
     """The smoke profile on a run folder with the hand-made crops and flow nodes of gt and
     dis: ``(params, {method: bytes of crops, of samples, of flow files})``."""
-    runs = tmp_path_factory.mktemp("ch05") / "runs"
+    return _publish(tmp_path_factory.mktemp("ch05") / "runs")
+
+
+def _publish(runs):
+    """:func:`published`'s run folder, written at ``runs``."""
     p = load_profile("smoke", run_dir=str(runs))
     assert p.flow_methods == ["gt", "dis"] and p.folds == 2 and p.crop_size == 40
     sizes = {}
@@ -126,6 +132,33 @@ def test_storage_table_gives_each_method_s_bytes_per_object_and_per_pair(publish
     assert got["flow per pair (MB)"].tolist() == [
         round((4 * (120_000 + 80_000 + 40_000 + 360_000 + 30_000) + 5 * 128) / 5 / 1e6, 2),
         round((4 * 77_500 + 128) / 1e6, 2)]
+
+
+
+def test_storage_table_counts_megabytes_and_kilobytes_in_powers_of_ten(tmp_path):
+    """Megabytes are 10^6 bytes and kilobytes 10^3 (not 2^20, nor one more): shown with two
+    decimals, so each file here is grown (sparse, no disk used) to tens of gigabytes, where
+    a divisor one too large moves the second decimal."""
+    p, _ = _publish(tmp_path / "runs")
+    grown = {}
+    for m in ("gt", "dis"):
+        files = [*sorted((p.run_path / "crops" / m).glob("*/*.npy")),
+                 *sorted((p.run_path / "flow" / m / "pool").glob("*.npy"))]
+        for f in files:
+            os.truncate(f, f.stat().st_size + 30 * 10**9)
+        grown[m] = files
+    got = ch05.storage_table(p).set_index("method")
+    gt = {kind: sum(f.stat().st_size for f in grown["gt"]
+                    if f.name.endswith(".samples.npy") == (kind == "samples")
+                    and (f.parent.name == "pool") == (kind == "flow"))
+          for kind in ("crops", "samples", "flow")}
+    assert gt["crops"] > 5 * 10**10 and gt["flow"] > 10**11
+    assert got.loc["gt", "crops total (MB)"] == round(gt["crops"] / 10**6, 2)
+    assert got.loc["gt", "per object (kB)"] == round(gt["crops"] / 9 / 10**3, 2)
+    assert got.loc["gt", "flow samples per object (kB)"] == round(gt["samples"] / 9 / 10**3, 2)
+    assert got.loc["gt", "flow total (MB)"] == round(gt["flow"] / 10**6, 2)
+    assert got.loc["gt", "flow per pair (MB)"] == round(gt["flow"] / 5 / 10**6, 2)
+    assert got.loc["gt", "original: float32 flow per pair (MB)"] == 11.52
 
 
 def _selection() -> Selection:
