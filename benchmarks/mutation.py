@@ -26,6 +26,13 @@ one part cut into chunks of whole functions (``flowmod.world.agents 2/5``). The 
 mutmut's own listing of a module's mutants (no test run) times :data:`SECONDS_A_MUTANT`:
 measured for the modules already run, a guess for the others until their first run (then
 update it from the report's minutes).
+
+A module too slow to run whole in a session (the world's: about 15 h) can be estimated
+from a random draw of its mutants (``make mutation MODULES=... SAMPLE=n``, or with
+``PART=k``: n of each item's): the draw is seeded by the module's (or chunk's) name and
+:data:`SAMPLE_SEED`, recorded in :data:`SAMPLES`, and the report gives the sample's score
+with its 95 % Wilson interval over the mutants drawn (a sample's time is not recorded as
+the module's).
 """
 
 from __future__ import annotations
@@ -36,6 +43,7 @@ import fnmatch
 import hashlib
 import json
 import os
+import random
 import subprocess
 import sys
 import time
@@ -84,6 +92,28 @@ VERDICTS = ROOT / "benchmarks" / "mutation_verdicts.json"
 #: ``{module or chunk: {"seconds": s, "commit": c, "date": d, "mutants": n}}`` of each
 #: module's (or chunk's, ``<module> i/k``) last whole run.
 TIMES = ROOT / "benchmarks" / "results" / "mutation_times.json"
+
+
+#: ``{module or chunk: {"n": drawn, "of": mutants, "seed": SAMPLE_SEED, "names": [...]}}``
+#: of each ``--sample`` run's draw.
+SAMPLES = ROOT / "benchmarks" / "results" / "mutation_samples.json"
+#: Seed of ``--sample``'s draws (each also seeded by its module's or chunk's name).
+SAMPLE_SEED = 0
+
+
+def draw(names: list[str], n: int, key: str) -> list[str]:
+    """``n`` of ``names`` (all if fewer) drawn without replacement, the same for the same
+    names, ``n``, ``key`` and :data:`SAMPLE_SEED`; sorted."""
+    rng = random.Random(f"{SAMPLE_SEED}:{key}")
+    return sorted(rng.sample(sorted(names), min(n, len(names))))
+
+
+def wilson(k: int, n: int) -> tuple[float, float]:
+    """The 95 % Wilson interval (%) of a share ``k`` of ``n`` (``n`` > 0)."""
+    from scipy.stats import binomtest
+
+    ci = binomtest(k, n).proportion_ci(0.95, method="wilson")
+    return 100 * ci.low, 100 * ci.high
 
 
 def results() -> dict[str, str]:
@@ -174,10 +204,32 @@ def module_time(module: str, times: dict[str, dict[str, Any]]) -> dict[str, Any]
     return None
 
 
+def sampled(module: str, checked: list[str], samples: dict[str, dict[str, Any]]) -> bool:
+    """Whether ``module``'s checked mutants are all of ``--sample`` draws of it (or of its
+    chunks) and fewer than its mutants: its score is then an estimate."""
+    drawn = {n for key, d in samples.items() if key.split(" ")[0] == module
+             for n in d["names"]}
+    return bool(checked) and set(checked) <= drawn
+
+
+def score_text(killed: int, denom: int, sample: bool) -> str:
+    """The score column: ``killed / denom`` in %, ``-`` without a mutant; for a sample,
+    with its 95 % Wilson interval."""
+    if not denom:
+        return "-"
+    text = f"{100 * killed / denom:.1f} %"
+    if sample:
+        lo, hi = wilson(killed, denom)
+        text += f" (sample of {denom}: {lo:.1f}-{hi:.1f})"
+    return text
+
+
 def report(rows: dict[str, str], verdicts: dict[str, dict[str, str]],
-           times: dict[str, dict[str, Any]]) -> str:
+           times: dict[str, dict[str, Any]],
+           samples: dict[str, dict[str, Any]] | None = None) -> str:
     """The markdown report: when and at which commit, the score and the minutes of the last
-    timed run per module, then every survivor and its verdict."""
+    timed run per module (a module of ``--sample`` draws: the sample's score and interval),
+    then every survivor and its verdict."""
     when = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     lines = ["# Mutation testing", "",
              f"Run at {commit()}, {when}, on {os.cpu_count()} CPUs.", "",
@@ -189,7 +241,9 @@ def report(rows: dict[str, str], verdicts: dict[str, dict[str, str]],
              "CUDA only). Minutes: the module's last whole run (`mutmut run "
              "\"<module>.*\"`, or the runs of all its chunks: `make mutation PART=k`) and "
              "the commit it ran at; a function changed since then has "
-             "its mutants re-tested by mutmut, so every row is of the code above.", "",
+             "its mutants re-tested by mutmut, so every row is of the code above. A module "
+             "measured on a random draw of its mutants (`SAMPLE=n`) shows the draw's score "
+             "and its 95 % Wilson interval.", "",
              "| module | mutants | killed | survived | no test | equivalent | CUDA only "
              "| score | minutes (commit) |",
              "|---|---|---|---|---|---|---|---|---|"]
@@ -203,7 +257,9 @@ def report(rows: dict[str, str], verdicts: dict[str, dict[str, str]],
         equivalent = [k for k in survived if given[k].startswith("equivalent")]
         cuda = [k for k in survived if given[k].startswith("cuda-only")]
         denom = len(mine) - len(equivalent) - len(cuda) - c["skipped"] - c["not checked"]
-        score = f"{100 * killed / denom:.1f} %" if denom else "-"
+        checked = [k for k, v in mine.items() if v not in ("not checked", "skipped")]
+        partial = len(checked) < len(mine)
+        score = score_text(killed, denom, partial and sampled(m, checked, samples or {}))
         t = module_time(m, times)
         took = f"{t['seconds'] / 60:.1f} ({t['commit']})" if t else "-"
         lines.append(f"| {m} | {len(mine)} | {killed} | {len(survived)} | {c['no tests']} "
@@ -243,11 +299,18 @@ def function_mutants(module: str) -> dict[str, int]:
     """``{function: mutants}`` of ``module`` in source order, from mutmut's own listing of
     the mutants it would make (no test is run); a function's name as mutmut's mutant names
     hold it (``x_name``, ``xǁClassǁmethod``)."""
+    return dict(Counter(n[len(module) + 1:].partition("__mutmut_")[0]
+                        for n in module_mutants(module)))
+
+
+def module_mutants(module: str) -> list[str]:
+    """The names of every mutant mutmut would make of ``module`` (``<module>.x_f__mutmut_3``),
+    in source order, from its own listing (no test is run)."""
     from mutmut.mutation.file_mutation import mutate_file_contents
 
     rel = Path("src") / (module.replace(".", "/") + ".py")
     names = mutate_file_contents(str(rel), (ROOT / rel).read_text()).mutant_names
-    return dict(Counter(n.partition("__mutmut_")[0] for n in names))
+    return [f"{module}.{n}" for n in names]
 
 
 def chunks(functions: dict[str, int], most: int) -> list[list[str]]:
@@ -332,15 +395,45 @@ def item_finished(item: dict[str, Any], rows: dict[str, str]) -> bool:
     return bool(mine) and "not checked" not in mine
 
 
+def run_sample(item: dict[str, Any], n: int, samples: dict[str, dict[str, Any]]) -> int:
+    """``--sample n``: run a draw of ``n`` of the item's mutants (:func:`draw`) and record
+    it in :data:`SAMPLES`; the exit code (0 when every mutant drawn was tested)."""
+    names = [k for k in module_mutants(item["module"])
+             if any(fnmatch.fnmatchcase(k, p) for p in item["patterns"])]
+    picked = draw(names, n, item["name"])
+    print(f"mutation: {item['name']}: {len(picked)} of its {len(names)} mutants drawn",
+          flush=True)
+    code, seconds = run_patterns(picked)
+    if code not in (0, 1):
+        return code
+    rows = results()
+    if any(rows.get(k, "not checked") == "not checked" for k in picked):
+        print(f"mutation: the run of {item['name']}'s sample stopped before every mutant "
+              "drawn was tested (run it again)", file=sys.stderr)
+        return 1
+    samples[item["name"]] = {"n": len(picked), "of": len(names), "seed": SAMPLE_SEED,
+                             "seconds": round(seconds, 1), "commit": commit(),
+                             "names": picked}
+    write_json(SAMPLES, samples)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """``make mutation``: run mutmut module by module (module names as arguments: those
     only; ``--part k``: the k-th part of :func:`plan`, ``--part plan``: print the parts and
-    stop), then write the report. ``--report-only``: write the report of the last
+    stop; ``--sample n``: a draw of n mutants of each module or item, :func:`run_sample`),
+    then write the report. ``--report-only``: write the report of the last
     (possibly interrupted) runs; their unchecked mutants are counted."""
     args = sys.argv[1:] if argv is None else argv
     partial = "--report-only" in args
     part = args[args.index("--part") + 1] if "--part" in args else None
-    chosen = [a for a in args if not a.startswith("--") and a != part] or list(MODULES)
+    size = args[args.index("--sample") + 1] if "--sample" in args else None
+    if size is not None and not (size.isdigit() and int(size) > 0):
+        print(f"mutation: --sample {size}: give a number of mutants, at least 1 (SAMPLE=100)",
+              file=sys.stderr)
+        return 2
+    chosen = [a for a in args if not a.startswith("--") and a not in (part, size)] \
+        or list(MODULES)
     unknown = sorted(set(chosen) - set(MODULES))
     if unknown:
         print(f"mutation: {', '.join(unknown)} not in scope (one of: {', '.join(MODULES)})",
@@ -358,7 +451,13 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         items = parts[int(part) - 1]
     times = json.loads(TIMES.read_text()) if TIMES.is_file() else {}
+    samples = json.loads(SAMPLES.read_text()) if SAMPLES.is_file() else {}
     for item in ([] if partial else items):
+        if size is not None:
+            code = run_sample(item, int(size), samples)
+            if code:
+                return code
+            continue
         code, seconds = run_patterns(item["patterns"])
         if code not in (0, 1):
             return code
@@ -375,13 +474,14 @@ def main(argv: list[str] | None = None) -> int:
         write_json(TIMES, times)
     rows = results()
     unchecked = sum(v == "not checked" for v in rows.values())
-    if not rows or (unchecked and not partial and part is None and chosen == list(MODULES)):
+    if not rows or (unchecked and not partial and part is None and size is None
+                    and chosen == list(MODULES)):
         print(f"mutation: mutmut left {unchecked} of {len(rows)} mutants unchecked (its test "
               "run failed: run the tests in mutants/ to see why)", file=sys.stderr)
         return 1
     verdicts = json.loads(VERDICTS.read_text()) if VERDICTS.is_file() else {}
     write_json(ROOT / "benchmarks" / "results" / "mutation.json", rows)
-    text = report(rows, verdicts, times)
+    text = report(rows, verdicts, times, samples)
     if unchecked:
         text += (f"\n{unchecked} of {len(rows)} mutants not checked yet (`make mutation "
                  "PART=k` or `MODULES=...` runs the ones they belong to).\n")

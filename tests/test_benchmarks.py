@@ -4,7 +4,10 @@ unseen: every name they take from flowmod must exist."""
 from __future__ import annotations
 
 import ast
+import fnmatch
 import importlib
+import json
+import math
 import subprocess
 import sys
 import types
@@ -135,6 +138,80 @@ def test_the_mutation_report_names_its_commit_and_scores_each_module(monkeypatch
                                                "| 0.0 % | - |")
     assert "| `labels.x_f__mutmut_4` | `change of flowmod.labels.x_f__mutmut_4` | open |" in text
     assert "open (the verdict was given for another change: recheck)" in text
+
+
+
+def _wilson(k: int, n: int) -> tuple[float, float]:
+    """The 95 % Wilson score interval (%), by its formula."""
+    z, ph = 1.959963984540054, k / n
+    mid, half = ph + z * z / (2 * n), z * math.sqrt(ph * (1 - ph) / n + z * z / (4 * n * n))
+    return 100 * (mid - half) / (1 + z * z / n), 100 * (mid + half) / (1 + z * z / n)
+
+
+def test_a_sampled_module_s_score_carries_its_wilson_interval(monkeypatch):
+    """A module whose checked mutants are all of a ``--sample`` draw: its score and the 95 %
+    Wilson interval over the mutants drawn (equivalents left out); a module partly checked
+    outside any draw (an interrupted run): its score alone."""
+    mutation = _mutation()
+    monkeypatch.setattr(mutation, "commit", lambda: "abc1234")
+    monkeypatch.setattr(mutation, "mutant_sources", lambda: {})
+    monkeypatch.setattr(mutation, "change", lambda name, sources: f"change of {name}")
+    name = "flowmod.world.agents.x_f__mutmut_{}".format
+    rows = {name(i): "not checked" for i in range(1, 41)}
+    drawn = [name(i) for i in range(1, 13)]
+    rows.update({k: "killed" for k in drawn[:9]})
+    rows.update({k: "survived" for k in drawn[9:]})
+    rows.update({"flowmod.labels.x_f__mutmut_1": "killed",
+                 "flowmod.labels.x_f__mutmut_2": "not checked"})
+    verdicts = {drawn[9]: {"change": f"change of {drawn[9]}", "verdict": "equivalent: why"},
+                drawn[10]: {"change": f"change of {drawn[10]}", "verdict": "equivalent: why"}}
+    samples = {"flowmod.world.agents 2/5": {"n": 12, "of": 40, "seed": 0, "names": drawn}}
+    text = mutation.report(rows, verdicts, {}, samples)
+    lines = {ln.split(" | ")[0]: ln for ln in text.splitlines() if ln.startswith("| flowmod")}
+    lo, hi = _wilson(9, 10)  # 12 drawn, 2 equivalent
+    assert lines["| flowmod.world.agents"] == (
+        f"| flowmod.world.agents | 40 | 9 | 3 | 0 | 2 | 0 | 90.0 % (sample of 10: "
+        f"{lo:.1f}-{hi:.1f}) | - |")
+    assert (round(lo, 1), round(hi, 1)) == (59.6, 98.2)
+    assert lines["| flowmod.labels"].endswith("| 100.0 % | - |")
+    other = {"flowmod.world.agents": {"n": 3, "of": 40, "seed": 0, "names": drawn[:3]}}
+    assert "| 90.0 % | - |" in mutation.report(rows, verdicts, {}, other)  # not all drawn
+
+
+def test_a_sample_draw_is_seeded_by_its_item_and_recorded(tmp_path, monkeypatch, capsys):
+    """``--sample n``: n of the item's mutants (all if fewer), the same draw for the same
+    names and item, another for another item; the run is of the draw only, recorded in
+    the samples file; a draw left unchecked, or a bad n, is one line and a failure."""
+    mutation = _mutation()
+    names = [f"flowmod.labels.x_f__mutmut_{i}" for i in range(1, 101)]
+    one = mutation.draw(names, 10, "flowmod.labels")
+    assert len(one) == 10 == len(set(one)) and set(one) <= set(names) and one == sorted(one)
+    assert mutation.draw(list(reversed(names)), 10, "flowmod.labels") == one
+    assert mutation.draw(names, 10, "flowmod.labels 1/2") != one
+    assert mutation.draw(names[:4], 10, "x") == sorted(names[:4])
+    ran, state = [], {}
+    monkeypatch.setattr(mutation, "module_mutants", lambda m: names)
+    monkeypatch.setattr(mutation, "run_patterns", lambda pats: (ran.append(pats), (1, 2.0))[1])
+    monkeypatch.setattr(mutation, "results", lambda: {k: state.get(k, "not checked")
+                                                      for k in names})
+    monkeypatch.setattr(mutation, "commit", lambda: "abc1234")
+    monkeypatch.setattr(mutation, "SAMPLES", tmp_path / "samples.json")
+    item = {"name": "flowmod.labels", "module": "flowmod.labels",
+            "patterns": ["flowmod.labels.x_f__mutmut_1*"]}  # 1, 10-19, 100: 12 mutants
+    assert mutation.run_sample(item, 5, {}) == 1
+    assert "stopped before every mutant drawn was tested" in capsys.readouterr().err
+    state.update(dict.fromkeys(names, "killed"))
+    samples: dict = {}
+    assert mutation.run_sample(item, 5, samples) == 0
+    picked = mutation.draw([n for n in names if fnmatch.fnmatchcase(n, item["patterns"][0])],
+                           5, "flowmod.labels")
+    assert ran == [picked, picked] and len(picked) == 5
+    assert samples == {"flowmod.labels": {"n": 5, "of": 12, "seed": 0, "seconds": 2.0,
+                                          "commit": "abc1234", "names": picked}}
+    assert json.loads((tmp_path / "samples.json").read_text()) == samples
+    for bad in ("0", "x"):
+        assert mutation.main(["--sample", bad, "flowmod.labels"]) == 2
+        assert f"--sample {bad}: give a number of mutants" in capsys.readouterr().err
 
 
 def test_the_mutation_report_s_commit_ignores_the_report_it_rewrites(tmp_path, monkeypatch):
