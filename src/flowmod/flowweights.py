@@ -85,6 +85,8 @@ WEIGHTS_PARAM: dict[str, str] = {m: w.param for m, w in CATALOG.items()}
 #: The shipped FastFlowNet file (the default of every parameter that names FastFlowNet
 #: weights).
 SHIPPED_FASTFLOWNET: str = FASTFLOWNET_SYNTH.shipped_file or ""
+#: Its folder (relative to the repository root), where ``make flownet`` writes them.
+SHIPPED_FASTFLOWNET_DIR: str = FASTFLOWNET_SYNTH.shipped or ""
 #: The shipped weights' row name in chapter 12's tables.
 SHIPPED_ROW = "fastflownet (shipped)"
 #: The DIS preset that chapter 12 compares the network with (chapter 03's CPU default).

@@ -26,6 +26,7 @@ from flowmod.extensions.selfflow import (
 from flowmod.flow.registry import read_image
 from flowmod.flowweights import FASTFLOWNET_SYNTH
 from flowmod.flowweights import SHIPPED_DIS_PRESET as DIS_PRESET
+from flowmod.flowweights import SHIPPED_FASTFLOWNET_DIR as WEIGHTS_DIR
 from flowmod.flowweights import SHIPPED_ROW as SHIPPED
 from flowmod.metrics import (
     ci_text,
@@ -34,9 +35,6 @@ from flowmod.metrics import (
     verdict,
 )
 from flowmod.params import Params
-
-#: Where the shipped weights live (relative to the repository root).
-WEIGHTS_DIR = FASTFLOWNET_SYNTH.shipped or ""
 
 
 def built(params: Params) -> list[str]:

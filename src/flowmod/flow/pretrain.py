@@ -63,7 +63,11 @@ from flowmod.flow.architectures import FFN_DIV_FLOW, FastFlowNet, fastflownet_in
 from flowmod.flow.estimators import GTFlow
 from flowmod.flow.registry import read_image, resize_flow
 from flowmod.flow.selftrain import HeldOut, baselines, held_out, score_model
-from flowmod.flowweights import FASTFLOWNET_SYNTH, MANIFEST_NAME, WEIGHTS_NAME
+from flowmod.flowweights import (
+    MANIFEST_NAME,
+    SHIPPED_FASTFLOWNET_DIR,
+    WEIGHTS_NAME,
+)
 from flowmod.params import Params, load_profile, validate
 from flowmod.paths import repo_root
 from flowmod.progress import bar
@@ -78,7 +82,7 @@ from flowmod.world import agent_boxes, world_fingerprint
 from flowmod.world import ensure_world as ensure_world_data
 
 #: Where the shipped weights live (relative to the repository root).
-WEIGHTS_DIR = FASTFLOWNET_SYNTH.shipped or ""
+WEIGHTS_DIR = SHIPPED_FASTFLOWNET_DIR
 #: Decoder levels of :meth:`FastFlowNet.levels`, finest first.
 LEVELS = (2, 3, 4, 5, 6)
 #: Steps between resumable checkpoints.
