@@ -11,7 +11,8 @@ from typing import Any
 
 import pytest
 
-from flowmod import dag
+from flowmod import artefacts, dag
+from flowmod.artefacts import atomic_path
 from flowmod.params import Params, validate
 
 # Toy stages borrow real stage names, so that they read the parameters ``read_by`` declares
@@ -180,6 +181,33 @@ def test_a_failed_build_keeps_the_published_result_and_its_fingerprint(toy, tmp_
     building = list(g.node_dir(p, dag.Node("select")).parent.glob(".select.building-*"))
     assert len(building) == 1 and (building[0] / "half.json").is_file(), "kept to resume"
 
+
+
+def test_a_resumed_build_publishes_without_a_killed_writer_s_temporary_file(toy, tmp_path):
+    """A build killed inside :func:`~flowmod.artefacts.atomic_path` (a dead joblib worker)
+    leaves its hidden temporary file in the building folder; the build that resumes there
+    publishes without it (and keeps what the killed build finished)."""
+    g, p = toy
+    with atomic_path(tmp_path / "x" / "best.pt") as tmp:
+        assert artefacts.leftover_temporaries(tmp_path / "x") == [tmp], "what it matches"
+
+    def killed(b: dag.Build, progress: bool) -> dict[str, Any]:
+        (b.start() / "done.json").write_text("{}")
+        (b.dir / "sub").mkdir()
+        (b.dir / "sub" / ".half.k3j9_x.tmp.json").write_text("{")  # atomic_path's name
+        raise RuntimeError("killed")
+
+    def resumes(b: dag.Build, progress: bool) -> dict[str, Any]:
+        assert (b.start() / "done.json").is_file(), "the killed build's folder, resumed"
+        (b.dir / "out.json").write_text("{}")
+        return {}
+
+    with pytest.raises(RuntimeError, match="killed"):
+        graph(tmp_path, select_build=killed).build(p, ["01", "02"])
+    graph(tmp_path, select_build=resumes).build(p, ["01", "02"])
+    final = g.node_dir(p, dag.Node("select"))
+    assert sorted(f.relative_to(final).as_posix() for f in final.rglob("*") if f.is_file()) \
+        == ["done.json", "manifest.json", "out.json"]
 
 def test_a_damaged_published_file_is_reported_and_rebuilt(toy):
     """Manifests record each output's size and sha256: a file cut short, changed in place

@@ -55,6 +55,14 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
             tmp_path.unlink()
 
 
+
+def leftover_temporaries(folder: Path) -> list[Path]:
+    """The temporary files of :func:`atomic_path` under ``folder`` (``.<stem>.<random>.tmp``
+    and its suffix): left behind only by a process killed inside the block (a joblib worker
+    that died, kill -9)."""
+    return sorted(f for f in Path(folder).rglob(".*.tmp*") if f.is_file())
+
+
 def write_json(path: str | os.PathLike[str], obj: Any) -> None:
     """Write JSON atomically (sorted keys, indented)."""
     with atomic_path(path) as tmp:

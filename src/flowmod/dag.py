@@ -48,6 +48,7 @@ from flowmod.artefacts import (
     file_digest,
     file_digests,
     fingerprint,
+    leftover_temporaries,
     read_manifest,
     write_manifest,
 )
@@ -401,7 +402,10 @@ class Build:
 
     def publish(self, **info: Any) -> Path:  # pragma: no mutate block
         """Write the manifest into the building folder and make it the published one; the
-        previous result becomes a variant. Returns the published folder."""
+        previous result becomes a variant (without the temporary files a killed build left in
+        the building folder). Returns the published folder."""
+        for f in leftover_temporaries(self.dir):
+            f.unlink()
         cache = digest_cache(self.params.all)
         files = {**output_files(self.dir, cache), **cached_files(self.final, self._cached, cache)}
         write_manifest(self.dir / "manifest.json", {**self.payload, "fingerprint": self.fingerprint,
