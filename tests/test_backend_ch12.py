@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from flowmod import pipeline
+from flowmod import metrics, pipeline
 from flowmod.artefacts import write_manifest
 from flowmod.chapters import ch12_self_trained_flow as ch12
 from flowmod.dag import Node
@@ -87,7 +87,12 @@ def test_built_lists_the_current_selfflow_nodes_in_profile_order(tmp_path, monke
     current, in the profile's order (a "built?" lookup stands in for the fingerprints)."""
     p = _demo(tmp_path)
     current = {Node("selfflow", None, "finetune"), Node("selfflow", None, "photometric")}
-    monkeypatch.setattr(ch12.pipeline, "current", lambda params, node: node in current)
+
+    def is_current(params, node):
+        assert params is p or params.selfflow_modes == [], "asked with the run's parameters"
+        return node in current
+
+    monkeypatch.setattr(ch12.pipeline, "current", is_current)
     assert ch12.built(p) == ["photometric", "finetune"]
     assert ch12.built(p.model_copy(update={"selfflow_modes": []})) == []
 
@@ -336,6 +341,10 @@ def test_recipe_table_has_one_row_per_fact_of_the_manifest():
         "file": "float16 state_dict, sha256 0123456789ab...",
     }
     assert t[""].tolist()[6:8] == ["phase 2", "phase 3"]
+    m = _manifest()
+    m["schedule"][0]["min_gap"] = 3
+    pairs = dict(zip(*ch12.recipe_table(m).T.to_numpy(), strict=True))["pairs"]
+    assert pairs.startswith("3 to 6 camera frames apart"), "the first phase's min_gap"
 
 
 METRIC_COLUMNS = ["method", "frame scale", "EPE (px)", "EPE in boxes (px)", "Fl-all (%)",
@@ -555,6 +564,52 @@ def test_observation_pairs_the_shipped_chain_with_dis_or_is_empty(handmade_study
     assert ch12.observation(p, errors) == {}
 
 
+
+def test_observation_asks_each_chain_with_the_run_s_parameters_and_scores_its_splits(
+        handmade_study, monkeypatch):
+    """Each chain is asked about by its ``generalise`` node with the run's parameters;
+    Table 3's row pairs every test object whatever Table 4's range, Table 4's those within
+    it; both intervals are drawn with the run's seed; predictions of different objects are
+    one error naming both chains and the table."""
+    p, tables = handmade_study
+    asked = []
+
+    def built(params, node):
+        asked.append((params, node))
+        return True
+
+    monkeypatch.setattr(ch12.pipeline, "built", built)
+    q = p.model_copy(update={"seed": 5, "general_max_distance": 40.0})
+    obs = ch12.observation(q, None)
+    assert [n for _, n in asked] == [Node("generalise", "fastflownet"),
+                                     Node("generalise", "dis")]
+    assert all(params is q for params, _ in asked)
+    for split, node, near in (("test", "evaluate", False), ("general", "generalise", True)):
+        a, b = (tables[Node(node, m)][split] for m in ("fastflownet", "dis"))
+        if near:
+            a, b = a[a["distance"] <= 40], b[b["distance"] <= 40]
+        assert 0 < len(a) and (len(a) < len(tables[Node(node, "dis")][split])) == near
+        assert obs[split]["objects"] == len(a)
+        probs = [np.array([df[c].to_numpy() for c in sorted(
+            (c for c in df.columns if c.startswith("prob_s")), key=lambda c: int(c[6:]))])
+            for df in (a, b)]
+        want = metrics.paired_comparison(a["label"].to_numpy(), *probs, a["scene"].to_numpy(),
+                                         seed=5, folds=a["fold"].to_numpy())
+        lo, hi = want["ci"]
+        assert obs[split]["95% CI, scenes and seeds (points)"].startswith(
+            f"{100 * lo:.1f} to {100 * hi:.1f}"), split
+    real = ch12.common.results
+
+    def shifted(params, method, split):
+        preds, s = real(params, method, split)
+        return (preds.iloc[1:] if method == "dis" else preds), s
+
+    monkeypatch.setattr(ch12.common, "results", shifted)
+    with pytest.raises(ValueError, match=r"^fastflownet and dis \(Table 3\) were scored on "
+                                         "different objects$"):
+        ch12.observation(p, None)
+
+
 # --- the chapter's sentences -------------------------------------------------------------------
 
 def _world_table(f_epe, f_boxes, d_epe, d_boxes):
@@ -581,6 +636,8 @@ def test_world_words_state_the_shipped_network_against_dis_in_numbers():
     assert "13.2 px over the frame, equal to DIS's 13.2 px" in words
     assert "1.0 px inside the far vehicles' boxes, lower than DIS's 1.5 px" in words
     assert words.startswith("On 8 keyframe pairs")
+    words = ch12.world_words(_world_table(13.16, 1.04, 13.2, 1.01), 8)  # both shown 1.0
+    assert "1.0 px inside the far vehicles' boxes, equal to DIS's 1.0 px" in words
     assert ch12.world_words(None, 16) == (
         "This data set has no exact flow, so the shipped weights' errors cannot be measured "
         "on it; where `fastflownet` is one of `flow_methods`, Table 3 still shows how their "
