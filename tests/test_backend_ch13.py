@@ -22,6 +22,7 @@ import pandas as pd
 import pytest
 from sklearn.metrics import f1_score
 
+from flowmod import metrics
 from flowmod.artefacts import write_manifest
 from flowmod.chapters import ch13_flow_errors as ch
 from flowmod.dag import Node
@@ -136,6 +137,7 @@ def test_built_lists_the_arms_whose_scoring_node_is_built(one_scene, monkeypatch
     asked = []
 
     def fake(p, node):
+        assert p is one_scene, "asked with the run's parameters"
         asked.append(node)
         return node.part in {"exact", "pull/1", "noise/0"}
 
@@ -229,6 +231,29 @@ def test_the_intervals_follow_the_run_s_seed(eight_scenes):
     assert ca.loc[pull, "ci_lo"].item() != cb.loc[pull, "ci_lo"].item()
     assert ca.loc[pull, "ci_lo"].item() < ca.loc[pull, "F1 points lost per px"].item()
     assert ca.loc[pull, "F1 points lost per px"].item() < ca.loc[pull, "ci_hi"].item()
+    pd.testing.assert_frame_equal(ch.costs(eight_scenes, a), ca)  # the seed, not fresh draws
+
+
+def test_an_arm_of_other_objects_is_one_error_naming_it(one_scene, monkeypatch):
+    """An arm's predictions of other objects than the exact arm's cannot be paired."""
+    real = ch.arm_predictions
+    monkeypatch.setattr(ch, "arm_predictions",
+                        lambda p, key: real(p, key).iloc[1:] if key == "pull/1" else
+                        real(p, key))
+    with pytest.raises(ValueError, match=r"^the pull/1 arm and the exact-flow arm were "
+                                         "scored on different objects$"):
+        ch.effects(one_scene, ["exact", "noise/0", "pull/1"])
+
+
+def test_a_cost_is_decided_when_its_interval_excludes_0(one_scene, one_scene_effects,
+                                                        monkeypatch):
+    """"decided" is yes for an interval wholly above or below 0 (however close to it), no
+    for one that holds 0."""
+    for ci, want in (((0.2, 0.8), "yes"), ((-0.8, -0.2), "yes"), ((-0.1, 0.8), "no"),
+                     ((0.0, 0.8), "no")):
+        monkeypatch.setattr(ch, "slope_through_origin", lambda e, loss, r, ci=ci: (0.5, *ci))
+        got = ch.costs(one_scene, one_scene_effects)
+        assert got["decided"].tolist() == [want] * 3, ci
 
 
 def _slope(kind: str) -> float:
@@ -455,6 +480,7 @@ def test_a_method_s_errors_are_its_crops_profile_against_the_exact_flow(flows, f
                                want[PROFILE_COLUMNS].to_numpy(), rtol=1e-5, atol=1e-6)
     assert t["label"].tolist() == idx["label"].tolist()
     assert t["scene"].tolist() == idx["scene"].tolist()
+    assert t.index.equals(pd.RangeIndex(3 * folds)), "one table, numbered afresh"
 
 
 def test_a_method_s_errors_refuse_crops_of_other_objects(tmp_path):
@@ -478,8 +504,17 @@ def test_profiles_are_each_built_method_s_mean_errors_and_table3_loss(flows, mon
     median apparent motion of still vehicles and of movers, and the exact flow's F1 minus
     its own (points) with its interval; nothing without the exact flow's scoring."""
     p, got, still, box = flows
-    monkeypatch.setattr(ch.pipeline, "built", lambda q, node: node.method != "fastflownet")
+    asked = []
+
+    def built(q, node):
+        asked.append((q, node))
+        return node.method != "fastflownet"
+
+    monkeypatch.setattr(ch.pipeline, "built", built)
     prof = ch.profiles(p)
+    assert asked == [(p, Node("evaluate", m))
+                     for m in ("gt", "dis", "farneback", "fastflownet")]
+    assert all(q is p for q, _ in asked), "asked with the run's parameters"
     assert prof.columns.tolist() == ["method", "epe_box", "epe_ring", "scatter", "bias", "lost",
                                      "apparent, still (px)", "apparent, movers (px)",
                                      "measured", "measured_lo", "measured_hi"]
@@ -499,10 +534,33 @@ def test_profiles_are_each_built_method_s_mean_errors_and_table3_loss(flows, mon
     assert prof["measured"].tolist() == pytest.approx(want, rel=1e-9)
     assert (prof["measured_lo"] < prof["measured"]).all()
     assert (prof["measured"] < prof["measured_hi"]).all()
+    label = (np.arange(N) % 2 == 0).astype(int)
+    scenes = np.array([f"scene-{i * 8 // N}" for i in range(N)])
+
+    def probs(wrong):
+        call = label.astype(bool)
+        call[sorted(wrong)] = ~call[sorted(wrong)]
+        return np.where(call, 0.9, 0.1)[None, :]
+
+    for r, m in zip(prof.to_dict("records"), ("dis", "farneback"), strict=True):
+        lo, hi = metrics.paired_comparison(label, probs({0, 7}), probs(wrong[m]), scenes,
+                                           seed=p.seed)["ci"]
+        assert (r["measured_lo"], r["measured_hi"]) == pytest.approx((100 * lo, 100 * hi),
+                                                                     rel=1e-12), m
     other = ch.profiles(p.model_copy(update={"seed": 3}))
     assert (other["measured_lo"] != prof["measured_lo"]).any()  # the run's seed draws
     monkeypatch.setattr(ch.pipeline, "built", lambda q, node: node.method != "gt")
     assert ch.profiles(p).empty
+    monkeypatch.setattr(ch.pipeline, "built", lambda q, node: True)
+    real = ch.results
+
+    def shifted(q, m, name="test"):
+        preds, scores = real(q, m, name)
+        return (preds.iloc[1:] if m == "dis" else preds), scores
+
+    monkeypatch.setattr(ch, "results", shifted)
+    with pytest.raises(ValueError, match=r"^gt and dis were scored on different objects$"):
+        ch.profiles(p)
 
 
 def test_the_profile_view_shows_losses_with_intervals_and_both_prices():
@@ -542,6 +600,8 @@ def test_prediction_words_count_the_pairs_each_predictor_orders_as_table3():
     two = ch.prediction_words(pred.iloc[:2], prof.iloc[:2])
     assert two.startswith("their box end-point error orders 0 of 1 pairs")
     assert ch._pairs_agree(np.array([1.0, 1.0]), np.array([1.0, 2.0])) == (0, 1)  # a tie
+    with np.errstate(divide="ignore", invalid="ignore"):
+        assert ch._pairs_agree(np.array([2.0, 1.0]), np.array([1.0, 1.0])) == (0, 1)  # in y
 
 
 def test_predictions_without_profiles_or_costs():
@@ -556,6 +616,22 @@ def test_predictions_without_profiles_or_costs():
     assert pred.columns.tolist() == ["method", "measured", "measured_lo", "measured_hi",
                                      "by end-point error", "by profile"]
     assert pred[["by end-point error", "by profile"]].isna().all().all()
+    none = ch.predictions(prof, pd.DataFrame())  # what costs() returns without arms
+    assert none[["by end-point error", "by profile"]].isna().all().all()
+
+
+def test_the_slope_through_the_origin_is_computed_in_float64():
+    """float32 errors and losses (a parquet column's) are read as float64: the slope and its
+    replicates' interval equal the float64 computation to 1e-12."""
+    err = np.array([0.1, 0.7, 1.3], np.float32)
+    loss = np.array([0.3, 2.2, 3.9], np.float32)
+    reps = np.array([[0.2, 0.4], [2.0, 2.5], [3.7, 4.1]], np.float32)
+    e, l2, r = (a.astype(np.float64) for a in (err, loss, reps))
+    slope = e @ l2 / (e @ e)
+    draws = e @ r / (e @ e)
+    got = ch.slope_through_origin(err, loss, reps)
+    assert got[0] == pytest.approx(slope, rel=1e-12, abs=0)
+    assert got[1:] == pytest.approx(tuple(np.quantile(draws, [0.025, 0.975])), rel=1e-12, abs=0)
 
 
 # --- the answer in words -------------------------------------------------------------------------
