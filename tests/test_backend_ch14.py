@@ -180,6 +180,9 @@ def test_the_scope_sentence_in_full():
     assert ch.scope_words(load_profile("demo", seeds=4), eff) == (
         "This build: the demo profile, 31 test scenes, 4 training seeds a fold in Table 3."
         + warning)
+    at_edge = pd.DataFrame({"scenes": [60, 12]})  # FEW_SCENES and FEW_SEEDS: enough
+    assert ch.scope_words(load_profile("demo", seeds=3), at_edge) == (
+        "This build: the demo profile, 60 test scenes, 3 training seeds a fold in Table 3.")
 
 
 def test_the_book_s_thresholds():
@@ -293,3 +296,26 @@ def test_two_sided_p_values_at_the_edges():
     assert ch.holm(np.array([0.005, 0.02]), alpha=0.02).tolist() == [True, True]
     assert ch.holm(np.array([0.005, 0.02]), alpha=0.0199).tolist() == [True, False]
     assert ch.holm(np.array([np.nan, 0.01, 0.04])).tolist() == [False, True, False]
+    assert ch.holm(np.array([0.5, 0.6])).dtype == bool  # none rejected: still a mask
+
+
+def test_no_effect_built_is_an_empty_table_with_every_column(handmade_study, monkeypatch):
+    """No chapter with a paired effect: an empty effects table with every column (Holm's
+    too), not an error."""
+    monkeypatch.setattr(ch, "_chapter_tables",
+                        lambda params: [("07", ch.common.comparison_table({}))])
+    eff = ch.effects(handmade_study[0])
+    assert eff.empty and eff.columns.tolist() == ch.EFFECT_COLUMNS
+    assert "Holm, all effects" in ch.EFFECT_COLUMNS
+
+
+def test_an_interval_that_touches_0_is_not_decided_in_either_world():
+    """An interval with 0 as its bound holds 0: the book did not decide it, or the
+    replication did not; an estimate of exactly 0 has the other sign."""
+    yes = _e(1.0, 0.5, 1.5)
+    assert ch.replication(_e(1.0, 0.0, 2.0), yes) == ch.NOT_DECIDED
+    assert ch.replication(_e(-1.0, -2.0, 0.0), yes) == ch.NOT_DECIDED
+    assert ch.replication(yes, _e(1.0, 0.0, 2.0)) == ch.SAME_SIGN
+    assert ch.replication(_e(-1.0, -2.0, -0.5), _e(-1.0, -2.0, 0.0)) == ch.SAME_SIGN
+    assert ch.replication(yes, _e(0.0, -1.0, 1.0)) == ch.OTHER_SIGN
+    assert ch.replication(_e(-1.0, -2.0, -0.5), _e(0.0, -1.0, 1.0)) == ch.OTHER_SIGN
