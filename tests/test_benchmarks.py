@@ -196,6 +196,8 @@ def test_a_sample_draw_is_seeded_by_its_item_and_recorded(tmp_path, monkeypatch,
                                                       for k in names})
     monkeypatch.setattr(mutation, "commit", lambda: "abc1234")
     monkeypatch.setattr(mutation, "SAMPLES", tmp_path / "samples.json")
+    for name in ("ROOT", "TIMES", "VERDICTS"):  # a broken check must not write the repo's
+        monkeypatch.setattr(mutation, name, tmp_path / name)
     item = {"name": "flowmod.labels", "module": "flowmod.labels",
             "patterns": ["flowmod.labels.x_f__mutmut_1*"]}  # 1, 10-19, 100: 12 mutants
     assert mutation.run_sample(item, 5, {}) == 1

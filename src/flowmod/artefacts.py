@@ -55,7 +55,6 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
             tmp_path.unlink()
 
 
-
 def leftover_temporaries(folder: Path) -> list[Path]:
     """The temporary files of :func:`atomic_path` under ``folder`` (``.<stem>.<random>.tmp``
     and its suffix): left behind only by a process killed inside the block (a joblib worker
