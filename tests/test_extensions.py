@@ -15,6 +15,10 @@ def test_physical_signal_matches_the_pinhole_numbers():
     np.testing.assert_allclose(t["radial: width change (px)"], [2.59, 0.94, 0.48], atol=0.01)
     np.testing.assert_allclose(t["radial at flow_scale 0.5 (px)"],
                                t["radial: width change (px)"] / 2)
+    # 2 m/s over 0.25 s is 0.5 m: f x 0.5 / z; at the default scale 1 both columns agree
+    t = blind_spots.physical_signal(1266.0, 0.25)
+    np.testing.assert_allclose(t["lateral shift (px)"], [1266.0 * 0.5 / z for z in (30, 50, 70)])
+    np.testing.assert_allclose(t["lateral at flow_scale 1 (px)"], t["lateral shift (px)"])
 
 
 def test_motion_geometry_splits_radial_and_lateral():
@@ -35,6 +39,13 @@ def test_motion_geometry_splits_radial_and_lateral():
     # at 45 degrees
     assert g["motion_angle"][2] == pytest.approx(45.0)
     assert g["box_width_px"].tolist() == [20.0] * 3
+    # moving straight away along a diagonal line of sight (3-4-5); and half a metre from
+    # the camera, where the line of sight is still a unit vector
+    near = objects.iloc[:2].assign(center_x=[10.0 + 30.0, 10.0], center_y=[5.0 + 40.0, 5.5],
+                                   vx=[3.0, 0.0], vy=[4.0, 2.0])
+    g = blind_spots.motion_geometry(near, pairs)
+    assert g["radial_speed"].tolist() == pytest.approx([5.0, 2.0])
+    assert g["lateral_speed"].tolist() == pytest.approx([0.0, 0.0], abs=1e-12)
 
 
 def test_blind_spots_and_slow_fast_recall():
@@ -60,6 +71,64 @@ def test_blind_spots_and_slow_fast_recall():
     radial = t[t["by"] == blind_spots.RADIAL_SPEED].set_index("bin")
     assert radial.loc["[2, 3)", "n_moving"] == 10 and radial.loc["[2, 3)", "recall"] == 1.0
     assert radial.loc["[0, 2)", "n"] == 20
+    # no mover at 5 m/s or more: that recall is undefined (NaN), not an error or 0
+    slow_only = blind_spots.blind_spots(df.iloc[:40], prob[None, :40], df["scene"][:40].to_numpy())
+    slow, fast = blind_spots.recall_slow_and_fast(slow_only, blind_spots.SPEED)
+    assert slow == 0.5 and np.isnan(fast)
+
+
+
+def test_blind_spots_bins_are_pinned_and_radial_means_still_or_under_30_degrees():
+    """Each breakdown's bins (an object on each lower edge, the last edge's value in the
+    last bin); the radial movers' table holds every still vehicle whatever its angle and
+    the movers strictly under 30 degrees; one table numbered afresh."""
+    df = pd.DataFrame({"label": [1, 1, 1, 1, 1, 0, 0],
+                       "speed": [2.5, 2.5, 4.0, 8.0, 12.0, 0.0, 0.0],
+                       "motion_angle": [0.0, 15.0, 30.0, 60.0, 90.0, 80.0, 5.0],
+                       "distance": [30.0, 40.0, 50.0, 60.0, 70.0, 45.0, 35.0],
+                       "box_width_px": [0.0, 20.0, 40.0, 80.0, 1999.5, 30.0, 10.0],
+                       "scene": list("aabbcca")})
+    t = blind_spots.blind_spots(df, np.full((1, 7), 0.9), df["scene"].to_numpy())
+    bins = {by: g["bin"].astype(str).tolist() for by, g in t.groupby("by", sort=False)}
+    assert bins["angle to the line of sight (deg)"] == [
+        "[0.0, 15.0)", "[15.0, 30.0)", "[30.0, 60.0)", "[60.0, 90.01)"]
+    assert bins["distance (m)"] == ["[30.0, 40.0)", "[40.0, 50.0)", "[50.0, 60.0)",
+                                    "[60.0, 70.01)"]
+    assert bins["box width (px)"] == ["[0, 20)", "[20, 40)", "[40, 80)", "[80, 2000)"]
+    assert bins[blind_spots.SPEED] == ["[0, 2)", "[2, 3)", "[3, 5)", "[5, 10)", "[10, 40)"]
+    radial = t[t["by"] == blind_spots.RADIAL_SPEED]
+    assert radial["bin"].astype(str).tolist() == ["[0, 2)", "[2, 3)"]
+    assert radial["n"].tolist() == [2, 2]
+    assert t.index.equals(pd.RangeIndex(len(t)))
+
+
+def test_false_alarm_rate_weighs_objects_calls_only_above_one_half_and_is_nan_without_still():
+    """The weighted share of still vehicles called moving; a call of exactly 0.5 is not a
+    call; no still vehicle: NaN, without a division warning."""
+    import warnings
+
+    assert blind_spots.false_alarm_rate(np.array([1, 0, 1, 1]), np.array([0, 0, 0, 1]),
+                                        np.array([1.0, 2.0, 5.0, 100.0])) == 0.75
+    assert blind_spots.false_alarm_rate([1, 0, 1], [0, 0, 0], [1, 2, 5]) == 0.75
+    assert blind_spots.false_alarm_rate(np.array([0.5, 1.0]), np.array([0, 0])) == 0.5
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isnan(blind_spots.false_alarm_rate(np.array([1.0]), np.array([1])))
+
+
+def test_slow_radial_words_without_movers_at_the_scene_edge_and_with_one_rate():
+    """No mover in the cell: one sentence naming it; 10 scenes (MIN_SCENES) are not few;
+    only one of the two false-alarm rates given: none is said."""
+    e = {"movers": 0, "angle": (0, 30), "speed": (2, 3)}
+    assert blind_spots.slow_radial_words(e, "dis") == (
+        "This run has no mover at 2-3 m/s within 30 degrees of the line of sight.")
+    e = {"movers": 20, "scenes": 10, "angle": (0, 30), "speed": (2, 3), "classifier": 50.0,
+         "rule": 75.0, "rule_minus_classifier": 25.0, "ci": (10.0, 40.0)}
+    words = blind_spots.slow_radial_words(e, "dis", 5.0, None)
+    assert words.endswith("(rule minus classifier +25.0 points, 95 % interval over scenes "
+                          "+10.0 to +40.0).")
+    assert "too few" not in words
+    assert blind_spots.slow_radial_words(e, "dis", None, 5.0) == words
 
 
 def _movers_grid():
@@ -106,8 +175,28 @@ def test_speed_by_angle_sets_the_classifier_beside_the_oracle_rule():
     k = df["scene"].isin(["s0", "s1", "s2"]).to_numpy()
     few = blind_spots.cell_effect(df[k], probs[:, k], rule[k], (0, 30), (2, 3))
     assert "3 scenes: too few)" in blind_spots.slow_radial_words(few, "dis")
-    assert "Only 12 of the movers cross" in blind_spots.crossing_words(t)
-    assert blind_spots.crossing_words(t.assign(movers=100)).startswith("100 movers cross")
+    assert blind_spots.crossing_words(t) == (
+        "Only 12 of the movers cross the line of sight at 60-90 degrees (fewer than 100): too "
+        "few to say how direction itself matters; the table compares speeds within the movers "
+        "along the line of sight.")
+    assert blind_spots.crossing_words(t.assign(movers=100)) == (
+        "100 movers cross the line of sight at 60-90 degrees: the table compares directions "
+        "at equal speed.")
+
+
+def test_speed_by_angle_recalls_to_a_tenth_and_an_empty_table_keeps_its_columns():
+    """Three slow radial movers: one seed finds 1 of 3 (33.3 %), the rule 2 (66.7 %), to a
+    tenth; without movers, an empty table with the six columns."""
+    df = pd.DataFrame({"label": [1, 1, 1, 0], "speed": [2.5, 2.5, 2.5, 0.0],
+                       "motion_angle": [10.0, 10.0, 10.0, 0.0], "scene": ["a", "a", "b", "b"]})
+    t = blind_spots.speed_angle_table(df, np.array([[0.9, 0.1, 0.1, 0.1]]),
+                                      np.array([1.0, 1.0, 0.0, 0.0]))
+    assert t["classifier recall (%)"].tolist() == [33.3]
+    assert t["oracle rule recall (%)"].tolist() == [66.7]
+    empty = blind_spots.speed_angle_table(df.iloc[3:], np.array([[0.1]]), np.array([0.0]))
+    assert empty.empty and empty.columns.tolist() == [
+        "angle to the line of sight (deg)", "speed (m/s)", "movers", "scenes",
+        "classifier recall (%)", "oracle rule recall (%)"]
 
 
 def test_rule_calls_follow_the_annotation_not_the_row_order():
