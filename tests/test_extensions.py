@@ -4,6 +4,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from flowmod import metrics
 from flowmod.extensions import blind_spots
 
 
@@ -253,6 +254,90 @@ def test_a_rule_and_a_classifier_are_compared_at_one_false_alarm_rate():
     assert e["ci"][0] > 0 and e["rule"] > e["classifier"]
     assert blind_spots.threshold_at(clf, labels, 0.0) == pytest.approx(clf[labels == 0].max())
     assert blind_spots.threshold_at(clf, labels, 1.0) == -np.inf
+
+
+
+def test_matched_intervals_set_each_replicate_s_thresholds_on_its_own_stills():
+    """Each replicate draws whole scenes and sets both thresholds again on the stills it
+    drew (weighted by the draws), its difference in points; defaults: 2000 replicates,
+    seed 0. Recomputed here replicate by replicate."""
+    df, _, _ = _operating_points()
+    labels = df["label"].to_numpy()
+    rng = np.random.default_rng(3)
+    shift = 0.1 * (df["scene"].str[1:].astype(int) % 4).to_numpy()  # scenes' stills differ
+    worse = rng.uniform(0, 1, len(df)) + np.where(labels == 0, shift, 0.0)
+    rule = rng.uniform(0, 1, len(df)) + np.where(labels == 0, -shift, 0.2)
+    e = blind_spots.matched_effect(df, worse, rule, (0, 30), (2, 3), 0.5, n=300, seed=4)
+    k = blind_spots.in_cell(df, (0, 30), (2, 3))
+    scenes, idx = np.unique(df["scene"].to_numpy(), return_inverse=True)
+    diffs = []
+    for d in metrics.scene_draws(len(scenes), 300, 4):
+        w = d[idx]
+        rec = [blind_spots._recall(x, k, blind_spots.threshold_at(x, labels, 0.5, w), w)
+               for x in (worse, rule)]
+        diffs.append(rec[1] - rec[0])
+    lo, hi = np.quantile(diffs, [0.025, 0.975])
+    assert lo < hi and e["ci"] == pytest.approx((100 * lo, 100 * hi), rel=1e-12, abs=1e-12)
+    default = blind_spots.matched_effect(df, worse, rule, (0, 30), (2, 3), 0.5)
+    assert default == blind_spots.matched_effect(df, worse, rule, (0, 30), (2, 3), 0.5,
+                                                 seed=0, n=2000)
+    asked = []
+    real = blind_spots.scene_draws
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(blind_spots, "scene_draws",
+                   lambda k, n, seed: (asked.append((k, n, seed)), real(k, n, seed))[1])
+        blind_spots.matched_effect(df, worse, rule, (0, 30), (2, 3), 0.5)
+    assert asked == [(12, 2000, 0)]
+
+
+def test_thresholds_and_recalls_are_weighted_strict_and_nan_without_movers():
+    """threshold_at weighs each still (weights of any sum); a mover scoring exactly the
+    threshold is not recalled; a cell without movers has no recall (NaN, no warning)."""
+    import warnings
+
+    scores, labels = np.array([0.9, 0.8, 0.1, 0.95]), np.array([0, 0, 0, 1])
+    assert blind_spots.threshold_at(scores, labels, 0.7) == 0.1  # 2 of 3 stills above
+    assert blind_spots.threshold_at(scores, labels, 0.7, np.array([3.0, 1.0, 1.0, 1.0])) == 0.8
+    assert blind_spots.threshold_at(scores, labels, 0.3, np.array([0.1, 0.1, 0.1, 0.1])) == 0.9
+    cell = np.array([False, False, True, True])
+    w = np.ones(4)
+    assert blind_spots._recall(np.array([0.0, 0.0, 0.5, 0.7]), cell, 0.5, w) == 0.5
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isnan(blind_spots._recall(scores, np.zeros(4, bool), 0.5, w))
+
+
+def test_matched_words_give_each_verdict_in_full():
+    """The four endings (the rule wins at both rates, at one, loses at both, neither
+    interval excludes 0: a lower bound of 0.5 is above 0), every clause joined by "; ",
+    the scene count flagged below 10 only; no mover, one sentence."""
+    own = {"movers": 20, "scenes": 10, "angle": (0, 30), "speed": (2, 3)}
+
+    def e(lo, hi):
+        return {"far": 10.0, "classifier": 40.0, "rule": 50.0, "rule_minus_classifier": 10.0,
+                "ci": (lo, hi)}
+
+    clause = ("at {} false-alarm rate (10.0 % of still vehicles called moving) the "
+              "classifier recalls 40.0 % and the rule 50.0 % (rule minus classifier +10.0 "
+              "points, 95 % interval over scenes {:+.1f} to {:+.1f})")
+    head = ("Compared at equal false-alarm rates on dis flow, the 20 movers at 2-3 m/s within "
+            "30 degrees of the line of sight: ")
+    cases = [((0.5, 9.0), (2.0, 9.0), "the rule finds movers the classifier misses at either "
+              "rate: the slow radial motion is in the flow and the classifier loses part of it."),
+             ((0.5, 9.0), (-1.0, 9.0), "the rule wins at one rate only: whether the classifier "
+              "loses motion the flow carries depends on the operating point."),
+             ((-9.0, -0.5), (-9.0, -2.0), "the classifier finds more of them than the rule at "
+              "either rate."),
+             ((-1.0, 1.0), (-9.0, -2.0), "at equal false-alarm rates these scenes do not tell "
+              "the two apart (neither interval excludes 0).")]
+    for a, b, end in cases:
+        want = (head + clause.format("the rule's", *a) + "; "
+                + clause.format("the classifier's", *b) + "; " + end)
+        assert blind_spots.matched_words(own, e(*a), e(*b), "dis") == want
+    few = blind_spots.matched_words({**own, "scenes": 9}, e(0.5, 9), e(2, 9), "dis")
+    assert "line of sight (9 scenes: too few): at the rule's" in few
+    assert blind_spots.matched_words({**own, "movers": 0}, e(1, 2), e(1, 2), "dis") == (
+        "This run has no mover at 2-3 m/s within 30 degrees of the line of sight.")
 
 
 def test_the_rules_score_is_its_margin_over_its_folds_threshold():
