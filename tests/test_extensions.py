@@ -340,6 +340,32 @@ def test_matched_words_give_each_verdict_in_full():
         "This run has no mover at 2-3 m/s within 30 degrees of the line of sight.")
 
 
+
+def test_a_cell_without_movers_and_the_cell_s_words_and_draws(monkeypatch):
+    """A cell without movers: no recall (NaN, no warning); a rule score of exactly 0.5 is no
+    hit; a cell away from the line of sight is named by both angles; the interval is drawn
+    with seed 0 unless another is given."""
+    import warnings
+
+    df, probs, rule = _movers_grid()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        e = blind_spots.cell_effect(df, probs, rule, (30, 60), (2, 3))
+    assert e["movers"] == 0
+    assert all(np.isnan(e[c]) for c in ("classifier", "rule", "rule_minus_classifier"))
+    half = np.where(rule > 0, 0.5, 0.0)
+    assert blind_spots.cell_effect(df, probs, half, (0, 30), (2, 3))["rule"] == 0.0
+    assert blind_spots.slow_radial_words({**e, "angle": (60, 90)}, "dis") == (
+        "This run has no mover at 2-3 m/s at 60-90 degrees to the line of sight.")
+    seeds = []
+    real = blind_spots.group_mean_bootstrap
+    monkeypatch.setattr(blind_spots, "group_mean_bootstrap",
+                        lambda v, g, seed: (seeds.append(seed), real(v, g, seed=seed))[1])
+    blind_spots.cell_effect(df, probs, rule, (0, 30), (2, 3))
+    blind_spots.cell_effect(df, probs, rule, (0, 30), (2, 3), seed=7)
+    assert seeds == [0, 7]
+
+
 def test_the_rules_score_is_its_margin_over_its_folds_threshold():
     from flowmod.chapters import ch09_blind_spots as ch09
 
