@@ -407,3 +407,71 @@ def test_chapter_09_s_recall_intervals_resample_scenes_of_the_radial_movers_in_t
     words = ch09.recall_intervals(df)
     assert words["headline_recall_fast_ci"] == "100.0-100.0 (2 scenes: too few)"
     assert set(words) == {"headline_recall_slow_ci", "headline_recall_fast_ci"}
+
+
+# --- chapter 10's context files -------------------------------------------------------------
+
+
+def _context_files(folder, n=3, static_ch=2, image_ch=6, rows=None):
+    from flowmod.extensions import context
+
+    f = context.paths(folder, "f0")
+    folder.mkdir(parents=True, exist_ok=True)
+    for k in ("static", "deployed"):
+        np.save(f[k], np.full((n, static_ch, 4, 4), 1.5 if k == "static" else 2.5, np.float16))
+    np.save(f["images"], np.zeros((n, image_ch, 4, 4), np.uint8))
+    pd.DataFrame({"ann_token": [f"a{i}" for i in range(n if rows is None else rows)]}
+                 ).to_parquet(f["index"])
+    return f
+
+
+def test_read_context_maps_each_depth_and_refuses_missing_disagreeing_or_pickled_files(
+        tmp_path):
+    """Both depths memory-mapped (never unpickled); a missing file names itself and the
+    command that builds it; rows or channels that disagree name the split and the fix; an
+    object array in place of a .npy of numbers is refused, not unpickled."""
+    from flowmod.crops import CropsError
+    from flowmod.extensions import context
+
+    f = _context_files(tmp_path / "ok")
+    static, images, df = context.read_context(tmp_path / "ok", "f0")
+    assert isinstance(static, np.memmap) and isinstance(images, np.memmap)
+    assert static.dtype == np.float16 and float(static[0, 0, 0, 0]) == 1.5
+    assert float(context.read_context(tmp_path / "ok", "f0", "ground")[0][0, 0, 0, 0]) == 2.5
+    assert images.shape == (3, 6, 4, 4) and df["ann_token"].tolist() == ["a0", "a1", "a2"]
+    f["images"].unlink()
+    with pytest.raises(CropsError, match=r"^context artefact missing: .*f0\.images\.npy; run "
+                       r"chapter 10's stages \(python -m flowmod\.runner --only 10 --set "
+                       r"extension_build=true\)$"):
+        context.read_context(tmp_path / "ok", "f0")
+    for name, kw in (("rows", {"rows": 2}), ("static", {"static_ch": 3}),
+                     ("images", {"image_ch": 5})):
+        _context_files(tmp_path / name, **kw)
+        with pytest.raises(CropsError, match=r": f0 files disagree \(static .*, images .*, "
+                           r"index \d rows\); rebuild with force=true$"):
+            context.read_context(tmp_path / name, "f0")
+    for k in ("static", "images"):
+        g = _context_files(tmp_path / f"pickled-{k}")
+        np.save(g[k], np.array([{"a": 1}] * 3, dtype=object), allow_pickle=True)
+        with pytest.raises(ValueError, match="Python objects"):
+            context.read_context(tmp_path / f"pickled-{k}", "f0")
+
+
+def test_the_context_node_exists_for_chapter_10_or_for_chapter_13_s_pull():
+    """Chapter 13's pull needs the still-world flow: the context nodes exist when it pulls
+    the exact flow, even with chapter 10 off; not for its other kinds or without gt."""
+    from types import SimpleNamespace
+
+    from flowmod.extensions import context
+    from flowmod.params import load_profile
+
+    def nodes(**kw):
+        return context.STAGE.nodes(load_profile("demo", **kw))
+
+    off = {"extension_inputs": []}
+    assert len(nodes(**off, error_kinds=["pull"])) == len(context.PARTS) > 0
+    assert nodes(**off, error_kinds=["noise"]) == []
+    assert not context._pulled(SimpleNamespace(error_kinds=["pull"], flow_methods=["dis"]))
+    assert context._pulled(SimpleNamespace(error_kinds=["pull"], flow_methods=["dis", "gt"]))
+    assert nodes(**off, error_kinds=["noise", "pull"]) != []
+    assert len(nodes(error_kinds=["noise"])) == len(context.PARTS), "chapter 10's inputs"
