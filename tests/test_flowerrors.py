@@ -352,3 +352,79 @@ def test_the_answer_names_the_kinds_that_cost_and_says_the_others_do_not() -> No
     none = answer(cost.assign(ci_lo=[-1.0, -0.5, -2.0]))
     assert none.startswith("No kind of error costs") and "between -2.0 and 11.0" in none
     assert "Too few" in answer(cost.iloc[:1])
+
+
+def test_each_bad_setting_is_one_error_naming_the_value(batch: fe.CropBatch) -> None:
+    """Every refused setting names what is wrong and the value given."""
+    f = batch.flow
+    cases = [
+        (lambda: fe.white_noise(f, -0.5, 0), r"^sigma must be >= 0 px, got -0\.5$"),
+        (lambda: fe.scale_error(f, -1.5), r"^scale error s must be > -1, got -1\.5$"),
+        (lambda: fe.pull_to_still(f, batch.still, 1.5), r"^alpha must lie in \[0, 1\], got 1\.5$"),
+        (lambda: fe.pull_to_still(f, batch.still[:2], 0.5),
+         r"^still-world flow \(2, 2, 40, 40\) does not fit flow \(24, 2, 40, 40\)$"),
+        (lambda: fe.outliers(f, 1.5, 0), r"^outlier share p must lie in \[0, 1\], got 1\.5$"),
+        (lambda: fe.lost_resolution(f, 0.5), r"^cell side k must be >= 1 px, got 0\.5$"),
+        (lambda: fe.lost_resolution(f, 2.0, upsample="cubic"),
+         r"^upsample must be 'bilinear' or 'nearest', got 'cubic'$"),
+        (lambda: fe.lost_resolution(f, 2.0, batch.windows[:3]), r"^3 windows for 24 crops$"),
+        (lambda: fe.degrade("blur", batch, 1.0),
+         r"^unknown kind of flow error 'blur'; known: \['noise', "),
+        (lambda: fe.match_level("blur", batch, 1.0),
+         r"^unknown kind of flow error 'blur'; known: \['noise', "),
+        (lambda: fe.match_level("noise", batch, 0.0), r"^target error must be > 0 px, got 0\.0$"),
+        (lambda: fe.realised_error("noise", batch, 1.0, stat="mode"),
+         r"^stat must be 'mean' or 'median', got 'mode'$"),
+        (lambda: fe.endpoint_errors(f, f[:2], batch.box),
+         r"^degraded \(24, 2, 40, 40\) and clean \(2, 2, 40, 40\) crops differ in shape$"),
+        (lambda: fe.degrade("pull", fe.CropBatch(f, batch.box), 0.5),
+         r"^the pull needs the batch's still-world flow \(CropBatch\.still\)$"),
+    ]
+    for call, words in cases:
+        with pytest.raises(ValueError, match=words):
+            call()
+    assert fe.outliers(f, 1.0, 0).shape == f.shape  # both ends of [0, 1] are allowed
+
+
+def test_the_simple_kinds_add_exactly_their_error_in_float32(batch: fe.CropBatch) -> None:
+    """A scale error multiplies by 1 + s; white noise adds sigma times the seed's float32
+    standard normals where the mask holds; a median is a stat too; everything float32."""
+    f = batch.flow
+    np.testing.assert_array_equal(fe.scale_error(f, 0.25), f * np.float32(1.25))
+    z = np.random.default_rng(3).standard_normal(f.shape, dtype=np.float32)
+    noisy = fe.white_noise(f, 0.5, 3, batch.box)
+    np.testing.assert_array_equal(noisy, f + np.float32(0.5) * z * batch.box[:, None])
+    assert noisy.dtype == np.float32
+    ring = fe.ring_noise(f, 0.5, batch.box, 3)
+    np.testing.assert_array_equal(ring, f + np.float32(0.5) * z * ~batch.box[:, None])
+    out = fe.outliers(f, 0.3, 5, mask=batch.box)
+    assert out.dtype == np.float32
+    moved = np.linalg.norm(out - f, axis=1) > 1e-3
+    assert moved.any() and not moved[~batch.box].any(), "only inside the mask"
+    e = fe.endpoint_errors(noisy, f, batch.box)
+    assert fe.realised_error("noise", batch, 0.5, 3, "median") == pytest.approx(
+        fe.endpoint_errors(fe.degrade("noise", batch, 0.5, 3), f, batch.box)["box_median"])
+    assert e["ring_mean"] == 0.0
+
+
+def test_endpoint_errors_of_one_pixel_and_of_no_pixel() -> None:
+    """An object whose box is one pixel: its error is that pixel's; an object without a box
+    pixel has none (NaN), and the means over objects skip it; all undefined: NaN, no
+    warning."""
+    import warnings
+
+    clean = np.zeros((2, 2, 3, 3), np.float32)
+    noisy = clean.copy()
+    noisy[0, 0, 1, 1] = 3.0
+    noisy[0, 1, 1, 1] = 4.0
+    noisy[:, 0, 0, 0] += 1.0
+    box = np.zeros((2, 3, 3), bool)
+    box[0, 1, 1] = True
+    e = fe.endpoint_errors(noisy, clean, box)
+    assert e["box"][0] == 5.0 and np.isnan(e["box"][1])
+    assert e["box_mean"] == 5.0 and e["box_median"] == 5.0
+    assert e["ring"].tolist() == [pytest.approx(1 / 8), pytest.approx(1 / 9)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        none = fe.endpoint_errors(noisy, clean, np.zeros((2, 3, 3), bool))
+    assert np.isnan(none["box_mean"]) and np.isnan(none["box_median"])
