@@ -428,3 +428,62 @@ def test_endpoint_errors_of_one_pixel_and_of_no_pixel() -> None:
         warnings.simplefilter("error")
         none = fe.endpoint_errors(noisy, clean, np.zeros((2, 3, 3), bool))
     assert np.isnan(none["box_mean"]) and np.isnan(none["box_median"])
+
+
+def test_match_level_scans_the_grid_then_bisects_to_the_tolerance(batch: fe.CropBatch,
+                                                                  monkeypatch) -> None:
+    """The defaults (seed 0, the mean, 1 % tolerance, 16 steps): the levels it tries are
+    first the 17 of the kind's range, then midpoints of the first bracket that reaches the
+    target, stopping at the first within tolerance; a Generator seed is first turned into
+    one integer seed; with no tolerance it bisects 60 times and returns the midpoint."""
+    tried = []
+    real = fe.realised_error
+
+    def spy(kind, b, level, seed=0, stat="mean"):
+        tried.append((level, seed, stat))
+        return real(kind, b, level, seed, stat)
+
+    monkeypatch.setattr(fe, "realised_error", spy)
+    level = fe.match_level("noise", batch, 0.4)
+    grid = np.linspace(0.0, 20.0, 17)
+    assert [t[0] for t in tried[:17]] == grid.tolist()
+    assert {t[1:] for t in tried} == {(0, "mean")}
+    errs = [real("noise", batch, v, 0) for v in grid]
+    i = next(j for j, e in enumerate(errs) if e >= 0.4)
+    lo, hi = grid[i - 1], grid[i]
+    for mid, *_ in tried[17:]:
+        assert mid == (lo + hi) / 2
+        e = real("noise", batch, mid, 0)
+        if abs(e - 0.4) <= 0.01 * 0.4:
+            break
+        lo, hi = (mid, hi) if e < 0.4 else (lo, mid)
+    assert level == tried[-1][0]
+    assert real("noise", batch, level, 0) == pytest.approx(0.4, rel=0.01)
+    assert level == fe.match_level("noise", batch, 0.4, 0, "mean", 0.01, 16)
+    tried.clear()
+    s = int(np.random.default_rng(9).integers(2**62))
+    assert fe.match_level("noise", batch, 0.4, np.random.default_rng(9)) == \
+        fe.match_level("noise", batch, 0.4, s)
+    assert {t[1] for t in tried} == {s}
+    med = fe.match_level("scale", batch, 0.4, 0, "median")  # objects' errors differ widely
+    assert real("scale", batch, med, 0, "median") == pytest.approx(0.4, rel=0.01)
+    assert real("scale", batch, med, 0, "mean") != pytest.approx(0.4, rel=0.01)
+    exact = fe.match_level("scale", batch, 0.3, tol=0.0)
+    assert real("scale", batch, exact, 0) == pytest.approx(0.3, rel=1e-5)  # float32 errors
+    with pytest.raises(ValueError, match=r"^pull: a mean box error of 100 px is out of reach "
+                       r"over alpha in \[0\.0, 1\.0\] \(0 to [0-9.]+ px\)$"):
+        fe.match_level("pull", batch, 100.0)
+
+
+def test_match_levels_default_to_every_kind_with_its_seed_and_tolerance(
+        batch: fe.CropBatch) -> None:
+    """Every kind of KINDS by default, in its order; the seed (default 0) and the tolerance
+    are passed on to each match."""
+    got = fe.match_levels(batch, [0.3], kinds=None, tol=0.2)
+    assert list(got) == list(fe.KINDS)
+    assert got["noise"] == [fe.match_level("noise", batch, 0.3, 0, "mean", 0.2)]
+    assert got["noise"] != [fe.match_level("noise", batch, 0.3, 0, "mean", 0.01)]
+    assert fe.match_levels(batch, [0.3], ["noise"], tol=1e-4) == {
+        "noise": [fe.match_level("noise", batch, 0.3, 0, "mean", 1e-4)]}
+    assert fe.match_levels(batch, [0.3], ["noise"], tol=1e-4) != {
+        "noise": [fe.match_level("noise", batch, 0.3, 1, "mean", 1e-4)]}
