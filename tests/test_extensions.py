@@ -475,3 +475,27 @@ def test_the_context_node_exists_for_chapter_10_or_for_chapter_13_s_pull():
     assert context._pulled(SimpleNamespace(error_kinds=["pull"], flow_methods=["dis", "gt"]))
     assert nodes(**off, error_kinds=["noise", "pull"]) != []
     assert len(nodes(error_kinds=["noise"])) == len(context.PARTS), "chapter 10's inputs"
+
+
+def test_chapter_10_s_chains_read_their_method_s_crops_and_the_context():
+    """An ``xtrain`` node reads its method's keyframe crops (none for the image-only input)
+    and the keyframe context; ``xevaluate`` reads its chain's models of every part, the
+    method's crops of both parts and both parts' context; a node's chain is (method, the
+    input before its seed)."""
+    from flowmod.dag import Node
+    from flowmod.extensions import inputs
+    from flowmod.params import load_profile
+
+    p = load_profile("demo")
+    assert inputs._chain(Node("xtrain", "dis", "residual/f1s0")) == ("dis", "residual")
+    assert inputs._chain(Node("xevaluate", None, "images")) == (None, "images")
+    assert inputs._xtrain_inputs(Node("xtrain", "dis", "residual/f0s0"), p) == (
+        Node("crops", "dis", "keyframe"), Node("context", None, "keyframe"))
+    assert inputs._xtrain_inputs(Node("xtrain", None, "images/f0s0"), p) == (
+        Node("context", None, "keyframe"),)
+    got = inputs._xevaluate_inputs(Node("xevaluate", "dis", "residual"), p)
+    parts = inputs.extension_parts(p)
+    assert len(parts) == 3  # one seed a fold
+    assert got == (*(Node("xtrain", "dis", f"residual/{k}") for k in parts),
+                   Node("crops", "dis", "keyframe"), Node("crops", "dis", "general"),
+                   Node("context", None, "keyframe"), Node("context", None, "general"))
