@@ -499,3 +499,40 @@ def test_chapter_10_s_chains_read_their_method_s_crops_and_the_context():
     assert got == (*(Node("xtrain", "dis", f"residual/{k}") for k in parts),
                    Node("crops", "dis", "keyframe"), Node("crops", "dis", "general"),
                    Node("context", None, "keyframe"), Node("context", None, "general"))
+    assert inputs._xevaluate_inputs(Node("xevaluate", None, "images"), p) == (
+        *(Node("xtrain", None, f"images/{k}") for k in parts),
+        Node("context", None, "keyframe"), Node("context", None, "general"))
+
+
+def test_each_input_is_composed_from_its_parts_in_float32():
+    """Every variant's channels from the flow, the still-world flow and the images (uint8
+    standardised as (x / 255 - 0.5) / 0.25); a missing part is named; Inputs composes a
+    batch by index and refuses parts of different lengths."""
+    from flowmod.extensions import inputs
+
+    rng = np.random.default_rng(0)
+    flow = rng.normal(0, 2, (3, 2, 4, 4)).astype(np.float16)
+    static = rng.normal(0, 2, (3, 2, 4, 4)).astype(np.float16)
+    images = rng.integers(0, 256, (3, 6, 4, 4)).astype(np.uint8)
+    f32, s32 = flow.astype(np.float32), static.astype(np.float32)
+    img = (images.astype(np.float32) / 255.0 - 0.5) / 0.25
+    np.testing.assert_array_equal(inputs.standardise_images(images), img)
+    assert inputs.standardise_images(np.array([0, 255], np.uint8)).tolist() == [-2.0, 2.0]
+    want = {"flow": f32, "residual": f32 - s32, "residual-deployed": f32 - s32,
+            "flow+static": np.concatenate([f32, s32], axis=1), "images": img,
+            "images+flow": np.concatenate([f32, img], axis=1)}
+    assert set(want) == set(inputs.VARIANTS)
+    for v, x in want.items():
+        got = inputs.compose(v, flow, static, images)
+        assert got.dtype == np.float32 and got.shape[1] == inputs.VARIANTS[v].channels, v
+        np.testing.assert_array_equal(got, x)
+        batch = inputs.Inputs(v, flow, static, images)
+        assert batch.shape == (3, inputs.VARIANTS[v].channels, 4, 4) and len(batch) == 3
+        np.testing.assert_array_equal(batch[[2, 0]], x[[2, 0]])
+    with pytest.raises(ValueError, match=r"^input 'images\+flow' needs \['images'\]$"):
+        inputs.compose("images+flow", flow, static, None)
+    with pytest.raises(ValueError, match=r"^input 'residual' needs \['flow', 'static'\]$"):
+        inputs.compose("residual", images=images)
+    with pytest.raises(ValueError, match=r"^input 'residual': parts of different lengths "
+                       r"\{'flow': 3, 'static': 2\}$"):
+        inputs.Inputs("residual", flow, static[:2])
