@@ -94,8 +94,8 @@ VERDICTS = ROOT / "benchmarks" / "mutation_verdicts.json"
 TIMES = ROOT / "benchmarks" / "results" / "mutation_times.json"
 
 
-#: ``{module or chunk: {"n": drawn, "of": mutants, "seed": SAMPLE_SEED, "names": [...]}}``
-#: of each ``--sample`` run's draw.
+#: ``{module or chunk: {"n": drawn, "of": mutants, "seed": SAMPLE_SEED, "names": [...],
+#: "run_seconds": s}}`` of each ``--sample`` draw (``run_seconds``: the one run of them all).
 SAMPLES = ROOT / "benchmarks" / "results" / "mutation_samples.json"
 #: Seed of ``--sample``'s draws (each also seeded by its module's or chunk's name).
 SAMPLE_SEED = 0
@@ -395,25 +395,33 @@ def item_finished(item: dict[str, Any], rows: dict[str, str]) -> bool:
     return bool(mine) and "not checked" not in mine
 
 
-def run_sample(item: dict[str, Any], n: int, samples: dict[str, dict[str, Any]]) -> int:
-    """``--sample n``: run a draw of ``n`` of the item's mutants (:func:`draw`) and record
-    it in :data:`SAMPLES`; the exit code (0 when every mutant drawn was tested)."""
-    names = [k for k in module_mutants(item["module"])
-             if any(fnmatch.fnmatchcase(k, p) for p in item["patterns"])]
-    picked = draw(names, n, item["name"])
-    print(f"mutation: {item['name']}: {len(picked)} of its {len(names)} mutants drawn",
-          flush=True)
-    code, seconds = run_patterns(picked)
+def run_samples(items: list[dict[str, Any]], n: int, samples: dict[str, dict[str, Any]]
+                ) -> int:
+    """``--sample n``: a draw of ``n`` of each item's mutants (:func:`draw`), all run by one
+    ``mutmut run`` (mutmut runs the whole quick suite once before each run, minutes), each
+    draw recorded in :data:`SAMPLES` with that run's seconds; the exit code (0 when every
+    mutant drawn was tested)."""
+    picks = {}
+    for item in items:
+        names = [k for k in module_mutants(item["module"])
+                 if any(fnmatch.fnmatchcase(k, p) for p in item["patterns"])]
+        picks[item["name"]] = (draw(names, n, item["name"]), len(names))
+        print(f"mutation: {item['name']}: {len(picks[item['name']][0])} of its {len(names)} "
+              "mutants drawn", flush=True)
+    code, seconds = run_patterns([k for picked, _ in picks.values() for k in picked])
     if code not in (0, 1):
         return code
     rows = results()
-    if any(rows.get(k, "not checked") == "not checked" for k in picked):
-        print(f"mutation: the run of {item['name']}'s sample stopped before every mutant "
-              "drawn was tested (run it again)", file=sys.stderr)
+    left = [name for name, (picked, _) in picks.items()
+            if any(rows.get(k, "not checked") == "not checked" for k in picked)]
+    if left:
+        print(f"mutation: the sample run stopped before every mutant drawn was tested "
+              f"({', '.join(left)}; run it again)", file=sys.stderr)
         return 1
-    samples[item["name"]] = {"n": len(picked), "of": len(names), "seed": SAMPLE_SEED,
-                             "seconds": round(seconds, 1), "commit": commit(),
-                             "names": picked}
+    for name, (picked, of) in picks.items():
+        samples[name] = {"n": len(picked), "of": of, "seed": SAMPLE_SEED,
+                         "run_seconds": round(seconds, 1), "commit": commit(),
+                         "names": picked}
     write_json(SAMPLES, samples)
     return 0
 
@@ -421,7 +429,7 @@ def run_sample(item: dict[str, Any], n: int, samples: dict[str, dict[str, Any]])
 def main(argv: list[str] | None = None) -> int:
     """``make mutation``: run mutmut module by module (module names as arguments: those
     only; ``--part k``: the k-th part of :func:`plan`, ``--part plan``: print the parts and
-    stop; ``--sample n``: a draw of n mutants of each module or item, :func:`run_sample`),
+    stop; ``--sample n``: a draw of n mutants of each module or item, :func:`run_samples`),
     then write the report. ``--report-only``: write the report of the last
     (possibly interrupted) runs; their unchecked mutants are counted."""
     args = sys.argv[1:] if argv is None else argv
@@ -452,12 +460,11 @@ def main(argv: list[str] | None = None) -> int:
         items = parts[int(part) - 1]
     times = json.loads(TIMES.read_text()) if TIMES.is_file() else {}
     samples = json.loads(SAMPLES.read_text()) if SAMPLES.is_file() else {}
-    for item in ([] if partial else items):
-        if size is not None:
-            code = run_sample(item, int(size), samples)
-            if code:
-                return code
-            continue
+    if size is not None and not partial:
+        code = run_samples(items, int(size), samples)
+        if code:
+            return code
+    for item in ([] if partial or size is not None else items):
         code, seconds = run_patterns(item["patterns"])
         if code not in (0, 1):
             return code

@@ -200,16 +200,24 @@ def test_a_sample_draw_is_seeded_by_its_item_and_recorded(tmp_path, monkeypatch,
         monkeypatch.setattr(mutation, name, tmp_path / name)
     item = {"name": "flowmod.labels", "module": "flowmod.labels",
             "patterns": ["flowmod.labels.x_f__mutmut_1*"]}  # 1, 10-19, 100: 12 mutants
-    assert mutation.run_sample(item, 5, {}) == 1
-    assert "stopped before every mutant drawn was tested" in capsys.readouterr().err
+    assert mutation.run_samples([item], 5, {}) == 1
+    assert "stopped before every mutant drawn was tested (flowmod.labels" in \
+        capsys.readouterr().err
     state.update(dict.fromkeys(names, "killed"))
     samples: dict = {}
-    assert mutation.run_sample(item, 5, samples) == 0
+    other = {"name": "flowmod.labels 2/2", "module": "flowmod.labels",
+             "patterns": ["flowmod.labels.x_f__mutmut_2*"]}  # 2, 20-29: 11 mutants
+    assert mutation.run_samples([item, other], 5, samples) == 0
     picked = mutation.draw([n for n in names if fnmatch.fnmatchcase(n, item["patterns"][0])],
                            5, "flowmod.labels")
-    assert ran == [picked, picked] and len(picked) == 5
-    assert samples == {"flowmod.labels": {"n": 5, "of": 12, "seed": 0, "seconds": 2.0,
-                                          "commit": "abc1234", "names": picked}}
+    picked2 = mutation.draw([n for n in names if fnmatch.fnmatchcase(n, other["patterns"][0])],
+                            5, "flowmod.labels 2/2")
+    assert ran == [picked, picked + picked2], "one run for every draw"
+    assert len(picked) == 5 and picked2 != picked
+    assert samples["flowmod.labels"] == {"n": 5, "of": 12, "seed": 0, "run_seconds": 2.0,
+                                         "commit": "abc1234", "names": picked}
+    assert samples["flowmod.labels 2/2"]["names"] == picked2
+    assert samples["flowmod.labels 2/2"]["of"] == 11
     assert json.loads((tmp_path / "samples.json").read_text()) == samples
     for bad in ("0", "x"):
         assert mutation.main(["--sample", bad, "flowmod.labels"]) == 2
