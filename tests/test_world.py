@@ -15,6 +15,7 @@ from pyquaternion import Quaternion
 
 from flowmod import difficulty as wrep
 from flowmod import world
+from flowmod.environment import simd_path
 from flowmod.params import TABLE1_CATEGORIES, load_profile, validate
 from flowmod.world import geometry as wg
 from flowmod.world import render as wr
@@ -373,13 +374,6 @@ TINY_WORLD_FINGERPRINTS = {
 NO_AVX512 = "AVX512F AVX512CD AVX512_SKX AVX512_CLX AVX512_CNL AVX512_ICL"
 
 
-def _simd_path() -> str | None:
-    """``avx512``, ``avx2`` or None: which of numpy's pinned SIMD paths this process runs."""
-    from numpy.core._multiarray_umath import __cpu_features__ as cpu
-
-    return "avx512" if cpu.get("AVX512_SKX") else "avx2" if cpu.get("AVX2") else None
-
-
 def _content_fingerprint(root) -> str:
     """sha256 of every file under ``root`` (relative path and content digest, sorted by
     path), less the world stage's manifest (it names the generator's code) and hidden files."""
@@ -410,7 +404,7 @@ def test_the_tiny_worlds_bytes_are_pinned(tiny_world, tmp_path):
     files = [f for f in root.rglob("*") if f.is_file()]
     assert sum(f.suffix == ".jpg" for f in files) > 20
     assert (root / version / "sample_annotation.json").is_file()
-    path = _simd_path()
+    path = simd_path()
     if path is None:
         pytest.skip("numpy runs neither pinned SIMD path (AVX-512, AVX2) on this CPU")
     assert _content_fingerprint(root) == TINY_WORLD_FINGERPRINTS[path]
@@ -422,13 +416,13 @@ def test_the_tiny_worlds_bytes_are_pinned_on_the_avx2_path_too(tmp_path):
     import subprocess
     import sys
 
-    if _simd_path() != "avx512":
+    if simd_path() != "avx512":
         pytest.skip("this CPU runs the AVX2 path already (the test above)")
     code = (
         "import sys; sys.path.insert(0, 'tests'); from pathlib import Path; import conftest;"
         "import test_world as t; from flowmod.world import ensure_world;"
         f"p = conftest._smoke(Path({str(tmp_path)!r}), **conftest.TINY_WORLD);"
-        "ensure_world(p, progress=False); print(t._simd_path(), t._content_fingerprint(p.dataroot_path))"
+        "ensure_world(p, progress=False); print(t.simd_path(), t._content_fingerprint(p.dataroot_path))"
     )
     env = {**os.environ, "NPY_DISABLE_CPU_FEATURES": NO_AVX512}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,

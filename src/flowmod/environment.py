@@ -47,6 +47,16 @@ def versions(packages: tuple[str, ...] = KEY_PACKAGES) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def simd_path() -> str | None:
+    """``"avx512"``, ``"avx2"`` or None: which of numpy's SIMD paths this process runs. Its
+    float32 ``exp``, ``log`` and friends round differently on the two, so a generated world's
+    bytes (and what is computed on it) are pinned per path; this project's machines have
+    either (``NPY_DISABLE_CPU_FEATURES`` can take a process from the first to the second)."""
+    from numpy.core._multiarray_umath import __cpu_features__ as cpu
+
+    return "avx512" if cpu.get("AVX512_SKX") else "avx2" if cpu.get("AVX2") else None
+
+
 def resolve_device(device: Any = "auto") -> torch.device:
     """``"auto"`` (or None) -> CUDA if a CUDA device is usable, else the CPU; anything else
     as :class:`torch.device`. Asking for CUDA without one raises a clear error instead of

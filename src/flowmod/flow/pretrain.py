@@ -58,7 +58,7 @@ from torch import Tensor
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from flowmod.artefacts import atomic_path, file_digest, fingerprint, write_json
-from flowmod.environment import torch_threads
+from flowmod.environment import simd_path, torch_threads
 from flowmod.flow.architectures import FFN_DIV_FLOW, FastFlowNet, fastflownet_inputs
 from flowmod.flow.estimators import GTFlow
 from flowmod.flow.registry import read_image, resize_flow
@@ -673,6 +673,17 @@ def smoke_check(recipe: Recipe, weights: Path, smoke: Params, work: Path, scale:
             "weights": score_model(load_half(weights), held, scale)}
 
 
+def with_check(manifest: dict[str, Any], check: dict[str, Any], path: str | None
+               ) -> dict[str, Any]:
+    """``manifest`` with ``check`` (:func:`smoke_check`'s) recorded as SIMD path ``path``'s
+    (:func:`flowmod.environment.simd_path`), the other paths' records kept: the smoke world's
+    bytes, and so the check's numbers, differ between numpy's AVX-512 and AVX2 paths."""
+    if path is None:
+        raise PretrainError("numpy runs neither AVX-512 nor AVX2 on this CPU: the smoke-world "
+                            "check is recorded per SIMD path; record it on a machine with one")
+    return {**manifest, "check": {**manifest.get("check", {}), path: check}}
+
+
 def prepare(recipe: Recipe, dataroot: Path, work: Path, progress: bool = True
             ) -> tuple[str, PairCache, HeldOut]:
     """The world (generated if missing), its training pairs and the validation set."""
@@ -737,7 +748,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="take the phases the published weights in --out hold as done and "
                          "train the later ones from those weights")
     args = ap.parse_args(argv)
-    recipe, t0 = SCHEDULE[0], time.time()
+    recipe, t0, path = SCHEDULE[0], time.time(), simd_path()
+    with_check({}, {}, path)  # refuses a CPU without a pinned SIMD path before any work
     prior = shipped_phases(SCHEDULE, args.out) if args.from_shipped else (0, {})
     args.work.mkdir(parents=True, exist_ok=True)
     if not args.check_only:
@@ -746,7 +758,8 @@ def main(argv: list[str] | None = None) -> int:
               "pairs", flush=True)
         if prior[0] and prior[1]["world"]["fingerprint"] != world_fp:
             raise PretrainError(f"the weights in {args.out} were trained on another world "
-                                "than the recipe's: train from scratch, without --from-shipped")
+                                f"than the recipe's (numpy's SIMD path, {path} here, changes "
+                                "its bytes too): train from scratch, without --from-shipped")
         if not args.publish_only:
             init = load_half(args.out / WEIGHTS_NAME).state_dict() if prior[0] else None
             run_schedule(SCHEDULE, data, args.work, args.steps, heldout, start=(prior[0], init))
@@ -755,11 +768,11 @@ def main(argv: list[str] | None = None) -> int:
               f"in far boxes {m['validation']['final_float16']['epe_boxes']:.2f} px", flush=True)
     smoke = load_profile("smoke", n_jobs=2)
     ensure_world_data(smoke)
-    manifest = json.loads((args.out / MANIFEST_NAME).read_text())
-    manifest["check"] = smoke_check(recipe, args.out / WEIGHTS_NAME, smoke, args.work / "check",
-                                    SCHEDULE[-1].scale)
+    check = smoke_check(recipe, args.out / WEIGHTS_NAME, smoke, args.work / "check",
+                        SCHEDULE[-1].scale)
+    manifest = with_check(json.loads((args.out / MANIFEST_NAME).read_text()), check, path)
     write_json(args.out / MANIFEST_NAME, manifest)
-    print(f"[pretrain] smoke-world check: {manifest['check']}", flush=True)
+    print(f"[pretrain] smoke-world check ({path}): {check}", flush=True)
     return 0
 
 
