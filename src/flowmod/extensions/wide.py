@@ -51,7 +51,7 @@ def build_wtrain(b: dag.Build, progress: bool) -> dict[str, Any]:
     folder = b.input_dir(dag.Node("crops", m, WIDE))
     info = train_seed(b, fold_crops(folder, folds, k, "train", WIDE),
                       fold_crops(folder, folds, k, "val", WIDE), progress, f"{m} all distances")
-    return {**info, "recipe": recipe(b, m)}
+    return {**info, "recipe": recipe(b, m, WIDE)}
 
 
 def build_wgeneralise(b: dag.Build, progress: bool) -> dict[str, Any]:
