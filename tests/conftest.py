@@ -108,6 +108,15 @@ def _world_mutant() -> bool:
     return os.environ.get("MUTANT_UNDER_TEST", "").startswith("flowmod.world.")
 
 
+def shared_scope(fixture_name: str, config: pytest.Config) -> str:
+    """The scope of a fixture that builds what a module's tests read (``@pytest.fixture(
+    scope=shared_scope)``): ``"module"``, but ``"function"`` in mutmut's stats run
+    (``MUTANT_UNDER_TEST=stats``). mutmut records the functions a fixture calls as run by
+    the one test in whose set-up it ran, and for their mutants runs that test only; built
+    for every test there, the fixture's code counts as run by each test that reads it."""
+    return "function" if os.environ.get("MUTANT_UNDER_TEST") == "stats" else "module"
+
+
 @pytest.fixture(scope="session")
 def tiny_world(tmp_path_factory) -> tuple[Path, str]:
     """(root, version) of a five-scene world (:data:`TINY_WORLD`, about 5 s to make), for
