@@ -424,13 +424,20 @@ def _split_rng(seed: int, kind: str, target: int, split: str) -> np.random.Gener
     return np.random.default_rng([seed, zlib.crc32(f"{kind}/{target}/{split}".encode())])
 
 
+def _same_objects(crops: pd.DataFrame, context: pd.DataFrame, what: str) -> None:
+    """Refuse context crops (their index) that hold other objects than the exact-flow
+    crops, in another order included."""
+    if not crops["ann_token"].reset_index(drop=True).equals(
+            context["ann_token"].reset_index(drop=True)):
+        raise ValueError(f"{what}: the exact-flow crops and chapter 10's context crops hold "
+                         "other objects; rebuild the context stage")
+
+
 def _batch(crops_dir: Any, ctx_dir: Any, split: str, scale: float) -> tuple[CropBatch, pd.DataFrame]:
     """The exact-flow crops of one stored split with their boxes and still-world flow."""
     x, df = read_crops(crops_dir, split)
     still, _, cdf = read_context(ctx_dir, split, "boxes") if ctx_dir is not None else (None, None, df)
-    if not df["ann_token"].reset_index(drop=True).equals(cdf["ann_token"].reset_index(drop=True)):
-        raise ValueError(f"{split} split: the exact-flow crops and chapter 10's context crops "
-                         "hold other objects; rebuild the context stage")
+    _same_objects(df, cdf, f"{split} split")
     return crop_batch(x, df[list(BOX_COLUMNS)].to_numpy(np.float64), scale, still), df
 
 
@@ -472,6 +479,13 @@ def _level(b: dag.Build, kind: str, target: int) -> float:
     return float(read_levels(b.input_dir(dag.Node("elevels", "gt", kind)))["levels"][target])
 
 
+def _still_rows(ctx: Path, split: str) -> tuple[list[np.ndarray], pd.DataFrame]:
+    """A :data:`flowmod.crops.SplitReader` of the context node's still-world flow in the
+    boxes: ``([static], index)``."""
+    still, _, cdf = read_context(ctx, split, "boxes")
+    return [still], cdf
+
+
 def build_elevels(b: dag.Build, progress: bool) -> dict[str, Any]:
     """Build one ``elevels[gt/<kind>]`` node: the kind's level at each target error
     (``levels.json``), matched on ``error_calibration`` objects drawn with the seed from
@@ -483,8 +497,8 @@ def build_elevels(b: dag.Build, progress: bool) -> dict[str, Any]:
     [x], df = scored_rows(crops_reader(crops_dir), q.folds)
     still = None
     if ctx is not None:
-        [still], cdf = scored_rows(lambda s: ([read_context(ctx, s, "boxes")[0]],
-                                              read_context(ctx, s, "boxes")[2]), q.folds)
+        [still], cdf = scored_rows(lambda s: _still_rows(ctx, s), q.folds)
+        _same_objects(df, cdf, "the scored rows")
     pick = np.sort(np.random.default_rng(q.seed).choice(
         len(df), min(q.error_calibration, len(df)), replace=False))
     batch = crop_batch(np.asarray(x)[pick], df[list(BOX_COLUMNS)].to_numpy(np.float64)[pick],
