@@ -3,6 +3,8 @@ field, the pull toward the still-world flow, matched levels, seeding; the three 
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -380,6 +382,10 @@ def test_each_bad_setting_is_one_error_naming_the_value(batch: fe.CropBatch) -> 
         (lambda: fe.degrade("pull", fe.CropBatch(f, batch.box), 0.5),
          r"^the pull needs the batch's still-world flow \(CropBatch\.still\)$"),
     ]
+    # crops of another shape, each clause of (N, 2, S, S) on its own
+    for shape in [(3, 2, 8), (1, 2, 8, 8, 1), (3, 3, 8, 8), (3, 2, 8, 9)]:
+        cases.append((lambda shape=shape: fe.scale_error(np.zeros(shape), 0.5),
+                      rf"^flow crops must be \(N, 2, S, S\), got {re.escape(str(shape))}$"))
     for call, words in cases:
         with pytest.raises(ValueError, match=words):
             call()
