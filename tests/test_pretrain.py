@@ -374,7 +374,7 @@ def test_shipped_weights_reproduce_their_check_on_the_smoke_world(manifest, smok
         assert got["weights"][k] == pytest.approx(want["weights"][k], rel=1e-4), k
 
 
-def test_the_check_is_recorded_for_both_simd_paths_and_each_is_kept(manifest):
+def test_the_check_is_recorded_for_both_simd_paths_and_each_is_kept(manifest, monkeypatch):
     """The smoke world's bytes differ between numpy's AVX-512 and AVX2 paths (this project's
     machines have either), so the shipped manifest holds a check for each, and recording one
     path's keeps the other's."""
@@ -386,8 +386,10 @@ def test_the_check_is_recorded_for_both_simd_paths_and_each_is_kept(manifest):
     assert m == {"sha256": "x", "check": {"avx512": a, "avx2": {"new": 1}}}
     assert pt.with_check(m, {"newer": 2}, "avx512")["check"] == {"avx512": {"newer": 2},
                                                                   "avx2": {"new": 1}}
+    assert pt.pinned_simd_path() == simd_path()
+    monkeypatch.setattr(pt, "simd_path", lambda: None)
     with pytest.raises(pt.PretrainError, match="neither AVX-512 nor AVX2 on this CPU"):
-        pt.with_check(m, {}, None)
+        pt.pinned_simd_path()
 
 
 def test_chapter_12_describes_every_phase_of_the_schedule(manifest):

@@ -673,14 +673,20 @@ def smoke_check(recipe: Recipe, weights: Path, smoke: Params, work: Path, scale:
             "weights": score_model(load_half(weights), held, scale)}
 
 
-def with_check(manifest: dict[str, Any], check: dict[str, Any], path: str | None
-               ) -> dict[str, Any]:
-    """``manifest`` with ``check`` (:func:`smoke_check`'s) recorded as SIMD path ``path``'s
-    (:func:`flowmod.environment.simd_path`), the other paths' records kept: the smoke world's
-    bytes, and so the check's numbers, differ between numpy's AVX-512 and AVX2 paths."""
+def pinned_simd_path() -> str:
+    """This process's numpy SIMD path (:func:`flowmod.environment.simd_path`), under which
+    the smoke-world check is recorded; PretrainError on a CPU with neither pinned path."""
+    path = simd_path()
     if path is None:
         raise PretrainError("numpy runs neither AVX-512 nor AVX2 on this CPU: the smoke-world "
                             "check is recorded per SIMD path; record it on a machine with one")
+    return path
+
+
+def with_check(manifest: dict[str, Any], check: dict[str, Any], path: str) -> dict[str, Any]:
+    """``manifest`` with ``check`` (:func:`smoke_check`'s) recorded as SIMD path ``path``'s,
+    the other paths' records kept: the smoke world's bytes, and so the check's numbers,
+    differ between numpy's AVX-512 and AVX2 paths."""
     return {**manifest, "check": {**manifest.get("check", {}), path: check}}
 
 
@@ -748,8 +754,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="take the phases the published weights in --out hold as done and "
                          "train the later ones from those weights")
     args = ap.parse_args(argv)
-    recipe, t0, path = SCHEDULE[0], time.time(), simd_path()
-    with_check({}, {}, path)  # refuses a CPU without a pinned SIMD path before any work
+    recipe, t0, path = SCHEDULE[0], time.time(), pinned_simd_path()  # before any work
     prior = shipped_phases(SCHEDULE, args.out) if args.from_shipped else (0, {})
     args.work.mkdir(parents=True, exist_ok=True)
     if not args.check_only:
