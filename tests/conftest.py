@@ -108,13 +108,20 @@ def _world_mutant() -> bool:
     return os.environ.get("MUTANT_UNDER_TEST", "").startswith("flowmod.world.")
 
 
+def mutmut_stats() -> bool:
+    """Whether this session is mutmut's stats run (``MUTANT_UNDER_TEST=stats``), which
+    records the functions each test runs: tests that take built things from a kept or
+    shared folder make them themselves there."""
+    return os.environ.get("MUTANT_UNDER_TEST") == "stats"
+
+
 def shared_scope(fixture_name: str, config: pytest.Config) -> str:
     """The scope of a fixture that builds what a module's tests read (``@pytest.fixture(
     scope=shared_scope)``): ``"module"``, but ``"function"`` in mutmut's stats run
     (``MUTANT_UNDER_TEST=stats``). mutmut records the functions a fixture calls as run by
     the one test in whose set-up it ran, and for their mutants runs that test only; built
     for every test there, the fixture's code counts as run by each test that reads it."""
-    return "function" if os.environ.get("MUTANT_UNDER_TEST") == "stats" else "module"
+    return "function" if mutmut_stats() else "module"
 
 
 @pytest.fixture(scope="session")

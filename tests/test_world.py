@@ -395,9 +395,9 @@ def test_the_tiny_worlds_bytes_are_pinned(tiny_world, tmp_path):
     session's kept one, so that mutmut counts every generator function as run by this test
     and runs it for each of their mutants (it then remakes the world for the mutant)."""
     root, version = tiny_world
-    if os.environ.get("MUTANT_UNDER_TEST") == "stats":
-        import conftest
+    import conftest
 
+    if conftest.mutmut_stats():
         made = conftest._smoke(tmp_path, **conftest.TINY_WORLD)
         world.ensure_world(made, progress=False)
         root = made.dataroot_path
