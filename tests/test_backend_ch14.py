@@ -58,7 +58,7 @@ def built_all(handmade_study, monkeypatch):
 
 def test_the_effects_table_carries_each_chapter_s_rows_whole(built_all):
     """Every effect's question, interval as numbers (those its text shows), what the
-    interval resamples, its two-sided p-value from its replicates with A <= B, Holm's
+    interval resamples, its two-sided p-value (the comparison table's), Holm's
     verdict over all the effects, and its scenes; the columns in order."""
     p = built_all
     eff = ch.effects(p)
@@ -80,9 +80,12 @@ def test_the_effects_table_carries_each_chapter_s_rows_whole(built_all):
         shown = [float(v) for v in re.findall(r"-?\d+\.\d", text)[:2]]
         assert shown == [round(lo, 1) + 0.0, round(hi, 1) + 0.0], text
         assert lo < hi
+    want_p = [p for t in tables.values() for p in t.attrs["p_two_sided"]]
+    assert eff["p (two-sided)"].tolist() == want_p and np.isfinite(want_p).all()
+    # replicates that tie at 0 count on both sides: never below twice the smaller of the
+    # shares with A <= B and A > B (the column is rounded to 0.1 %)
     share = rows["replicates with A <= B (%)"].to_numpy(float) / 100
-    want_p = [min(1.0, 2 * min(s, 1 - s)) for s in share]
-    assert eff["p (two-sided)"].tolist() == pytest.approx(want_p, abs=1e-12)
+    assert all(w >= min(1.0, 2 * min(s, 1 - s)) - 1e-3 for w, s in zip(want_p, share, strict=True))
     holm = _holm_by_hand(want_p)
     assert eff["Holm, all effects"].tolist() == ["decided" if h else "not decided" for h in holm]
     assert 0 < sum(holm) < len(holm)
@@ -287,12 +290,9 @@ def test_the_record_is_read_from_the_repository_or_is_none(tmp_path, monkeypatch
     assert ch.replication_record() == rec
 
 
-def test_two_sided_p_values_at_the_edges():
-    """Twice the smaller tail, capped at 1; undefined stays undefined. Holm's procedure at
-    the rate it is given, an undefined p-value last and never rejected."""
-    assert ch.two_sided(0.0) == 0.0 and ch.two_sided(1.0) == 0.0
-    assert ch.two_sided(0.3) == pytest.approx(0.6) and ch.two_sided(0.7) == pytest.approx(0.6)
-    assert np.isnan(ch.two_sided(float("inf")))
+def test_holm_at_the_rate_it_is_given():
+    """Holm's procedure at the rate it is given, an undefined p-value last and never
+    rejected."""
     assert ch.holm(np.array([0.005, 0.02]), alpha=0.02).tolist() == [True, True]
     assert ch.holm(np.array([0.005, 0.02]), alpha=0.0199).tolist() == [True, False]
     assert ch.holm(np.array([np.nan, 0.01, 0.04])).tolist() == [False, True, False]

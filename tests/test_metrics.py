@@ -178,7 +178,33 @@ def test_paired_comparison_at_the_given_threshold_and_level():
     diff = (ev.scene_bootstrap(y, p, g, 300, 2, 0.3) - ev.scene_bootstrap(y, q, g, 300, 2, 0.3))
     assert d["ci"] == ev.interval(diff, 0.5) and d["ci"] != ev.interval(diff)
     assert d["p_not_better"] == np.mean(diff <= 0)
+    assert d["p_two_sided"] == ev.two_sided_p(diff)
     assert d["delta_f1"] == pytest.approx(ev.metrics(y, p, 0.3)["f1"] - ev.metrics(y, q, 0.3)["f1"])
+
+
+def test_two_sided_p_counts_ties_on_both_sides_and_agrees_with_the_interval():
+    """Twice the smaller of the shares with A - B <= 0 and >= 0, at most 1, over the
+    defined replicates. Replicates that tie at 0 count on both sides: 95 of 100 at or
+    below 0 with 10 of them exactly 0 is p = 0.3 (the share with A <= B alone said 0.1),
+    and 100 of 100 at or below 0 with 30 at 0 is p = 0.6, where it said 0: the percentile
+    interval of those ends at 0, so neither is decided (an effect chapter 14's Holm column
+    called decided on the smoke study)."""
+    r = np.r_[np.full(85, -0.02), np.zeros(10), np.full(5, 0.01)]
+    assert ev.two_sided_p(r) == pytest.approx(0.3)
+    r = np.r_[np.full(97, -0.02), np.zeros(2), np.full(1, 0.01), [np.nan] * 7]
+    assert ev.two_sided_p(r) == pytest.approx(0.06)
+    ties = np.r_[np.full(70, -0.02), np.zeros(30)]
+    assert ev.two_sided_p(ties) == pytest.approx(0.6) and ev.interval(ties)[1] == 0.0
+    assert ev.verdict(ev.interval(ties)) == "undecided"
+    assert ev.two_sided_p(np.full(50, 0.03)) == 0.0 and ev.two_sided_p(np.full(50, -0.03)) == 0.0
+    assert ev.two_sided_p(np.r_[np.full(50, 0.03), np.full(50, -0.03)]) == 1.0
+    assert np.isnan(ev.two_sided_p([np.nan, np.nan])) and np.isnan(ev.two_sided_p([]))
+    # every decided-by-p effect has an interval that excludes 0, on random replicates
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        r = np.round(rng.normal(rng.uniform(-0.05, 0.05), 0.02, 400), 2)
+        if ev.two_sided_p(r) < 0.05:
+            assert ev.verdict(ev.interval(r)) != "undecided"
 
 
 def test_paired_comparison_says_whether_it_decides_and_what_it_could_detect():

@@ -174,7 +174,8 @@ def test_the_answers_page_gathers_each_chapters_rows_and_draws_them_all(monkeypa
     from flowmod.params import load_profile
     from flowmod.report import viz
 
-    row = {"detectable": 0.02, "per_seed": [0.0], "p_not_better": 0.0, "n_scenes": 29, "n": 90}
+    row = {"detectable": 0.02, "per_seed": [0.0], "p_not_better": 0.0, "p_two_sided": 0.0,
+           "n_scenes": 29, "n": 90}
     t07 = ev.comparison_table({
         "gt - dis": {**row, "delta_f1": 0.022, "ci": (0.002, 0.044)},
         "dis: classifier - oracle rule": {**row, "delta_f1": 0.021, "ci": (-0.009, 0.05)}})
@@ -190,7 +191,7 @@ def test_the_answers_page_gathers_each_chapters_rows_and_draws_them_all(monkeypa
     assert eff["chapter"].tolist() == ["07", "07", "11"]
     assert eff[["low", "high"]].to_numpy().round(1).tolist() == [[0.2, 4.4], [-0.9, 5.0],
                                                                    [-8.0, -1.0]]
-    # p two-sided from the replicates' share (0 here): every effect decided after Holm too
+    # each table's two-sided p-value (0 here): every effect decided after Holm too
     assert eff["p (two-sided)"].tolist() == [0.0, 0.0, 0.0]
     assert eff["Holm, all effects"].tolist() == ["decided"] * 3
     table = ch13.answers(eff)  # one row per effect

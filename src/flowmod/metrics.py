@@ -383,6 +383,19 @@ def seed_summary(y_true: Any, y_prob: Any, groups: Any, instances: Any = None, n
     return out
 
 
+def two_sided_p(replicates: Any) -> float:
+    """The paired bootstrap's two-sided p-value of A - B from its replicates (NaN: left
+    out): twice the smaller of the shares with A - B <= 0 and with A - B >= 0, at most 1;
+    NaN when none is defined. A replicate with A = B counts on both sides, so an effect whose
+    percentile interval holds 0 is never below 5 % (where many replicates tie at 0, taking
+    the share with A <= B alone called such an effect certain)."""
+    r = np.asarray(replicates, dtype=np.float64).reshape(-1)
+    r = r[~np.isnan(r)]
+    if r.size == 0:
+        return float("nan")
+    return float(min(1.0, 2 * min(np.mean(r <= 0), np.mean(r >= 0))))
+
+
 def paired_comparison(y_true: Any, prob_a: Any, prob_b: Any, groups: Any, n: int = 2000,
                       seed: int = 0, threshold: float = 0.5, level: float = 0.95,
                       folds: Any = None) -> dict[str, Any]:
@@ -414,6 +427,7 @@ def paired_comparison(y_true: Any, prob_a: Any, prob_b: Any, groups: Any, n: int
             "detectable": detectable(d, level),
             "per_seed": per, "training_seeds": [len(pa), len(pb)],
             "p_not_better": float(np.mean(defined <= 0)) if defined.size else float("nan"),
+            "p_two_sided": two_sided_p(d),
             "undefined_replicates": int(d.size - defined.size),
             "unit": "fold" if folds is not None else "seed",
             "n": len(y), "n_scenes": int(len(np.unique(groups)))}
@@ -580,6 +594,9 @@ def comparison_table(rows: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
     # the interval as numbers (points), row by row, for plots (the column holds its text)
     table.attrs["ci_points"] = [(100 * r["ci"][0], 100 * r["ci"][1]) if r.get("ci") is not None
                                 else (float("nan"), float("nan")) for r in rows.values()]
+    # each row's two-sided p-value (:func:`two_sided_p`; NaN for a row made without one)
+    table.attrs["p_two_sided"] = [float(r.get("p_two_sided", float("nan")))
+                                  for r in rows.values()]
     return table
 
 

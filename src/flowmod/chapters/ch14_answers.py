@@ -61,7 +61,8 @@ def effects(params: Params) -> pd.DataFrame:
     (``low``, ``high``) and its verdict; columns :data:`EFFECT_COLUMNS`."""
     rows = []
     for chapter, table in _chapter_tables(params):
-        for (_, r), (lo, hi) in zip(table.iterrows(), table.attrs["ci_points"], strict=True):
+        for (_, r), (lo, hi), p in zip(table.iterrows(), table.attrs["ci_points"],
+                                       table.attrs["p_two_sided"], strict=True):
             rows.append({"chapter": chapter, "question": QUESTIONS[chapter],
                          "comparison": r["comparison"], "ΔF1 (points)": r["ΔF1 (points)"],
                          "low": lo, "high": hi,
@@ -69,18 +70,12 @@ def effects(params: Params) -> pd.DataFrame:
                              "95% CI, scenes and seeds (points)"],
                          "interval counts": r.get("interval counts", common.COUNTS_SEEDS),
                          "verdict": r["verdict"],
-                         "p (two-sided)": two_sided(r["replicates with A <= B (%)"] / 100),
+                         "p (two-sided)": p,
                          "scenes": r["scenes"]})
     out = pd.DataFrame(rows, columns=EFFECT_COLUMNS)
     out["Holm, all effects"] = np.where(holm(out["p (two-sided)"].to_numpy(float)),
                                         "decided", "not decided")
     return out
-
-
-def two_sided(share: float) -> float:
-    """The bootstrap's two-sided p-value from the share of its replicates with A <= B:
-    2 min(share, 1 - share), at most 1 (NaN stays NaN)."""
-    return float(min(1.0, 2 * min(share, 1 - share))) if np.isfinite(share) else float("nan")
 
 
 def holm(p: np.ndarray, alpha: float = HOLM_ALPHA) -> np.ndarray:
