@@ -16,8 +16,10 @@ from flowmod.artefacts import read_manifest
 from flowmod.crops import CropsError, build_crops, crop_boxes, crop_windows, hflip, read_crops
 from flowmod.params import Params
 
-#: The paper's chain (chapters 01-08): the extension chapters add nothing these tests check.
-CORE_CHAPTERS = ["01", "02", "03", "05", "06", "07", "08"]
+#: The paper's chain up to the crops: the classifiers read only the crops node's arrays,
+#: index and flow samples, which the crops-mode test finds equal to the bit (that equal crops
+#: train equal models is the rerun-equals-fresh check in tests/test_provenance.py).
+CORE_CHAPTERS = ["01", "02", "03", "05"]
 
 # --- a slow, explicit reference of the paper's preprocessing ---------------------------------
 
@@ -293,9 +295,9 @@ def test_nonfinite_flow_is_zeroed_and_recorded(tmp_path) -> None:
 @pytest.mark.slow
 def test_crops_mode_gives_the_stored_flow_crops_and_keeps_few_pairs(smoke_built, tmp_path):
     """flow_store: crops on the smoke world: every crop, flow sample and index bit-identical
-    to the crops cut from stored flow (gt with its valid mask included), every metric
-    equal; the flow nodes keep only the figures' and the seeded pairs; a rerun computes
-    nothing; and the disk it takes is that of crops, not of flow."""
+    to the crops cut from stored flow (gt with its valid mask included); the flow nodes
+    keep only the figures' and the seeded pairs; a rerun computes nothing; and the disk it
+    takes is that of crops, not of flow."""
     from flowmod import dag, pipeline, select
     from flowmod.chapters import common
 
@@ -323,11 +325,6 @@ def test_crops_mode_gives_the_stored_flow_crops_and_keeps_few_pairs(smoke_built,
         key = common.flow_reader(p, m, "keyframe").pair_ids
         assert len(key) == 3 < len(common.flow_reader(local, m, "keyframe").pair_ids), (
             "Figure 1's pair and 2 drawn")
-    for node in pipeline.nodes(p):
-        if node.stage in ("evaluate", "generalise"):
-            for f in pipeline.published(local, node).glob("*.parquet"):
-                pd.testing.assert_frame_equal(pd.read_parquet(f),
-                                              pd.read_parquet(pipeline.published(p, node) / f.name))
 
     def size(folder: Path) -> int:
         return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
