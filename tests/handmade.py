@@ -54,13 +54,21 @@ def _predicted(obj: pd.DataFrame, error: float, seeds: int, rng: np.random.Gener
     return obj.assign(**cols)
 
 
-def publish(p: Params, node: Node, frames: dict[str, pd.DataFrame],
-             scores: dict[str, dict] | None = None) -> None:
-    """What a built node leaves in its published folder: its tables, scores, manifest."""
+def node_folder(p: Params, node: Node, **record) -> Path:
+    """``node``'s published folder as a build leaves it, for a test to write the node's
+    files into: made on first use with its manifest (fingerprint ``hand-made <node>`` and
+    ``record``, e.g. ``amp="off"`` for a model a reader loads), as it is later."""
     folder = pipeline.GRAPH.node_dir(p, node)
-    folder.mkdir(parents=True)
-    write_frames(folder, frames, scores or {})
-    write_manifest(folder / "manifest.json", {"fingerprint": f"hand-made {node}"})
+    if not folder.is_dir():
+        folder.mkdir(parents=True)
+        write_manifest(folder / "manifest.json", {"fingerprint": f"hand-made {node}", **record})
+    return folder
+
+
+def publish(p: Params, node: Node, frames: dict[str, pd.DataFrame],
+            scores: dict[str, dict] | None = None) -> None:
+    """What a built node leaves in its published folder: its tables, scores, manifest."""
+    write_frames(node_folder(p, node), frames, scores or {})
 
 
 def make_study(root: Path) -> tuple[Params, dict[Node, dict[str, pd.DataFrame]]]:

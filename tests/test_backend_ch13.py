@@ -20,10 +20,10 @@ import math
 import numpy as np
 import pandas as pd
 import pytest
+from handmade import node_folder
 from sklearn.metrics import f1_score
 
 from flowmod import metrics
-from flowmod.artefacts import write_manifest
 from flowmod.chapters import ch13_flow_errors as ch
 from flowmod.dag import Node
 from flowmod.params import Params, load_profile
@@ -47,18 +47,6 @@ LEVELS = {"noise": {"kind": "noise", "unit": "sigma (px)", "targets": [1.0, 2.0]
 #: The words the chapter shows for each kind.
 WORDS = {"noise": "white noise in the box", "pull": "movers' motion pulled toward the still world",
          "ring": "white noise around the box only"}
-
-
-def _folder(p: Params, node: Node):
-    """A node's published folder as a build leaves it (made with its manifest on first
-    use), for the test to write the node's files into."""
-    from flowmod import pipeline
-
-    folder = pipeline.GRAPH.node_dir(p, node)
-    if not folder.is_dir():
-        folder.mkdir(parents=True)
-        write_manifest(folder / "manifest.json", {"fingerprint": f"hand-made {node}"})
-    return folder
 
 
 def _arm_tables(scenes: int) -> dict[str, tuple[pd.DataFrame, pd.DataFrame]]:
@@ -86,11 +74,11 @@ def _make_arms(root, scenes: int, seed: int = 0) -> Params:
     p = load_profile("demo", run_dir=str(root / "runs"), seed=seed,
                      error_kinds=["noise", "pull", "ring"], error_targets=[1.0, 2.0])
     for key, (pred, err) in _arm_tables(scenes).items():
-        folder = _folder(p, Node("eevaluate", "gt", key))
+        folder = node_folder(p, Node("eevaluate", "gt", key))
         pred.to_parquet(folder / "test.parquet", index=False)
         err.to_parquet(folder / "errors.parquet", index=False)
     for kind, rec in LEVELS.items():
-        (_folder(p, Node("elevels", "gt", kind)) / "levels.json").write_text(json.dumps(rec))
+        (node_folder(p, Node("elevels", "gt", kind)) / "levels.json").write_text(json.dumps(rec))
     return p
 
 
@@ -427,7 +415,7 @@ def _make_flows(root, folds: int, seed: int = 0, bad_context: bool = False):
         still = np.round(rng.uniform(-3, 3, (n, 2, SIZE, SIZE)) * 8) / 8
         gt = still + np.array(labels, float)[:, None, None, None] * 2.0
         stills.append(still)
-        ctx = _folder(p, Node("context", None, "keyframe"))
+        ctx = node_folder(p, Node("context", None, "keyframe"))
         np.save(ctx / f"{split}.static.npy", still.astype(np.float16))
         np.save(ctx / f"{split}.deployed.npy", still.astype(np.float16))
         np.save(ctx / f"{split}.images.npy", np.zeros((n, 6, SIZE, SIZE), np.uint8))
@@ -437,7 +425,7 @@ def _make_flows(root, folds: int, seed: int = 0, bad_context: bool = False):
                  "farneback": gt * 0.5 + 0.25}
         for m, x in flows.items():
             rows[m].append((x, idx))
-            folder = _folder(p, Node("crops", m, "keyframe"))
+            folder = node_folder(p, Node("crops", m, "keyframe"))
             np.save(folder / f"{split}.npy", x.astype(np.float16))
             idx.to_parquet(folder / f"{split}.parquet", index=False)
     box = np.zeros((sum(len(i) for _, i in rows["gt"]), SIZE, SIZE), bool)
@@ -451,7 +439,7 @@ def _make_flows(root, folds: int, seed: int = 0, bad_context: bool = False):
         pred = pd.DataFrame({"ann_token": [f"t{i}" for i in range(N)],
                              "scene": [f"scene-{i * 8 // N}" for i in range(N)],
                              "label": label.astype(int), "prob": np.where(call, 0.9, 0.1)})
-        pred.to_parquet(_folder(p, Node("evaluate", m)) / "test.parquet", index=False)
+        pred.to_parquet(node_folder(p, Node("evaluate", m)) / "test.parquet", index=False)
     got = {m: (np.concatenate([x for x, _ in r]).astype(np.float16).astype(np.float32),
                pd.concat([i for _, i in r], ignore_index=True)) for m, r in rows.items()}
     still = np.concatenate(stills).astype(np.float16).astype(np.float32)

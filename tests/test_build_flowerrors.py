@@ -24,9 +24,10 @@ import numpy as np
 import pandas as pd
 import pytest
 from conftest import shared_scope
+from handmade import node_folder
 
 from flowmod import pipeline
-from flowmod.artefacts import read_manifest, write_manifest
+from flowmod.artefacts import read_manifest
 from flowmod.dag import Node
 from flowmod.extensions import flowerrors as fe
 from flowmod.params import Params, load_profile
@@ -109,21 +110,14 @@ def _params(root, **over) -> Params:
     return load_profile("smoke", **kw)
 
 
-def _folder(p: Params, node: Node):
-    folder = pipeline.GRAPH.node_dir(p, node)
-    folder.mkdir(parents=True, exist_ok=True)
-    write_manifest(folder / "manifest.json", {"fingerprint": f"hand-made {node}"})
-    return folder
-
-
 def _publish_inputs(p: Params, levels: dict | None = None) -> None:
     """The published crops and context nodes (and, given, each kind's ``levels.json``)."""
-    crops = _folder(p, Node("crops", "gt", "keyframe"))
-    ctx = _folder(p, Node("context", None, "keyframe"))
+    crops = node_folder(p, Node("crops", "gt", "keyframe"))
+    ctx = node_folder(p, Node("context", None, "keyframe"))
     _write_crops((crops, ctx))
     for kind, lv in (levels or {}).items():
         rec = {"kind": kind, "levels": lv, "targets": list(p.error_targets)}
-        (_folder(p, Node("elevels", "gt", kind)) / fe.LEVELS_FILE).write_text(json.dumps(rec))
+        (node_folder(p, Node("elevels", "gt", kind)) / fe.LEVELS_FILE).write_text(json.dumps(rec))
 
 
 @pytest.fixture(scope=shared_scope)
@@ -568,8 +562,8 @@ def test_the_single_split_scores_its_test_split(tmp_path, monkeypatch, key) -> N
     0.6, toward the annotated still world), and hands the predictor its training nodes'
     key; the predictor is faked (no model trains here): its ``prob`` is each crop's mean."""
     p = _params(tmp_path, folds=1, error_folds=1)
-    crops = _folder(p, Node("crops", "gt", "keyframe"))
-    ctx = _folder(p, Node("context", None, "keyframe"))
+    crops = node_folder(p, Node("crops", "gt", "keyframe"))
+    ctx = node_folder(p, Node("context", None, "keyframe"))
     s, df = SPLITS["f0"], SPLITS["f0"]["df"].assign(split="test")
     np.save(crops / "test.npy", s["flow"])
     df.to_parquet(crops / "test.parquet", index=False)
@@ -578,9 +572,9 @@ def test_the_single_split_scores_its_test_split(tmp_path, monkeypatch, key) -> N
     np.save(ctx / "test.images.npy", np.zeros((PER_FOLD, 6, S, S), np.uint8))
     df.to_parquet(ctx / "test.parquet", index=False)
     kind, target = fe.parse_arm(key)
-    lv = _folder(p, Node("elevels", "gt", kind))
+    lv = node_folder(p, Node("elevels", "gt", kind))
     (lv / fe.LEVELS_FILE).write_text(json.dumps({"levels": LEVELS[kind]}))
-    _folder(p, Node("etrain", "gt", f"{key}/s0"))
+    node_folder(p, Node("etrain", "gt", f"{key}/s0"))
     seen = {}
 
     def fake(b, stage, key, splits):

@@ -24,9 +24,9 @@ import numpy as np
 import pandas as pd
 import pytest
 from conftest import shared_scope
+from handmade import node_folder
 
 from flowmod import pipeline
-from flowmod.artefacts import write_manifest
 from flowmod.crops import crop_paths
 from flowmod.dag import Node
 from flowmod.evaluate import read_frame
@@ -44,17 +44,6 @@ def _params(root, folds=FOLDS, **kw):
     return load_profile("smoke", run_dir=str(root / "runs"), folds=folds,
                         extension_methods=["dis"], extension_inputs=list(inputs.EXTENSION_INPUTS),
                         **kw)
-
-
-def _folder(p, node):
-    folder = pipeline.GRAPH.node_dir(p, node)
-    folder.mkdir(parents=True, exist_ok=True)
-    return folder
-
-
-def _manifest(p, node, **extra):
-    write_manifest(_folder(p, node) / "manifest.json",
-                   {"fingerprint": f"hand-made {node}", **extra})
 
 
 def _px(rng, shape):
@@ -89,8 +78,8 @@ def _make_inputs(p, seed=0):
     rng = np.random.default_rng(seed)
     data = {}
     for part in ("keyframe", "general"):
-        ctx = _folder(p, Node("context", None, part))
-        crops = _folder(p, Node("crops", "dis", part))
+        ctx = node_folder(p, Node("context", None, part))
+        crops = node_folder(p, Node("crops", "dis", part))
         for split in _splits(part, p.folds):
             df = _index(split, p.folds)
             n = len(df)
@@ -106,8 +95,6 @@ def _make_inputs(p, seed=0):
             df.to_parquet(idx, index=False)
             data[split] = {**{k: a.astype(np.float32) if a.dtype == np.float16 else a
                               for k, a in arr.items()}, "index": df}
-        _manifest(p, Node("context", None, part))
-        _manifest(p, Node("crops", "dis", part))
     return data
 
 
@@ -270,8 +257,7 @@ def _publish_models(p, m, variant):
         state = {**base, "conv1.weight": base["conv1.weight"] * (1 + 0.5 * k),
                  "fc.bias": base["fc.bias"] - 0.4 * k}
         node = Node("xtrain", m, f"{variant}/{part}")
-        torch.save(state, model_file(_folder(p, node)))
-        _manifest(p, node, amp="off")
+        torch.save(state, model_file(node_folder(p, node, amp="off")))
         nets[part] = state
     return net, nets
 

@@ -23,9 +23,9 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 from conftest import shared_scope
+from handmade import node_folder
 
 from flowmod import dag, pipeline, select, train
-from flowmod.artefacts import write_manifest
 from flowmod.crops import CropsError, crop_image, static_crops
 from flowmod.extensions import context, wide
 from flowmod.params import load_profile
@@ -59,13 +59,11 @@ def progress_file(tmp_path, monkeypatch):
 
 def _publish_by_hand(p, node, tables=None, arrays=None, **record):
     """A published folder of ``node``: parquet tables, npy arrays, a manifest (no files)."""
-    d = pipeline.GRAPH.node_dir(p, node)
-    d.mkdir(parents=True)
+    d = node_folder(p, node, **record)
     for name, df in (tables or {}).items():
         df.to_parquet(d / f"{name}.parquet", index=False)
     for name, a in (arrays or {}).items():
         np.save(d / f"{name}.npy", a)
-    write_manifest(d / "manifest.json", {"fingerprint": f"hand-made {node}", **record})
     return d
 
 
