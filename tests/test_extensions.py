@@ -529,6 +529,9 @@ def test_each_input_is_composed_from_its_parts_in_float32():
         batch = inputs.Inputs(v, flow, static, images)
         assert batch.shape == (3, inputs.VARIANTS[v].channels, 4, 4) and len(batch) == 3
         np.testing.assert_array_equal(batch[[2, 0]], x[[2, 0]])
+        # parts of a wider float type (float64) come out float32 all the same
+        wide = inputs.compose(v, flow.astype(np.float64), static.astype(np.float64), images)
+        assert wide.dtype == np.float32, v
     with pytest.raises(ValueError, match=r"^input 'images\+flow' needs \['images'\]$"):
         inputs.compose("images+flow", flow, static, None)
     with pytest.raises(ValueError, match=r"^input 'residual' needs \['flow', 'static'\]$"):

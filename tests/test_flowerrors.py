@@ -169,6 +169,19 @@ def test_each_kind_is_matched_to_a_requested_box_error(batch: fe.CropBatch, kind
     assert fe.realised_error(kind, batch, level, 5) == pytest.approx(0.4, rel=0.01)
 
 
+def test_a_target_the_range_s_first_level_already_exceeds_is_out_of_reach(
+        batch: fe.CropBatch, monkeypatch) -> None:
+    """The level is bisected between the grid's last level below the target and its first
+    at or above it; a kind whose error at the range's first level already reaches the
+    target has no level below it, so the target is out of reach (never a bisection from
+    the range's far end)."""
+    monkeypatch.setattr(fe, "realised_error", lambda kind, b, v, seed=0, stat="mean": 0.5 + v)
+    with pytest.raises(ValueError, match=r"^noise: a mean box error of 0\.4 px is out of reach "
+                       r"over sigma \(px\) in \[0\.0, 20\.0\] \(0\.5 to 20\.5 px\)$"):
+        fe.match_level("noise", batch, 0.4)
+    assert fe.match_level("noise", batch, 0.75) == pytest.approx(0.25, abs=0.01 * 0.75)
+
+
 def test_levels_are_matched_across_kinds(batch: fe.CropBatch) -> None:
     levels = fe.match_levels(batch, [0.2, 0.5], kinds=["noise", "scale", "outliers"], seed=2)
     for kind, ls in levels.items():
