@@ -426,6 +426,12 @@ def run_samples(items: list[dict[str, Any]], n: int, samples: dict[str, dict[str
     return 0
 
 
+#: The options :func:`main` takes (anything else that starts with ``-`` is refused).
+OPTIONS = ("--part", "--sample", "--report-only")
+USAGE = ("usage: benchmarks/mutation.py [--part k|plan] [--sample n] [--report-only] "
+         "[module ...] (make mutation PART= SAMPLE= MODULES=)")
+
+
 def main(argv: list[str] | None = None) -> int:
     """``make mutation``: run mutmut module by module (module names as arguments: those
     only; ``--part k``: the k-th part of :func:`plan`, ``--part plan``: print the parts and
@@ -433,6 +439,13 @@ def main(argv: list[str] | None = None) -> int:
     then write the report. ``--report-only``: write the report of the last
     (possibly interrupted) runs; their unchecked mutants are counted."""
     args = sys.argv[1:] if argv is None else argv
+    if {"-h", "--help"} & set(args):
+        print(USAGE)
+        return 0
+    flags = [a for a in args if a.startswith("-") and a not in OPTIONS]
+    if flags:  # before any run: an unknown flag once started every module (hours)
+        print(f"mutation: unknown option {flags[0]}; {USAGE}", file=sys.stderr)
+        return 2
     partial = "--report-only" in args
     part = args[args.index("--part") + 1] if "--part" in args else None
     size = args[args.index("--sample") + 1] if "--sample" in args else None

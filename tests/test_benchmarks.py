@@ -291,6 +291,10 @@ def test_mutation_parts_fit_their_minutes_and_cover_every_function_once(monkeypa
     monkeypatch.setattr(mutation, "listing", lambda: counts)  # what PART=... plans from
     assert mutation.main(["--part", "plan"]) == 0
     assert capsys.readouterr().out == mutation.plan_text(parts) + "\n"
+    # --help prints the usage and runs nothing; an unknown option is one line, before any run
+    assert mutation.main(["--help"]) == 0 and capsys.readouterr().out == mutation.USAGE + "\n"
+    assert mutation.main(["--sampel", "5"]) == 2
+    assert capsys.readouterr().err == f"mutation: unknown option --sampel; {mutation.USAGE}\n"
     for bad in ("0", "6", "two"):
         assert mutation.main(["--part", bad]) == 2
         assert capsys.readouterr().err == (f"mutation: --part {bad}: there are parts 1 to 5 "
