@@ -442,7 +442,9 @@ def main(argv: list[str] | None = None) -> int:
     if {"-h", "--help"} & set(args):
         print(USAGE)
         return 0
-    flags = [a for a in args if a.startswith("-") and a not in OPTIONS]
+    values = {i + 1 for i, a in enumerate(args) if a in ("--part", "--sample")}
+    flags = [a for i, a in enumerate(args)
+             if a.startswith("-") and a not in OPTIONS and i not in values]
     if flags:  # before any run: an unknown flag once started every module (hours)
         print(f"mutation: unknown option {flags[0]}; {USAGE}", file=sys.stderr)
         return 2

@@ -219,7 +219,7 @@ def test_a_sample_draw_is_seeded_by_its_item_and_recorded(tmp_path, monkeypatch,
     assert samples["flowmod.labels 2/2"]["names"] == picked2
     assert samples["flowmod.labels 2/2"]["of"] == 11
     assert json.loads((tmp_path / "samples.json").read_text()) == samples
-    for bad in ("0", "x"):
+    for bad in ("0", "x", "-1"):  # a negative value is the option's, not an unknown option
         assert mutation.main(["--sample", bad, "flowmod.labels"]) == 2
         assert f"--sample {bad}: give a number of mutants" in capsys.readouterr().err
 
