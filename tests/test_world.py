@@ -452,6 +452,9 @@ def test_ensure_world_generates_reuses_regenerates_and_explains(tmp_path):
     assert root2 != root and root2.parent == root.parent == tmp_path / "w" / "worlds"
     assert world.world_params(root2, "v1.0-synth")["vehicles_per_scene"] == 5
     assert (root / "v1.0-synth" / "scene.json").stat().st_mtime_ns == stamp, "never overwritten"
+    # the lock beside the world names what its holder did, for another run's busy line
+    lock = json.loads((root.parent / f".{root.name}.lock").read_text())
+    assert lock["command"] == f"world {root.name}: generating it"
     # a profile pointing at a world's own folder reads it there
     assert validate({**base, "dataroot": str(root)}).dataroot_path == root
     # not synthetic and missing: a clear error naming the path and the fix
@@ -499,6 +502,24 @@ def test_rects_overlap_separating_axes_one_by_one_and_stacked():
     assert got.shape == (3, 3)
     assert got.tolist() == [ws.rects_overlap(a, r).tolist() for r in (b, c, a)]
     assert got[1].tolist() == [True, False, True] and got[2].all()
+    # the test is symmetric: the stack may stand first as well
+    assert ws.rects_overlap(ws.stack_rects([b, c, a]), a).tolist() == got.tolist()
+
+
+@pytest.mark.parametrize(("n", "counts"), [
+    (1, {"clear": 1}),
+    (2, {"night": 1, "clear": 1}),
+    (3, {"night": 1, "after_rain": 1, "clear": 1}),
+    (20, {"night": 2, "rain": 1, "after_rain": 1, "overcast": 3, "clear": 13}),
+])
+def test_plan_weathers_shares_and_minimums(n, counts):
+    """About 8 % night (at least one from 2 scenes on), 5 % rain, 5 % after rain (at least
+    one from 3 scenes on), 15 % overcast; the sweeps go to the last usable scenes only."""
+    weathers, sweep = ws.plan_weathers(n, 1, seed=0)
+    assert {w: weathers.count(w) for w in set(weathers)} == counts
+    assert sum(sweep) == 1
+    assert weathers[sweep.index(True)] not in ("night", "rain")
+    assert (weathers, sweep) == ws.plan_weathers(n, 1, seed=0)
 
 
 def test_visibility_bins_are_the_nuscenes_levels_on_both_sides_of_every_edge():
@@ -668,3 +689,26 @@ def test_the_generators_code_names_the_world(tmp_path):
     render.write_text(render.read_text() + "\nEXTRA = 1\n")
     codedigest.forget()
     assert codedigest.code_id(GENERATOR_MODULE, copy) != codedigest.code_id(GENERATOR_MODULE)
+
+
+def test_a_wait_scene_is_described_as_waiting_not_as_an_intersection():
+    """The ego's manoeuvre opens the description; a waiting ego's crossing is not named
+    twice."""
+    from flowmod.world.agents import _describe
+
+    layout = {"kind": "urban", "main": {"lanes": 2}, "cross": True}
+    rng = np.random.default_rng(0)
+    assert _describe(rng, "wait", layout, [], "clear") == "Wait at intersection"
+    assert _describe(rng, "go", layout, [], "clear") == "Leave intersection, intersection"
+
+
+def test_a_trailer_s_front_is_its_cargo_box_from_the_top_row():
+    """Without a cab, the front face is the cargo box's colour from row 0 down to the
+    lights (the body's noise painted over), the bumper below them."""
+    from flowmod.world.textures import vehicle_faces
+
+    front = vehicle_faces(np.random.default_rng(3), "vehicle.trailer", (2.5, 10.0, 3.5))["front"]
+    H = front.shape[0]
+    top = front[: int(H * 0.5)].reshape(-1, 3)
+    assert (top == top[0]).all(), "one colour from the top row to the lights"
+    assert (front[-1] == (28, 28, 30)).all()

@@ -67,15 +67,10 @@ def draw_quad(
     sid: int,
     shade: float,
     textured: bool,
-    normal_w: np.ndarray | None = None,
+    n_w: np.ndarray,
 ) -> None:
-    """Draw one quad given its world corners (4, 3) [p0, p1, p2, p3] with the z-test.
-
-    ``normal_w``: the outward normal (ev x eu), computed if not given.
-    """
-    eu_w = corners_w[1] - corners_w[0]
-    ev_w = corners_w[3] - corners_w[0]
-    n_w = _cross(ev_w, eu_w) if normal_w is None else normal_w
+    """Draw one quad given its world corners (4, 3) [p0, p1, p2, p3] and its outward normal
+    ``n_w`` (3,) (ev x eu, the caller's: it shades with it too) with the z-test."""
     if not q.double and float(n_w @ (fr.c - corners_w[0])) <= 0:
         return
     seen = _quad_in_view(fr, corners_w)
