@@ -846,6 +846,27 @@ def test_fl_all_thresholds_are_strict_and_use_the_true_magnitude():
     np.testing.assert_allclose(err[0], [3, 3.5, 5, 6, 4, 0])
 
 
+def test_box_bias_averages_the_error_over_each_box_before_its_length():
+    """Scatter inside a box cancels, a shift of the whole box does not; invalid pixels are
+    left out; boxes count alike whatever their size; no box with a valid pixel is NaN."""
+    gt = np.zeros((4, 6, 2), np.float32)
+    flow = gt.copy()
+    flow[0, 0], flow[0, 1] = (1.0, 0.0), (-1.0, 0.0)  # box A: scatter only, EPE 1
+    flow[2:4, 3:6] = (0.0, -2.0)  # box B (3 x 2 px): the whole vehicle shifted 2 px
+    flow[3, 5] = (50.0, 50.0)  # ... but this pixel is invalid
+    valid = np.ones((4, 6), bool)
+    valid[3, 5] = False
+    boxes = np.array([[0, 0, 1, 0], [3, 2, 5, 3]])
+    assert fl.box_bias(flow, gt, valid, boxes) == pytest.approx((0.0 + 2.0) / 2)
+    assert fl.box_bias(flow, gt, valid, boxes[:1]) == pytest.approx(0.0)
+    assert fl.epe(flow, gt, valid, fl.boxes_mask(boxes[:1], gt.shape)) == pytest.approx(1.0)
+    assert fl.box_bias(flow, gt, None, boxes[1:]) > 10  # the outlier counts when valid
+    flow[1, 0] = (0.0, 3.0)  # box A grown to two rows: (1 - 1 + 0 + 0, 3) / 4 px
+    assert fl.box_bias(flow, gt, valid, [[0, 0, 1, 1]]) == pytest.approx(0.75)
+    assert np.isnan(fl.box_bias(flow, gt, valid, [[5, 3, 5, 3]]))
+    assert np.isnan(fl.box_bias(flow, gt, valid, np.zeros((0, 4))))
+
+
 def test_flow_metrics_keys_masks_and_empty_selections():
     """``flow_metrics`` reports each metric under its name, the valid mask in every metric
     and the boxes in the box metrics; an empty selection is NaN without a warning."""
@@ -860,9 +881,10 @@ def test_flow_metrics_keys_masks_and_empty_selections():
     valid[3, 3] = False
     boxes = np.array([[1, 1, 2, 2], [3.2, 0.2, 3.4, 0.4]])  # 2x2 pixels; one with no pixel
     m = fl.flow_metrics(flow, gt, valid, boxes=boxes)
-    assert set(m) == {"epe", "fl_all", "epe_boxes", "fl_all_boxes"}
+    assert set(m) == {"epe", "fl_all", "epe_boxes", "fl_all_boxes", "bias_boxes"}
     assert m["epe"] == pytest.approx(14 / 15) and m["fl_all"] == pytest.approx(200 / 15)
     assert m["epe_boxes"] == pytest.approx(1.0) and m["fl_all_boxes"] == pytest.approx(25.0)
+    assert m["bias_boxes"] == pytest.approx(1.0)  # (0, 4) over the box's 4 pixels
     assert set(fl.flow_metrics(flow, gt)) == {"epe", "fl_all"}
     none = np.zeros((4, 4), bool)
     with warnings.catch_warnings():

@@ -13,6 +13,7 @@ stage of chapter 03).
 
 from flowmod.flow import estimators, networks  # noqa: F401  (register the methods)
 from flowmod.flow.metrics import (
+    box_bias,
     boxes_mask,
     endpoint_error,
     epe,
@@ -67,6 +68,7 @@ __all__ = [
     "check_images",
     "compute_flow",
     "flow_root",
+    "box_bias",
     "boxes_mask",
     "endpoint_error",
     "epe",

@@ -319,8 +319,9 @@ def pair_metrics(estimate: Callable[[np.ndarray, np.ndarray], np.ndarray], data:
 
 def mean_metrics(rows: list[dict[str, float]]) -> dict[str, float]:
     """The mean over pairs of :func:`pair_metrics`' rows: EPE (px) and Fl-all (%), overall
-    and inside the target vehicles' boxes; NaN without rows (no exact flow)."""
-    keys = ("epe", "epe_boxes", "fl_all", "fl_all_boxes")
+    and inside the target vehicles' boxes, and the boxes' mean-error length (px,
+    :func:`flowmod.flow.metrics.box_bias`); NaN without rows (no exact flow)."""
+    keys = ("epe", "epe_boxes", "fl_all", "fl_all_boxes", "bias_boxes")
     return {k: float(np.nanmean([r[k] for r in rows])) if rows else float("nan")
             for k in keys}
 
