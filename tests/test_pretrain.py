@@ -141,6 +141,54 @@ def test_box_weights_follow_the_window_and_the_loss_weighs_cells_by_them():
     assert parts_w["epe2"] == pytest.approx(parts["epe2"]), "the reported EPE is unweighted"
 
 
+def test_box_ids_follow_the_window_and_the_flip():
+    ids = pt.box_id_map(np.array([[10.0, 20.0, 14.0, 22.0], [12.0, 21.0, 13.0, 26.0]]),
+                        (8, 8), (18, 8))
+    assert (ids[2:4, 2:4] == 1).all() and (ids[3:8, 4:5] == 2).all(), "later boxes on top"
+    assert (ids[2, 4:6] == 1).all() and ids[2, 6] == 0 and (ids > 0).sum() == 8 + 5 - 1
+    b = pt.draw_batch(Pairs(), pt.Recipe(batch=16, crop=(64, 128), seed=2, focus_p=1.0,
+                                         box_weight=9.0, flip_p=0.5), 0)
+    assert b["box_id"].dtype == torch.int64
+    assert torch.equal(b["box_id"] == 1, b["weight"] == 10.0), "flipped with the weights"
+    assert ((b["box_id"] == 1).sum(dim=(1, 2, 3)) == 400).all()
+
+
+def test_box_mean_loss_is_the_length_of_each_box_s_mean_error():
+    """Scatter inside a box cancels; the mean is over valid pixels; every box of every
+    image counts once; without a box the loss is 0."""
+    gt, flow = torch.zeros(2, 2, 4, 4), torch.zeros(2, 2, 4, 4)
+    ids, valid = torch.zeros(2, 1, 4, 4, dtype=torch.int64), torch.ones(2, 1, 4, 4)
+    ids[0, 0, :2, :2] = 1  # image 0, box 1: scatter only (+3, -3, +3, -3 in u)
+    flow[0, 0, :2, :2] = torch.tensor([[3.0, -3.0], [3.0, -3.0]])
+    ids[0, 0, 2:, 2:] = 2  # image 0, box 2: shifted (0, 4), one pixel invalid and wrong
+    flow[0, 1, 2:, 2:] = 4.0
+    flow[0, 0, 3, 3], valid[0, 0, 3, 3] = 100.0, 0.0
+    ids[1, 0, 1:3, 1:3] = 1  # image 1, box 1: shifted (3, 0) over 4 px, (6, 0) on one
+    flow[1, 0, 1:3, 1:3] = torch.tensor([[3.0, 3.0], [3.0, 15.0]])
+    loss = pt.box_mean_loss(flow, gt, valid, ids)
+    assert float(loss) == pytest.approx((0.0 + 4.0 + 6.0) / 3, abs=1e-3)
+    flow[0, 0, 0, 0] = 7.0  # off the truth outside any box (id 0): not counted
+    ids[0, 0, 0, 0] = 0
+    assert float(pt.box_mean_loss(flow, gt, valid, ids)) == pytest.approx(
+        (1.0 + 4.0 + 6.0) / 3, abs=1e-3)
+    assert float(pt.box_mean_loss(flow, gt, valid, torch.zeros_like(ids))) == 0.0
+    one = torch.zeros(1, 2, 8, 8, requires_grad=True)
+    mask = torch.zeros(1, 1, 8, 8, dtype=torch.int64)
+    mask[..., 2:4, 2:4] = 1
+    pt.box_mean_loss(one, torch.ones(1, 2, 8, 8), torch.ones(1, 1, 8, 8), mask).backward()
+    assert (one.grad[..., 2:4, 2:4] < 0).all() and (one.grad[..., :2, :] == 0).all()
+
+
+def test_the_recipe_s_box_mean_weight_reaches_the_step_s_loss():
+    m, batch = FastFlowNet(), pt.draw_batch(Pairs(), pt.Recipe(batch=1, crop=(64, 128),
+                                                                focus_p=1.0), 0)
+    opt = torch.optim.SGD(m.parameters(), lr=0.0)
+    plain = pt.train_step(m, opt, batch, pt.Recipe(), 0)
+    heavy = pt.train_step(m, opt, batch, pt.Recipe(box_mean_weight=2.0), 0)
+    assert "box_mean" not in plain and heavy["box_mean"] > 1.0
+    assert heavy["loss"] == pytest.approx(plain["loss"] + 2.0 * heavy["box_mean"], rel=1e-5)
+
+
 def test_full_res_loss_scores_the_upsampled_flow_at_every_pixel():
     torch.manual_seed(0)
     coarse = torch.randn(1, 2, 16, 16)  # a level-2 output, px / 20
@@ -340,8 +388,12 @@ def test_shipped_weights_are_the_recorded_float16_file_of_the_current_schedule(m
     state = torch.load(w, map_location="cpu", weights_only=True)
     assert {v.dtype for v in state.values()} == {torch.float16}
     assert set(state) == set(FastFlowNet().state_dict())
-    assert manifest["schedule"] == json.loads(json.dumps([asdict(p) for p in pt.SCHEDULE])), (
+    # a recipe field added since (its default: what the phases did) is read at its default
+    made = [{**asdict(pt.Recipe()), **r} for r in manifest["schedule"]]
+    assert json.loads(json.dumps(made)) == json.loads(json.dumps(
+        [asdict(p) for p in pt.SCHEDULE])), (
         "the schedule changed since the weights were made: `make flownet` remakes them")
+    assert set(manifest["schedule"][0]) <= set(asdict(pt.Recipe())), "no field was dropped"
     assert manifest["steps"] == sum(p.steps for p in pt.SCHEDULE), "they end the schedule"
     assert manifest["world"]["fingerprint"] and len(manifest["world"]["fingerprint"]) == 64
     val = manifest["validation"]

@@ -141,6 +141,8 @@ class Recipe:
     ema: float = 0.0
     #: the phase starts from its predecessor's weights rounded to float16, as published
     init_float16: bool = False
+    #: weight of :func:`box_mean_loss`, the error of each far box's mean flow (0: none)
+    box_mean_weight: float = 0.0
 
     def world_params(self, dataroot: str) -> Any:
         """The :class:`flowmod.params.Params` of the pretraining world (sweeps everywhere)."""
@@ -230,6 +232,25 @@ def pyramid_loss(levels: Sequence[Tensor], gt: Tensor, valid: Tensor,
         if lvl == LEVELS[0]:
             parts["epe2"] = float((err * ok).sum().detach() / ok.sum().clamp(min=1.0))
     return loss, parts
+
+
+def box_mean_loss(flow: Tensor, gt: Tensor, valid: Tensor, box_id: Tensor) -> Tensor:
+    """The mean over the boxes in ``box_id`` (B, 1, H, W) int64, 0 outside any box, k > 0
+    inside the window's k-th) of the length (px) of the box's mean error: ``flow`` (B, 2,
+    H, W) px against ``gt`` averaged over the box's ``valid`` pixels (what
+    :func:`flowmod.flow.metrics.box_bias` measures). Zero without a box."""
+    B, _, H, W = gt.shape
+    k = int(box_id.max()) + 1
+    slot = (box_id + k * torch.arange(B, device=gt.device).view(B, 1, 1, 1)).view(-1)
+    keep = valid.view(-1) > 0
+    err = (flow - gt).permute(0, 2, 3, 1).reshape(-1, 2)[keep]
+    sums = gt.new_zeros(B * k, 2).index_add(0, slot[keep], err)
+    count = gt.new_zeros(B * k).index_add(0, slot[keep], gt.new_ones(int(keep.sum())))
+    used = (count > 0) & (torch.arange(B * k, device=gt.device) % k > 0)
+    if not bool(used.any()):
+        return gt.new_zeros(())
+    mean = sums[used] / count[used, None]
+    return torch.sqrt((mean ** 2).sum(1) + 1e-6).mean()
 
 
 # --- the pretraining world ------------------------------------------------------------------------
@@ -382,15 +403,29 @@ def box_weight_map(boxes: np.ndarray, size: tuple[int, int], origin: tuple[int, 
     return out
 
 
+def box_id_map(boxes: np.ndarray, size: tuple[int, int], origin: tuple[int, int]
+               ) -> np.ndarray:
+    """(h, w) int64 box numbers of a window at ``origin`` (y, x): k inside the k-th of
+    ``boxes`` (N, 4) px of the frame (a later box over an earlier one), 0 elsewhere; the
+    pixels :func:`box_weight_map` weights."""
+    out = np.zeros(size, np.int64)
+    for k, (x0, y0, x1, y1) in enumerate(boxes, start=1):
+        ys = slice(max(int(y0) - origin[0], 0), max(int(np.ceil(y1)) - origin[0], 0))
+        xs = slice(max(int(x0) - origin[1], 0), max(int(np.ceil(x1)) - origin[1], 0))
+        out[ys, xs] = k
+    return out
+
+
 def draw_batch(data: PairCache, recipe: Recipe, step: int) -> dict[str, Tensor]:
     """The batch of ``step``, drawn with ``(seed, step)``: pairs, one ``crop`` window each
     (holding one of the pair's far boxes with ``focus_p``) and a horizontal flip with
     ``flip_p`` (images mirrored, u negated). Tensors img1, img2 (B, 3, h, w) float BGR
-    [0, 255], gt (B, 2, h, w) px, valid (B, 1, h, w), weight (B, 1, h, w)."""
+    [0, 255], gt (B, 2, h, w) px, valid (B, 1, h, w), weight (B, 1, h, w) and box_id
+    (B, 1, h, w) int64 (:func:`box_id_map`)."""
     rng = np.random.default_rng([recipe.seed, step])
     ch, cw = recipe.crop
     out: dict[str, list[np.ndarray]] = {k: [] for k in ("img1", "img2", "gt", "valid",
-                                                        "weight")}
+                                                        "weight", "box_id")}
     for i in rng.integers(0, len(data.pairs), size=recipe.batch):
         d = data.load(int(i))
         h, w = d["img1"].shape[:2]
@@ -404,16 +439,18 @@ def draw_batch(data: PairCache, recipe: Recipe, step: int) -> dict[str, Tensor]:
         win = (slice(y, y + ch), slice(x, x + cw))
         a, b, gt, valid = d["img1"][win], d["img2"][win], d["flow"][win], d["valid"][win]
         wt = box_weight_map(d["boxes"], (ch, cw), (y, x), recipe.box_weight)
+        ids = box_id_map(d["boxes"], (ch, cw), (y, x))
         if rng.random() < recipe.flip_p:
-            a, b, valid, wt = a[:, ::-1], b[:, ::-1], valid[:, ::-1], wt[:, ::-1]
+            a, b, valid, wt, ids = a[:, ::-1], b[:, ::-1], valid[:, ::-1], wt[:, ::-1], ids[:, ::-1]
             gt = gt[:, ::-1] * np.array([-1.0, 1.0], np.float32)
         out["img1"].append(a.transpose(2, 0, 1))
         out["img2"].append(b.transpose(2, 0, 1))
         out["gt"].append(gt.transpose(2, 0, 1))
         out["valid"].append(valid[None])
         out["weight"].append(wt[None])
-    return {k: torch.from_numpy(np.ascontiguousarray(np.stack(v))).float()
-            for k, v in out.items()}
+        out["box_id"].append(ids[None])
+    return {k: torch.from_numpy(np.ascontiguousarray(np.stack(v))).to(
+        torch.int64 if k == "box_id" else torch.float32) for k, v in out.items()}
 
 
 # --- training ------------------------------------------------------------------------------------------
@@ -429,10 +466,15 @@ def train_step(model: FastFlowNet, opt: torch.optim.Optimizer, batch: dict[str, 
     for g in opt.param_groups:
         g["lr"] = learning_rate(recipe, step)
     x1, x2 = fastflownet_inputs(batch["img1"], batch["img2"])
-    loss, parts = pyramid_loss(model.levels(x1, x2), batch["gt"], batch["valid"],
-                               recipe.level_weights,
+    levels = model.levels(x1, x2)
+    loss, parts = pyramid_loss(levels, batch["gt"], batch["valid"], recipe.level_weights,
                                batch["weight"] if recipe.box_weight else None,
                                recipe.full_res)
+    if recipe.box_mean_weight:
+        up = FFN_DIV_FLOW * F.interpolate(levels[0], size=batch["gt"].shape[-2:],
+                                          mode="bilinear", align_corners=False)
+        box = box_mean_loss(up, batch["gt"], batch["valid"], batch["box_id"])
+        loss, parts["box_mean"] = loss + recipe.box_mean_weight * box, float(box.detach())
     opt.zero_grad(set_to_none=True)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(model.parameters(), recipe.clip)
