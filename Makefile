@@ -24,7 +24,7 @@ LAB_KERNELS ?= $(VENV)
 
 RUN_SET    := $(if $(DATAROOT),--set dataroot=$(DATAROOT)) $(foreach s,$(SET),--set $(s))
 
-.PHONY: help env data run status gc book extensions selfflow test bench lint clean browser weights lab mutation flownet replicate
+.PHONY: help env data run status gc book extensions selfflow test bench lint clean browser weights lab mutation flownet flownet-finetune replicate
 
 help:  ## list the targets
 	@echo "flowmod: optical-flow motion detection, reproduced"
@@ -116,6 +116,9 @@ replicate: env  ## the whole study again on a world drawn with another master se
 
 flownet: env  ## train the shipped FastFlowNet weights from scratch (weights/fastflownet_synth; hours on 2 CPU cores, resumable; FROM_SHIPPED=1 trains only the phases the published file lacks)
 	$(PY) -m flowmod.flow.pretrain $(if $(STEPS),--steps $(STEPS)) $(if $(FROM_SHIPPED),--from-shipped)
+
+flownet-finetune: env  ## chapter 13's answer used once: the shipped FastFlowNet fine-tuned on each far box's mean-flow error, against a control without the term, scored on the pretraining world's validation pairs (about 40 min on 2 CPU cores, resumable; runs/finetune/finetune.json)
+	$(PY) -m flowmod.flow.finetune
 
 bench: env  ## throughput and memory figures into benchmarks/results/ (never asserted)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b; done
