@@ -108,8 +108,8 @@ lab: env  ## JupyterLab on notebooks/ with the venv's kernel: run a chapter cell
 	JUPYTER_PATH=$(abspath $(LAB_KERNELS))/share/jupyter $(VENV)/bin/jupyter lab --notebook-dir=notebooks \
 	  --no-browser --ip=127.0.0.1 --port=$(LAB_PORT) $(if $(filter 0,$(shell id -u)),--allow-root)
 
-mutation: env  ## mutation testing of the modules whose numbers reach the book, one at a time (mutmut; PART=k runs part k, each within 45 min, PART=plan lists them; MODULES="flowmod.train ..." runs those; SAMPLE=n a seeded draw of n mutants of each, scored with its interval; not part of make test)
-	$(PY) benchmarks/mutation.py $(if $(PART),--part $(PART)) $(if $(SAMPLE),--sample $(SAMPLE)) $(MODULES)
+mutation: env  ## mutation testing of the modules whose numbers reach the book, one at a time (mutmut; PART=k runs part k, each within 45 min, PART=plan lists them; MODULES="flowmod.train ..." runs those; SAMPLE=n a seeded draw of n mutants of each, scored with its interval, SAMPLE_SEED=s another draw; not part of make test)
+	$(PY) benchmarks/mutation.py $(if $(PART),--part $(PART)) $(if $(SAMPLE),--sample $(SAMPLE)) $(if $(SAMPLE_SEED),--seed $(SAMPLE_SEED)) $(MODULES)
 
 replicate: env  ## the whole study again on a world drawn with another master seed (REPLICATE_SEED=), its effects beside the book's in benchmarks/replication.json, which chapter 14 shows (demo: about the cold book's time again; resumable)
 	$(PY) -m flowmod.replicate --profile $(PROFILE) $(if $(REPLICATE_SEED),--seed $(REPLICATE_SEED)) $(RUN_SET)

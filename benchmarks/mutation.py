@@ -94,17 +94,18 @@ VERDICTS = ROOT / "benchmarks" / "mutation_verdicts.json"
 TIMES = ROOT / "benchmarks" / "results" / "mutation_times.json"
 
 
-#: ``{module or chunk: {"n": drawn, "of": mutants, "seed": SAMPLE_SEED, "names": [...],
+#: ``{module or chunk: {"n": drawn, "of": mutants, "seed": its seed, "names": [...],
 #: "run_seconds": s}}`` of each ``--sample`` draw (``run_seconds``: the one run of them all).
 SAMPLES = ROOT / "benchmarks" / "results" / "mutation_samples.json"
 #: Seed of ``--sample``'s draws (each also seeded by its module's or chunk's name).
 SAMPLE_SEED = 0
 
 
-def draw(names: list[str], n: int, key: str) -> list[str]:
+def draw(names: list[str], n: int, key: str, seed: int = SAMPLE_SEED) -> list[str]:
     """``n`` of ``names`` (all if fewer) drawn without replacement, the same for the same
-    names, ``n``, ``key`` and :data:`SAMPLE_SEED`; sorted."""
-    rng = random.Random(f"{SAMPLE_SEED}:{key}")
+    names, ``n``, ``key`` and ``seed`` (``--seed``; a larger ``n`` with the same seed draws
+    mostly the same mutants again: a fresh draw needs another seed); sorted."""
+    rng = random.Random(f"{seed}:{key}")
     return sorted(rng.sample(sorted(names), min(n, len(names))))
 
 
@@ -395,8 +396,8 @@ def item_finished(item: dict[str, Any], rows: dict[str, str]) -> bool:
     return bool(mine) and "not checked" not in mine
 
 
-def run_samples(items: list[dict[str, Any]], n: int, samples: dict[str, dict[str, Any]]
-                ) -> int:
+def run_samples(items: list[dict[str, Any]], n: int, samples: dict[str, dict[str, Any]],
+                seed: int = SAMPLE_SEED) -> int:
     """``--sample n``: a draw of ``n`` of each item's mutants (:func:`draw`), all run by one
     ``mutmut run`` (mutmut runs the whole quick suite once before each run, minutes), each
     draw recorded in :data:`SAMPLES` with that run's seconds; the exit code (0 when every
@@ -405,7 +406,7 @@ def run_samples(items: list[dict[str, Any]], n: int, samples: dict[str, dict[str
     for item in items:
         names = [k for k in module_mutants(item["module"])
                  if any(fnmatch.fnmatchcase(k, p) for p in item["patterns"])]
-        picks[item["name"]] = (draw(names, n, item["name"]), len(names))
+        picks[item["name"]] = (draw(names, n, item["name"], seed), len(names))
         print(f"mutation: {item['name']}: {len(picks[item['name']][0])} of its {len(names)} "
               "mutants drawn", flush=True)
     code, seconds = run_patterns([k for picked, _ in picks.values() for k in picked])
@@ -419,7 +420,7 @@ def run_samples(items: list[dict[str, Any]], n: int, samples: dict[str, dict[str
               f"({', '.join(left)}; run it again)", file=sys.stderr)
         return 1
     for name, (picked, of) in picks.items():
-        samples[name] = {"n": len(picked), "of": of, "seed": SAMPLE_SEED,
+        samples[name] = {"n": len(picked), "of": of, "seed": seed,
                          "run_seconds": round(seconds, 1), "commit": commit(),
                          "names": picked}
     write_json(SAMPLES, samples)
@@ -427,9 +428,9 @@ def run_samples(items: list[dict[str, Any]], n: int, samples: dict[str, dict[str
 
 
 #: The options :func:`main` takes (anything else that starts with ``-`` is refused).
-OPTIONS = ("--part", "--sample", "--report-only")
-USAGE = ("usage: benchmarks/mutation.py [--part k|plan] [--sample n] [--report-only] "
-         "[module ...] (make mutation PART= SAMPLE= MODULES=)")
+OPTIONS = ("--part", "--sample", "--seed", "--report-only")
+USAGE = ("usage: benchmarks/mutation.py [--part k|plan] [--sample n [--seed s]] "
+         "[--report-only] [module ...] (make mutation PART= SAMPLE= SAMPLE_SEED= MODULES=)")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -442,7 +443,7 @@ def main(argv: list[str] | None = None) -> int:
     if {"-h", "--help"} & set(args):
         print(USAGE)
         return 0
-    values = {i + 1 for i, a in enumerate(args) if a in ("--part", "--sample")}
+    values = {i + 1 for i, a in enumerate(args) if a in ("--part", "--sample", "--seed")}
     flags = [a for i, a in enumerate(args)
              if a.startswith("-") and a not in OPTIONS and i not in values]
     if flags:  # before any run: an unknown flag once started every module (hours)
@@ -451,11 +452,16 @@ def main(argv: list[str] | None = None) -> int:
     partial = "--report-only" in args
     part = args[args.index("--part") + 1] if "--part" in args else None
     size = args[args.index("--sample") + 1] if "--sample" in args else None
+    seed = args[args.index("--seed") + 1] if "--seed" in args else str(SAMPLE_SEED)
+    if "--seed" in args and (not seed.isdigit() or size is None):
+        print(f"mutation: --seed {seed}: give a whole number, with --sample (SAMPLE=6 "
+              "SAMPLE_SEED=1)", file=sys.stderr)
+        return 2
     if size is not None and not (size.isdigit() and int(size) > 0):
         print(f"mutation: --sample {size}: give a number of mutants, at least 1 (SAMPLE=100)",
               file=sys.stderr)
         return 2
-    chosen = [a for a in args if not a.startswith("--") and a not in (part, size)] \
+    chosen = [a for a in args if not a.startswith("--") and a not in (part, size, seed)] \
         or list(MODULES)
     unknown = sorted(set(chosen) - set(MODULES))
     if unknown:
@@ -476,7 +482,7 @@ def main(argv: list[str] | None = None) -> int:
     times = json.loads(TIMES.read_text()) if TIMES.is_file() else {}
     samples = json.loads(SAMPLES.read_text()) if SAMPLES.is_file() else {}
     if size is not None and not partial:
-        code = run_samples(items, int(size), samples)
+        code = run_samples(items, int(size), samples, int(seed))
         if code:
             return code
     for item in ([] if partial or size is not None else items):

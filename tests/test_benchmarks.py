@@ -222,6 +222,18 @@ def test_a_sample_draw_is_seeded_by_its_item_and_recorded(tmp_path, monkeypatch,
     for bad in ("0", "x", "-1"):  # a negative value is the option's, not an unknown option
         assert mutation.main(["--sample", bad, "flowmod.labels"]) == 2
         assert f"--sample {bad}: give a number of mutants" in capsys.readouterr().err
+    # another seed: another draw, recorded with its seed
+    fresh = mutation.draw(names, 10, "flowmod.labels", seed=1)
+    assert fresh != one and len(set(fresh) - set(one)) >= 5
+    again: dict = {}
+    assert mutation.run_samples([item], 5, again, seed=1) == 0
+    assert again["flowmod.labels"]["seed"] == 1
+    assert again["flowmod.labels"]["names"] == mutation.draw(
+        [n for n in names if fnmatch.fnmatchcase(n, item["patterns"][0])], 5, "flowmod.labels",
+        seed=1)
+    for bad in (["--seed", "x", "--sample", "3"], ["--seed", "1"]):
+        assert mutation.main([*bad, "flowmod.labels"]) == 2
+        assert "--seed" in capsys.readouterr().err
 
 
 def test_the_mutation_report_s_commit_ignores_the_report_it_rewrites(tmp_path, monkeypatch):
