@@ -72,3 +72,4 @@ def test_adopted_only_below_both_references_and_without_a_worse_box_epe():
     d = within["differences"]
     assert d["bias_vs_control"]["mean"] == pytest.approx(np.mean(low) - 0.8)
     assert d["control_bias_vs_shipped"]["mean"] == pytest.approx(-0.1)
+    assert d["control_epe_boxes_vs_shipped"] == {"mean": 0.0, "lo": 0.0, "hi": 0.0}

@@ -75,7 +75,9 @@ def decide(rows: dict[str, list[dict[str, float]]], scenes: list[str]) -> dict[s
          "epe_boxes_vs_shipped": paired(rows["box_mean"], rows["shipped"], scenes,
                                         "epe_boxes"),
          "control_bias_vs_shipped": paired(rows["control"], rows["shipped"], scenes,
-                                           "bias_boxes")}
+                                           "bias_boxes"),
+         "control_epe_boxes_vs_shipped": paired(rows["control"], rows["shipped"], scenes,
+                                                "epe_boxes")}
     adopt = (d["bias_vs_control"]["hi"] < 0 and d["bias_vs_shipped"]["hi"] < 0
              and d["epe_boxes_vs_shipped"]["hi"] <= EPE_TOLERANCE)
     return {"differences": d, "adopt": bool(adopt)}
@@ -98,8 +100,10 @@ def run(dataroot: Path, work: Path, shipped: Path, progress: bool = True) -> dic
 
     recipes, t0 = arms(), time.time()
     init = pt.load_half(shipped / WEIGHTS_NAME).state_dict()
+    # the validation pairs of the manifest (drawn with the first phase's seed); every
+    # phase's data is read at its own scale (phase_data)
     last = pt.SCHEDULE[-1]
-    world_fp, data, heldout = pt.prepare(last, dataroot, work, progress)
+    world_fp, data, heldout = pt.prepare(pt.SCHEDULE[0], dataroot, work, progress)
     states = {"shipped": init}
     for name, recipe in recipes.items():
         model, _ = pt.train(recipe, pt.phase_data(data, recipe), work / name, recipe.steps,
@@ -110,7 +114,7 @@ def run(dataroot: Path, work: Path, shipped: Path, progress: bool = True) -> dic
             "shipped_sha256": file_digest(shipped / WEIGHTS_NAME),
             "world": {"fingerprint": world_fp, "shipped_on": json.loads(
                 (shipped / MANIFEST_NAME).read_text())["world"]["fingerprint"]},
-            "validation": {"pairs": len(heldout.img1), "scenes": sorted(set(heldout.scenes)),
+            "validation": {"pairs": len(heldout.img1), "pair_scenes": list(heldout.scenes),
                            "means": {k: mean_metrics(v) for k, v in rows.items()},
                            "rows": rows},
             "decision": decide(rows, heldout.scenes),
