@@ -117,7 +117,7 @@ replicate: env  ## the whole study again on a world drawn with another master se
 flownet: env  ## train the shipped FastFlowNet weights from scratch (weights/fastflownet_synth; hours on 2 CPU cores, resumable; FROM_SHIPPED=1 trains only the phases the published file lacks)
 	$(PY) -m flowmod.flow.pretrain $(if $(STEPS),--steps $(STEPS)) $(if $(FROM_SHIPPED),--from-shipped)
 
-flownet-finetune: env  ## chapter 13's answer used once: the shipped FastFlowNet fine-tuned on each far box's mean-flow error, against a control without the term, scored on the pretraining world's validation pairs (about 40 min on 2 CPU cores, resumable; runs/finetune/finetune.json)
+flownet-finetune: env  ## chapter 13's answer used once: the shipped FastFlowNet fine-tuned on each far box's mean-flow error, against a control without the term, scored on the pretraining world's validation pairs (about 45 min on 2 CPU cores, resumable; the record benchmarks/finetune.json, which chapter 13 shows)
 	$(PY) -m flowmod.flow.finetune
 
 bench: env  ## throughput and memory figures into benchmarks/results/ (never asserted)

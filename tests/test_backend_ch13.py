@@ -677,3 +677,51 @@ def test_the_constants_the_chapter_reads():
     assert ch.COMPONENTS == {"scatter": "noise", "lost": "pull", "bias": "scale",
                              "epe_ring": "ring"}
     assert ch.MOTION_KINDS == {"pull"}
+
+
+# --- the fine-tune's record (benchmarks/finetune.json) ------------------------------------------
+
+
+def _finetune_record(adopt: bool, vs_control: tuple[float, float, float]) -> dict:
+    diff = {"mean": 0.06, "lo": 0.041, "hi": 0.078}
+    mean, lo, hi = vs_control
+    means = {k: {"bias_boxes": b, "epe_boxes": e, "epe": 18.0}
+             for k, b, e in (("shipped", 0.8, 1.4), ("control", 0.7, 1.3), ("box_mean", 0.6, 1.5))}
+    return {"recipes": {"box_mean": {"steps": 800, "box_mean_weight": 4.0}},
+            "validation": {"means": means, "pair_scenes": ["a", "b", "a", "c"]},
+            "decision": {"adopt": adopt, "differences": {
+                "bias_vs_control": {"mean": mean, "lo": lo, "hi": hi},
+                "epe_boxes_vs_shipped": diff}}}
+
+
+def test_the_finetune_words_give_the_outcome_the_two_differences_and_their_reading():
+    assert ch.finetune_words(None).startswith("No fine-tune is recorded yet (`make flownet-")
+    held = ch.finetune_words(_finetune_record(False, (0.004, -0.048, 0.063)))
+    assert "(800 steps, the term weighted 4) was not adopted (the shipped weights" in held
+    assert "mean box bias by +0.004 px (-0.048 to +0.063)" in held
+    assert "box end-point error by +0.060 px (+0.041 to +0.078)" in held
+    assert "over the 3 validation scenes" in held
+    assert held.endswith("did not lower the bias this chapter prices beyond what the same "
+                         "training does without it")
+    won = ch.finetune_words(_finetune_record(True, (-0.1, -0.2, -0.01)))
+    assert " was adopted: against" in won and won.endswith("beyond what the same training "
+                                                           "does without it")
+    assert "lowered the bias" in won
+    worse = ch.finetune_words(_finetune_record(False, (0.1, 0.01, 0.2)))
+    assert worse.endswith("The term raised the bias against the same training without it")
+
+
+def test_the_finetune_table_lists_each_weights_scores_in_order():
+    t = ch.finetune_table(_finetune_record(False, (0.0, -1.0, 1.0)))
+    assert t["weights"].tolist() == list(ch.FINETUNE_ARMS.values())
+    assert t["box bias (px)"].tolist() == [0.8, 0.7, 0.6]
+    assert t["box EPE (px)"].tolist() == [1.4, 1.3, 1.5] and (t["EPE (px)"] == 18.0).all()
+
+
+def test_the_committed_finetune_record_is_chapter_13_s_input():
+    from flowmod import runner
+    from flowmod.flow.finetune import FINETUNE_RECORD
+
+    assert runner.RECORDS["13"] == (FINETUNE_RECORD,)
+    record = ch.finetune_record()
+    assert record is not None and set(record["validation"]["means"]) == set(ch.FINETUNE_ARMS)

@@ -44,6 +44,7 @@ from flowmod import codedigest, environment, pipeline, progress
 from flowmod.artefacts import DiskFull, atomic_path, disk_full, fingerprint, write_json
 from flowmod.chapters.ch06_training import ABLATION_RECORD, STEPS_RECORD
 from flowmod.chapters.ch14_answers import REPLICATION_RECORD
+from flowmod.flow.finetune import FINETUNE_RECORD
 from flowmod.flow.networks import planned_methods
 from flowmod.lock import FolderBusy, folder_lock
 from flowmod.params import Params, ProfileError, load_profile, parse_overrides, profile_path
@@ -162,7 +163,8 @@ def code_digest() -> str:
 
 #: Committed records that chapters show (dated benchmark runs), by chapter: their content
 #: enters that chapter's fingerprint, so a new record re-executes it instead of reusing a copy.
-RECORDS = {"06": (ABLATION_RECORD, STEPS_RECORD), "14": (REPLICATION_RECORD,)}
+RECORDS = {"06": (ABLATION_RECORD, STEPS_RECORD), "13": (FINETUNE_RECORD,),
+           "14": (REPLICATION_RECORD,)}
 
 
 def records_digest(chapter: str) -> dict[str, str | None]:

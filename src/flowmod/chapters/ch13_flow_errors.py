@@ -30,8 +30,10 @@ from flowmod.extensions.flowerrors import (
     read_arm,
     read_levels,
 )
+from flowmod.flow.finetune import FINETUNE_RECORD
 from flowmod.metrics import interval, scene_bootstrap
 from flowmod.params import Params
+from flowmod.paths import repo_root
 
 #: Each kind of error in words (the chapter's tables and sentences).
 KIND_WORDS = {
@@ -369,3 +371,63 @@ def profile_view(prof: pd.DataFrame, pred: pd.DataFrame) -> pd.DataFrame:
     out["priced as noise (points)"] = pred["by end-point error"].to_numpy()
     out["priced by profile (points)"] = pred["by profile"].to_numpy()
     return out.drop(columns=["measured", "measured_lo", "measured_hi"])
+
+
+# --- the answer used once: a FastFlowNet fine-tune (benchmarks/finetune.json) ---------------
+
+#: The fine-tune's weights in the record, in the chapter's words.
+FINETUNE_ARMS = {"shipped": "the shipped weights",
+                 "control": "control: the same steps without the term",
+                 "box_mean": "fine-tuned on the box-mean error"}
+
+
+def finetune_record() -> dict[str, Any] | None:
+    """The committed record of ``make flownet-finetune`` (:mod:`flowmod.flow.finetune`), or
+    None where none is committed."""
+    import json
+
+    f = repo_root() / FINETUNE_RECORD
+    return json.loads(f.read_text()) if f.is_file() else None
+
+
+def finetune_table(record: dict[str, Any]) -> pd.DataFrame:
+    """Each weights' mean validation scores on the pretraining world's pairs: box bias and
+    box end-point error (px), frame end-point error (px)."""
+    means = record["validation"]["means"]
+    return pd.DataFrame([{"weights": FINETUNE_ARMS[k], "box bias (px)": means[k]["bias_boxes"],
+                          "box EPE (px)": means[k]["epe_boxes"], "EPE (px)": means[k]["epe"]}
+                         for k in FINETUNE_ARMS if k in means])
+
+
+def _signed(d: dict[str, float], unit: str = "px") -> str:
+    return f"{d['mean']:+.3f} {unit} ({d['lo']:+.3f} to {d['hi']:+.3f})"
+
+
+def finetune_words(record: dict[str, Any] | None) -> str:
+    """The fine-tune's outcome in one sentence: adopted or not, the term's effect on the
+    mean box bias against the control and on the box end-point error against the shipped
+    weights, with their intervals over the validation scenes."""
+    if record is None:
+        return ("No fine-tune is recorded yet (`make flownet-finetune` writes "
+                f"`{FINETUNE_RECORD}`)")
+    d, box = record["decision"]["differences"], record["recipes"]["box_mean"]
+    scenes = len(set(record["validation"]["pair_scenes"]))
+    outcome = ("was adopted" if record["decision"]["adopt"]
+               else "was not adopted (the shipped weights stay the default)")
+    return (f"A fine-tune of the shipped FastFlowNet with a loss on each far box's mean error "
+            f"({box['steps']} steps, the term weighted {box['box_mean_weight']:g}) {outcome}: "
+            f"against a control trained the same steps without the term, it changed the "
+            f"mean box bias by {_signed(d['bias_vs_control'])}, and against the shipped "
+            f"weights the box end-point error by {_signed(d['epe_boxes_vs_shipped'])}; 95 % "
+            f"intervals over the {scenes} validation scenes of the pretraining world, "
+            f"none of the book's{_finetune_reading(d['bias_vs_control'])}")
+
+
+def _finetune_reading(d: dict[str, float]) -> str:
+    """What the term's effect on the box bias against the control says, by its interval."""
+    if d["hi"] < 0:
+        return ". The term lowered the bias beyond what the same training does without it"
+    if d["lo"] > 0:
+        return ". The term raised the bias against the same training without it"
+    return (". A loss on the box's mean flow, on its own, did not lower the bias this chapter "
+            "prices beyond what the same training does without it")

@@ -16,8 +16,8 @@ box bias (:func:`flowmod.flow.metrics.box_bias`, px) is lower than the control's
 shipped weights', each paired difference's 95 % interval over validation scenes below 0,
 and its end-point error in the boxes no worse than the shipped weights' (interval upper end
 <= 0.05 px). ``python -m flowmod.flow.finetune`` (``make flownet-finetune``) trains both arms
-(resumable), scores them and writes ``<work>/finetune.json``; ``benchmarks/flownet.md``
-reports it.
+(resumable), scores them and writes :data:`FINETUNE_RECORD`, which chapter 13 shows;
+``benchmarks/flownet.md`` reports the run.
 """
 
 from __future__ import annotations
@@ -37,6 +37,8 @@ from flowmod.flowweights import MANIFEST_NAME, WEIGHTS_NAME
 from flowmod.metrics import group_mean_bootstrap, interval
 from flowmod.paths import repo_root
 
+#: The committed record of the last run (chapter 13 shows it), relative to the repository.
+FINETUNE_RECORD = "benchmarks/finetune.json"
 #: Steps of each arm (about 0.9 s a step on 2 cores: both arms in about half an hour).
 STEPS = 800
 #: The fine-tune's term weight (px of box-mean error against the pyramid loss, about 2 px
@@ -131,17 +133,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dataroot", type=Path, default=repo_root() / "data" / "pretrain")
     ap.add_argument("--work", type=Path, default=repo_root() / "runs" / "finetune")
     ap.add_argument("--shipped", type=Path, default=repo_root() / WEIGHTS_DIR)
+    ap.add_argument("--record", type=Path, default=repo_root() / FINETUNE_RECORD,
+                    help="where the record goes (chapter 13 shows the default's)")
     args = ap.parse_args(argv)
     if not (args.shipped / WEIGHTS_NAME).is_file():
         raise SystemExit(f"no weights in {args.shipped}: give --shipped the folder of a "
                          "weights.pt and its manifest.json")
     record = run(args.dataroot.resolve(), args.work, args.shipped)
-    write_json(args.work / "finetune.json", record)
+    write_json(args.record, record)
     means = record["validation"]["means"]
     for k, m in means.items():
         print(f"[finetune] {k}: box bias {m['bias_boxes']:.3f} px, box EPE "
               f"{m['epe_boxes']:.3f} px, EPE {m['epe']:.2f} px", flush=True)
-    print(f"[finetune] adopt: {record['decision']['adopt']} ({args.work / 'finetune.json'})")
+    print(f"[finetune] adopt: {record['decision']['adopt']} ({args.record})")
     return 0
 
 
