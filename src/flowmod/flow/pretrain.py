@@ -391,29 +391,24 @@ def window_origin(rng: np.random.Generator, size: tuple[int, int], crop: tuple[i
     return int(rng.integers(lo[0], hi[0] + 1)), int(rng.integers(lo[1], hi[1] + 1))
 
 
-def box_weight_map(boxes: np.ndarray, size: tuple[int, int], origin: tuple[int, int],
-                   weight: float) -> np.ndarray:
-    """(h, w) float32 loss weights of a window at ``origin`` (y, x): 1, plus ``weight``
-    inside ``boxes`` (N, 4) px of the frame."""
-    out = np.ones(size, np.float32)
-    for x0, y0, x1, y1 in boxes:
-        ys = slice(max(int(y0) - origin[0], 0), max(int(np.ceil(y1)) - origin[0], 0))
-        xs = slice(max(int(x0) - origin[1], 0), max(int(np.ceil(x1)) - origin[1], 0))
-        out[ys, xs] = 1.0 + weight
-    return out
-
-
 def box_id_map(boxes: np.ndarray, size: tuple[int, int], origin: tuple[int, int]
                ) -> np.ndarray:
     """(h, w) int64 box numbers of a window at ``origin`` (y, x): k inside the k-th of
-    ``boxes`` (N, 4) px of the frame (a later box over an earlier one), 0 elsewhere; the
-    pixels :func:`box_weight_map` weights."""
+    ``boxes`` (N, 4) px of the frame (a later box over an earlier one), 0 elsewhere."""
     out = np.zeros(size, np.int64)
     for k, (x0, y0, x1, y1) in enumerate(boxes, start=1):
         ys = slice(max(int(y0) - origin[0], 0), max(int(np.ceil(y1)) - origin[0], 0))
         xs = slice(max(int(x0) - origin[1], 0), max(int(np.ceil(x1)) - origin[1], 0))
         out[ys, xs] = k
     return out
+
+
+def box_weight_map(boxes: np.ndarray, size: tuple[int, int], origin: tuple[int, int],
+                   weight: float) -> np.ndarray:
+    """(h, w) float32 loss weights of a window at ``origin`` (y, x): 1, plus ``weight``
+    inside ``boxes`` (N, 4) px of the frame (the pixels of :func:`box_id_map`)."""
+    inside = box_id_map(boxes, size, origin) > 0
+    return np.where(inside, np.float32(1.0 + weight), np.float32(1.0)).astype(np.float32)
 
 
 def draw_batch(data: PairCache, recipe: Recipe, step: int) -> dict[str, Tensor]:
