@@ -48,10 +48,11 @@ TINY = dict(device="cpu", flow_scale=SCALE, selfflow_iters=2, selfflow_batch=1,
             selfflow_eval_every=0)
 #: The reference methods, in the order the nodes list them.
 REFERENCES = ["zero flow", "farneback", "dis (medium)"]
-METRICS = ["epe", "epe_boxes", "fl_all", "fl_all_boxes"]
+METRICS = ["epe", "epe_boxes", "fl_all", "fl_all_boxes", "bias_boxes"]
 #: The files a selfflow node publishes, and the columns of its history per mode.
 FILES = ["eval.json", "history.csv", "weights.pt"]
-VAL = ["val_seconds_per_pair", "val_epe", "val_epe_boxes", "val_fl_all", "val_fl_all_boxes"]
+VAL = ["val_seconds_per_pair", "val_epe", "val_epe_boxes", "val_fl_all", "val_fl_all_boxes",
+       "val_bias_boxes"]
 PHOTO = ["loss", "photometric", "smoothness", "warm-up", "seconds"]
 
 
