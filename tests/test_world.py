@@ -712,3 +712,46 @@ def test_a_trailer_s_front_is_its_cargo_box_from_the_top_row():
     top = front[: int(H * 0.5)].reshape(-1, 3)
     assert (top == top[0]).all(), "one colour from the top row to the lights"
     assert (front[-1] == (28, 28, 30)).all()
+
+
+@pytest.mark.parametrize(("sizes", "words"), [
+    ((0, 2, 0, 1), "n_scenes=0 must be >= 1"),
+    ((1, 1, 0, 1), "n_keyframes=1 must be >= 2"),
+    ((1, 2, 0, 0), "vehicles_per_scene=0 must be >= 1"),
+    ((1, 2, -1, 1), "n_sweep_scenes=-1 must be >= 0"),
+    ((2, 2, 3, 1), "n_sweep_scenes=3 must be <= n_scenes=2"),
+])
+def test_world_sizes_are_refused_by_name(sizes, words):
+    """Each size below its floor, and more sweep scenes than scenes, is one error naming
+    the size; sweeps in every scene (the pretraining world's) are allowed."""
+    from flowmod.world import dataset
+
+    with pytest.raises(world.WorldError, match=f"^{words}$"):
+        dataset._check_sizes(*sizes)
+    dataset._check_sizes(3, 2, 3, 1)
+
+
+def test_buildings_hedges_and_walls_can_hide_an_agent_outside_the_image():
+    from flowmod.world.records import _static_occluders
+
+    kinds = ["building", "hedge", "wall", "tree", "pole", "parked"]
+    scene = {"statics": [{"kind": k, "c": [float(i), 0.0, 0.0], "yaw": 0.1 * i,
+                          "size": [1.0, 2.0, 3.0]} for i, k in enumerate(kinds)]}
+    got = _static_occluders(scene)
+    assert [float(c[0]) for c, _, _ in got] == [0.0, 1.0, 2.0]
+    assert [yaw for _, yaw, _ in got] == [0.0, 0.1, 0.2] and got[0][2] == (1.0, 2.0, 3.0)
+
+
+def test_an_occluder_hides_a_target_at_the_camera_s_own_height():
+    """Rays parallel to a box's slab (no height change: the z step is exactly 0) still hit
+    it when they pass at its height, wherever along the ray it stands; a ray above it does
+    not."""
+    cam = np.array([0.0, 0.0, 1.0])
+    target = np.array([[10.0, 0.0, 1.0]])
+    for x in (2.0, 5.0, 8.0):  # the box's centre along the ray: t = 0.1 .. 0.9 of the way
+        box = (np.array([x, 0.0, 1.0]), 0.0, (2.0, 1.0, 0.4))  # (w, l, h) m, 0.4 m tall
+        assert wr.ray_visibility(cam, target, [box]) == 0.0, x
+    above = np.array([[10.0, 0.0, 1.5]])
+    low = (np.array([8.0, 0.0, 0.5]), 0.0, (2.0, 1.0, 0.4))
+    assert wr.ray_visibility(cam, above, [low]) == 1.0
+    assert wr.ray_visibility(cam, target, []) == 1.0
