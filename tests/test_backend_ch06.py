@@ -20,6 +20,7 @@ import pytest
 from flowmod import pipeline
 from flowmod.artefacts import write_manifest
 from flowmod.chapters import ch06_training as ch06
+from flowmod.chapters import common
 from flowmod.dag import Node
 from flowmod.params import load_profile
 from flowmod.paths import repo_root
@@ -240,7 +241,7 @@ def test_steps_record_is_the_committed_json_or_none(monkeypatch, tmp_path):
     if not path.is_file():
         pytest.skip("no ablation_steps.json committed")
     assert ch06.steps_record() == json.loads(path.read_text())
-    monkeypatch.setattr(ch06, "repo_root", lambda: tmp_path)
+    monkeypatch.setattr(common, "repo_root", lambda: tmp_path)  # where records are read
     assert ch06.steps_record() is None
     (tmp_path / "benchmarks").mkdir()
     (tmp_path / "benchmarks" / "ablation_steps.json").write_text('{"effects": []}')

@@ -24,6 +24,7 @@ from flowmod.chapters import ch07_evaluation as ch07
 from flowmod.chapters import ch10_inputs as ch10
 from flowmod.chapters import ch11_all_distances as ch11
 from flowmod.chapters import ch14_answers as ch
+from flowmod.chapters import common
 from flowmod.extensions.inputs import chains
 from flowmod.params import load_profile
 
@@ -282,7 +283,7 @@ def test_the_replication_paragraph_word_for_word():
 def test_the_record_is_read_from_the_repository_or_is_none(tmp_path, monkeypatch):
     """The record is ``benchmarks/replication.json`` under the repository root, read as
     JSON; None where there is none."""
-    monkeypatch.setattr(ch, "repo_root", lambda: tmp_path)
+    monkeypatch.setattr(common, "repo_root", lambda: tmp_path)  # where records are read
     assert ch.replication_record() is None
     (tmp_path / "benchmarks").mkdir()
     rec = {**RECORD, "effects": RECORD["effects"][:2]}

@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 
 from flowmod import pipeline
+from flowmod.chapters.common import committed_record
 from flowmod.dag import Node
 from flowmod.params import Params
 from flowmod.paths import repo_root
@@ -130,8 +131,7 @@ STEPS_RECORD = "benchmarks/ablation_steps.json"
 
 def steps_record() -> dict[str, Any] | None:
     """The committed record of the ablation's other steps, or None where there is none."""
-    path = repo_root() / STEPS_RECORD
-    return json.loads(path.read_text()) if path.is_file() else None
+    return committed_record(STEPS_RECORD)
 
 
 def steps_table(record: dict[str, Any]) -> pd.DataFrame:

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from flowmod import pipeline
-from flowmod.chapters.common import comparison_table, results
+from flowmod.chapters.common import committed_record, comparison_table, results
 from flowmod.crops import BOX_COLUMNS, read_crops
 from flowmod.dag import Node
 from flowmod.evaluate import paired, seed_probs
@@ -33,7 +33,6 @@ from flowmod.extensions.flowerrors import (
 from flowmod.flow.finetune import FINETUNE_RECORD
 from flowmod.metrics import interval, scene_bootstrap
 from flowmod.params import Params
-from flowmod.paths import repo_root
 
 #: Each kind of error in words (the chapter's tables and sentences).
 KIND_WORDS = {
@@ -384,10 +383,7 @@ FINETUNE_ARMS = {"shipped": "the shipped weights",
 def finetune_record() -> dict[str, Any] | None:
     """The committed record of ``make flownet-finetune`` (:mod:`flowmod.flow.finetune`), or
     None where none is committed."""
-    import json
-
-    f = repo_root() / FINETUNE_RECORD
-    return json.loads(f.read_text()) if f.is_file() else None
+    return committed_record(FINETUNE_RECORD)
 
 
 def finetune_table(record: dict[str, Any]) -> pd.DataFrame:

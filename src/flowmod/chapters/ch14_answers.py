@@ -7,7 +7,6 @@ Reads what chapters 07, 10 and 11 read (their published predictions); computes n
 
 from __future__ import annotations
 
-import json
 import math
 from typing import Any
 
@@ -18,9 +17,8 @@ from flowmod.chapters import ch07_evaluation as ch07
 from flowmod.chapters import ch10_inputs as ch10
 from flowmod.chapters import ch11_all_distances as ch11
 from flowmod.chapters import common
-from flowmod.chapters.common import decided
+from flowmod.chapters.common import committed_record, decided
 from flowmod.params import Params
-from flowmod.paths import repo_root
 
 #: The smallest effect that matters (F1 points), as every chapter's verdicts use it.
 SMALLEST_EFFECT = common.SMALLEST_EFFECT
@@ -177,8 +175,7 @@ NOT_DECIDED = "not decided in the book"
 def replication_record() -> dict[str, Any] | None:
     """The committed record of ``make replicate`` (date, commit, profile, the two seeds, and
     each effect and Table 3 row in both worlds), or None where none is committed."""
-    f = repo_root() / REPLICATION_RECORD
-    return json.loads(f.read_text()) if f.is_file() else None
+    return committed_record(REPLICATION_RECORD)
 
 
 def _excludes_zero(lo: float, hi: float) -> int:

@@ -3,6 +3,7 @@ crops, the classifiers' predictions and scores, and the line that says what a ga
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -16,8 +17,16 @@ from flowmod.evaluate import fold_of, read_frame, read_scores, seed_probs
 from flowmod.flow import FlowReader, flow_root
 from flowmod.metrics import ci_text, group_mean_bootstrap, interval
 from flowmod.params import Params
+from flowmod.paths import repo_root
 from flowmod.select import PARTS, SPLITS, Selection, read_selection
 from flowmod.train import model_file
+
+
+def committed_record(rel: str) -> dict[str, Any] | None:
+    """A dated benchmark record a chapter shows (``rel``: its path in the repository, one of
+    :data:`flowmod.runner.RECORDS`' files), or None where none is committed."""
+    f = repo_root() / rel
+    return json.loads(f.read_text()) if f.is_file() else None
 
 
 def selection(p: Params) -> Selection:
