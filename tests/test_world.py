@@ -755,3 +755,56 @@ def test_an_occluder_hides_a_target_at_the_camera_s_own_height():
     low = (np.array([8.0, 0.0, 0.5]), 0.0, (2.0, 1.0, 0.4))
     assert wr.ray_visibility(cam, above, [low]) == 1.0
     assert wr.ray_visibility(cam, target, []) == 1.0
+
+
+def test_a_wrapping_texture_blends_its_last_texel_into_its_first_across_the_border():
+    """``_warp_texture`` tiles a ``wrap`` quad's texture (BORDER_WRAP) and clamps any other:
+    a pixel half a texel left of the first texel column, or right of the last, blends the
+    two edge columns when the texture wraps and repeats the edge column when it does not."""
+    sw = sh = 4
+    tex = np.zeros((sh, sw), np.uint8)
+    tex[:, -1] = 200  # first column 0, last 200
+    fr = wg.Frame(img=None, invz=np.zeros((1, 1), np.float32), sid=np.zeros((1, 1), np.uint16),
+                  R_wc=np.eye(3), c=np.zeros(3), K=np.eye(3))
+    # corners on the plane z = 1 so that one texel is one pixel and texel j's centre
+    # lands on pixel x = j + 0.5: pixel 0 samples texel -0.5, pixel sw samples sw - 0.5
+    corners = np.array([[0, 0, 1], [sw, 0, 1], [sw, sh, 1], [0, sh, 1]], float)
+    box = (0, sw + 1, 0, sh)
+    quad = wg.Quad(p0=np.zeros(3), eu=np.zeros(3), ev=np.zeros(3), tex=None, wrap=True)
+    wrapped = wr._warp_texture(fr, corners, quad, box, tex)
+    quad.wrap = False
+    clamped = wr._warp_texture(fr, corners, quad, box, tex)
+    assert wrapped.shape == clamped.shape == (sh, sw + 1)
+    np.testing.assert_array_equal(wrapped[1:-1, 0], 100)
+    np.testing.assert_array_equal(wrapped[1:-1, sw], 100)
+    np.testing.assert_array_equal(clamped[1:-1, 0], 0)
+    np.testing.assert_array_equal(clamped[1:-1, sw], 200)
+    np.testing.assert_array_equal(wrapped[1:-1, 1:sw], clamped[1:-1, 1:sw])
+
+
+def test_a_world_is_published_even_when_the_replaced_one_cannot_be_removed(tmp_path,
+                                                                          monkeypatch):
+    """The new tables are swapped in before the old world is removed; a failing removal
+    (a busy mount, a permission) leaves the new world in place instead of an error."""
+    from flowmod.world import dataset as wd
+    from flowmod.world.records import TABLES
+    from flowmod.world.truth import WORLD_FILE
+    old = tmp_path / "v1.0-synth"
+    old.mkdir()
+    (old / WORLD_FILE).write_text("{}")
+    (old / "sample_data.json").write_text(json.dumps([{"filename": "samples/synth-a.jpg"}]))
+    real = wd.shutil.rmtree
+
+    def rmtree(path, ignore_errors=False):
+        if ".old-" in Path(path).name:
+            if ignore_errors:
+                return
+            raise PermissionError(13, "Permission denied", str(path))
+        real(path)
+
+    monkeypatch.setattr(wd.shutil, "rmtree", rmtree)
+    tables = {n: [{"table": n}] for n in TABLES}
+    old_files = wd._install_tables(tmp_path, "v1.0-synth", tables, {"seed": 1})
+    assert old_files == {"samples/synth-a.jpg"}
+    assert json.loads((old / "scene.json").read_text()) == [{"table": "scene"}]
+    assert json.loads((old / WORLD_FILE).read_text()) == {"seed": 1}
