@@ -1,0 +1,222 @@
+"""The world generator's parts pinned one by one (issue 53, item 10).
+
+``test_world.py`` pins the tiny world's bytes, but five scenes draw only some of what the
+generator can: no bus, no rain or few weathers, a handful of layouts. Fresh mutation draws of
+``flowmod.world`` kept finding about one survivor in eight there (a bus window one pixel
+narrower, rain streaks without anti-aliasing, a straight path's heading). Here every texture
+painter, every vehicle category, the camera finish of every weather and the descriptions of
+many scenes (layouts, agents' plans and their poses along the way) are hashed against a pin:
+a change of what the generator draws anywhere changes a digest. Re-pin only for a deliberate
+change of what the world draws (with ``GENERATOR_VERSION`` where readers care).
+
+The digests are those of numpy's AVX2 path (float32 transcendental functions round
+differently with AVX-512); a CPU with AVX-512 computes them in a subprocess on the AVX2 path
+(``NPY_DISABLE_CPU_FEATURES``), as the tiny world's second pin does.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flowmod.environment import simd_path
+
+#: sha256 (16 hex) of each part's outputs on numpy's AVX2 path (numpy 1.26.4, OpenCV 4.11.0).
+PINS = {
+    "textures": "36b452d5b13b4286",
+    "vehicles": "3657b7de71b1d5c7",
+    "finish": "1c7a16d0f5c905f7",
+    "scenes": "bb88ba74358dd0f6",
+}
+
+
+def _h(*arrays) -> str:
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype}{a.shape}".encode() + a.tobytes())
+    return h.hexdigest()[:16]
+
+
+def textures_digest() -> str:
+    """Every texture painter at a fixed seed and small sizes."""
+    from flowmod.world import textures as tx
+
+    r = np.random.default_rng
+    parts = [tx.asphalt(r(1), 96, v) for v in range(3)]
+    parts += [tx.pavers(r(2), 96), tx.grass(r(3), 96), tx.clouds(r(4), 96)]
+    parts += [tx.facade(r(5 + i), 12.0, 9.0, shop) for i, shop in enumerate((False, True))]
+    parts += [tx.backdrop(r(s), 30.0, 8.0) for s in (7, 8, 9, 10)]  # both kinds
+    parts += [*tx.foliage(r(11), 64), tx.bark(r(12)), tx.metal(r(13))]
+    parts += [tx.hedge(r(14), 96, 24, wall) for wall in (False, True)]
+    for s in (15, 16):
+        for _face, (img, alpha) in sorted(tx.pedestrian_faces(r(s), (0.6, 0.5, 1.75)).items()):
+            parts += [img, alpha]
+    return _h(*parts)
+
+
+def vehicles_digest() -> str:
+    """Every vehicle category's faces, two liveries each, at the category's own size."""
+    from flowmod.world import agents
+    from flowmod.world import textures as tx
+
+    parts = []
+    for i, cat in enumerate(sorted(agents.CATEGORY_SIZES)):
+        if not cat.startswith("vehicle."):
+            continue
+        for s in (0, 1):
+            rng = np.random.default_rng([17, i, s])
+            faces = tx.vehicle_faces(rng, cat, tuple(agents._size(rng, cat)))
+            parts += [faces[k] for k in sorted(faces)]
+    return _h(*parts)
+
+
+def finish_digest() -> str:
+    """The camera finish of every weather (lights at night, rain streaks and drops, noise,
+    vignetting) on one textured frame."""
+    from flowmod.world import geometry as wg
+    from flowmod.world import shading
+
+    H, W = wg.H_IMG, wg.W_IMG
+    yy, xx = np.mgrid[0:H, 0:W]
+    base = np.stack([(xx * 7 + yy * 3) % 256, (xx // 4) % 256, (yy // 3) % 256], -1)
+    K = np.array([[1260.0, 0.0, W / 2], [0.0, 1260.0, H / 2], [0.0, 0.0, 1.0]])
+    parts = []
+    for i, weather in enumerate(("clear", "overcast", "rain", "after_rain", "night")):
+        fr = wg.Frame(img=base.astype(np.uint8), invz=np.zeros((H, W), np.float32),
+                      sid=np.zeros((H, W), np.uint16), R_wc=np.eye(3), c=np.zeros(3), K=K,
+                      lights=[(np.array([3.0, 0.5, 40.0]), (200, 220, 255), 0.3, 5),
+                              (np.array([-2.0, 0.8, 25.0]), (40, 40, 255), 0.2, 6),
+                              (np.array([1.0, 0.0, -5.0]), (255, 255, 255), 0.3, 7)])
+        look = {"weather": weather, "gain": 0.9 + 0.05 * i,
+                "white_balance": [1.0, 0.97, 1.03], "noise": 2.0}
+        parts.append(shading.finish(fr, look, (3, i, 5), 1.1))
+    return _h(*parts)
+
+
+def scenes_digest() -> str:
+    """The descriptions of 8 scenes of 10 vehicles, one for each of the ego's behaviours
+    (``EGO_SCENES``; every weather, with and without sweeps), and every trajectory's pose at
+    11 times: layouts, plans, placement, statics, looks, words."""
+    from flowmod.world import agents
+    from flowmod.world import scene as ws
+
+    h = hashlib.sha256()
+    weathers = ("clear", "overcast", "rain", "after_rain", "night", "clear")
+    for j, (kind, i) in enumerate(EGO_SCENES.items()):
+        sc = agents.sample_scene(7, i, 4, 10, weathers[j % 6], with_sweeps=j % 3 == 0,
+                                 near_movers=2)
+        assert sc["ego_kind"] == kind
+        h.update(json.dumps(ws.json_ready(sc), sort_keys=True).encode())
+        t = np.linspace(0.0, sc["duration"], 11)
+        for traj in [sc["ego"]] + [a["traj"] for a in sc["agents"]]:
+            st = ws.traj_state(traj, t)
+            for k in sorted(st):
+                h.update(np.round(np.asarray(st[k], np.float64), 9).tobytes())
+    return h.hexdigest()[:16]
+
+
+#: A scene index (world seed 7) for each of the ego's behaviours.
+EGO_SCENES = {"stop_and_go": 0, "cruise": 1, "follow": 4, "go": 8, "turn_left": 17, "wait": 18,
+              "brake": 25, "turn_right": 49}
+
+
+DIGESTS = {"textures": textures_digest, "vehicles": vehicles_digest,
+           "finish": finish_digest, "scenes": scenes_digest}
+
+
+def avx2_digest(part: str) -> str:
+    """``part``'s digest on numpy's AVX2 path: here, or in a subprocess where this CPU would
+    take AVX-512."""
+    path = simd_path()
+    if path == "avx2":
+        return DIGESTS[part]()
+    if path is None:
+        pytest.skip("numpy runs neither SIMD path (AVX-512, AVX2) that the pins know")
+    from test_world import NO_AVX512
+
+    code = ("import sys; sys.path.insert(0, 'tests'); import test_world_parts as t;"
+            f"print(t.simd_path(), t.DIGESTS[{part!r}]())")
+    env = {**os.environ, "NPY_DISABLE_CPU_FEATURES": NO_AVX512}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parents[1], check=True).stdout.split()
+    assert out[0] == "avx2"
+    return out[1]
+
+
+@pytest.mark.parametrize("part", sorted(PINS))
+def test_the_generator_s_parts_draw_as_pinned(part):
+    assert avx2_digest(part) == PINS[part]
+
+
+def test_a_path_turns_a_quarter_circle_then_runs_straight_on_its_new_heading():
+    """``path_pose`` over [arc, straight]: a left quarter circle of radius 10 m from the
+    origin heading +x ends at (10, 10) heading +y; the next segment starts there and on
+    that heading (the segment start pose advanced by the arc's length times its curvature)."""
+    from flowmod.world import scene as ws
+
+    r, quarter = 10.0, 10.0 * np.pi / 2
+    path = {"x": 0.0, "y": 0.0, "h": 0.0, "segs": [[quarter, 1 / r], [5.0, 0.0], [4.0, -1 / r]]}
+    x, y, h = ws.path_pose(path, np.array([quarter / 2, quarter, quarter + 5.0]))
+    np.testing.assert_allclose(x, [r * np.sin(np.pi / 4), r, r], atol=1e-9)
+    np.testing.assert_allclose(y, [r - r * np.cos(np.pi / 4), r, r + 5.0], atol=1e-9)
+    np.testing.assert_allclose(h, [np.pi / 4, np.pi / 2, np.pi / 2], atol=1e-12)
+    # the right-hand arc after the straight turns back by 4 / r
+    _, _, h_end = ws.path_pose(path, quarter + 9.0)
+    assert float(h_end) == pytest.approx(np.pi / 2 - 0.4, abs=1e-12)
+
+
+def test_the_flow_limit_is_decided_by_the_length_itself_near_its_square():
+    """``truth._within_max_flow`` is ``hypot(du, dv) <= MAX_FLOW_PX`` exactly: on points of
+    the limit's circle, where the squared length rounds to the other side for many, the
+    cheap square is overruled by ``hypot``."""
+    from flowmod.world import truth
+
+    a = np.random.default_rng(0).uniform(0.0, 2 * np.pi, 20_000)
+    du, dv = truth.MAX_FLOW_PX * np.cos(a), truth.MAX_FLOW_PX * np.sin(a)
+    exact = np.hypot(du, dv) <= truth.MAX_FLOW_PX
+    cheap = du * du + dv * dv <= truth.MAX_FLOW_PX ** 2
+    assert (cheap != exact).sum() > 100  # the case the function exists for
+    np.testing.assert_array_equal(truth._within_max_flow(du, dv), exact)
+    far = np.array([0.0, 3.0, truth.MAX_FLOW_PX * 0.5])
+    np.testing.assert_array_equal(truth._within_max_flow(far, far), [True, True, True])
+
+
+def test_other_worlds_are_the_generated_ones_beside_this_one(tmp_path):
+    """``source.other_worlds``: the folders under ``<dataroot>/worlds`` but the profile's own
+    (none without that folder), which ``make gc`` offers to remove."""
+    import conftest
+
+    from flowmod.world import source
+
+    p = conftest._smoke(tmp_path)
+    assert source.other_worlds(p) == []
+    own, a, b = p.dataroot_path, tmp_path / "worlds" / "a", tmp_path / "worlds" / "b"
+    for d in (own, b, a):
+        d.mkdir(parents=True)
+    (tmp_path / "worlds" / "note.txt").write_text("a file, not a world")
+    assert own.parent == tmp_path / "worlds"
+    assert source.other_worlds(p) == [a, b]
+
+
+def test_missing_nuscenes_tables_name_the_folder_and_both_fixes(tmp_path):
+    """Real data that is not there: one line naming the version folder it looked for and the
+    two ways out (the dataroot that holds it, or a generated world)."""
+    from flowmod.params import load_profile
+    from flowmod.world import WorldError, ensure_world
+
+    p = load_profile("smoke", dataroot=str(tmp_path), version="v1.0-mini", synthetic=False)
+    with pytest.raises(WorldError) as e:
+        ensure_world(p, progress=False)
+    assert str(e.value) == (
+        f"nuScenes tables not found: {tmp_path / 'v1.0-mini'} does not exist (or has no "
+        "scene.json). Set dataroot to the folder that holds v1.0-mini/, samples/ and sweeps/ "
+        "(e.g. DATAROOT=/data/sets/nuscenes), or set synthetic: true to generate a synthetic "
+        "world there.")
