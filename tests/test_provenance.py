@@ -80,6 +80,8 @@ SPEC: dict[str, tuple[object, set[str], tuple[str, ...]]] = {
     "flow_networks": (["raft"], set(), ()),  # read by the runner only (before any stage)
     "flow_store": ("crops", {"flow", "crops"}, ()),
     "flow_keep_pairs": (5, {"flow"}, ()),
+    "flowcheck_pairs": (3, {"flowcheck"}, ()),
+    "difficulty_pairs": (7, {"difficulty"}, ()),
     "clip_method": ("gt", {"flow"}, ()),
     "extension_build": (False, set(), ()),
     "wide_sweep_stride": (2, {"wide"}, ()),

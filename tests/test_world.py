@@ -551,7 +551,8 @@ def test_difficulty_report_is_cached_per_world_and_threshold(smoke_world, smoke_
 
     root, version = smoke_world
     p = validate({"profile": "smoke", "dataroot": str(root), "version": version,
-                  "run_dir": str(tmp_path), **{k: getattr(SMOKE, k) for k in SMOKE.world_generation()
+                  "run_dir": str(tmp_path), "difficulty_pairs": SMOKE.difficulty_pairs,
+                  **{k: getattr(SMOKE, k) for k in SMOKE.world_generation()
                      if k.startswith("world_")}})
     calls = []
     real = wrep.naive_rule_report

@@ -9,7 +9,7 @@ The ``difficulty`` stage: how hard the motion task is on a generated world.
 > t" (best t), against the speed label, raw and with the surrounding background flow
 subtracted, on the paper's distant objects (:func:`distant_objects`: Table 1, 30-70 m,
 visibility '4', selected by :mod:`flowmod.select`). The stage scores it on
-:data:`DIFFICULTY_PAIRS` keyframe pairs of the profile's world (``difficulty.json``).
+``difficulty_pairs`` keyframe pairs of the profile's world (``difficulty.json``).
 """
 
 from __future__ import annotations
@@ -32,11 +32,6 @@ from flowmod.select import description_items
 from flowmod.world import gt_flow, is_generated_world, true_velocity
 
 EXCLUDE = ("night", "rain", "lightning")
-#: Keyframe pairs (seeded sample) on which the difficulty node scores the naive rule: the
-#: exact flow of every pair would cost as much as the flow stage itself.
-DIFFICULTY_PAIRS = 240
-
-
 def usable(description: str, exclude: Iterable[str] = EXCLUDE) -> bool:
     """False if a comma-separated item of the description equals an excluded word (any case)."""
     bad = {e.strip().lower() for e in exclude}
@@ -214,7 +209,7 @@ def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:
     """Build the ``difficulty`` node: :data:`REPORT` (the rule's numbers)."""
     q = b.params
     report = naive_rule_report(q.dataroot_path, q.version, speed_threshold=q.speed_threshold,
-                               max_pairs=DIFFICULTY_PAIRS, n_jobs=q.n_jobs)
+                               max_pairs=q.difficulty_pairs, n_jobs=q.n_jobs)
     write_json(b.start(fresh=True) / REPORT,
                {k: v for k, v in report.items() if k != "table"})
     return {}

@@ -228,6 +228,14 @@ class Params(BaseModel):
     flow_keep_pairs: int = _field(
         8, ge=1, le=1000, read_by=("flow",),
         description="crops mode: random pairs per part whose flow is kept besides the figures'")
+    flowcheck_pairs: int = _field(
+        12, ge=1, le=1000, read_by=("flowcheck",),
+        description="chapter 03's accuracy table: random pairs of each set on which every "
+                    "flow method is measured against the exact flow")
+    difficulty_pairs: int = _field(
+        240, ge=1, le=100000, read_by=("difficulty",),
+        description="chapter 01's difficulty check: at most this many keyframe pairs (a "
+                    "fixed draw) on which a naive rule reads the exact flow")
     clip_method: str | None = _field(
         None, read_by=("flow",),
         description="the flow method of chapter 08's clip (crops mode keeps the clip's flow "

@@ -1,6 +1,6 @@
 """The flowcheck stage (chapter 03): every flow method against the world's exact flow.
 
-On :data:`ACCURACY_PAIRS` random pairs of each set (keyframe pairs: the far vehicles of Table
+On ``flowcheck_pairs`` random pairs of each set (keyframe pairs: the far vehicles of Table
 1; generalisation pairs: the near vehicles, up to ``min_distance``) whose flow every
 method stores, one row per pair and method: the end-point error and Fl-all over the frame
 and inside the set's vehicle boxes (``accuracy.parquet``). Chapter 03 aggregates the rows
@@ -26,8 +26,6 @@ from flowmod.progress import bar
 from flowmod.select import PARTS, objects_node, read_selection
 from flowmod.world import gt_flow, is_generated_world
 
-#: Random pairs of each set on which every method is measured.
-ACCURACY_PAIRS = 12
 #: The node's one file: one row per pair and method.
 ACCURACY = "accuracy.parquet"
 #: Its columns (px for end-point errors, % for Fl-all; NaN where no pixel of a box is valid).
@@ -96,7 +94,7 @@ def measure(dataroot: str | Path, version: str, pairs: pd.DataFrame, objects: pd
 
 def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:
     """Build the ``flowcheck`` node: :data:`ACCURACY` (:data:`COLUMNS`, :func:`measure` on
-    :data:`ACCURACY_PAIRS` pairs of each set)."""
+    ``flowcheck_pairs`` pairs of each set)."""
     q = b.params
     sel = read_selection(b.input_dir(dag.Node("select")), b.input_dir(dag.Node("general")))
     readers = {m: {kind: FlowReader(b.input_dir(dag.Node("flow", m, kind)),
@@ -104,7 +102,7 @@ def build(b: dag.Build, progress: bool) -> Mapping[str, Any]:
                for m in q.flow_methods}
     table = measure(q.dataroot_path, q.version, sel.pairs, sel.objects, readers,
                     min_distance=q.min_distance, max_distance=q.max_distance,
-                    n_pairs=ACCURACY_PAIRS, seed=q.seed, progress=progress)
+                    n_pairs=q.flowcheck_pairs, seed=q.seed, progress=progress)
     with atomic_path(b.start(fresh=True) / ACCURACY) as tmp:
         table.to_parquet(tmp, index=False)
     return {"pairs": int(table["pair_id"].nunique())}
