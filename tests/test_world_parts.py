@@ -220,3 +220,78 @@ def test_missing_nuscenes_tables_name_the_folder_and_both_fixes(tmp_path):
         "scene.json). Set dataroot to the folder that holds v1.0-mini/, samples/ and sweeps/ "
         "(e.g. DATAROOT=/data/sets/nuscenes), or set synthetic: true to generate a synthetic "
         "world there.")
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_sweeps_go_to_usable_scenes_only_even_when_most_scenes_are_swept(seed):
+    """``plan_weathers`` with 30 of 40 scenes swept: the special weathers are cut to the 10
+    unswept places, and the sweeps still skip every night and rain scene (the selection
+    drops those scenes, so their sweeps would make no generalisation pair)."""
+    from flowmod.world import scene as ws
+
+    weathers, sweep = ws.plan_weathers(40, 30, seed)
+    assert sum(sweep) == 30 and len(weathers) == 40
+    assert {"night", "rain"} <= set(weathers)
+    assert not [w for w, s in zip(weathers, sweep, strict=True) if s and w in ("night", "rain")]
+
+
+def test_unknown_tokens_are_named_by_the_exact_truth(tiny_world):
+    """The world's exact answers refuse what is not in it with one line naming the token:
+    an instance that is no agent, a frame that is no frame, two frames of two scenes."""
+    import json as _json
+
+    from flowmod.world import WorldError, gt_flow, true_velocity
+
+    root, version = tiny_world
+    with pytest.raises(WorldError, match=r"^instance token 'nope' is not an agent of this world$"):
+        true_velocity(root, version, "nope", 0)
+    with pytest.raises(WorldError, match=r"^sample_data token 'nope' is not a frame of this "
+                                         r"synthetic world$"):
+        gt_flow(root, version, "nope", "nope")
+    sd = _json.loads((root / version / "sample_data.json").read_text())
+    samples = {s["token"]: s for s in _json.loads((root / version / "sample.json").read_text())}
+    cam = [r for r in sd if r["filename"].startswith("samples/")]
+    one = cam[0]
+    other = next(r for r in cam if samples[r["sample_token"]]["scene_token"]
+                 != samples[one["sample_token"]]["scene_token"])
+    with pytest.raises(WorldError, match=r"^gt_flow needs two frames of the same scene"):
+        gt_flow(root, version, one["token"], other["token"])
+
+
+def test_real_data_is_fingerprinted_by_its_tables_alone(tiny_world, tmp_path):
+    """A devkit data set that is not a generated world (no world description): its
+    fingerprint is that of its tables, so a changed table changes it and a changed image
+    does not (real data is not hashed frame by frame)."""
+    import shutil
+
+    from flowmod.params import validate
+    from flowmod.world import source
+    from flowmod.world.truth import WORLD_FILE
+
+    root, version = tiny_world
+    data = tmp_path / "data"
+    shutil.copytree(root, data)
+    (data / version / WORLD_FILE).unlink()
+    p = validate({"profile": "smoke", "dataroot": str(data), "version": version,
+                  "run_dir": str(tmp_path / "runs"), "synthetic": False})
+    before = source.world_fingerprint(p)
+    assert before is not None and before == source.world_fingerprint(p)
+    frame = sorted((data / "samples").rglob("*.jpg"))[2]
+    frame.write_bytes(frame.read_bytes()[:-10] + bytes(10))
+    assert source.world_fingerprint(p) == before
+    scenes = data / version / "scene.json"
+    scenes.write_text(scenes.read_text().replace('"name": "', '"name": "x', 1))
+    assert source.world_fingerprint(p) not in (before, None)
+
+
+def test_the_world_s_progress_counts_its_scenes_out_of_their_number(monkeypatch, capsys):
+    """Generating a world shows "n/N scene" (the number of scenes known from the start), in
+    this process as with workers; the scene jobs here are stand-ins (the counting is what is
+    tested, each real job renders a scene)."""
+    from flowmod.world import dataset
+
+    monkeypatch.setattr(dataset, "scene_job", lambda i: {"index": i})
+    out = dataset._run_jobs([(i,) for i in range(3)], 1, progress=True)
+    assert out == [{"index": 0}, {"index": 1}, {"index": 2}]
+    err = capsys.readouterr().err
+    assert "synthetic world" in err and "3/3" in err, err
