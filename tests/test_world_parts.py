@@ -4,8 +4,9 @@
 generator can: no bus, no rain or few weathers, a handful of layouts. Fresh mutation draws of
 ``flowmod.world`` kept finding about one survivor in eight there (a bus window one pixel
 narrower, rain streaks without anti-aliasing, a straight path's heading). Here every texture
-painter, every vehicle category, the camera finish of every weather and the descriptions of
-many scenes (layouts, agents' plans and their poses along the way) are hashed against a pin:
+painter, every vehicle category, the camera finish of every weather, the descriptions of
+many scenes (layouts, agents' plans and their poses along the way) and the tiny world's exact
+flow with its valid mask are hashed against a pin:
 a change of what the generator draws anywhere changes a digest. Re-pin only for a deliberate
 change of what the world draws (with ``GENERATOR_VERSION`` where readers care).
 
@@ -34,6 +35,7 @@ PINS = {
     "vehicles": "3657b7de71b1d5c7",
     "finish": "1c7a16d0f5c905f7",
     "scenes": "bb88ba74358dd0f6",
+    "truth": "67d689f3f683bb4f",
 }
 
 
@@ -128,8 +130,32 @@ EGO_SCENES = {"stop_and_go": 0, "cruise": 1, "follow": 4, "go": 8, "turn_left": 
               "brake": 25, "turn_right": 49}
 
 
+def truth_digest() -> str:
+    """The exact flow and its valid mask of the tiny world's first keyframe pair of every
+    scene (``FLOWMOD_TINY_WORLD``: its root), where vehicles hide parts of themselves and of
+    each other: the same-surface and other-surface depth tolerances, the near and far limits
+    and the fill of undefined pixels all show in these bytes."""
+    from flowmod.world import gt_flow
+
+    root = Path(os.environ["FLOWMOD_TINY_WORLD"])
+    version = "v1.0-synth"
+    sd = json.loads((root / version / "sample_data.json").read_text())
+    scene_of = {s["token"]: s["scene_token"]
+                for s in json.loads((root / version / "sample.json").read_text())}
+    frames: dict[str, list[dict]] = {}
+    for r in sd:
+        if r["is_key_frame"] and r["filename"].startswith("samples/"):
+            frames.setdefault(scene_of[r["sample_token"]], []).append(r)
+    parts = []
+    for scene in sorted(frames):
+        a, b = sorted(frames[scene], key=lambda r: r["timestamp"])[:2]
+        flow, valid = gt_flow(root, version, a["token"], b["token"])
+        parts += [flow, valid]
+    return _h(*parts)
+
+
 DIGESTS = {"textures": textures_digest, "vehicles": vehicles_digest,
-           "finish": finish_digest, "scenes": scenes_digest}
+           "finish": finish_digest, "scenes": scenes_digest, "truth": truth_digest}
 
 
 def avx2_digest(part: str) -> str:
@@ -152,7 +178,8 @@ def avx2_digest(part: str) -> str:
 
 
 @pytest.mark.parametrize("part", sorted(PINS))
-def test_the_generator_s_parts_draw_as_pinned(part):
+def test_the_generator_s_parts_draw_as_pinned(part, tiny_world, monkeypatch):
+    monkeypatch.setenv("FLOWMOD_TINY_WORLD", str(tiny_world[0]))
     assert avx2_digest(part) == PINS[part]
 
 
