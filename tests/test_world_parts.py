@@ -130,6 +130,17 @@ EGO_SCENES = {"stop_and_go": 0, "cruise": 1, "follow": 4, "go": 8, "turn_left": 
               "brake": 25, "turn_right": 49}
 
 
+def keyframes_by_scene(root: Path, version: str) -> dict[str, list[dict]]:
+    """The CAM_FRONT keyframes' sample_data rows of a world, per scene token, in time order."""
+    scene_of = {s["token"]: s["scene_token"]
+                for s in json.loads((root / version / "sample.json").read_text())}
+    frames: dict[str, list[dict]] = {}
+    for r in json.loads((root / version / "sample_data.json").read_text()):
+        if r["is_key_frame"] and r["filename"].startswith("samples/"):
+            frames.setdefault(scene_of[r["sample_token"]], []).append(r)
+    return {k: sorted(v, key=lambda r: r["timestamp"]) for k, v in sorted(frames.items())}
+
+
 def truth_digest() -> str:
     """The exact flow and its valid mask of the tiny world's first keyframe pair of every
     scene (``FLOWMOD_TINY_WORLD``: its root), where vehicles hide parts of themselves and of
@@ -137,20 +148,10 @@ def truth_digest() -> str:
     and the fill of undefined pixels all show in these bytes."""
     from flowmod.world import gt_flow
 
-    root = Path(os.environ["FLOWMOD_TINY_WORLD"])
-    version = "v1.0-synth"
-    sd = json.loads((root / version / "sample_data.json").read_text())
-    scene_of = {s["token"]: s["scene_token"]
-                for s in json.loads((root / version / "sample.json").read_text())}
-    frames: dict[str, list[dict]] = {}
-    for r in sd:
-        if r["is_key_frame"] and r["filename"].startswith("samples/"):
-            frames.setdefault(scene_of[r["sample_token"]], []).append(r)
+    root, version = Path(os.environ["FLOWMOD_TINY_WORLD"]), "v1.0-synth"
     parts = []
-    for scene in sorted(frames):
-        a, b = sorted(frames[scene], key=lambda r: r["timestamp"])[:2]
-        flow, valid = gt_flow(root, version, a["token"], b["token"])
-        parts += [flow, valid]
+    for a, b, *_ in keyframes_by_scene(root, version).values():
+        parts += gt_flow(root, version, a["token"], b["token"])
     return _h(*parts)
 
 
@@ -265,8 +266,6 @@ def test_sweeps_go_to_usable_scenes_only_even_when_most_scenes_are_swept(seed):
 def test_unknown_tokens_are_named_by_the_exact_truth(tiny_world):
     """The world's exact answers refuse what is not in it with one line naming the token:
     an instance that is no agent, a frame that is no frame, two frames of two scenes."""
-    import json as _json
-
     from flowmod.world import WorldError, gt_flow, true_velocity
 
     root, version = tiny_world
@@ -275,12 +274,7 @@ def test_unknown_tokens_are_named_by_the_exact_truth(tiny_world):
     with pytest.raises(WorldError, match=r"^sample_data token 'nope' is not a frame of this "
                                          r"synthetic world$"):
         gt_flow(root, version, "nope", "nope")
-    sd = _json.loads((root / version / "sample_data.json").read_text())
-    samples = {s["token"]: s for s in _json.loads((root / version / "sample.json").read_text())}
-    cam = [r for r in sd if r["filename"].startswith("samples/")]
-    one = cam[0]
-    other = next(r for r in cam if samples[r["sample_token"]]["scene_token"]
-                 != samples[one["sample_token"]]["scene_token"])
+    one, other = (frames[0] for frames in list(keyframes_by_scene(root, version).values())[:2])
     with pytest.raises(WorldError, match=r"^gt_flow needs two frames of the same scene"):
         gt_flow(root, version, one["token"], other["token"])
 
@@ -312,9 +306,9 @@ def test_real_data_is_fingerprinted_by_its_tables_alone(tiny_world, tmp_path):
 
 
 def test_the_world_s_progress_counts_its_scenes_out_of_their_number(monkeypatch, capsys):
-    """Generating a world shows "n/N scene" (the number of scenes known from the start), in
-    this process as with workers; the scene jobs here are stand-ins (the counting is what is
-    tested, each real job renders a scene)."""
+    """Generating a world in this process shows "n/N scene" (the number of scenes known from
+    the start); the scene jobs here are stand-ins (the counting is what is tested, each real
+    job renders a scene)."""
     from flowmod.world import dataset
 
     monkeypatch.setattr(dataset, "scene_job", lambda i: {"index": i})
