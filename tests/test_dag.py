@@ -587,6 +587,56 @@ def test_published_digests_can_go_through_a_cache_and_a_file_without_default_sta
     assert dag.values(p, dag.Node("flow", "raft", "keyframe"))["raft_weights"] is None
 
 
+def test_a_digest_batch_writes_each_stat_cache_once_with_only_its_own_files(
+        tmp_path, monkeypatch):
+    """Inside :func:`artefacts.digest_batch` a stat cache is written once, when the
+    outermost block ends (a status check wrote it after every node: hundreds of rewrites of
+    a growing file); each cache holds the files it was asked about, not every digest the
+    process knows (a test worker's caches grew with every run folder it had seen)."""
+    import hashlib
+
+    from flowmod import artefacts
+
+    files = [tmp_path / f"{k}.bin" for k in "abc"]
+    for f in files:
+        f.write_bytes(f.name.encode())
+    other = tmp_path / "elsewhere.bin"
+    other.write_bytes(b"x")
+    artefacts.file_digest(other, tmp_path / "other.json")
+    cache, writes = tmp_path / "run.json", []
+    real = artefacts.write_json
+    monkeypatch.setattr(artefacts, "write_json", lambda p, o: (writes.append(p), real(p, o)))
+    with artefacts.digest_batch():
+        with artefacts.digest_batch():
+            for f in files:
+                artefacts.file_digest(f, cache)
+        assert writes == [] and not cache.exists(), "nothing written inside the batch"
+    assert writes == [str(cache)]
+    entries = json.loads(cache.read_text())
+    assert {k: v[3] for k, v in entries.items()} == {
+        str(f.resolve()): hashlib.sha256(f.name.encode()).hexdigest() for f in files}
+    with artefacts.digest_batch():
+        artefacts.file_digests(files, cache)
+    assert writes == [str(cache)], "nothing new: not written again"
+    artefacts.file_digest(other, cache)  # known to the process, new to this cache
+    assert writes == [str(cache)] * 2 and str(other.resolve()) in json.loads(cache.read_text())
+
+
+def test_a_status_check_writes_the_run_s_digest_cache_once(toy, monkeypatch):
+    from flowmod import artefacts
+
+    g, p = toy
+    g.build(p)
+    dag.digest_cache(p).unlink()
+    artefacts._DIGESTS.clear()
+    writes = []
+    real = artefacts.write_json
+    monkeypatch.setattr(artefacts, "write_json", lambda f, o: (writes.append(f), real(f, o)))
+    assert {s.state for s in g.status(p)} == {"up to date", "missing"}
+    assert writes == [str(dag.digest_cache(p))]
+    assert len(json.loads(dag.digest_cache(p).read_text())) >= 2
+
+
 def test_an_edit_whose_mtime_is_put_back_is_still_seen(tmp_path):
     """Issue 53: the stat cache was keyed by size and mtime, so a same-size edit with its
     mtime restored (``touch -d``, ``os.utime``) kept the old digest and passed as up to

@@ -189,6 +189,12 @@ def write_manifest(path: str | os.PathLike[str], record: Mapping[str, Any]) -> N
 _DIGESTS: dict[str, tuple[int, int, int, str]] = {}
 #: The stat caches read into :data:`_DIGESTS` by this process.
 _LOADED: set[str] = set()
+#: ``{stat cache: the resolved paths it holds}``: what it was read with and asked about.
+_OWNED: dict[str, set[str]] = {}
+#: Stat caches with entries not yet written, while a :func:`digest_batch` is open.
+_PENDING: set[str] = set()
+#: How many :func:`digest_batch` blocks are open (0: each call writes its cache at once).
+_BATCH_DEPTH = [0]
 
 
 def _stat_key(st: os.stat_result) -> tuple[int, int, int]:
@@ -200,6 +206,7 @@ def _stat_key(st: os.stat_result) -> tuple[int, int, int]:
 def _load_digest_cache(cache: Path) -> None:
     """Read a stat cache into :data:`_DIGESTS`, keeping only well-formed entries (a cache of
     another layout, edited or cut short is ignored, and rewritten when next saved)."""
+    owned = _OWNED.setdefault(str(cache), set())
     try:
         data = json.loads(cache.read_text())
     except (OSError, ValueError):
@@ -210,6 +217,32 @@ def _load_digest_cache(cache: Path) -> None:
         if (isinstance(v, list) and len(v) == 4 and all(type(x) is int for x in v[:3])
                 and isinstance(v[3], str) and len(v[3]) == 64):
             _DIGESTS.setdefault(k, tuple(v))  # type: ignore[arg-type]
+            owned.add(k)
+
+
+def _write_digest_cache(cache: str) -> None:
+    """Write a stat cache: the entries of the files it was asked about (not every digest
+    this process knows: a test worker or a notebook kernel sees many run folders)."""
+    entries = {k: _DIGESTS[k] for k in _OWNED.get(cache, ()) if k in _DIGESTS}
+    with contextlib.suppress(OSError):
+        write_json(cache, entries)
+
+
+@contextlib.contextmanager
+def digest_batch() -> Iterator[None]:
+    """Write the stat caches that :func:`file_digests` updates inside the block once, when
+    the outermost block ends (a build or a status check digests hundreds of files, one call
+    each: a write after every call re-wrote the whole cache hundreds of times). The cache
+    only saves reading: one lost with a killed process costs a re-read, never a wrong
+    digest."""
+    _BATCH_DEPTH[0] += 1
+    try:
+        yield
+    finally:
+        _BATCH_DEPTH[0] -= 1
+        if _BATCH_DEPTH[0] == 0:
+            while _PENDING:
+                _write_digest_cache(_PENDING.pop())
 
 
 def file_digest(path: str | os.PathLike[str], cache: str | os.PathLike[str] | None = None) -> str:
@@ -221,11 +254,12 @@ def file_digest(path: str | os.PathLike[str], cache: str | os.PathLike[str] | No
 
 def file_digests(paths: Sequence[str | os.PathLike[str]],
                  cache: str | os.PathLike[str] | None = None) -> list[str]:
-    """:func:`file_digest` of many files, the cache written once at the end (OSError for a
-    file that cannot be read)."""
+    """:func:`file_digest` of many files, the cache written once at the end, or at the end
+    of the open :func:`digest_batch` (OSError for a file that cannot be read)."""
     if cache is not None and str(cache) not in _LOADED:
         _LOADED.add(str(cache))
         _load_digest_cache(Path(cache))
+    owned = _OWNED.setdefault(str(cache), set()) if cache is not None else set()
     out, new = [], False
     for path in paths:
         p = Path(path).resolve()
@@ -238,10 +272,15 @@ def file_digests(paths: Sequence[str | os.PathLike[str]],
                     h.update(block)
             hit = _DIGESTS[str(p)] = (*key, h.hexdigest())
             new = True
+        if str(p) not in owned:
+            owned.add(str(p))
+            new = True
         out.append(hit[3])
     if cache is not None and new:
-        with contextlib.suppress(OSError):
-            write_json(cache, _DIGESTS)
+        if _BATCH_DEPTH[0]:
+            _PENDING.add(str(cache))
+        else:
+            _write_digest_cache(str(cache))
     return out
 
 

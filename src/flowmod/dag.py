@@ -45,6 +45,7 @@ from flowmod import codedigest
 from flowmod.artefacts import (
     DiskFull,
     canonical,
+    digest_batch,
     file_digest,
     file_digests,
     fingerprint,
@@ -521,6 +522,7 @@ class Graph:
             return s.source.record(p)
         return read_manifest(self.node_dir(p, node) / "manifest.json")
 
+    @digest_batch()
     def expected(self, p: Params, nodes: Iterable[Node] | None = None) -> dict[Node, str | None]:
         """Every node's fingerprint for ``p`` (None below a missing input)."""
         exp: dict[Node, str | None] = {}
@@ -539,6 +541,7 @@ class Graph:
         rec = self.recorded(p, node)
         return rec["fingerprint"] if rec else None
 
+    @digest_batch()
     def status(self, p: Params) -> list[NodeStatus]:
         """Every node of the run: up to date, stale or missing, and why, in one line each.
         Runs nothing and writes nothing (file digests of real data are cached)."""
@@ -625,6 +628,7 @@ class Graph:
                 b.publish(**(s.build(b, progress) or {}))
         return b.final
 
+    @digest_batch()
     def build(self, p: Params, chapters: Iterable[str] | None = None,
               progress: bool = False, at_once: AtOnce | None = None
               ) -> list[Node]:  # pragma: no mutate block
@@ -681,6 +685,7 @@ class Graph:
         rec = self.recorded(p, node) if rec is None else rec
         return damage(self.node_dir(p, node), rec, digest_cache(p))
 
+    @digest_batch()
     def built(self, p: Params, node: Node) -> bool:  # pragma: no mutate block
         """:meth:`current` for ``node`` and, recursively, for every input of its chapter (a
         chapter's result counts only if what the chapter itself built under it is current)."""
