@@ -71,6 +71,28 @@ def test_load_model_refuses_another_architecture(tmp_path) -> None:
         load_model(tmp_path / "list.pt")
 
 
+def test_a_loaded_model_holds_exactly_the_checkpoint_s_tensors(tmp_path) -> None:
+    """load_model builds the network without initialising it (on the meta device) and takes
+    every tensor from the file: nothing is left on meta, each parameter and buffer equals the
+    saved one in float32 (a half-precision file too), and the outputs are the model's."""
+    model = motion_resnet18(2, 8).eval()
+    torch.save(model.state_dict(), tmp_path / "m.pt")
+    torch.save({k: v.half() if v.is_floating_point() else v
+                for k, v in model.state_dict().items()}, tmp_path / "half.pt")
+    x = torch.randn(3, 2, 32, 32)
+    for name, tol in (("m.pt", 0.0), ("half.pt", 1e-2)):
+        loaded = load_model(tmp_path / name)
+        tensors = list(loaded.state_dict().items())
+        assert not any(t.is_meta for _, t in tensors) and not loaded.training
+        assert {k: t.dtype for k, t in tensors} == {
+            k: t.dtype for k, t in model.state_dict().items()}
+        assert all(torch.allclose(t, model.state_dict()[k].to(t.dtype), atol=tol, rtol=tol)
+                   for k, t in tensors)
+        with torch.inference_mode():
+            assert torch.allclose(loaded(x), model(x), atol=tol * 10, rtol=tol * 10)
+    assert torch.equal(load_model(tmp_path / "m.pt").conv1.weight, model.conv1.weight)
+
+
 def test_input_scalings_of_the_flow_channels() -> None:
     from flowmod.model import CLIP_PX, scale_input
 

@@ -190,10 +190,12 @@ def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu",
     shaped = conv1 is not None and conv1.ndim == 4
     if in_channels is None:
         in_channels = int(conv1.shape[1]) if shaped else 2
-    model = motion_resnet18(in_channels, int(conv1.shape[0]) if shaped else 64,
-                            *_input_scaling(state, path))
+    with torch.device("meta"):  # no initialisation (0.1 s a model): every tensor is loaded
+        model = motion_resnet18(in_channels, int(conv1.shape[0]) if shaped else 64,
+                                *_input_scaling(state, path))
     check_state_dict(state, model, str(path))
-    model.load_state_dict(state)
+    like = model.state_dict()
+    model.load_state_dict({k: v.to(like[k].dtype) for k, v in state.items()}, assign=True)
     return model.to(resolve_device(device)).eval()
 
 
