@@ -194,14 +194,20 @@ def pytest_configure(config):
     """Under pytest-xdist (``make test`` runs two workers on the two cores) each worker and
     every process it starts (notebook kernels) computes on one thread: two workers with two
     threads each would oversubscribe the cores (OpenMP spin-waits make that many times
-    slower, not twice)."""
+    slower, not twice). numpy's OpenBLAS started before this hook (this file imports
+    flowmod, which imports numpy) with a thread per core, whose idle threads spin: a worker
+    computing the world's exact flow in-process held the other worker's core, and every
+    notebook there ran about twice as long. threadpoolctl limits it where it runs."""
     if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
         os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = "1"
+        os.environ["OPENBLAS_NUM_THREADS"] = "1"
         import cv2
         import torch
+        from threadpoolctl import threadpool_limits
 
         torch.set_num_threads(1)
         cv2.setNumThreads(1)
+        threadpool_limits(1)
 
 
 @pytest.fixture(autouse=True)

@@ -1,5 +1,6 @@
 """Conventions of the notebook sources and the environment files."""
 
+import os
 import re
 from importlib import metadata
 from pathlib import Path
@@ -280,3 +281,20 @@ def test_every_pt_file_is_written_by_the_one_checkpoint_writer():
     pkg = repo_root() / "src" / "flowmod"
     writers = {str(f.relative_to(pkg)) for f in pkg.rglob("*.py") if saves(f)}
     assert writers == {"artefacts.py", "flow/pretrain.py", "flow/selftrain.py"}
+
+
+def test_each_xdist_worker_computes_on_one_thread_of_every_pool():
+    """``make test`` runs two pytest-xdist workers on two cores: each worker's torch, OpenCV
+    and BLAS compute on one thread (tests/conftest.py). numpy's OpenBLAS, started before the
+    limit with a thread per core, spun on the other worker's core (its notebooks ran about
+    twice as long)."""
+    import cv2
+    import torch
+    from threadpoolctl import threadpool_info
+
+    if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) < 2:
+        pytest.skip("one process: the thread pools keep their defaults")
+    pools = {(i["internal_api"], i["filepath"]): i["num_threads"] for i in threadpool_info()}
+    assert any(api == "openblas" for api, _ in pools), pools
+    assert set(pools.values()) == {1}, pools
+    assert (torch.get_num_threads(), cv2.getNumThreads()) == (1, 1)
