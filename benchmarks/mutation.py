@@ -283,8 +283,17 @@ def run_patterns(patterns: list[str]) -> tuple[int, float]:
     """``mutmut run <patterns>``: re-test every mutant whose name matches one; (exit code,
     s)."""
     t0 = time.time()
-    proc = subprocess.run([sys.executable, "-m", "mutmut", "run", *patterns], cwd=ROOT)
+    proc = subprocess.run([sys.executable, "-m", "mutmut", "run", *patterns], cwd=ROOT,
+                          env=one_thread_env())
     return proc.returncode, time.time() - t0
+
+
+def one_thread_env() -> dict[str, str]:
+    """This environment with one thread for BLAS, OpenMP (torch) and MKL: mutmut tests
+    mutants in a child process per core, and an OpenBLAS pool of a thread per core in each
+    spins on the others' cores (as it did between make test's two workers)."""
+    return {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+            "MKL_NUM_THREADS": "1"}
 
 
 # --- parts that each fit in 45 min ------------------------------------------------------------

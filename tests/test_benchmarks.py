@@ -311,3 +311,22 @@ def test_mutation_parts_fit_their_minutes_and_cover_every_function_once(monkeypa
         assert mutation.main(["--part", bad]) == 2
         assert capsys.readouterr().err == (f"mutation: --part {bad}: there are parts 1 to 5 "
                                            "(or plan)\n")
+
+
+def test_mutmut_runs_its_children_on_one_thread_each(monkeypatch):
+    """mutmut tests mutants in a child per core: each gets one BLAS, OpenMP and MKL thread
+    (a pool of a thread per core in each child spins on the other's core)."""
+    mutation, seen = _mutation(), {}
+
+    def fake_run(argv, cwd, env):
+        seen.update(argv=argv, env=env)
+        return subprocess.CompletedProcess(argv, 0)
+
+    monkeypatch.setattr(mutation.subprocess, "run", fake_run)
+    monkeypatch.setenv("FLOWMOD_PROBE", "kept")
+    assert mutation.run_patterns(["flowmod.metrics.*"])[0] == 0
+    assert seen["argv"][1:] == ["-m", "mutmut", "run", "flowmod.metrics.*"]
+    assert {k: seen["env"][k] for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+                                        "MKL_NUM_THREADS", "FLOWMOD_PROBE")} == {
+        "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+        "FLOWMOD_PROBE": "kept"}
