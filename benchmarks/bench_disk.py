@@ -5,15 +5,21 @@ the same rates.
     .venv/bin/python benchmarks/bench_disk.py [--profile demo] [--pairs 34149]
 
 Reads the published artefacts of a finished run (``make book`` first), writes
-``benchmarks/results/disk.json`` and prints a table. Reported, never asserted.
+``benchmarks/results/disk.json`` and prints a table. Reported, never asserted. With
+``--lossless`` it also measures what each kind of file would take compressed without loss
+(its bytes split into planes by byte significance, then zlib level 6: how far lossless
+storage alone could go; ``benchmarks/cold_build.md``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import zlib
+from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from flowmod import dag, pipeline
@@ -28,6 +34,55 @@ TRAINVAL_PAIRS = 34_149
 
 def folder_bytes(folder: Path) -> int:
     return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
+
+
+def file_kind(rel: Path) -> str:
+    """The kind of a run file for :func:`lossless_table`, by folder and name."""
+    parts, name = rel.parts, rel.name
+    if parts[0] == "flow" and "pool" in parts:
+        return "flow pool: valid masks" if name.endswith(".valid.npy") else "flow pool: flow"
+    if name == "best.pt":
+        return f"{parts[0]}: model weights" if parts[0] != "extensions" else \
+            "extensions: model weights"
+    if name.endswith(".samples.npy"):
+        return "crops: flow samples"
+    if name.endswith(".npy"):
+        sub = name.split(".")[-2] if name.count(".") > 1 else "crops"
+        return f"{parts[0]}: {sub} arrays"
+    return f"{parts[0]}: other"
+
+
+def shuffled_zlib(data: bytes, itemsize: int) -> int:
+    """Bytes of ``data`` compressed losslessly: planes by byte significance, zlib level 6."""
+    if itemsize > 1 and len(data) % itemsize == 0:
+        data = np.frombuffer(data, np.uint8).reshape(-1, itemsize).T.tobytes()
+    return len(zlib.compress(data, 6))
+
+
+def lossless_table(run: Path) -> dict[str, dict[str, float]]:
+    """Per :func:`file_kind`: files, MB, MB compressed without loss, their ratio."""
+    rows: dict[str, dict[str, float]] = defaultdict(lambda: {"files": 0, "MB": 0.0,
+                                                              "MB lossless": 0.0})
+    for f in sorted(run.rglob("*")):
+        if not f.is_file() or any(x.startswith(".") for x in f.relative_to(run).parts):
+            continue
+        row, data = rows[file_kind(f.relative_to(run))], f.read_bytes()
+        # float16 weights; a .npy's own dtype; tables and the rest as bytes
+        size = {".pt": 2, ".npy": _npy_itemsize(f) if f.suffix == ".npy" else 1}.get(f.suffix, 1)
+        row["files"] += 1
+        row["MB"] += len(data) / 1e6
+        row["MB lossless"] += shuffled_zlib(data, size) / 1e6
+    for row in rows.values():
+        row["ratio"] = row["MB lossless"] / row["MB"] if row["MB"] else float("nan")
+    return dict(sorted(rows.items(), key=lambda kv: -kv[1]["MB"]))
+
+
+def _npy_itemsize(path: Path) -> int:
+    """The item size of a .npy file's array (1 when it cannot be read)."""
+    try:
+        return int(np.load(path, mmap_mode="r").dtype.itemsize)
+    except (ValueError, OSError):
+        return 1
 
 
 def method_row(p, storage: dict[str, float]) -> dict[str, float]:
@@ -53,6 +108,9 @@ def method_row(p, storage: dict[str, float]) -> dict[str, float]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--profile", default="demo")
+    ap.add_argument("--lossless", action="store_true",
+                    help="also measure each kind of file compressed without loss (slow: reads "
+                         "every file)")
     ap.add_argument("--pairs", type=int, default=TRAINVAL_PAIRS,
                     help="pairs to extrapolate to (default: trainval keyframe pairs)")
     args = ap.parse_args(argv)
@@ -82,6 +140,8 @@ def main(argv: list[str] | None = None) -> int:
                if d.is_dir()),
            "demo goal MB (make book)": 500,
            "methods": methods}
+    if args.lossless:
+        out["lossless by kind"] = lossless_table(p.run_path)
     res = repo_root() / "benchmarks" / "results"
     res.mkdir(parents=True, exist_ok=True)
     write_json(res / "disk.json", out)

@@ -330,3 +330,42 @@ def test_mutmut_runs_its_children_on_one_thread_each(monkeypatch):
                                         "MKL_NUM_THREADS", "FLOWMOD_PROBE")} == {
         "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
         "FLOWMOD_PROBE": "kept"}
+
+
+def test_the_disk_benchmark_sorts_files_by_kind_and_compresses_without_loss(tmp_path):
+    """bench_disk.py --lossless (issue 49, item 5: measure first): each kind of run file with
+    its bytes and its bytes compressed without loss. A smooth float16 flow compresses far
+    better split into byte planes; noise does not compress; hidden files are not counted."""
+    import zlib
+
+    import numpy as np
+
+    sys.path.insert(0, str(repo_root() / "benchmarks"))
+    try:
+        bench_disk = importlib.import_module("bench_disk")
+    finally:
+        sys.path.pop(0)
+    pool = tmp_path / "flow" / "dis" / "pool" / "abc"
+    pool.mkdir(parents=True)
+    y, x = np.mgrid[0:90, 0:160].astype(np.float32)
+    smooth = np.stack([x / 7, y / 9], axis=-1).astype(np.float16)
+    np.save(pool / "p.npy", smooth)
+    np.save(pool / "p.valid.npy", np.ones((90, 160), bool))
+    crops = tmp_path / "crops" / "dis" / "keyframe"
+    crops.mkdir(parents=True)
+    noise = np.random.default_rng(0).integers(0, 256, 20_000, dtype=np.uint8)
+    np.save(crops / "f0.npy", noise)
+    np.save(crops / "f0.samples.npy", smooth[:9, :9])
+    (crops / ".f0.npy.tmp").write_bytes(b"x" * 1000)
+    (tmp_path / "models" / "dis" / "f0s0").mkdir(parents=True)
+    (tmp_path / "models" / "dis" / "f0s0" / "best.pt").write_bytes(smooth.tobytes())
+    table = bench_disk.lossless_table(tmp_path)
+    assert sorted(table) == ["crops: crops arrays", "crops: flow samples", "flow pool: flow",
+                             "flow pool: valid masks", "models: model weights"]
+    assert all(r["files"] == 1 for r in table.values())
+    flow = table["flow pool: flow"]
+    assert flow["MB"] == (pool / "p.npy").stat().st_size / 1e6
+    raw = smooth.tobytes()
+    assert bench_disk.shuffled_zlib(raw, 2) < 0.8 * len(zlib.compress(raw, 6))
+    assert flow["ratio"] < 0.5 and table["crops: crops arrays"]["ratio"] > 0.95
+    assert table["models: model weights"]["MB lossless"] == bench_disk.shuffled_zlib(raw, 2) / 1e6
