@@ -10,9 +10,12 @@ flow with its valid mask are hashed against a pin:
 a change of what the generator draws anywhere changes a digest. Re-pin only for a deliberate
 change of what the world draws (with ``GENERATOR_VERSION`` where readers care).
 
-The digests are those of numpy's AVX2 path (float32 transcendental functions round
-differently with AVX-512); a CPU with AVX-512 computes them in a subprocess on the AVX2 path
-(``NPY_DISABLE_CPU_FEATURES``), as the tiny world's second pin does.
+The digests are pinned per SIMD path of numpy (float32 transcendental functions round
+differently with AVX-512 than with AVX2), as the tiny world's are, and computed in the test's
+own process: mutmut's stats run records which generator functions each pin runs only there
+(a pin computed in a subprocess counted as running nothing, so a mutant of, say, the rain
+streaks was tested by no pin on an AVX-512 machine). A CPU with AVX-512 also checks the AVX2
+pins in a subprocess (``NPY_DISABLE_CPU_FEATURES``), as the tiny world's second pin does.
 """
 
 from __future__ import annotations
@@ -29,13 +32,23 @@ import pytest
 
 from flowmod.environment import simd_path
 
-#: sha256 (16 hex) of each part's outputs on numpy's AVX2 path (numpy 1.26.4, OpenCV 4.11.0).
+#: sha256 (16 hex) of each part's outputs per SIMD path of numpy (numpy 1.26.4, OpenCV
+#: 4.11.0).
 PINS = {
-    "textures": "36b452d5b13b4286",
-    "vehicles": "3657b7de71b1d5c7",
-    "finish": "1c7a16d0f5c905f7",
-    "scenes": "bb88ba74358dd0f6",
-    "truth": "67d689f3f683bb4f",
+    "avx2": {
+        "textures": "36b452d5b13b4286",
+        "vehicles": "3657b7de71b1d5c7",
+        "finish": "1c7a16d0f5c905f7",
+        "scenes": "bb88ba74358dd0f6",
+        "truth": "67d689f3f683bb4f",
+    },
+    "avx512": {  # only the camera finish differs from the AVX2 path
+        "textures": "36b452d5b13b4286",
+        "vehicles": "3657b7de71b1d5c7",
+        "finish": "f573f149d7c1d064",
+        "scenes": "bb88ba74358dd0f6",
+        "truth": "67d689f3f683bb4f",
+    },
 }
 
 
@@ -160,13 +173,8 @@ DIGESTS = {"textures": textures_digest, "vehicles": vehicles_digest,
 
 
 def avx2_digest(part: str) -> str:
-    """``part``'s digest on numpy's AVX2 path: here, or in a subprocess where this CPU would
-    take AVX-512."""
-    path = simd_path()
-    if path == "avx2":
-        return DIGESTS[part]()
-    if path is None:
-        pytest.skip("numpy runs neither SIMD path (AVX-512, AVX2) that the pins know")
+    """``part``'s digest on numpy's AVX2 path, computed in a subprocess whose numpy may not
+    use AVX-512."""
     from test_world import NO_AVX512
 
     code = ("import sys; sys.path.insert(0, 'tests'); import test_world_parts as t;"
@@ -178,10 +186,24 @@ def avx2_digest(part: str) -> str:
     return out[1]
 
 
-@pytest.mark.parametrize("part", sorted(PINS))
+@pytest.mark.parametrize("part", sorted(DIGESTS))
 def test_the_generator_s_parts_draw_as_pinned(part, tiny_world, monkeypatch):
+    """Each part's digest, computed in this process, against the pin of this CPU's path."""
+    path = simd_path()
+    if path is None:
+        pytest.skip("numpy runs neither SIMD path (AVX-512, AVX2) that the pins know")
     monkeypatch.setenv("FLOWMOD_TINY_WORLD", str(tiny_world[0]))
-    assert avx2_digest(part) == PINS[part]
+    assert DIGESTS[part]() == PINS[path][part]
+
+
+@pytest.mark.parametrize("part", sorted(DIGESTS))
+def test_the_generator_s_parts_draw_as_pinned_on_the_avx2_path_too(part, tiny_world,
+                                                                    monkeypatch):
+    """The other pin, where this CPU has AVX-512 (CI machines may lack it)."""
+    if simd_path() != "avx512":
+        pytest.skip("this CPU runs the AVX2 path already (the test above)")
+    monkeypatch.setenv("FLOWMOD_TINY_WORLD", str(tiny_world[0]))
+    assert avx2_digest(part) == PINS["avx2"][part]
 
 
 def test_a_path_turns_a_quarter_circle_then_runs_straight_on_its_new_heading():
