@@ -128,7 +128,8 @@ lint: env  ## ruff, and import-linter: no import cycle, every import points down
 	$(VENV)/bin/lint-imports --no-cache
 
 clean:  ## remove generated outputs (keeps the venv and data/; `make clean-all` removes them too)
-	rm -rf build/executed build/html build/book-src build/book-extra build/book-media \
+	rm -rf build/executed build/html build/.html.work \
+	  build/book-src build/book-extra build/book-media \
 	  build/screenshots build/book-screenshot.png runs .pytest_cache .ruff_cache
 
 .PHONY: clean-all

@@ -345,8 +345,12 @@ def test_book_builds_offline_with_warnings_as_errors(smoke_run, tmp_path):
     with pytest.raises(book.BookError, match="the published book is unchanged"):
         book.build(broken, out)
     assert [p.name for p in pages if p.read_bytes() != pages[p]] == []
-    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".html")) == [
-        ".html.lock"]
+    # the book's working folders stay in one hidden folder beside --out (careful user 3:
+    # book-src, book-extra, book-media and jupyter_execute were left loose in out's parent)
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name != "broken") == [
+        ".html.lock", ".html.work", "html"]
+    assert sorted(p.name for p in (tmp_path / ".html.work").iterdir()) == [
+        "extra", "jupyter_execute", "media", "src"]
     import os
     import subprocess
     import sys

@@ -274,17 +274,20 @@ def build(executed: Path, out: Path, staging: Path | None = None, wait: bool = F
 
     ``out`` must be a folder or absent (:class:`BookError` before any work otherwise). One
     build per ``out`` at a time (a lock file beside it; ``wait``: wait for the other build
-    instead of :class:`FolderBusy`). The book is built into a copy of ``out``
-    (``.<out>.building``, modification times kept, so Sphinx rewrites only what changed)
-    that replaces ``out`` only when Sphinx succeeds: a build that fails or is killed leaves
-    the published book as it was.
+    instead of :class:`FolderBusy`). Its working folders (the staged sources, the vendored
+    MathJax, the media, myst-nb's output folder) live in one hidden folder beside ``out``,
+    ``.<out>.work``, never loose in ``out``'s parent (a user's ``--out ~/Desktop/book``). The
+    book is built into a copy of ``out`` there (modification times kept, so Sphinx rewrites
+    only what changed) that replaces ``out`` only when Sphinx succeeds: a build that fails or
+    is killed leaves the published book as it was.
     """
     out = Path(out).resolve()
     blocker = file_in_the_way(out)
     if blocker is not None:
         raise BookError(f"--out {out}: {blocker} is a file, not a folder; give a folder for "
                         "the HTML book (it is made if absent) or move the file away")
-    staging = Path(staging or out.parent / "book-src").resolve()
+    work_root = out.with_name(f".{out.name}.work")
+    staging = Path(staging or work_root / "src").resolve()
     with file_lock(out.with_name(f".{out.name}.lock"), "python -m flowmod.report.book",
                    wait=wait, what=out):
         info = assemble(Path(executed), staging)
@@ -294,30 +297,31 @@ def build(executed: Path, out: Path, staging: Path | None = None, wait: bool = F
                 "MathJax is not vendored (build/vendor/node_modules/mathjax/es5 missing): run "
                 "`make env` (it runs `npm install --prefix build/vendor mathjax@3`)"
             )
-        work = out.with_name(f".{out.name}.building")
+        work = work_root / "html"  # myst-nb writes beside it: ``work_root/jupyter_execute``
         shutil.rmtree(work, ignore_errors=True)  # what a killed build left
         try:
             with _room(out, "building the book"):
                 if out.is_dir():
                     shutil.copytree(out, work, symlinks=True)
-                _sphinx(staging, work, _sphinx_env(staging, es5, info))
+                _sphinx(staging, work, _sphinx_env(work_root, es5, info))
         except BaseException:
             shutil.rmtree(work, ignore_errors=True)
             raise
-        _publish(work, out)
+        _publish(work, out, work_root / "old")
     return out / "index.html"
 
 
-def _sphinx_env(staging: Path, es5: Path, info: dict[str, Any]) -> dict[str, str]:
-    """The environment Sphinx runs in: where the vendored MathJax and the run's media are."""
-    extra = staging.parent / "book-extra"
+def _sphinx_env(work_root: Path, es5: Path, info: dict[str, Any]) -> dict[str, str]:
+    """The environment Sphinx runs in: where the vendored MathJax and the run's media are
+    (copied into ``work_root/extra`` and ``work_root/media``)."""
+    extra = work_root / "extra"
     _sync(es5, extra / "_vendor" / "mathjax", keep=set())
     env = {**os.environ, "FLOWMOD_MATHJAX_EXTRA": str(extra)}
     # videos (and their posters) that notebooks show as raw HTML under media/
     media = Path(info["parameters"]["run_dir"])
     media = (media if media.is_absolute() else repo_root() / media) / "figures" / "media"
     if media.is_dir():
-        pages_extra = staging.parent / "book-media"
+        pages_extra = work_root / "media"
         _sync(media, pages_extra / "media", keep=set())
         env["FLOWMOD_PAGES_EXTRA"] = str(pages_extra)
     return env
@@ -342,9 +346,9 @@ def _sphinx(staging: Path, out: Path, env: dict[str, str]) -> None:
                             "see the warnings above; the published book is unchanged")
 
 
-def _publish(work: Path, out: Path) -> None:
-    """Swap the built ``work`` in as ``out``; the previous book is removed only after."""
-    old = out.with_name(f".{out.name}.old")
+def _publish(work: Path, out: Path, old: Path) -> None:
+    """Swap the built ``work`` in as ``out``; the previous book (moved to ``old``) is removed
+    only after."""
     shutil.rmtree(old, ignore_errors=True)
     if out.exists():
         os.replace(out, old)
