@@ -46,8 +46,9 @@ def file_kind(rel: Path) -> str:
             "extensions: model weights"
     if name.endswith(".samples.npy"):
         return "crops: flow samples"
-    if name.endswith(".npy"):
-        sub = name.split(".")[-2] if name.count(".") > 1 else "crops"
+    if name.endswith(".npy"):  # crops/<m>/<part>/f0.npy; <split>.static.npy; epoch_probs.npy
+        sub = name.split(".")[-2] if name.count(".") > 1 else (
+            "crops" if parts[0] == "crops" else name[:-4])
         return f"{parts[0]}: {sub} arrays"
     return f"{parts[0]}: other"
 

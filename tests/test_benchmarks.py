@@ -359,9 +359,11 @@ def test_the_disk_benchmark_sorts_files_by_kind_and_compresses_without_loss(tmp_
     (crops / ".f0.npy.tmp").write_bytes(b"x" * 1000)
     (tmp_path / "models" / "dis" / "f0s0").mkdir(parents=True)
     (tmp_path / "models" / "dis" / "f0s0" / "best.pt").write_bytes(smooth.tobytes())
+    np.save(tmp_path / "models" / "dis" / "f0s0" / "epoch_probs.npy", smooth[:3])
     table = bench_disk.lossless_table(tmp_path)
     assert sorted(table) == ["crops: crops arrays", "crops: flow samples", "flow pool: flow",
-                             "flow pool: valid masks", "models: model weights"]
+                             "flow pool: valid masks", "models: epoch_probs arrays",
+                             "models: model weights"]
     assert all(r["files"] == 1 for r in table.values())
     flow = table["flow pool: flow"]
     assert flow["MB"] == (pool / "p.npy").stat().st_size / 1e6
