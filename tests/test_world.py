@@ -403,6 +403,12 @@ def test_the_tiny_worlds_bytes_are_pinned(tiny_world, tmp_path):
         root = made.dataroot_path
     files = [f for f in root.rglob("*") if f.is_file()]
     assert sum(f.suffix == ".jpg" for f in files) > 20
+    # the world's own manifest names what made it: the node, its folder's id, the
+    # generation parameters and the digests a later status compares
+    made_by = json.loads((root / version / "flowmod.manifest.json").read_text())
+    assert (made_by["node"], made_by["world_id"]) == ("world", root.name)
+    assert sorted(made_by) == ["fingerprint", "generation", "images", "node", "tables",
+                               "world_id", "written"]
     assert (root / version / "sample_annotation.json").is_file()
     path = simd_path()
     if path is None:
@@ -756,6 +762,11 @@ def test_an_occluder_hides_a_target_at_the_camera_s_own_height():
     low = (np.array([8.0, 0.0, 0.5]), 0.0, (2.0, 1.0, 0.4))
     assert wr.ray_visibility(cam, above, [low]) == 1.0
     assert wr.ray_visibility(cam, target, []) == 1.0
+    # a box is closed: a ray that only touches its vertical edge (x = 4, y = 1, where the
+    # x and y slabs meet at t = 0.4 exactly) is hidden; one just beside it is not
+    box = (np.array([5.0, 0.0, 1.0]), 0.0, (2.0, 2.0, 2.0))  # x 4..6, y -1..1, z 0..2 m
+    assert wr.ray_visibility(cam, np.array([[10.0, 2.5, 1.0]]), [box]) == 0.0
+    assert wr.ray_visibility(cam, np.array([[10.0, 2.51, 1.0]]), [box]) == 1.0
 
 
 def test_a_wrapping_texture_blends_its_last_texel_into_its_first_across_the_border():
