@@ -221,6 +221,30 @@ def test_a_path_turns_a_quarter_circle_then_runs_straight_on_its_new_heading():
     # the right-hand arc after the straight turns back by 4 / r
     _, _, h_end = ws.path_pose(path, quarter + 9.0)
     assert float(h_end) == pytest.approx(np.pi / 2 - 0.4, abs=1e-12)
+    # from another heading (+y): the left quarter circle ends at (-10, 10) heading -x, and
+    # the straight after it runs on from there
+    north = {**path, "h": np.pi / 2}
+    x, y, h = ws.path_pose(north, np.array([quarter, quarter + 5.0]))
+    np.testing.assert_allclose(x, [-r, -r - 5.0], atol=1e-9)
+    np.testing.assert_allclose(y, [r, r], atol=1e-9)
+    np.testing.assert_allclose(h, [np.pi, np.pi], atol=1e-12)
+
+
+def test_the_world_s_small_geometry_helpers():
+    """A rectangle's corners (a building's or hedge's footprint, checked against the other
+    roads) and the cross product of a face's normal, on numbers worked by hand."""
+    from flowmod.world.layout import _rect_corners
+    from flowmod.world.render import _cross
+
+    xs, ys = _rect_corners(1.0, 2.0, 0.0, 4.0, 2.0)  # 4 m long along x, 2 m wide
+    assert sorted(zip(xs.tolist(), ys.tolist(), strict=True)) == [(-1.0, 1.0), (-1.0, 3.0),
+                                                                   (3.0, 1.0), (3.0, 3.0)]
+    xs, ys = _rect_corners(0.0, 0.0, np.pi / 2, 4.0, 2.0)  # turned: long along y
+    np.testing.assert_allclose(sorted(np.abs(xs)), [1, 1, 1, 1], atol=1e-12)
+    np.testing.assert_allclose(sorted(np.abs(ys)), [2, 2, 2, 2], atol=1e-12)
+    rng = np.random.default_rng(0)
+    for a, b in rng.normal(size=(5, 2, 3)):
+        np.testing.assert_allclose(_cross(a, b), np.cross(a, b), rtol=1e-12)
 
 
 def test_the_flow_limit_is_decided_by_the_length_itself_near_its_square():
@@ -338,3 +362,4 @@ def test_the_world_s_progress_counts_its_scenes_out_of_their_number(monkeypatch,
     assert out == [{"index": 0}, {"index": 1}, {"index": 2}]
     err = capsys.readouterr().err
     assert "synthetic world" in err and "3/3" in err, err
+
