@@ -25,6 +25,7 @@ import pandas as pd
 from flowmod import dag, pipeline
 from flowmod.artefacts import write_json
 from flowmod.chapters.ch05_preprocessing import storage_table
+from flowmod.flow.store import npy_header
 from flowmod.params import load_profile
 from flowmod.paths import repo_root
 
@@ -69,7 +70,7 @@ def lossless_table(run: Path) -> dict[str, dict[str, float]]:
             continue
         row, data = rows[file_kind(f.relative_to(run))], f.read_bytes()
         # float16 weights; a .npy's own dtype; tables and the rest as bytes
-        size = {".pt": 2, ".npy": _npy_itemsize(f) if f.suffix == ".npy" else 1}.get(f.suffix, 1)
+        size = 2 if f.suffix == ".pt" else _npy_itemsize(f) if f.suffix == ".npy" else 1
         row["files"] += 1
         row["MB"] += len(data) / 1e6
         row["MB lossless"] += shuffled_zlib(data, size) / 1e6
@@ -81,7 +82,7 @@ def lossless_table(run: Path) -> dict[str, dict[str, float]]:
 def _npy_itemsize(path: Path) -> int:
     """The item size of a .npy file's array (1 when it cannot be read)."""
     try:
-        return int(np.load(path, mmap_mode="r").dtype.itemsize)
+        return npy_header(path)[2].itemsize
     except (ValueError, OSError):
         return 1
 
