@@ -38,14 +38,14 @@ PINS = {
     "avx2": {
         "textures": "36b452d5b13b4286",
         "vehicles": "3657b7de71b1d5c7",
-        "finish": "1c7a16d0f5c905f7",
+        "finish": "03703fb2f0ebcdc1",
         "scenes": "bb88ba74358dd0f6",
         "truth": "67d689f3f683bb4f",
     },
     "avx512": {  # only the camera finish differs from the AVX2 path
         "textures": "36b452d5b13b4286",
         "vehicles": "3657b7de71b1d5c7",
-        "finish": "f573f149d7c1d064",
+        "finish": "03f449ebb9e0ec00",
         "scenes": "bb88ba74358dd0f6",
         "truth": "67d689f3f683bb4f",
     },
@@ -95,7 +95,8 @@ def vehicles_digest() -> str:
 
 def finish_digest() -> str:
     """The camera finish of every weather (lights at night, rain streaks and drops, noise,
-    vignetting) on one textured frame."""
+    vignetting) on one textured frame; rain twice (where its drops fall is drawn: with one
+    seed a drop's row one pixel off can land on the same rows)."""
     from flowmod.world import geometry as wg
     from flowmod.world import shading
 
@@ -104,7 +105,7 @@ def finish_digest() -> str:
     base = np.stack([(xx * 7 + yy * 3) % 256, (xx // 4) % 256, (yy // 3) % 256], -1)
     K = np.array([[1260.0, 0.0, W / 2], [0.0, 1260.0, H / 2], [0.0, 0.0, 1.0]])
     parts = []
-    for i, weather in enumerate(("clear", "overcast", "rain", "after_rain", "night")):
+    for i, weather in enumerate(("clear", "overcast", "rain", "after_rain", "night", "rain")):
         fr = wg.Frame(img=base.astype(np.uint8), invz=np.zeros((H, W), np.float32),
                       sid=np.zeros((H, W), np.uint16), R_wc=np.eye(3), c=np.zeros(3), K=K,
                       lights=[(np.array([3.0, 0.5, 40.0]), (200, 220, 255), 0.3, 5),
@@ -338,9 +339,11 @@ def test_real_data_is_fingerprinted_by_its_tables_alone(tiny_world, tmp_path):
     root, version = tiny_world
     data = tmp_path / "data"
     shutil.copytree(root, data)
-    (data / version / WORLD_FILE).unlink()
     p = validate({"profile": "smoke", "dataroot": str(data), "version": version,
                   "run_dir": str(tmp_path / "runs"), "synthetic": False})
+    # while it is a generated world, its frames count, by a whole sha256 of their digests
+    assert len(source.content(p)["images"]) == 64
+    (data / version / WORLD_FILE).unlink()
     before = source.world_fingerprint(p)
     assert before is not None and before == source.world_fingerprint(p)
     frame = sorted((data / "samples").rglob("*.jpg"))[2]
@@ -349,6 +352,9 @@ def test_real_data_is_fingerprinted_by_its_tables_alone(tiny_world, tmp_path):
     scenes = data / version / "scene.json"
     scenes.write_text(scenes.read_text().replace('"name": "', '"name": "x', 1))
     assert source.world_fingerprint(p) not in (before, None)
+    # real data has no "edits since generated", though the generator's record is still there
+    assert source.edits(p).startswith("edited since it was generated (tables scene.json")
+    assert source.WorldSource().status(p) == ("up to date", "")
 
 
 def test_the_world_s_progress_counts_its_scenes_out_of_their_number(monkeypatch, capsys):
@@ -363,3 +369,188 @@ def test_the_world_s_progress_counts_its_scenes_out_of_their_number(monkeypatch,
     err = capsys.readouterr().err
     assert "synthetic world" in err and "3/3" in err, err
 
+
+
+def test_a_cruise_is_high_speed_on_an_arterial_and_city_driving_elsewhere():
+    """A cruising ego's scene is, half the time (the rng's first draw under 0.5), described
+    by its speed: "high speed" on an arterial road, "city driving" on another big street."""
+    from flowmod.world.agents import _describe
+
+    arterial = {"kind": "arterial", "main": {"lanes": 2}}
+    urban = {"kind": "urban", "main": {"lanes": 3}}
+    seen = set()
+    for seed in range(6):
+        said = np.random.default_rng(seed).random() < 0.5
+        seen.add(said)
+        for layout, words in ((arterial, "high speed"), (urban, "city driving")):
+            got = _describe(np.random.default_rng(seed), "cruise", layout, [], "clear")
+            assert got == ("Big street, " + words if said else "Big street"), (seed, got)
+    assert seen == {True, False}
+
+
+def test_vehicles_are_placed_in_three_phases_by_their_tries():
+    """``_placement_phase`` at its edges, 20 vehicles wanted: the best of 8 candidates, all
+    aimed into view, while under 85 % placed and 40 tries a vehicle; then one candidate,
+    85 % aimed; past 60 tries a vehicle, filling up."""
+    from flowmod.world.agents import _placement_phase as phase
+
+    first, second, fill = (8, 1.0, False), (1, 0.85, False), (1, 0.85, True)
+    assert phase(0, 0, 20) == phase(799, 16, 20) == first
+    assert phase(0, 17, 20) == phase(800, 0, 20) == phase(1200, 19, 20) == second
+    assert phase(1201, 0, 20) == phase(1599, 19, 20) == fill
+
+
+def test_world_scenes_are_made_by_worker_processes_in_their_order(monkeypatch):
+    """With two jobs the scenes are made in two worker processes, come back in the order
+    asked, and are counted as each arrives, not all at the end (the jobs here are
+    stand-ins that say where and when they ran; the last takes 0.9 s)."""
+    import time
+
+    from flowmod.world import dataset
+
+    counted = []
+
+    class Bar:
+        def update(self, n):
+            counted.append(time.time())
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(dataset, "bar", lambda **kw: Bar())
+    monkeypatch.setattr(dataset, "scene_job",
+                        lambda i: (i, os.getpid(), time.sleep(0.3 * i) or time.time()))
+    out = dataset._run_jobs([(i,) for i in range(4)], 2, progress=True)
+    assert [i for i, _, _ in out] == [0, 1, 2, 3] and len(counted) == 4
+    assert os.getpid() not in {pid for _, pid, _ in out}
+    assert counted[0] < out[-1][2]
+
+
+def test_a_projected_box_holds_every_point_and_is_clipped_to_the_image():
+    """``project_bbox``: pixels u = fx X / Z + cx (worked by hand), the box from the floor of
+    the smallest to one past the ceiling of the largest, end-exclusive, clipped."""
+    from flowmod.world.geometry import H_IMG, W_IMG, project_bbox
+
+    K = np.array([[1260.0, 0.0, 800.0], [0.0, 1260.0, 450.0], [0.0, 0.0, 1.0]])
+    pts = np.array([[0.31, -0.21, 7.0], [-1.13, 0.452, 9.0], [0.9, 0.1, 5.0]])
+    uv, box = project_bbox(pts, K)
+    np.testing.assert_allclose(uv, [[855.8, 412.2], [641.8, 513.28], [1026.8, 475.2]])
+    assert box == (641, 1028, 412, 515)
+    assert project_bbox(np.array([[9.0, -0.21, 7.0], [-1.13, 9.0, 9.0]]), K)[1] == (
+        641, W_IMG, 412, H_IMG)
+
+
+def test_an_agent_s_bounding_sphere_holds_its_faces_and_no_more():
+    """The radius that culls an agent outside the view is its farthest face corner's
+    distance from its centre: half its box's diagonal."""
+    from flowmod.world import agents
+    from flowmod.world import geometry as wg
+
+    geo = wg.SceneGeometry(agents.sample_scene(7, 1, 4, 10, "clear", with_sweeps=False,
+                                               near_movers=2))
+    assert len(geo.agents) >= 5
+    for obj in geo.agents:
+        corners = [c for q in obj.quads for c in (q.p0, q.p0 + q.eu, q.p0 + q.ev,
+                                                  q.p0 + q.eu + q.ev)]
+        assert obj.radius == pytest.approx(max(np.linalg.norm(corners, axis=1)), rel=1e-9)
+
+
+def test_objects_are_drawn_nearest_first_by_euclidean_distance():
+    """``render.near_to_far`` orders by distance from the camera centre, whatever the
+    side: an object 10 m behind comes after one 5 m ahead, and is stable for ties."""
+    from flowmod.world.render import near_to_far
+
+    c = np.array([1.0, 0.0, 1.5])
+    posed = [("behind", None, np.array([-9.0, 0.0, 1.5])), ("ahead", None, np.array([6.0, 0, 1.5])),
+             ("left", None, np.array([1.0, 7.0, 1.5])), ("right", None, np.array([1.0, -5.0, 1.5]))]
+    assert [o[0] for o in near_to_far(posed, c)] == ["ahead", "right", "left", "behind"]
+
+
+def _low_camera_frame(sid: int):
+    """A 1600 x 900 frame of grey 200 seen by a level camera 5 cm above the ground at the
+    origin, looking along +x; every pixel of surface ``sid``."""
+    from flowmod.world import geometry as wg
+
+    H, W = wg.H_IMG, wg.W_IMG
+    K = np.array([[1260.0, 0.0, W / 2], [0.0, 1260.0, H / 2], [0.0, 0.0, 1.0]])
+    R_wc = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    return wg.Frame(img=np.full((H, W, 3), 200, np.uint8), invz=np.zeros((H, W), np.float32),
+                    sid=np.full((H, W), sid, np.uint16), R_wc=R_wc, c=np.array([0, 0, 0.05]),
+                    K=K)
+
+
+def test_a_shadow_cut_to_a_triangle_by_the_near_plane_is_still_drawn_on_the_ground():
+    """A vehicle beside and behind the camera with one footprint corner in front of it: the
+    near plane leaves a triangle, which darkens the ground it covers by 45 % (200 -> 110)
+    and nothing that is not ground."""
+    from flowmod.world import geometry as wg
+    from flowmod.world import shading
+
+    yaw = np.pi / 4
+    R = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0, 0, 1]])
+    ctr, size = np.array([-1.6, 0.0, 0.8]), (1.9, 4.5, 1.6)
+    car = wg.Obj([], wg.SID_AGENT0, 3.0, agent={"kind": "vehicle", "size": size})
+    fr = _low_camera_frame(wg.SID_GROUND)
+    assert len(shading._footprint_uv(fr, size, R, ctr)) == 3
+    fr.sid[:, 200:] = wg.SID_AGENT0 + 1
+    shading.contact_shadows(fr, [(car, R, ctr)])
+    dark = (fr.img < 200).any(axis=2)
+    assert dark[:, :200].sum() > 10_000 and not dark[:, 200:].any()
+    assert (fr.img[dark] == 110).all(axis=1).mean() > 0.9
+
+
+def test_a_shadow_s_box_is_one_pixel_around_and_none_outside_the_image():
+    """``shading._shadow_box``: floor - 1 to int + 2 of the footprint's pixels, clipped; a
+    footprint whose top lies one and a half pixels below the image has no box (OpenCV would
+    refuse the empty one)."""
+    from flowmod.world.geometry import H_IMG, W_IMG
+    from flowmod.world.shading import _shadow_box
+
+    assert _shadow_box(np.array([[10.5, 20.5], [30.2, 40.7], [12.0, 45.0]])) == (9, 32, 19, 47)
+    assert _shadow_box(np.array([[-5.0, 880.2], [1700.0, 899.5]])) == (0, W_IMG, 879, H_IMG)
+    assert _shadow_box(np.array([[10.5, H_IMG + 1.5], [30.2, H_IMG + 40.0]])) is None
+    assert _shadow_box(np.array([[W_IMG + 1.5, 20.5], [W_IMG + 9.0, 40.7]])) is None
+
+
+def test_removing_a_world_holds_its_lock_saying_so(tmp_path, monkeypatch):
+    """``remove_world`` deletes the folder under the world's lock (beside it), whose record
+    tells a second run what holds it: "world <name>: removing it"."""
+    import shutil
+
+    from flowmod.world import source
+
+    folder = tmp_path / "worlds" / "abc"
+    (folder / "v1.0-synth").mkdir(parents=True)
+    seen, real_rmtree = [], shutil.rmtree
+
+    def rmtree(path):
+        seen.append(json.loads((path.parent / f".{path.name}.lock").read_text())["command"])
+        real_rmtree(path)
+
+    monkeypatch.setattr(source.shutil, "rmtree", rmtree)
+    source.remove_world(folder)
+    assert seen == ["world abc: removing it"] and not folder.exists()
+
+
+def test_the_far_agents_boxes_are_their_silhouettes_within_the_range(tiny_world):
+    """``agent_boxes``: (N, 4) float32 boxes inside the image, each around some agent's
+    silhouette; a narrower depth range keeps a subset, an empty one none."""
+    from flowmod.world import agent_boxes
+    from flowmod.world.geometry import H_IMG, W_IMG
+
+    root, version = tiny_world
+    frames = [f[0]["token"] for f in keyframes_by_scene(root, version).values()]
+    boxes = {sd: agent_boxes(root, version, sd, 0.0, 1e9) for sd in frames}
+    most = max(boxes.values(), key=len)
+    assert most.dtype == np.float32 and most.ndim == 2 and most.shape[1] == 4
+    assert len(most) >= 2
+    assert (most[:, 0] >= 0).all() and (most[:, 2] <= W_IMG).all()
+    assert (most[:, 1] >= 0).all() and (most[:, 3] <= H_IMG).all()
+    assert (most[:, 2] > most[:, 0]).all() and (most[:, 3] > most[:, 1]).all()
+    sd = next(k for k, v in boxes.items() if v is most)
+    kept = [agent_boxes(root, version, sd, near, 1e9) for near in (0.0, 20.0, 40.0, 80.0)]
+    assert [len(k) for k in kept] == sorted((len(k) for k in kept), reverse=True)
+    assert len(kept[0]) > len(kept[-1])
+    for narrower, wider in zip(kept[1:], kept[:-1], strict=True):
+        assert {tuple(b) for b in narrower} <= {tuple(b) for b in wider}
+    assert agent_boxes(root, version, sd, 5.0, 4.0).shape == (0, 4)

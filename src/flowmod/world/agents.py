@@ -565,21 +565,28 @@ def _place_vehicles(
     attempts = 0
     n_vehicles_now = 0
     while n_vehicles_now < n_target and attempts < 80 * n_target:
-        # phase 1: vehicles placed in view (best of 8); 2: any placement; 3: fill up
-        phase1 = n_vehicles_now < 0.85 * n_target and attempts < 40 * n_target
-        phase3 = attempts > 60 * n_target
-        n_tries = 8 if phase1 else 1
-        best = _best_candidate(rng, placed, n_tries, 1.0 if phase1 else 0.85)
+        n_tries, p_target, fill_up = _placement_phase(attempts, n_vehicles_now, n_target)
+        best = _best_candidate(rng, placed, n_tries, p_target)
         attempts += n_tries
         if best is None:
             continue
-        if not _wanted(rng, best, min_gain, phase3):
+        if not _wanted(rng, best, min_gain, fill_up):
             continue
         _accept(placed, best)
         category, size, role, traj = best[2]
         agents.append(_agent_record(rng, "vehicle", category, size, role, traj))
         n_vehicles_now += 1
     return agents
+
+
+def _placement_phase(attempts: int, n_now: int, n_target: int) -> tuple[int, float, bool]:
+    """(candidates to try, their share aimed into view, fill up) after ``attempts`` tries
+    with ``n_now`` of ``n_target`` vehicles placed. Phase 1, while under 85 % of the target
+    and 40 tries a vehicle: the best of 8, all aimed into view; phase 2: one, 85 % aimed;
+    phase 3, past 60 tries a vehicle: as phase 2, and a candidate that hides up to 6
+    keyframes of the others is taken too (:func:`_wanted`)."""
+    phase1 = n_now < 0.85 * n_target and attempts < 40 * n_target
+    return (8, 1.0, False) if phase1 else (1, 0.85, attempts > 60 * n_target)
 
 
 def _best_candidate(

@@ -277,9 +277,7 @@ def render(geo: SceneGeometry, t: float, textured: bool = True) -> Frame:
     agents = list(posed)
     for obj in geo.statics:
         posed.append((obj, None, obj.center))
-    # near to far: far objects hidden behind near ones fail the z-test early
-    posed.sort(key=lambda o: float(np.sum((o[2] - c) ** 2)))
-    for obj, R, ctr in posed:
+    for obj, R, ctr in near_to_far(posed, c):
         if not visible_sphere(ctr, obj.radius, R_wc, c, cam.K):
             continue
         if R is None:
@@ -303,6 +301,13 @@ def render(geo: SceneGeometry, t: float, textured: bool = True) -> Frame:
 # --------------------------------------------------------------------------------------------
 # Visibility
 # --------------------------------------------------------------------------------------------
+
+
+def near_to_far(posed: list[tuple], c: np.ndarray) -> list[tuple]:
+    """``(obj, R, centre)`` tuples sorted by their centre's distance from the camera centre
+    ``c`` (3,), m, nearest first: far objects hidden behind near ones then fail the z-test
+    early, and of two lights' glows on the same pixels the farther is painted last."""
+    return sorted(posed, key=lambda o: float(np.sum((o[2] - c) ** 2)))
 
 
 def silhouette_fraction(fr: Frame, corners_scene: np.ndarray, sid: int) -> tuple[float, int]:

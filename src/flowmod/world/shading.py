@@ -350,30 +350,11 @@ def contact_shadows(fr: Frame, posed) -> None:
             continue
         if not visible_sphere(np.array([ctr[0], ctr[1], 0.0]), obj.radius, fr.R_wc, fr.c, fr.K):
             continue
-        w, length, _ = a["size"]
-        fpts = np.array(
-            [
-                [length / 2 + 0.2, w / 2 + 0.25, 0],
-                [-length / 2 - 0.2, w / 2 + 0.25, 0],
-                [-length / 2 - 0.2, -w / 2 - 0.25, 0],
-                [length / 2 + 0.2, -w / 2 - 0.25, 0],
-            ]
-        )
-        world = fpts @ R.T + np.array([ctr[0], ctr[1], 0.01])
-        Xc = (world - fr.c) @ fr.R_wc
-        if Xc[:, 2].max() < Z_NEAR:
+        uv = _footprint_uv(fr, a["size"], R, ctr)
+        box = None if uv is None else _shadow_box(uv)
+        if box is None:
             continue
-        poly = clip_near(Xc)
-        if len(poly) < 3:
-            continue
-        uvw = poly @ fr.K.T
-        uv = uvw[:, :2] / uvw[:, 2:3]
-        x0 = max(int(uv[:, 0].min()) - 1, 0)
-        x1 = min(int(uv[:, 0].max()) + 2, W_IMG)
-        y0 = max(int(uv[:, 1].min()) - 1, 0)
-        y1 = min(int(uv[:, 1].max()) + 2, H_IMG)
-        if x1 <= x0 or y1 <= y0:
-            continue
+        x0, x1, y0, y1 = box
         mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
         cv2.fillConvexPoly(
             mask, np.round((uv - [x0, y0]) * 16).astype(np.int32), 255, cv2.LINE_AA, 4
@@ -381,6 +362,42 @@ def contact_shadows(fr: Frame, posed) -> None:
         mask = (mask.astype(np.float32) / 255.0) * (fr.sid[y0:y1, x0:x1] == SID_GROUND)
         roi = fr.img[y0:y1, x0:x1]
         roi[:] = (roi * (1.0 - 0.45 * mask[..., None])).astype(np.uint8)
+
+
+def _footprint_uv(fr: Frame, size, R: np.ndarray, ctr: np.ndarray) -> np.ndarray | None:
+    """The pixel polygon (n, 2) of a vehicle's shadow footprint (its ``size`` (w, l, h) m
+    and 0.2-0.25 m around, 1 cm above the ground at pose ``R``, ``ctr``), clipped at the
+    near plane; None when fewer than 3 corners remain in front of the camera."""
+    w, length, _ = size
+    fpts = np.array(
+        [
+            [length / 2 + 0.2, w / 2 + 0.25, 0],
+            [-length / 2 - 0.2, w / 2 + 0.25, 0],
+            [-length / 2 - 0.2, -w / 2 - 0.25, 0],
+            [length / 2 + 0.2, -w / 2 - 0.25, 0],
+        ]
+    )
+    world = fpts @ R.T + np.array([ctr[0], ctr[1], 0.01])
+    Xc = (world - fr.c) @ fr.R_wc
+    if Xc[:, 2].max() < Z_NEAR:
+        return None
+    poly = clip_near(Xc)
+    if len(poly) < 3:
+        return None
+    uvw = poly @ fr.K.T
+    return uvw[:, :2] / uvw[:, 2:3]
+
+
+def _shadow_box(uv: np.ndarray) -> tuple[int, int, int, int] | None:
+    """The pixel box (x0, x1, y0, y1), end-exclusive, one pixel around the polygon ``uv``
+    (n, 2) px and clipped to the image; None when nothing of it is left in the image."""
+    x0 = max(int(uv[:, 0].min()) - 1, 0)
+    x1 = min(int(uv[:, 0].max()) + 2, W_IMG)
+    y0 = max(int(uv[:, 1].min()) - 1, 0)
+    y1 = min(int(uv[:, 1].max()) + 2, H_IMG)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    return x0, x1, y0, y1
 
 
 # --------------------------------------------------------------------------------------------
