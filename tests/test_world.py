@@ -352,6 +352,9 @@ def _tiny(root, seed=0, **kw):
 
 
 def test_same_seed_gives_byte_identical_tables_and_images(tmp_path):
+    """Two worlds of one seed are the same bytes, the second made into a folder that exists
+    already (as a killed generation leaves it); another seed's differ."""
+    (tmp_path / "b").mkdir()
     a, b, c = (_tiny(tmp_path / "a"), _tiny(tmp_path / "b"), _tiny(tmp_path / "c", seed=1))
     files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
     assert any(str(f).endswith(".jpg") for f in files) and len(files) > 15

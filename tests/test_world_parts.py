@@ -367,7 +367,7 @@ def test_the_world_s_progress_counts_its_scenes_out_of_their_number(monkeypatch,
     out = dataset._run_jobs([(i,) for i in range(3)], 1, progress=True)
     assert out == [{"index": 0}, {"index": 1}, {"index": 2}]
     err = capsys.readouterr().err
-    assert "synthetic world" in err and "3/3" in err, err
+    assert "synthetic world" in err and "3/3" in err and "scene/s" in err, err
 
 
 
@@ -386,6 +386,27 @@ def test_a_cruise_is_high_speed_on_an_arterial_and_city_driving_elsewhere():
             got = _describe(np.random.default_rng(seed), "cruise", layout, [], "clear")
             assert got == ("Big street, " + words if said else "Big street"), (seed, got)
     assert seen == {True, False}
+    # with nothing else to say, a scene is "City driving" (a cruise on a two-lane street,
+    # described by its speed or not)
+    two_lanes = {"kind": "urban", "main": {"lanes": 2}}
+    for seed in range(4):
+        assert _describe(np.random.default_rng(seed), "cruise", two_lanes, [], "clear") == (
+            "City driving")
+
+
+def test_an_agent_s_global_state_has_one_value_per_time():
+    """``agent_state_global`` at three times: every quantity (x, y, z, yaw, speed, vx, vy,
+    vz) an array of three; z is half the agent's height, vz zero."""
+    from flowmod.world import agents
+    from flowmod.world import scene as ws
+
+    sc = agents.sample_scene(7, 1, 4, 10, "clear", with_sweeps=False, near_movers=2)
+    agent = sc["agents"][0]
+    st = ws.agent_state_global(sc, agent, np.array([0.0, 0.5, 1.0]))
+    assert {k: np.shape(v) for k, v in st.items()} == {k: (3,) for k in (
+        "x", "y", "z", "yaw", "speed", "vx", "vy", "vz")}
+    np.testing.assert_array_equal(st["z"], np.full(3, agent["size"][2] / 2))
+    np.testing.assert_array_equal(st["vz"], np.zeros(3))
 
 
 def test_vehicles_are_placed_in_three_phases_by_their_tries():
